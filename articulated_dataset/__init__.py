@@ -1,0 +1,16 @@
+"""articulated_dataset: synthetic articulated-object depth data, benchmark and baselines.
+
+Importing the package selects MuJoCo's EGL offscreen backend unless ``MUJOCO_GL`` is
+already set (``MUJOCO_GL=osmesa`` for the software fallback).
+"""
+
+import os as _os
+
+_os.environ.setdefault("MUJOCO_GL", "egl")
+if _os.environ["MUJOCO_GL"] in ("egl", "osmesa"):
+    _os.environ.setdefault("PYOPENGL_PLATFORM", _os.environ["MUJOCO_GL"])
+
+__version__ = "0.1.0"
+
+#: Version of the on-disk shard format (bump when stored samples change).
+FORMAT_VERSION = "1.0"

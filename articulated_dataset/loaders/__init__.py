@@ -1,0 +1,1 @@
+"""articulated_dataset.loaders"""

@@ -1,0 +1,244 @@
+"""The generation pipeline: small stages composed per object, per shard and per split.
+
+sample -> template -> compile -> render -> label -> write.  Executors (this module's local
+process pool, or Ray in :mod:`articulated_dataset.executors`) only map
+:func:`generate_shard` over shard indices; every shard is a pure function of the
+:class:`GenerationConfig` and its index, so any executor produces identical bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from . import FORMAT_VERSION, __version__
+from .camera import R_CAMERA_TO_OPTICAL, CameraConfig
+from .errors import UserError
+from .labels import MASK_FIRST_PART, model_info, read_configuration, read_object_labels, visible_pixels
+from .registry import JOINT_TYPES, ObjectClass, get_class
+from .render import DepthRenderer, process_renderer
+from .sampling import ObjectSample, mean_object, sample_id, sample_object, sample_pose
+from .scene import build_model, set_configuration
+from .schema import FIELDS
+from .shards import shard_name, write_shard
+from .tables import SamplingTable
+from .templating import render_urdf
+
+log = logging.getLogger(__name__)
+
+#: Depth values are rounded to multiples of 2**-13 m (0.122 mm), far below any depth
+#: sensor's resolution; it makes float32 depth compress ~3x better losslessly.
+DEFAULT_DEPTH_QUANTUM_M = 2.0**-13
+#: A moving part must cover at least this fraction of the image in every view
+#: (0.2% = 41 px at 192x108); otherwise the object's pose is redrawn.
+DEFAULT_MIN_PART_FRACTION = 0.002
+DEFAULT_IMAGES_PER_OBJECT = 16
+DEFAULT_OBJECTS_PER_SHARD = 64
+DEFAULT_SEED = 0
+#: Pose redraws allowed per object before giving up (a table that never shows the part).
+MAX_POSE_ATTEMPTS = 200
+
+
+@dataclass(frozen=True)
+class GenerationConfig:
+    """Everything that determines a split's bytes."""
+
+    class_name: str
+    split: str = "train"
+    n_objects: int = 100
+    seed: int = DEFAULT_SEED
+    images_per_object: int = DEFAULT_IMAGES_PER_OBJECT
+    objects_per_shard: int = DEFAULT_OBJECTS_PER_SHARD
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    table: SamplingTable | None = None  # None: the class's default table
+    min_part_pixels: int | None = None  # None: DEFAULT_MIN_PART_FRACTION of the image
+    depth_quantum_m: float = DEFAULT_DEPTH_QUANTUM_M
+    mean: bool = False  # render the class's mean object (n_objects must be 1)
+
+    def __post_init__(self) -> None:
+        obj_class = get_class(self.class_name)  # UserError for unknown names
+        if self.n_objects <= 0:
+            raise UserError(f"number of objects must be positive, got {self.n_objects}")
+        if self.images_per_object <= 0:
+            raise UserError(f"images per object must be positive, got {self.images_per_object}")
+        if self.objects_per_shard <= 0:
+            raise UserError(f"objects per shard must be positive, got {self.objects_per_shard}")
+        if self.seed < 0:
+            raise UserError(f"seed must be >= 0, got {self.seed}")
+        if self.mean and self.n_objects != 1:
+            raise UserError("--mean renders exactly one object (the class's mean object)")
+        if not self.split or "/" in self.split or self.split.startswith("."):
+            raise UserError(f"invalid split name {self.split!r}")
+        if self.table is None:
+            object.__setattr__(self, "table", obj_class.table)
+        if self.min_part_pixels is None:
+            area = self.camera.width_px * self.camera.height_px
+            object.__setattr__(self, "min_part_pixels", int(math.ceil(DEFAULT_MIN_PART_FRACTION * area)))
+
+    @property
+    def obj_class(self) -> ObjectClass:
+        return get_class(self.class_name)
+
+    @property
+    def n_shards(self) -> int:
+        return -(-self.n_objects // self.objects_per_shard)
+
+    def shard_objects(self, shard_index: int) -> range:
+        start = shard_index * self.objects_per_shard
+        return range(start, min(start + self.objects_per_shard, self.n_objects))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["table"] = self.table.to_dict()
+        d["format_version"] = FORMAT_VERSION
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "GenerationConfig":
+        d = {k: v for k, v in d.items() if k != "format_version"}
+        d["camera"] = CameraConfig(**d["camera"])
+        d["table"] = SamplingTable.from_dict(d["table"])
+        return cls(**d)
+
+
+class _ClassCache:
+    """Per-process cache of what does not change between objects of a class."""
+
+    def __init__(self, obj_class: ObjectClass):
+        self.obj_class = obj_class
+        self.template = str(obj_class.template_path())
+        self.joint_names = [j.name for j in obj_class.joints]
+
+
+def render_object(sample: ObjectSample, config: GenerationConfig, renderer: DepthRenderer, *, check_visibility: bool = True):
+    """Template, compile, render and label one sampled object.
+
+    Redraws the pose (from the object's own generator, after its other draws) while a moving
+    part covers fewer than ``config.min_part_pixels`` in some view.  Returns
+    ``(arrays, sample, attempts)`` where ``arrays`` holds every schema field for the
+    object's images.
+    """
+    obj_class = config.obj_class
+    urdf = render_urdf(obj_class.template_path(), sample.template_mappings(config.table))
+    rng = None
+    J = obj_class.n_joints
+    n = config.images_per_object
+    H, W = config.camera.height_px, config.camera.width_px
+    for attempt in range(1, MAX_POSE_ATTEMPTS + 1):
+        model = build_model(urdf, sample.pose, config.camera, obj_class.base_link)
+        data = mujoco.MjData(model)
+        info = model_info(model, obj_class)
+        labels = read_object_labels(model, data, info, obj_class)
+        renderer.bind(model)
+        depth = np.empty((n, H, W), np.float32)
+        mask = np.empty((n, H, W), np.uint8)
+        q = np.empty((n, J), np.float64)
+        vis = np.empty((n, 1 + J), np.int32)
+        ok = True
+        for i in range(n):
+            set_configuration(model, data, info.joint_ids, sample.q[i])
+            d, geom_id = renderer.render(data)
+            mask[i] = info.mask_from_geoms(geom_id)
+            vis[i] = visible_pixels(mask[i], J)
+            if check_visibility and vis[i, 1:].min() < config.min_part_pixels:
+                ok = False
+                break
+            depth[i] = d
+            q[i] = read_configuration(data, info)
+        if ok:
+            break
+        if rng is None:
+            _, rng = sample_object(obj_class, config.table, seed=sample.seed, split=sample.split,
+                                   object_index=sample.object_index, n_images=n)
+        sample = replace(sample, pose=sample_pose(rng, config.table))
+    else:
+        raise UserError(
+            f"{obj_class.name} object {sample.object_index}: no pose in the table shows every moving part "
+            f"with >= {config.min_part_pixels} px after {MAX_POSE_ATTEMPTS} attempts; check the table"
+        )
+    if config.depth_quantum_m > 0:
+        depth = (np.round(depth / config.depth_quantum_m) * config.depth_quantum_m).astype(np.float32)
+    ids = np.array([sample_id(config.class_name, config.split, config.seed, sample.object_index, i) for i in range(n)], np.int64)
+    arrays = {
+        "depth": depth,
+        "mask": mask,
+        "q": q.astype(np.float32),
+        "axis_origin": np.repeat(labels["axis_origin"][None], n, 0).astype(np.float32),
+        "axis_direction": np.repeat(labels["axis_direction"][None], n, 0).astype(np.float32),
+        "axis_pose": np.repeat(labels["axis_pose"][None], n, 0).astype(np.float32),
+        "part_offset": np.repeat(labels["part_offset"][None], n, 0).astype(np.float32),
+        "object_pose": np.repeat(labels["object_pose"][None], n, 0).astype(np.float32),
+        "object_yaw": np.full(n, labels["object_yaw"], np.float32),
+        "geometry": np.repeat(labels["geometry"][None], n, 0).astype(np.float32),
+        "visible_pixels": vis,
+        "object_index": np.full(n, sample.object_index, np.int64),
+        "image_index": np.arange(n, dtype=np.int32),
+        "sample_id": ids,
+        "class": np.full(n, config.class_name.encode("ascii"), dtype="S32"),
+    }
+    return arrays, sample, attempt
+
+
+def object_sample(config: GenerationConfig, object_index: int) -> ObjectSample:
+    """Stage 1 for object ``object_index`` of the split (the mean object with ``config.mean``)."""
+    if config.mean:
+        return mean_object(config.obj_class, config.table, split=config.split, n_images=config.images_per_object)
+    sample, _ = sample_object(config.obj_class, config.table, seed=config.seed, split=config.split,
+                              object_index=object_index, n_images=config.images_per_object)
+    return sample
+
+
+def shard_attrs(config: GenerationConfig, objects: range) -> dict:
+    obj_class = config.obj_class
+    assert set(obj_class.joint_types) <= set(JOINT_TYPES)
+    return {
+        "format_version": FORMAT_VERSION,
+        "class_name": config.class_name,
+        "split": config.split,
+        "seed": config.seed,
+        "n_objects": len(objects),
+        "object_start": objects.start,
+        "object_stop": objects.stop,
+        "images_per_object": config.images_per_object,
+        "n_joints": obj_class.n_joints,
+        "joint_names": json.dumps([j.name for j in obj_class.joints]),
+        "joint_types": json.dumps(list(obj_class.joint_types)),
+        "image_width": config.camera.width_px,
+        "image_height": config.camera.height_px,
+        "vfov_deg": config.camera.vfov_deg,
+        "depth_quantum_m": config.depth_quantum_m,
+        "min_part_pixels": config.min_part_pixels,
+        "mean_object": int(config.mean),
+        "sampling_table": config.table.to_json(),
+        "package_version": __version__,
+    }
+
+
+def generate_shard(config: GenerationConfig, shard_index: int, split_dir: str | Path, progress=None) -> dict:
+    """Generate shard ``shard_index`` of the split into ``split_dir``; returns its manifest record.
+
+    ``progress(n_images)`` is called after each object, if given.
+    """
+    renderer = process_renderer(config.camera)
+    objects = config.shard_objects(shard_index)
+    parts: dict[str, list] = {f.name: [] for f in FIELDS}
+    attempts = 0
+    for k in objects:
+        arrays, _, tries = render_object(object_sample(config, k), config, renderer, check_visibility=not config.mean)
+        attempts += tries
+        for name, a in arrays.items():
+            parts[name].append(a)
+        if progress is not None:
+            progress(config.images_per_object)
+    arrays = {name: np.concatenate(v, axis=0) for name, v in parts.items()}
+    attrs = shard_attrs(config, objects)
+    attrs["pose_attempts"] = attempts
+    record = write_shard(Path(split_dir) / shard_name(shard_index), arrays, attrs, config.camera.K, R_CAMERA_TO_OPTICAL)
+    record.update(object_start=objects.start, object_stop=objects.stop, pose_attempts=attempts)
+    return record

@@ -1,0 +1,166 @@
+"""Stage 4 of the pipeline: offscreen depth + part-mask rendering with MuJoCo.
+
+One :class:`DepthRenderer` per process owns the GL context and one ``MjrContext``; every
+frame is a single render pass whose colour buffer holds segmentation ids and whose depth
+buffer holds depth, read back together.  Models made only of primitive geoms (all built-in
+classes) share the one ``MjrContext``; a model with meshes, textures or height fields gets
+its own (built once per model).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import mujoco
+import numpy as np
+
+from .camera import CameraConfig
+from .errors import RenderError
+
+log = logging.getLogger(__name__)
+
+_MISSING_GL_HELP = (
+    "cannot create an offscreen OpenGL context with MUJOCO_GL={backend!r}: {exc}. "
+    "Rendering needs EGL from Mesa (Debian/Ubuntu: apt-get install libegl1 libgl1-mesa-dri) "
+    "or OSMesa (apt-get install libosmesa6, then MUJOCO_GL=osmesa)."
+)
+
+
+def _make_gl_context(width: int, height: int):
+    backend = os.environ.get("MUJOCO_GL", "egl").lower()
+    try:
+        if backend == "egl":
+            from mujoco.egl import GLContext
+        elif backend == "osmesa":
+            from mujoco.osmesa import GLContext
+        elif backend == "glfw":
+            from mujoco.glfw import GLContext
+        else:
+            raise RenderError(f"unsupported MUJOCO_GL={backend!r}; use egl or osmesa")
+        ctx = GLContext(width, height)
+        ctx.make_current()
+        return ctx
+    except RenderError:
+        raise
+    except Exception as exc:
+        raise RenderError(_MISSING_GL_HELP.format(backend=backend, exc=exc)) from exc
+
+
+def _needs_own_context(model: mujoco.MjModel) -> bool:
+    return bool(model.nmesh or model.ntex or model.nhfield or model.nskin)
+
+
+class DepthRenderer:
+    """Renders z-depth (m) and per-geom segmentation of a model's camera.
+
+    Create once per process; :meth:`bind` a model (cheap), then :meth:`render` frames.
+    """
+
+    def __init__(self, camera: CameraConfig):
+        self.camera = camera
+        self._gl = _make_gl_context(camera.width_px, camera.height_px)
+        self._shared_con: mujoco.MjrContext | None = None
+        self._con = None
+        self._model = None
+        self._rgb = np.zeros((camera.height_px, camera.width_px, 3), np.uint8)
+        self._depth = np.zeros((camera.height_px, camera.width_px), np.float32)
+        self._viewport = mujoco.MjrRect(0, 0, camera.width_px, camera.height_px)
+        self._opt = mujoco.MjvOption()
+        self._cam = mujoco.MjvCamera()
+        self._cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+
+    def _context_for(self, model: mujoco.MjModel) -> mujoco.MjrContext:
+        self._gl.make_current()
+        if _needs_own_context(model):
+            con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_50)
+        else:
+            if self._shared_con is None:
+                self._shared_con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_50)
+            con = self._shared_con
+        if con.offWidth < self.camera.width_px or con.offHeight < self.camera.height_px:
+            raise RenderError(
+                f"offscreen buffer {con.offWidth}x{con.offHeight} smaller than the image "
+                f"{self.camera.width_px}x{self.camera.height_px}"
+            )
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, con)
+        return con
+
+    def bind(self, model: mujoco.MjModel, camera_name: str = "camera") -> None:
+        """Prepare rendering of ``model`` from its camera ``camera_name``."""
+        self._model = model
+        self._con = self._context_for(model)
+        self._scn = mujoco.MjvScene(model, maxgeom=max(64, 2 * model.ngeom))
+        self._scn.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 1
+        self._scn.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 1
+        cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera_name)
+        if cam_id < 0:
+            raise ValueError(f"model has no camera named {camera_name!r}")
+        self._cam.fixedcamid = cam_id
+        extent = model.stat.extent
+        self._near = model.vis.map.znear * extent
+        self._far = model.vis.map.zfar * extent
+
+    def render(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
+        """Render the bound model in state ``data`` (kinematics must be up to date).
+
+        Returns ``(depth_m, geom_id)``: float32 z-depth along the optical axis in metres
+        (0 where nothing was hit) and int32 MuJoCo geom ids (-1 for background), both
+        (H, W) with row 0 at the top of the image.
+        """
+        model = self._model
+        mujoco.mjv_updateScene(model, data, self._opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL, self._scn)
+        mujoco.mjr_render(self._viewport, self._scn, self._con)
+        mujoco.mjr_readPixels(self._rgb, self._depth, self._viewport, self._con)
+        # Segmentation colour encodes (index in scene geoms + 1); 0 = background.
+        rgb = self._rgb[::-1]
+        seg = rgb[..., 0].astype(np.int32) | (rgb[..., 1].astype(np.int32) << 8) | (rgb[..., 2].astype(np.int32) << 16)
+        lookup = np.full(self._scn.ngeom + 1, -1, np.int32)
+        for i in range(self._scn.ngeom):
+            g = self._scn.geoms[i]
+            if g.objtype == mujoco.mjtObj.mjOBJ_GEOM:
+                lookup[i + 1] = g.objid
+        geom_id = lookup[seg]
+        buf = self._depth[::-1]
+        near, far = self._near, self._far
+        # OpenGL depth buffer value d in [0, 1] -> linear z: z = n / (1 - d (1 - n / f)).
+        depth = (near / (1.0 - buf * (1.0 - near / far))).astype(np.float32)
+        depth[buf >= 1.0] = 0.0
+        return depth, geom_id
+
+    def render_rgb(self, data: mujoco.MjData) -> np.ndarray:
+        """A shaded colour preview of the bound model (H, W, 3) uint8, for galleries."""
+        self._scn.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 0
+        self._scn.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 0
+        try:
+            mujoco.mjv_updateScene(self._model, data, self._opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL, self._scn)
+            mujoco.mjr_render(self._viewport, self._scn, self._con)
+            mujoco.mjr_readPixels(self._rgb, self._depth, self._viewport, self._con)
+            return self._rgb[::-1].copy()
+        finally:
+            self._scn.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 1
+            self._scn.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 1
+
+    def close(self) -> None:
+        self._shared_con = self._con = None
+        if self._gl is not None:
+            try:
+                self._gl.free()
+            except Exception:  # freeing at interpreter exit can fail harmlessly
+                pass
+            self._gl = None
+
+
+_PROCESS_RENDERERS: dict[tuple[int, CameraConfig], DepthRenderer] = {}
+
+
+def process_renderer(camera: CameraConfig) -> DepthRenderer:
+    """The renderer of this process for ``camera`` (created on first use, then reused).
+
+    Keyed by process id too: a GL context never crosses a ``fork``.
+    """
+    key = (os.getpid(), camera)
+    r = _PROCESS_RENDERERS.get(key)
+    if r is None:
+        r = _PROCESS_RENDERERS[key] = DepthRenderer(camera)
+    return r

@@ -1,0 +1,136 @@
+"""Stage 1 of the pipeline: sample one object's parameters from its class table.
+
+Randomness is injected: every object gets its own ``numpy.random.Generator`` derived from
+``SeedSequence([seed, class_key, split_key, object_index])`` only, so object k is the same
+whichever process generates it and however the work is split, and splits never share a
+random stream.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .registry import ObjectClass
+from .tables import GEOMETRY_KEYS, POSE_KEYS, SamplingTable
+
+SPLITS = ("train", "val", "test", "real")
+
+
+def stable_key(text: str) -> int:
+    """A 32-bit integer derived from ``text`` that never changes across runs or platforms."""
+    return int.from_bytes(hashlib.blake2b(text.encode("utf-8"), digest_size=4).digest(), "little")
+
+
+def object_rng(seed: int, class_name: str, split: str, object_index: int) -> np.random.Generator:
+    """The random generator of one object: ``SeedSequence([seed, H(class), H(split), index])``."""
+    if seed < 0 or object_index < 0:
+        raise ValueError("seed and object_index must be >= 0")
+    ss = np.random.SeedSequence([int(seed), stable_key(class_name), stable_key(split), int(object_index)])
+    return np.random.Generator(np.random.PCG64(ss))
+
+
+def sample_id(class_name: str, split: str, seed: int, object_index: int, image_index: int) -> int:
+    """Stable 63-bit identifier of one image: a hash of (class, split, seed, object, image)."""
+    text = f"{class_name}/{split}/{seed}/{object_index}/{image_index}"
+    return int.from_bytes(hashlib.blake2b(text.encode("utf-8"), digest_size=8).digest(), "little") >> 1
+
+
+def stratified_configurations(rng: np.random.Generator, q_ranges, n_images: int) -> np.ndarray:
+    """Configurations of one object's images, shape (n_images, J).
+
+    * J = 1: one uniform draw in each of ``n_images`` equal strata of the range, in order.
+    * J >= 2 and ``n_images = g**J`` (16 = 4x4 for J = 2): a jittered g x ... x g grid, one
+      uniform draw per cell, so the images cover the whole configuration square.
+    * otherwise: a Latin hypercube (each joint's range is stratified, strata paired at random).
+    """
+    J = len(q_ranges)
+    lo = np.array([r[0] for r in q_ranges])
+    hi = np.array([r[1] for r in q_ranges])
+    if J == 1:
+        u = (np.arange(n_images) + rng.random(n_images)) / n_images
+        return (lo + u[:, None] * (hi - lo)).astype(np.float64)
+    g = round(n_images ** (1.0 / J))
+    if g**J == n_images:
+        cells = np.stack(np.meshgrid(*[np.arange(g)] * J, indexing="ij"), axis=-1).reshape(-1, J)
+        u = (cells + rng.random((n_images, J))) / g
+    else:
+        u = np.stack([(rng.permutation(n_images) + rng.random(n_images)) / n_images for _ in range(J)], axis=1)
+    return lo + u * (hi - lo)
+
+
+@dataclass(frozen=True)
+class ObjectSample:
+    """Sampled parameters of one object (before rendering)."""
+
+    class_name: str
+    split: str
+    seed: int
+    object_index: int
+    geometry: dict  # depth_m, width_m, height_m
+    chirality: int
+    q: np.ndarray  # (n_images, J)
+    pose: dict  # x_m, y_m, z_m, yaw_rad
+
+    def template_mappings(self, table: SamplingTable) -> dict[str, str]:
+        """Xacro arguments of the class template (all as strings, SI units)."""
+        m = {k: repr(float(v)) for k, v in self.geometry.items()}
+        m["chirality"] = str(int(self.chirality))
+        for j, (_, hi) in enumerate(table.q):
+            m[f"q_max_{j}"] = repr(float(hi))
+        return m
+
+
+def sample_pose(rng: np.random.Generator, table: SamplingTable) -> dict:
+    """Base position (m) and yaw (rad), uniform in the table's ranges."""
+    return {k: float(rng.uniform(*table.pose[k])) for k in POSE_KEYS}
+
+
+def sample_object(
+    obj_class: ObjectClass,
+    table: SamplingTable,
+    *,
+    seed: int,
+    split: str,
+    object_index: int,
+    n_images: int,
+    rng: np.random.Generator | None = None,
+) -> tuple[ObjectSample, np.random.Generator]:
+    """Draw geometry, chirality and configurations, then a first pose.
+
+    Returns the sample and the object's generator, positioned after these draws, so that a
+    rejected pose can be redrawn with :func:`sample_pose` deterministically.
+    """
+    if rng is None:
+        rng = object_rng(seed, obj_class.name, split, object_index)
+    geometry = {k: float(rng.uniform(*table.geometry[k])) for k in GEOMETRY_KEYS}
+    chirality = int(rng.random() < table.chirality_p)
+    q = stratified_configurations(rng, table.q, n_images)
+    pose = sample_pose(rng, table)
+    sample = ObjectSample(obj_class.name, split, seed, object_index, geometry, chirality, q, pose)
+    return sample, rng
+
+
+def mean_object(obj_class: ObjectClass, table: SamplingTable, *, split: str, n_images: int) -> ObjectSample:
+    """The class's mean object: every geometry and pose parameter at the centre of its range,
+    chirality 0, configurations evenly spread (stratum centres / grid-cell centres)."""
+    geometry = {k: 0.5 * (lo + hi) for k, (lo, hi) in table.geometry.items()}
+    pose = {k: 0.5 * (lo + hi) for k, (lo, hi) in table.pose.items()}
+
+    class _Centre:  # a "generator" whose uniform draws are all 0.5: stratum/cell centres
+        def random(self, size=None):
+            return np.full(size, 0.5)
+
+        def permutation(self, n):
+            return np.arange(n)
+
+    q = stratified_configurations(_Centre(), table.q, n_images)
+    return ObjectSample(obj_class.name, split, 0, 0, geometry, 0, q, pose)
+
+
+def yaw_quaternion(yaw_rad: float) -> np.ndarray:
+    """Quaternion (w, x, y, z) of a rotation by ``yaw_rad`` about +z."""
+    return np.array([math.cos(yaw_rad / 2), 0.0, 0.0, math.sin(yaw_rad / 2)])

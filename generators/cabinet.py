@@ -1,0 +1,23 @@
+"""Cabinet: one revolute door, hinged left or right with equal probability."""
+
+from articulated_dataset.registry import REVOLUTE, JointSpec, ObjectClass, register
+from articulated_dataset.tables import SamplingTable
+
+from ._common import NEAR_POSE_M, REVOLUTE_Q_RAD, YAW_RAD
+
+TABLE = SamplingTable(
+    geometry={"depth_m": (0.56, 0.64), "width_m": (0.60, 1.40), "height_m": (0.60, 1.40)},
+    pose={**NEAR_POSE_M, "yaw_rad": YAW_RAD},
+    q=(REVOLUTE_Q_RAD,),
+    chirality_p=0.5,  # "Cabinets that open clockwise/counterclockwise ... with equal probability"
+)
+
+CLASS = register(ObjectClass(
+    name="cabinet",
+    template="cabinet.urdf.xacro",
+    table=TABLE,
+    joints=(JointSpec("door_hinge", REVOLUTE, "door"),),
+    sided=True,
+    description="1 revolute door, hinged on the left or right front edge",
+    order=0,
+))

@@ -1,0 +1,21 @@
+"""Two-door cabinet: a left and a right revolute door (2 DoF)."""
+
+from articulated_dataset.registry import REVOLUTE, JointSpec, ObjectClass, register
+from articulated_dataset.tables import SamplingTable
+
+from ._common import NEAR_POSE_M, REVOLUTE_Q_RAD, YAW_RAD
+
+TABLE = SamplingTable(
+    geometry={"depth_m": (0.56, 0.64), "width_m": (0.60, 1.40), "height_m": (0.60, 1.40)},
+    pose={**NEAR_POSE_M, "yaw_rad": YAW_RAD},
+    q=(REVOLUTE_Q_RAD, REVOLUTE_Q_RAD),
+)
+
+CLASS = register(ObjectClass(
+    name="cabinet2",
+    template="cabinet2.urdf.xacro",
+    table=TABLE,
+    joints=(JointSpec("left_door_hinge", REVOLUTE, "left_door"), JointSpec("right_door_hinge", REVOLUTE, "right_door")),
+    description="two-door cabinet: left door (joint 0) and right door (joint 1)",
+    order=4,
+))

@@ -1,0 +1,23 @@
+"""Microwave: one side-hinged revolute door (hinged on the left, as most microwaves)."""
+
+from articulated_dataset.registry import REVOLUTE, JointSpec, ObjectClass, register
+from articulated_dataset.tables import SamplingTable
+
+from ._common import NEAR_POSE_M, REVOLUTE_Q_RAD, YAW_RAD
+
+TABLE = SamplingTable(
+    geometry={"depth_m": (0.25, 0.56), "width_m": (0.40, 0.76), "height_m": (0.22, 0.45)},
+    pose={**NEAR_POSE_M, "yaw_rad": YAW_RAD},
+    q=(REVOLUTE_Q_RAD,),
+    chirality_p=0.0,  # the paper gives no mirrored microwaves; override to mirror some
+)
+
+CLASS = register(ObjectClass(
+    name="microwave",
+    template="microwave.urdf.xacro",
+    table=TABLE,
+    joints=(JointSpec("door_hinge", REVOLUTE, "door"),),
+    sided=True,
+    description="1 revolute side-hinged door beside a control panel",
+    order=2,
+))

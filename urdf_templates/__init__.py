@@ -1,0 +1,1 @@
+"""Xacro templates, one ``<class>.urdf.xacro`` per object class, plus shared ``common.xacro``."""
