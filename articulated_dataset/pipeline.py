@@ -242,3 +242,145 @@ def generate_shard(config: GenerationConfig, shard_index: int, split_dir: str | 
     record = write_shard(Path(split_dir) / shard_name(shard_index), arrays, attrs, config.camera.K, R_CAMERA_TO_OPTICAL)
     record.update(object_start=objects.start, object_stop=objects.stop, pose_attempts=attempts)
     return record
+
+
+# --------------------------------------------------------------------------------------
+# Split generation (local executor)
+# --------------------------------------------------------------------------------------
+
+def split_dir_for(out_root: str | Path, config: GenerationConfig) -> Path:
+    """``OUT/<class>/<split>`` (``OUT/<class>/mean`` for the mean object)."""
+    return Path(out_root) / config.class_name / ("mean" if config.mean else config.split)
+
+
+def _manifest(config: GenerationConfig, records: dict[int, dict]) -> dict:
+    shards = [records[i] for i in sorted(records)]
+    complete = len(shards) == config.n_shards
+    return {
+        "format_version": FORMAT_VERSION,
+        "package_version": __version__,
+        "class_name": config.class_name,
+        "split": config.split,
+        "seed": config.seed,
+        "complete": complete,
+        "n_objects": sum(r["object_stop"] - r["object_start"] for r in shards),
+        "n_images": sum(r["n_images"] for r in shards),
+        "n_shards_expected": config.n_shards,
+        "config": config.to_dict(),
+        "shards": shards,
+    }
+
+
+def _prepare_output(split_dir: Path, config: GenerationConfig, *, resume: bool, overwrite: bool) -> dict[int, dict]:
+    """Check/clean the output folder; return the records of shards already complete (resume)."""
+    from .shards import MANIFEST_NAME, SHARD_PATTERN, TMP_SUFFIX, read_manifest, sha256_file
+
+    if resume and overwrite:
+        raise UserError("--resume and --overwrite are mutually exclusive")
+    try:
+        split_dir.mkdir(parents=True, exist_ok=True)
+        probe = split_dir / f".write-test{TMP_SUFFIX}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise UserError(f"cannot write to output folder {split_dir}: {exc.strerror or exc}") from None
+    existing = [p for p in split_dir.iterdir() if not p.name.endswith(TMP_SUFFIX)]
+    for p in split_dir.glob(f"*{TMP_SUFFIX}"):
+        p.unlink()  # leftovers of an interrupted write are never valid
+    if not existing:
+        return {}
+    if overwrite:
+        for p in existing:
+            if p.is_file() and (p.name == MANIFEST_NAME or p.suffix == ".h5"):
+                p.unlink()
+        return {}
+    if not resume:
+        raise UserError(f"{split_dir} already holds generated data; pass --resume to continue it or --overwrite to replace it")
+    records: dict[int, dict] = {}
+    manifest_path = split_dir / MANIFEST_NAME
+    if manifest_path.exists():
+        old = read_manifest(split_dir)
+        if GenerationConfig.from_dict(old["config"]) != config:
+            raise UserError(f"{split_dir} was generated with different settings; --resume needs the same command (or use --overwrite)")
+        for rec in old["shards"]:
+            records[int(Path(rec["file"]).stem.split("-")[1])] = rec
+    # Shards on disk but not yet in the manifest (killed between rename and manifest update)
+    # are complete by construction (atomic rename); checksum them now.
+    for i in range(config.n_shards):
+        path = split_dir / SHARD_PATTERN.format(i)
+        if i in records:
+            if not path.exists() or path.stat().st_size != records[i]["bytes"]:
+                del records[i]
+            continue
+        if path.exists():
+            from .shards import Shard
+
+            sh = Shard(path)
+            try:
+                if sh.attrs.get("object_start") != config.shard_objects(i).start:
+                    continue
+                n = len(sh)
+            finally:
+                sh.close()
+            objects = config.shard_objects(i)
+            records[i] = {"file": path.name, "n_images": n, "bytes": path.stat().st_size, "sha256": sha256_file(path),
+                          "object_start": objects.start, "object_stop": objects.stop,
+                          "pose_attempts": int(Shard(path).attrs.get("pose_attempts", 0))}
+    return records
+
+
+def _worker_init() -> None:
+    # One llvmpipe thread per worker process: the pool provides the parallelism.
+    import os
+
+    os.environ.setdefault("LP_NUM_THREADS", "1")
+
+
+def _run_shard(args):
+    config, index, split_dir = args
+    return index, generate_shard(config, index, split_dir)
+
+
+def generate_split(
+    config: GenerationConfig,
+    out_root: str | Path,
+    *,
+    workers: int = 1,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: bool = False,
+) -> Path:
+    """Generate every shard of ``config`` under ``out_root/<class>/<split>`` and its manifest.
+
+    Shards are independent, so the result is byte-identical for any ``workers`` and across
+    interruptions with ``resume``.  Returns the split folder.
+    """
+    from tqdm import tqdm
+
+    from .shards import write_manifest
+
+    split_dir = split_dir_for(out_root, config)
+    records = _prepare_output(split_dir, config, resume=resume, overwrite=overwrite)
+    todo = [i for i in range(config.n_shards) if i not in records]
+    total_images = config.n_objects * config.images_per_object
+    done_images = sum(r["n_images"] for r in records.values())
+    write_manifest(split_dir, _manifest(config, records))
+    bar = tqdm(total=total_images, initial=done_images, unit="img", disable=not progress,
+               desc=f"{config.class_name}/{config.split}", dynamic_ncols=True)
+    try:
+        if workers <= 1 or len(todo) <= 1:
+            for i in todo:
+                records[i] = generate_shard(config, i, split_dir, progress=bar.update)
+                write_manifest(split_dir, _manifest(config, records))
+        else:
+            import multiprocessing as mp
+
+            ctx = mp.get_context("spawn")  # GL contexts must not be inherited through fork
+            with ctx.Pool(processes=min(workers, len(todo)), initializer=_worker_init) as pool:
+                for i, rec in pool.imap_unordered(_run_shard, [(config, i, split_dir) for i in todo]):
+                    records[i] = rec
+                    bar.update(rec["n_images"])
+                    write_manifest(split_dir, _manifest(config, records))
+    finally:
+        bar.close()
+    return split_dir
