@@ -60,6 +60,7 @@ class GenerationConfig:
     min_part_pixels: int | None = None  # None: DEFAULT_MIN_PART_FRACTION of the image
     depth_quantum_m: float = DEFAULT_DEPTH_QUANTUM_M
     mean: bool = False  # render the class's mean object (n_objects must be 1)
+    noise: str = "none"  # depth sensor-noise model applied after rendering (articulated_dataset.noise)
 
     def __post_init__(self) -> None:
         obj_class = get_class(self.class_name)  # UserError for unknown names
@@ -162,6 +163,14 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
             f"{obj_class.name} object {sample.object_index}: no pose in the table shows every moving part "
             f"with >= {config.min_part_pixels} px after {MAX_POSE_ATTEMPTS} attempts; check the table"
         )
+    if config.noise != "none":
+        from .noise import get_noise_model  # seeded per object: see noise_rng
+
+        apply_noise = get_noise_model(config.noise)
+        nrng = noise_rng(config, sample.object_index)
+        K = config.camera.K
+        for i in range(n):
+            depth[i] = apply_noise(depth[i], K, nrng)
     if config.depth_quantum_m > 0:
         depth = (np.round(depth / config.depth_quantum_m) * config.depth_quantum_m).astype(np.float32)
     ids = np.array([sample_id(config.class_name, config.split, config.seed, sample.object_index, i) for i in range(n)], np.int64)
@@ -183,6 +192,18 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
         "class": np.full(n, config.class_name.encode("ascii"), dtype="S32"),
     }
     return arrays, sample, attempt
+
+
+#: Extra SeedSequence word separating the noise stream from the object's sampling stream.
+NOISE_STREAM = 1
+
+
+def noise_rng(config: GenerationConfig, object_index: int) -> np.random.Generator:
+    """Generator of the sensor noise of one object, independent of its sampling stream."""
+    from .sampling import stable_key
+
+    ss = np.random.SeedSequence([config.seed, stable_key(config.class_name), stable_key(config.split), object_index, NOISE_STREAM])
+    return np.random.Generator(np.random.PCG64(ss))
 
 
 def object_sample(config: GenerationConfig, object_index: int) -> ObjectSample:
@@ -215,6 +236,7 @@ def shard_attrs(config: GenerationConfig, objects: range) -> dict:
         "depth_quantum_m": config.depth_quantum_m,
         "min_part_pixels": config.min_part_pixels,
         "mean_object": int(config.mean),
+        "noise_model": config.noise,
         "sampling_table": config.table.to_json(),
         "package_version": __version__,
     }
@@ -329,16 +351,10 @@ def _prepare_output(split_dir: Path, config: GenerationConfig, *, resume: bool, 
     return records
 
 
-def _worker_init() -> None:
-    # One llvmpipe thread per worker process: the pool provides the parallelism.
-    import os
-
-    os.environ.setdefault("LP_NUM_THREADS", "1")
-
-
-def _run_shard(args):
+def _run_shard(args, progress=None):
+    """Executor task: generate one shard; returns ``(shard_index, manifest_record)``."""
     config, index, split_dir = args
-    return index, generate_shard(config, index, split_dir)
+    return index, generate_shard(config, index, split_dir, progress=progress)
 
 
 def generate_split(
@@ -349,15 +365,22 @@ def generate_split(
     resume: bool = False,
     overwrite: bool = False,
     progress: bool = False,
+    executor=None,
 ) -> Path:
     """Generate every shard of ``config`` under ``out_root/<class>/<split>`` and its manifest.
 
-    Shards are independent, so the result is byte-identical for any ``workers`` and across
-    interruptions with ``resume``.  Returns the split folder.
+    Shards are independent, so the result is byte-identical for any executor, any number of
+    ``workers`` and across interruptions with ``resume``.  ``executor`` (see
+    :mod:`articulated_dataset.executors`) defaults to local processes (``workers``).
+    Returns the split folder.
     """
     from tqdm import tqdm
 
+    from .executors import local_executor
     from .shards import write_manifest
+
+    if executor is None:
+        executor = local_executor(workers)
 
     split_dir = split_dir_for(out_root, config)
     records = _prepare_output(split_dir, config, resume=resume, overwrite=overwrite)
@@ -368,19 +391,9 @@ def generate_split(
     bar = tqdm(total=total_images, initial=done_images, unit="img", disable=not progress,
                desc=f"{config.class_name}/{config.split}", dynamic_ncols=True)
     try:
-        if workers <= 1 or len(todo) <= 1:
-            for i in todo:
-                records[i] = generate_shard(config, i, split_dir, progress=bar.update)
-                write_manifest(split_dir, _manifest(config, records))
-        else:
-            import multiprocessing as mp
-
-            ctx = mp.get_context("spawn")  # GL contexts must not be inherited through fork
-            with ctx.Pool(processes=min(workers, len(todo)), initializer=_worker_init) as pool:
-                for i, rec in pool.imap_unordered(_run_shard, [(config, i, split_dir) for i in todo]):
-                    records[i] = rec
-                    bar.update(rec["n_images"])
-                    write_manifest(split_dir, _manifest(config, records))
+        for i, rec in executor.map_unordered(_run_shard, [(config, i, split_dir) for i in todo], progress=bar.update):
+            records[i] = rec
+            write_manifest(split_dir, _manifest(config, records))
     finally:
         bar.close()
     return split_dir

@@ -46,7 +46,8 @@ class ObjectClass:
     Attributes
     ----------
     name: registry key (``artdata generate --class NAME``).
-    template: file name of the Xacro template in ``urdf_templates/``.
+    template: file name of the Xacro template in ``urdf_templates/`` (or an absolute path to
+        a URDF/Xacro file elsewhere, e.g. a third-party object).
     table: default sampling table (the paper's Appendix A for the built-in classes).
     joints: articulated joints in label order (J = len(joints)).
     base_link: the URDF root link (its frame is the centre of the object's base).
@@ -74,6 +75,9 @@ class ObjectClass:
         return tuple(j.type for j in self.joints)
 
     def template_path(self) -> Path:
+        """The template file: ``template`` itself if absolute, else a file of ``urdf_templates/``."""
+        if Path(self.template).is_absolute():
+            return Path(self.template)
         path = resources.files("articulated_dataset.urdf_templates").joinpath(self.template)
         return Path(str(path))
 
