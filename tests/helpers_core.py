@@ -1,0 +1,97 @@
+"""Helpers for the generator-core tests: render chosen configurations of one object."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import mujoco
+import numpy as np
+
+from articulated_dataset.camera import CameraConfig, backproject
+from articulated_dataset.labels import MASK_FIRST_PART, model_info, read_object_labels
+from articulated_dataset.pipeline import GenerationConfig, object_sample, render_object
+from articulated_dataset.render import process_renderer
+from articulated_dataset.scene import build_model, set_configuration
+from articulated_dataset.templating import render_urdf
+
+
+def final_object(class_name: str, index: int = 0, camera: CameraConfig | None = None, split: str = "train"):
+    """(config, sample) of a visible object, its pose as finally used by the pipeline."""
+    config = GenerationConfig(class_name, split=split, n_objects=index + 1, camera=camera or CameraConfig())
+    renderer = process_renderer(config.camera)
+    _, sample, _ = render_object(object_sample(config, index), config, renderer)
+    return config, sample
+
+
+def compile_object(config, sample):
+    obj_class = config.obj_class
+    urdf = render_urdf(obj_class.template_path(), sample.template_mappings(config.table))
+    model = build_model(urdf, sample.pose, config.camera, obj_class.base_link)
+    data = mujoco.MjData(model)
+    info = model_info(model, obj_class)
+    labels = read_object_labels(model, data, info, obj_class)
+    return urdf, model, data, info, labels
+
+
+def render_at(config, model, data, info, q):
+    renderer = process_renderer(config.camera)
+    renderer.bind(model)
+    set_configuration(model, data, info.joint_ids, np.asarray(q, dtype=float))
+    depth, geom_id = renderer.render(data)
+    return depth, info.mask_from_geoms(geom_id)
+
+
+def part_points(config, depth, mask, joint):
+    return backproject(depth, config.camera.K, mask == MASK_FIRST_PART + joint)
+
+
+def rotate_about_axis(points, origin, direction, angle_rad):
+    """Rodrigues rotation of points about the line (origin, unit direction)."""
+    k = direction / np.linalg.norm(direction)
+    p = points - origin
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return origin + p * c + np.cross(k, p) * s + np.outer(p @ k, k) * (1 - c)
+
+
+def to_object_frame(points, pose):
+    """Camera-frame points -> object frame given the sampled pose (x_m, y_m, z_m, yaw_rad)."""
+    c, s = np.cos(pose["yaw_rad"]), np.sin(pose["yaw_rad"])
+    rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    return (points - np.array([pose["x_m"], pose["y_m"], pose["z_m"]])) @ rot
+
+
+def nearest_distances(a, b, chunk=2048):
+    """For each point of a, the distance to the nearest point of b (brute force)."""
+    out = np.empty(len(a))
+    for i in range(0, len(a), chunk):
+        d2 = ((a[i:i + chunk, None, :] - b[None, :, :]) ** 2).sum(-1)
+        out[i:i + chunk] = np.sqrt(d2.min(1))
+    return out
+
+
+def with_q(sample, q):
+    return dataclasses.replace(sample, q=np.atleast_2d(q))
+
+
+def surface_distances(points, depth, mask_sel, K):
+    """Depth residual (m) of camera-frame points against a rendered surface.
+
+    Each point is projected into the image; the surface depth there is interpolated
+    bilinearly in inverse depth (exact inside a planar face) from the four neighbouring
+    pixels, which must all belong to ``mask_sel``.  Returns |z_point - z_surface| for the
+    points that project inside such pixel quads.
+    """
+    from articulated_dataset.camera import project
+
+    uv, z = project(points, K)
+    H, W = depth.shape
+    u0 = np.floor(uv[:, 0]).astype(int)
+    v0 = np.floor(uv[:, 1]).astype(int)
+    ok = (u0 >= 0) & (v0 >= 0) & (u0 < W - 1) & (v0 < H - 1) & (z > 0)
+    u0, v0, uv, z = u0[ok], v0[ok], uv[ok], z[ok]
+    quad = [(v0, u0), (v0, u0 + 1), (v0 + 1, u0), (v0 + 1, u0 + 1)]
+    inside = np.all([mask_sel[v, u] for v, u in quad], axis=0)
+    fu, fv = uv[:, 0] - u0, uv[:, 1] - v0
+    inv = [1.0 / np.where(depth[v, u] > 0, depth[v, u], np.inf) for v, u in quad]
+    inv_z = inv[0] * (1 - fu) * (1 - fv) + inv[1] * fu * (1 - fv) + inv[2] * (1 - fu) * fv + inv[3] * fu * fv
+    return np.abs(z[inside] - 1.0 / inv_z[inside])

@@ -1,0 +1,220 @@
+"""Labels against rendered pixels, the sampled tables and an independent kinematics library.
+
+Every test runs over every registered class (and every joint of 2-DoF classes).
+"""
+
+import json
+
+import numpy as np
+import pytest
+import yourdfpy
+
+from articulated_dataset.camera import project
+from articulated_dataset.labels import HANDLE_SUFFIX, MASK_BODY, MASK_FIRST_PART
+from articulated_dataset.registry import PRISMATIC, all_classes
+from articulated_dataset.shards import open_split
+from helpers_core import (compile_object, final_object, part_points, render_at, rotate_about_axis, surface_distances,
+                          to_object_frame)
+
+CLASSES = all_classes()
+JOINT_CASES = [(c, j) for c in CLASSES for j in range(c.n_joints)]
+case_id = lambda case: f"{case[0].name}-j{case[1]}"  # noqa: E731
+
+#: Wall/panel thickness of the templates (urdf_templates/common.xacro, panel_m).
+PANEL_M = 0.02
+#: Pixel-level tolerances (m): depth is exact up to the 0.12 mm quantum, points are sampled
+#: at pixel centres.
+PLANE_TOL_M = 0.003
+MOTION_TOL_M = 0.005
+
+
+@pytest.fixture(scope="module")
+def objects():
+    cache = {}
+
+    def get(name):
+        if name not in cache:
+            config, sample = final_object(name, index=1)
+            cache[name] = (config, sample) + compile_object(config, sample)
+        return cache[name]
+
+    return get
+
+
+def _q_pair(obj_class, j):
+    """Two configurations differing only in joint j, close enough (15% of the range) that the
+    camera sees the same faces of the part in both (others held at 10% open)."""
+    lo, hi = obj_class.table.q[j]
+    base = np.array([r[0] + 0.1 * (r[1] - r[0]) for r in obj_class.table.q])
+    q1, q2 = base.copy(), base.copy()
+    q1[j], q2[j] = lo + 0.10 * (hi - lo), lo + 0.25 * (hi - lo)
+    return q1, q2
+
+
+def _move(points, origin, direction, joint_type, dq):
+    if joint_type == PRISMATIC:
+        return points + dq * direction
+    return rotate_about_axis(points, origin, direction, dq)
+
+
+@pytest.mark.parametrize("case", JOINT_CASES, ids=case_id)
+def test_labelled_joint_motion_maps_q1_pixels_onto_q2_surface(objects, case):
+    obj_class, j = case
+    config, sample, urdf, model, data, info, labels = objects(obj_class.name)
+    q1, q2 = _q_pair(obj_class, j)
+    d1, m1 = render_at(config, model, data, info, q1)
+    d2, m2 = render_at(config, model, data, info, q2)
+    p1 = part_points(config, d1, m1, j)
+    assert len(p1) > 30
+    K, sel, dq = config.camera.K, m2 == MASK_FIRST_PART + j, q2[j] - q1[j]
+    o, a, jtype = labels["axis_origin"][j], labels["axis_direction"][j], obj_class.joints[j].type
+    residual = surface_distances(_move(p1, o, a, jtype, dq), d2, sel, K)
+    assert len(residual) > 0.5 * len(p1)
+    assert np.median(residual) < MOTION_TOL_M
+    # Negative controls (the check can fail): an axis shifted by 10 cm, or moved twice as far.
+    normal = np.cross(a, [0.3, 0.4, 0.5])
+    wrong_motions = [_move(p1, o, a, jtype, 2 * dq)]
+    if jtype != PRISMATIC:
+        wrong_motions.append(_move(p1, o + 0.10 * normal / np.linalg.norm(normal), a, jtype, dq))
+    for wrong in wrong_motions:
+        r = surface_distances(wrong, d2, sel, K)
+        assert len(r) < 0.5 * len(p1) or np.median(r) > MOTION_TOL_M
+
+
+@pytest.mark.parametrize("obj_class", CLASSES, ids=lambda c: c.name)
+def test_closed_object_front_and_body_match_sampled_geometry_and_pose(objects, obj_class):
+    config, sample, urdf, model, data, info, labels = objects(obj_class.name)
+    d, w, h = (sample.geometry[k] for k in ("depth_m", "width_m", "height_m"))
+    depth, mask = render_at(config, model, data, info, np.zeros(obj_class.n_joints))
+    front_x = -d / 2 - PANEL_M  # the closed doors'/drawer's outer face, object frame
+    for j in range(obj_class.n_joints):
+        p = to_object_frame(part_points(config, depth, mask, j), sample.pose)
+        on_front = np.abs(p[:, 0] - front_x) < PLANE_TOL_M
+        # handles stand proud of the face; everything else of a closed part lies on it
+        assert on_front.mean() > 0.75
+        assert np.median(np.abs(p[on_front, 0] - front_x)) < 0.001
+        assert np.all(np.abs(p[on_front, 1]) <= w / 2 + PLANE_TOL_M)
+        assert np.all((p[on_front, 2] >= -PLANE_TOL_M) & (p[on_front, 2] <= h + PLANE_TOL_M))
+    # body pixels (any configuration) lie inside the sampled outer box
+    q_open = np.array([r[1] for r in obj_class.table.q])
+    depth, mask = render_at(config, model, data, info, q_open)
+    body = to_object_frame(part_points(config, depth, mask, -1), sample.pose)  # mask value 1 = MASK_BODY
+    assert MASK_FIRST_PART - 1 == MASK_BODY and len(body) > 30
+    lo = np.array([-d / 2, -w / 2, 0.0]) - PLANE_TOL_M
+    hi = np.array([d / 2, w / 2, h]) + PLANE_TOL_M
+    assert np.all((body >= lo) & (body <= hi))
+
+
+@pytest.mark.parametrize("obj_class", CLASSES, ids=lambda c: c.name)
+def test_geometry_and_pose_labels_read_from_model_equal_the_sample(objects, obj_class):
+    config, sample, urdf, model, data, info, labels = objects(obj_class.name)
+    g = labels["geometry"]
+    assert g[:3] == pytest.approx([sample.geometry["depth_m"], sample.geometry["width_m"], sample.geometry["height_m"]], abs=1e-6)
+    assert g[3] == (sample.chirality if obj_class.sided else 0)
+    assert labels["object_pose"][:3] == pytest.approx([sample.pose["x_m"], sample.pose["y_m"], sample.pose["z_m"]], abs=1e-9)
+    assert labels["object_yaw"] == pytest.approx(sample.pose["yaw_rad"], abs=1e-9)
+
+
+def _panel_box(model, data, info, j, direction, prismatic):
+    """Corners (8, 3) of part j's main panel: the largest non-handle geom of a door, or the
+    leading geom (farthest along +direction) of a drawer, i.e. its front."""
+    geoms = [g for g in np.nonzero(info.geom_part == MASK_FIRST_PART + j)[0] if not info.geom_is_handle[g]]
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+    corners = {g: data.geom_xpos[g] + (signs * model.geom_size[g]) @ data.geom_xmat[g].reshape(3, 3).T for g in geoms}
+    if prismatic:
+        return max(corners.values(), key=lambda c: (c @ direction).max())
+    return corners[max(geoms, key=lambda g: np.prod(model.geom_size[g]))]
+
+
+@pytest.mark.parametrize("case", JOINT_CASES, ids=case_id)
+def test_axis_origin_lies_on_hinge_edge_or_front_face(objects, case):
+    obj_class, j = case
+    config, sample, urdf, model, data, info, labels = objects(obj_class.name)
+    render_at(config, model, data, info, np.zeros(obj_class.n_joints))
+    o, a = labels["axis_origin"][j], labels["axis_direction"][j]
+    corners = _panel_box(model, data, info, j, a, obj_class.joints[j].type == PRISMATIC)
+    assert np.linalg.norm(a) == pytest.approx(1.0, abs=1e-6)
+    if obj_class.joints[j].type == PRISMATIC:
+        # centre of the face of the drawer front that faces +a (outwards)
+        s = (corners - corners.mean(0)) @ a
+        face = corners[s > s.max() - 1e-6]
+        assert len(face) == 4 and np.allclose(o, face.mean(0), atol=1e-6)
+    else:
+        # on one of the panel's edges parallel to the axis, at the middle of that edge
+        edges = [(corners[i], corners[k]) for i in range(8) for k in range(i + 1, 8)
+                 if abs(abs((corners[k] - corners[i]) @ a) - np.linalg.norm(corners[k] - corners[i])) < 1e-9]
+        mids = [0.5 * (p + q) for p, q in edges]
+        assert min(np.linalg.norm(m - o) for m in mids) < 1e-6
+    # Pixel check: the origin projects onto (or within 2 px of) the rendered part.
+    depth, mask = render_at(config, model, data, info, np.zeros(obj_class.n_joints))
+    (u, v), = project(o[None], config.camera.K)[0]
+    vv, uu = np.nonzero(mask == MASK_FIRST_PART + j)
+    assert np.min(np.hypot(uu - u, vv - v)) <= 2.0
+
+
+@pytest.mark.parametrize("obj_class", CLASSES, ids=lambda c: c.name)
+def test_axis_frame_and_part_offset_conventions(objects, obj_class):
+    config, sample, urdf, model, data, info, labels = objects(obj_class.name)
+    for j in range(obj_class.n_joints):
+        pose = labels["axis_pose"][j]
+        w, x, y, z = pose[3:]
+        assert np.linalg.norm(pose[3:]) == pytest.approx(1.0, abs=1e-9)
+        rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        assert np.allclose(rot[:, 2], labels["axis_direction"][j], atol=1e-9)
+        assert np.allclose(pose[:3], labels["axis_origin"][j])
+        off = labels["part_offset"][j]
+        if obj_class.joints[j].type == PRISMATIC:
+            assert rot[:, 0] @ np.array([0, 0, 1.0]) == pytest.approx(1.0, abs=1e-9)  # x = up
+        else:
+            # door centre sits on the axis frame's x axis, at half the door's width
+            assert abs(off[1]) < 1e-9 and abs(off[2]) < 1e-9 and off[0] > 0.05
+
+
+@pytest.mark.parametrize("obj_class", CLASSES, ids=lambda c: c.name)
+def test_yourdfpy_forward_kinematics_agrees_with_mujoco(objects, obj_class, tmp_path):
+    """Independent check: yourdfpy parses the generated URDF and its FK matches MuJoCo's."""
+    config, sample, urdf, model, data, info, labels = objects(obj_class.name)
+    path = tmp_path / f"{obj_class.name}.urdf"
+    path.write_text(urdf)
+    robot = yourdfpy.URDF.load(str(path), build_scene_graph=True, load_meshes=False)
+    assert robot.validate()
+    c, s = np.cos(sample.pose["yaw_rad"]), np.sin(sample.pose["yaw_rad"])
+    world_T_base = np.eye(4)
+    world_T_base[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    world_T_base[:3, 3] = [sample.pose["x_m"], sample.pose["y_m"], sample.pose["z_m"]]
+    q = np.array([0.5 * (r[0] + r[1]) for r in obj_class.table.q])
+    robot.update_cfg({spec.name: float(q[j]) for j, spec in enumerate(obj_class.joints)})
+    render_at(config, model, data, info, q)
+    for j, spec in enumerate(obj_class.joints):
+        T = world_T_base @ robot.get_transform(spec.part, obj_class.base_link)
+        body = info.part_bodies[j]
+        assert np.allclose(T[:3, 3], data.xpos[body], atol=1e-6)
+        assert np.allclose(T[:3, :3], data.xmat[body].reshape(3, 3), atol=1e-6)
+        joint = robot.joint_map[spec.name]
+        parent_T_joint = world_T_base @ robot.get_transform(joint.parent, obj_class.base_link) @ joint.origin
+        axis_world = parent_T_joint[:3, :3] @ np.asarray(joint.axis, float)
+        assert np.allclose(axis_world, labels["axis_direction"][j], atol=1e-6)
+        # the labelled origin lies on yourdfpy's joint line
+        d = labels["axis_origin"][j] - parent_T_joint[:3, 3]
+        assert np.linalg.norm(d - (d @ axis_world) * axis_world) < 1e-6 or spec.type == PRISMATIC
+
+
+@pytest.mark.parametrize("obj_class", CLASSES, ids=lambda c: c.name)
+def test_generated_shards_respect_visibility_and_limits(tiny_root, obj_class):
+    manifest, shards = open_split(tiny_root / obj_class.name / "train")
+    min_px = manifest["config"]["min_part_pixels"]
+    for sh in shards:
+        mask, vis, q = sh.read("mask"), sh.read("visible_pixels"), sh.read("q")
+        counts = np.stack([(mask == k).sum(axis=(1, 2)) for k in range(MASK_BODY, MASK_FIRST_PART + obj_class.n_joints)], 1)
+        assert np.array_equal(counts, vis)
+        assert vis[:, 1:].min() >= min_px
+        table = json.loads(sh.attrs["sampling_table"])
+        for j, (lo, hi) in enumerate(table["q"]):
+            assert np.all((q[:, j] >= lo - 1e-6) & (q[:, j] <= hi + 1e-6))
+        depth = sh.read("depth")
+        assert np.all(depth[mask == 0] == 0) and np.all(depth[mask > 0] > 0)
+        axis = sh.read("axis_direction")
+        assert np.allclose(np.linalg.norm(axis, axis=-1), 1.0, atol=1e-6)
+        sh.close()
