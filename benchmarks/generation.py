@@ -1,0 +1,139 @@
+"""Generation throughput and size: end to end vs the bare MuJoCo depth render of the same scenes.
+
+Per class (one process): labelled images/s end to end (sampling, xacro, compile, render,
+labels, compression, write), images/s of the bare render of the same scenes (compiled
+beforehand; per image only mj_kinematics + mj_camlight + mjv_updateScene + mjr_render +
+mjr_readPixels of the depth buffer: the floor), their ratio, and bytes per image on disk.
+Whole machine (``--workers N``): the same two rates with N processes, measured in the same run.
+
+    python benchmarks/generation.py                      # all classes, 48 objects each, workers 1 and 2
+    python benchmarks/generation.py --objects 128 --workers 2
+
+Targets (issue 2/3): end to end >= 60% of the bare rate; < 4 KB per image; whole machine
+>= 1,000 images/s on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+
+def _scenes(class_name: str, n_objects: int, seed: int):
+    """The final (visible) samples of objects 0..n-1 as the pipeline renders them."""
+    from articulated_dataset.pipeline import GenerationConfig, object_sample, render_object
+    from articulated_dataset.render import process_renderer
+
+    config = GenerationConfig(class_name, n_objects=n_objects, seed=seed)
+    renderer = process_renderer(config.camera)
+    return config, [render_object(object_sample(config, k), config, renderer)[1] for k in range(n_objects)]
+
+
+def _bare_render(args) -> tuple[int, float]:
+    """Render the given scenes with bare MuJoCo calls; returns (images, seconds)."""
+    class_name, indices, n_objects, seed = args
+    import mujoco
+    import numpy as np
+
+    from articulated_dataset.labels import model_info
+    from articulated_dataset.render import process_renderer
+    from articulated_dataset.scene import build_model
+    from articulated_dataset.templating import render_urdf
+
+    config, samples = _scenes(class_name, n_objects, seed)
+    obj_class = config.obj_class
+    r = process_renderer(config.camera)
+    prepared = []
+    for k in indices:
+        s = samples[k]
+        model = build_model(render_urdf(obj_class.template_path(), s.template_mappings(config.table)), s.pose, config.camera)
+        prepared.append((model, mujoco.MjData(model), model_info(model, obj_class).qpos_adr, s.q))
+    H, W = config.camera.height_px, config.camera.width_px
+    depth = np.zeros((H, W), np.float32)
+    n = 0
+    seconds = 0.0
+    for model, data, adr, qs in prepared:
+        r.bind(model)
+        t0 = time.perf_counter()
+        for q in qs:
+            data.qpos[adr] = q
+            mujoco.mj_kinematics(model, data)
+            mujoco.mj_camlight(model, data)
+            mujoco.mjv_updateScene(model, data, r._opt, None, r._cam, mujoco.mjtCatBit.mjCAT_ALL, r._scn)
+            mujoco.mjr_render(r._viewport, r._scn, r._con)
+            mujoco.mjr_readPixels(None, depth, r._viewport, r._con)
+            n += 1
+        seconds += time.perf_counter() - t0
+    return n, seconds
+
+
+def _one_raster_thread() -> None:
+    os.environ.setdefault("LP_NUM_THREADS", "1")
+
+
+def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: Path) -> tuple[int, float, int]:
+    from articulated_dataset.pipeline import GenerationConfig, generate_split
+    from articulated_dataset.shards import read_manifest
+
+    config = GenerationConfig(class_name, n_objects=n_objects, seed=seed, objects_per_shard=max(1, n_objects // max(workers, 1) // 2))
+    t0 = time.perf_counter()
+    split = generate_split(config, out, workers=workers, overwrite=True)
+    seconds = time.perf_counter() - t0
+    m = read_manifest(split)
+    return m["n_images"], seconds, sum(s["bytes"] for s in m["shards"])
+
+
+def main() -> None:
+    from articulated_dataset.registry import class_names
+    from articulated_dataset.render import process_renderer
+    from articulated_dataset.camera import CameraConfig
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--classes", nargs="*", default=None)
+    ap.add_argument("--objects", type=int, default=48, help="objects per class")
+    ap.add_argument("--workers", type=int, nargs="*", default=[2], help="whole-machine runs with these worker counts")
+    ap.add_argument("--seed", type=int, default=1234)
+    ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    args = ap.parse_args()
+    classes = args.classes or class_names()
+    process_renderer(CameraConfig())  # GL context creation is per process, not per image
+    results = {"per_class": {}, "machine": {}, "cpu_count": os.cpu_count()}
+    print(f"{'class':14s} {'e2e img/s':>10s} {'bare img/s':>11s} {'ratio':>6s} {'bytes/img':>10s}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in classes:
+            _end_to_end(name, 2, args.seed + 1, 1, Path(tmp) / "warm")  # warm caches (template parse)
+            n, sec, nbytes = _end_to_end(name, args.objects, args.seed, 1, Path(tmp))
+            bn, bsec = _bare_render((name, range(args.objects), args.objects, args.seed))
+            e2e, bare = n / sec, bn / bsec
+            results["per_class"][name] = {"e2e_img_s": e2e, "bare_img_s": bare, "ratio": e2e / bare, "bytes_per_img": nbytes / n}
+            print(f"{name:14s} {e2e:10.0f} {bare:11.0f} {e2e / bare:6.2f} {nbytes / n:10.0f}")
+        for w in args.workers:
+            ctx = mp.get_context("spawn")
+            tot_n = tot_sec = 0.0
+            bare_n = 0
+            bare_wall = 0.0
+            for name in classes:
+                n, sec, _ = _end_to_end(name, args.objects, args.seed, w, Path(tmp))
+                tot_n += n
+                tot_sec += sec
+                chunks = [(name, range(i, args.objects, w), args.objects, args.seed) for i in range(w)]
+                with ctx.Pool(w, initializer=_one_raster_thread) as pool:
+                    parts = pool.map(_bare_render, chunks)
+                bare_n += sum(p[0] for p in parts)
+                bare_wall += max(p[1] for p in parts)
+            e2e, bare = tot_n / tot_sec, bare_n / bare_wall
+            results["machine"][w] = {"e2e_img_s": e2e, "bare_img_s": bare, "ratio": e2e / bare}
+            print(f"whole machine, {w} workers: end to end {e2e:.0f} img/s (incl. process start-up), bare render {bare:.0f} img/s, ratio {e2e / bare:.2f}")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()
