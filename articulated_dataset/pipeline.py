@@ -61,9 +61,12 @@ class GenerationConfig:
     depth_quantum_m: float = DEFAULT_DEPTH_QUANTUM_M
     mean: bool = False  # render the class's mean object (n_objects must be 1)
     noise: str = "none"  # depth sensor-noise model applied after rendering (articulated_dataset.noise)
+    # Definition of a third-party URDF class (articulated_dataset.urdf_import), rebuilt in
+    # every worker process; None for registry classes.
+    third_party: dict | None = None
 
     def __post_init__(self) -> None:
-        obj_class = get_class(self.class_name)  # UserError for unknown names
+        obj_class = self.obj_class  # UserError for unknown names
         if self.n_objects <= 0:
             raise UserError(f"number of objects must be positive, got {self.n_objects}")
         if self.images_per_object <= 0:
@@ -84,6 +87,10 @@ class GenerationConfig:
 
     @property
     def obj_class(self) -> ObjectClass:
+        if self.third_party is not None:
+            from .urdf_import import class_from_definition
+
+            return class_from_definition(self.third_party)
         return get_class(self.class_name)
 
     @property
@@ -142,7 +149,9 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
         q = np.empty((n, J), np.float64)
         vis = np.empty((n, 1 + J), np.int32)
         ok = True
-        for i in range(n):
+        # Widest-open configurations first: they are the views that fail the visibility
+        # check (doors edge-on or swung out of the frame), so a rejected pose costs few renders.
+        for i in np.argsort(-sample.q.sum(axis=1), kind="stable"):
             set_configuration(model, data, info.joint_ids, sample.q[i])
             d, geom_id = renderer.render(data)
             mask[i] = info.mask_from_geoms(geom_id)
