@@ -22,6 +22,16 @@ from helpers_core import compile_object, final_object, render_at  # noqa: E402
 PYRENDER_PIXEL_CENTRE_OFFSET = 0.5
 
 
+_RENDERERS = {}
+
+
+def _renderer(width: int, height: int):
+    """One pyrender context per process: re-creating it after MuJoCo's fails on EGL."""
+    if (width, height) not in _RENDERERS:
+        _RENDERERS[(width, height)] = pyrender.OffscreenRenderer(width, height)
+    return _RENDERERS[(width, height)]
+
+
 def main(class_name: str, index: int) -> None:
     config, sample = final_object(class_name, index=index)
     urdf, model, data, info, labels = compile_object(config, sample)
@@ -48,9 +58,7 @@ def main(class_name: str, index: int) -> None:
     cam_pose = np.eye(4)  # OpenGL camera (looks down -z, y up) in our camera frame (x fwd, y left, z up)
     cam_pose[:3, :3] = [[0, 0, -1], [-1, 0, 0], [0, 1, 0]]
     scene.add(cam, pose=cam_pose)
-    r = pyrender.OffscreenRenderer(config.camera.width_px, config.camera.height_px)
-    depth_pr = r.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY)
-    r.delete()
+    depth_pr = _renderer(config.camera.width_px, config.camera.height_px).render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY)
     both = (depth_pr > 0) & (depth_mj > 0)
     print(json.dumps({
         "class": class_name,
