@@ -1,0 +1,56 @@
+"""``artdata score``: score predictions.h5 files against ground-truth shards (Table 1/2 metrics)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from ..errors import UserError
+
+
+def _write(path: str, text: str) -> None:
+    if path == "-":
+        click.echo(text, nl=not text.endswith("\n"))
+        return
+    try:
+        Path(path).write_text(text)
+    except OSError as exc:
+        raise UserError(f"cannot write {path}: {exc.strerror}") from None
+
+
+@click.command("score")
+@click.argument("predictions", nargs=-1, required=True, type=click.Path())
+@click.option("--truth", "truth_path", required=True, type=click.Path(),
+              help="Ground truth: a split folder, or a folder with <class>/<split>/ below it.")
+@click.option("--split", default=None,
+              help="Truth split to use when a class has several (default: test). E.g. 'real' for Table 2.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None,
+              help="Write the full report as JSON to this file ('-' prints it instead of the table).")
+@click.option("--csv", "csv_path", type=click.Path(dir_okay=False), default=None,
+              help="Write one CSV line per (class, method) to this file ('-' prints it instead of the table).")
+@click.option("--require-complete", is_flag=True,
+              help="Exit with code 2 if some truth images of a predicted class have no prediction.")
+def score_cmd(predictions, truth_path, split, json_path, csv_path, require_complete):
+    """Score PREDICTIONS (one or more predictions.h5 files) against the truth.
+
+    Prints the paper's Table 1 layout (axis position error in cm, axis rotation error in
+    degrees, configuration error in degrees or cm, as mean +/- std over images, and the number
+    of images scored) followed by the standard metrics.  See docs/scoring.md.
+    """
+    from ..scoring import score
+
+    report = score(list(predictions), truth_path, split=split)
+    if require_complete:
+        partial = [f"{r.class_name} - {r.method} ({r.n_scored}/{r.n_truth})" for r in report.rows if not r.complete]
+        if partial:
+            raise UserError(f"partial coverage with --require-complete: {', '.join(partial)}")
+    if json_path:
+        _write(json_path, report.to_json() + "\n")
+    if csv_path:
+        _write(csv_path, report.to_csv())
+    if "-" not in (json_path, csv_path):
+        click.echo(report.format_table())
+
+
+COMMANDS = [score_cmd]

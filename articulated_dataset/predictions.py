@@ -1,0 +1,295 @@
+"""The ``predictions.h5`` format: what a method hands to ``artdata score``.
+
+Layout (format version :data:`PREDICTIONS_FORMAT_VERSION`)::
+
+    /                      attrs: format_version, method (+ free-form attrs of the writer)
+    /<class>/              one group per object class; attr mixture_layout (JSON list) if mixtures
+        sample_id          (N,)      int64    ground-truth ids of the predicted images (unique)
+        axis_pose          (N, J, 7) float    axis position (m) + quaternion (w, x, y, z), camera frame
+        q                  (N, J)    float    configuration (rad revolute, m prismatic)
+        geometry           (N, 4)    float    optional: depth, width, height (m), chirality (0..1)
+        part_offset        (N, J, 3) float    optional: part centre in the axis frame (m)
+        mixture_weights    (N, M)    float    optional, with the next two: component weights (sum 1)
+        mixture_means      (N, M, D) float    component means, label units (m, rad), NOT normalised
+        mixture_scales     (N, M, D) float    component standard deviations (> 0), label units
+
+Rows of every dataset of a group are aligned: row i describes image ``sample_id[i]``.  Rows
+need not follow the truth's order and may cover part of the truth (partial coverage is
+reported by the scorer).  Column d of the mixture datasets is named by
+``mixture_layout[d]`` (see docs/scoring.md: ``j{j}.origin.x``, ``j{j}.axis.y``,
+``j{j}.xaxis.z``, ``j{j}.q``, ``j{j}.offset.x``, ``geometry.depth`` ...).
+
+:func:`write_predictions` validates and writes a file; :func:`read_predictions` validates a
+file (shapes, dtypes, finite values, unit quaternions, unique ids, mixture parameters) and
+raises :class:`~articulated_dataset.errors.DataFormatError` with one line naming the
+dataset for anything wrong.  Non-unit quaternions are normalised with a logged warning;
+zero-length ones are rejected.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from .errors import DataFormatError, UserError
+from .shards import open_h5
+
+log = logging.getLogger(__name__)
+
+PREDICTIONS_FORMAT_VERSION = "1.0"
+REQUIRED_DATASETS = ("sample_id", "axis_pose", "q")
+OPTIONAL_DATASETS = ("geometry", "part_offset")
+MIXTURE_DATASETS = ("mixture_weights", "mixture_means", "mixture_scales")
+ALL_DATASETS = REQUIRED_DATASETS + OPTIONAL_DATASETS + MIXTURE_DATASETS
+MIXTURE_LAYOUT_ATTR = "mixture_layout"
+#: Columns of one axis pose: position (3, m) + quaternion (4).
+POSE_WIDTH = 7
+#: Columns of geometry: depth, width, height (m), chirality.
+GEOMETRY_WIDTH = 4
+#: Quaternions shorter than this cannot be normalised (no rotation is defined): rejected.
+MIN_QUATERNION_NORM = 1e-6
+#: |norm - 1| above this is reported (a float32 unit quaternion is within ~1e-7 of 1).
+QUATERNION_NORM_TOL = 1e-4
+#: |sum(weights) - 1| above this is reported before renormalising.
+WEIGHT_SUM_TOL = 1e-3
+
+
+def _shape_str(shape) -> str:
+    return "(" + ", ".join(str(s) for s in shape) + ")"
+
+
+def _check_float(where: str, name: str, a: np.ndarray) -> np.ndarray:
+    if a.dtype.kind != "f":
+        raise DataFormatError(f"{where}/{name}: dtype {a.dtype}, expected a float type (float32 or float64)")
+    a = np.asarray(a, np.float64)
+    bad = ~np.isfinite(a)
+    if bad.any():
+        first = np.argwhere(bad)[0]
+        raise DataFormatError(f"{where}/{name}: {int(bad.sum())} NaN/inf values (first at index {tuple(int(i) for i in first)})")
+    return a
+
+
+def _check_shape(where: str, name: str, a: np.ndarray, expected: tuple) -> None:
+    """``expected`` holds ints or None (any size)."""
+    ok = a.ndim == len(expected) and all(e is None or s == e for s, e in zip(a.shape, expected))
+    if not ok:
+        want = _shape_str("*" if e is None else e for e in expected)
+        raise DataFormatError(f"{where}/{name}: shape {_shape_str(a.shape)}, expected {want}")
+
+
+def _parse_layout(where: str, value) -> list[str]:
+    if isinstance(value, bytes):
+        value = value.decode()
+    if isinstance(value, str):
+        try:
+            value = json.loads(value)
+        except json.JSONDecodeError:
+            raise DataFormatError(f"{where}: attribute {MIXTURE_LAYOUT_ATTR!r} is not a JSON list of column names") from None
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, (str, bytes)) for v in value):
+        raise DataFormatError(f"{where}: attribute {MIXTURE_LAYOUT_ATTR!r} must be a list of column names")
+    names = [v.decode() if isinstance(v, bytes) else v for v in value]
+    if len(set(names)) != len(names):
+        raise DataFormatError(f"{where}: attribute {MIXTURE_LAYOUT_ATTR!r} repeats column names")
+    return names
+
+
+def validate_class(where: str, arrays: dict, *, normalise: bool = True) -> dict:
+    """Validate one class's prediction arrays; return them as float64/int64 arrays.
+
+    ``where`` names the group in messages (``file:/class``).  Quaternions are normalised
+    (with a warning when off by more than :data:`QUATERNION_NORM_TOL`) if ``normalise``; mixture
+    weights are renormalised the same way.  Raises :class:`DataFormatError`.
+    """
+    for name in REQUIRED_DATASETS:
+        if name not in arrays:
+            raise DataFormatError(f"{where}: missing dataset {name!r}")
+    unknown = sorted(set(arrays) - set(ALL_DATASETS) - {MIXTURE_LAYOUT_ATTR})
+    if unknown:
+        raise DataFormatError(f"{where}: unknown dataset(s) {', '.join(map(repr, unknown))} (expected {', '.join(ALL_DATASETS)})")
+    out: dict = {}
+
+    ids = np.asarray(arrays["sample_id"])
+    if ids.dtype.kind not in "iu":
+        raise DataFormatError(f"{where}/sample_id: dtype {ids.dtype}, expected int64")
+    _check_shape(where, "sample_id", ids, (None,))
+    N = ids.shape[0]
+    if N == 0:
+        raise DataFormatError(f"{where}/sample_id: no predictions (0 rows)")
+    ids = ids.astype(np.int64)
+    uniq, counts = np.unique(ids, return_counts=True)
+    if len(uniq) != N:
+        dup = uniq[counts > 1]
+        raise DataFormatError(f"{where}/sample_id: {len(dup)} duplicated ids (e.g. {int(dup[0])})")
+    out["sample_id"] = ids
+
+    pose = np.asarray(arrays["axis_pose"])
+    _check_shape(where, "axis_pose", pose, (N, None, POSE_WIDTH))
+    J = pose.shape[1]
+    if J == 0:
+        raise DataFormatError(f"{where}/axis_pose: zero joints")
+    pose = _check_float(where, "axis_pose", pose).copy()
+    quat = pose[..., 3:]
+    norm = np.linalg.norm(quat, axis=-1)
+    zero = norm < MIN_QUATERNION_NORM
+    if zero.any():
+        first = np.argwhere(zero)[0]
+        raise DataFormatError(f"{where}/axis_pose: {int(zero.sum())} zero-length quaternions "
+                              f"(first at row {int(first[0])}, joint {int(first[1])})")
+    off = np.abs(norm - 1.0) > QUATERNION_NORM_TOL
+    if normalise:
+        if off.any():
+            log.warning("%s/axis_pose: %d non-unit quaternions (norm %.4g..%.4g) normalised",
+                        where, int(off.sum()), float(norm.min()), float(norm.max()))
+        pose[..., 3:] = quat / norm[..., None]
+    out["axis_pose"] = pose
+
+    q = np.asarray(arrays["q"])
+    _check_shape(where, "q", q, (N, J))
+    out["q"] = _check_float(where, "q", q)
+
+    if "geometry" in arrays:
+        g = np.asarray(arrays["geometry"])
+        _check_shape(where, "geometry", g, (N, GEOMETRY_WIDTH))
+        out["geometry"] = _check_float(where, "geometry", g)
+    if "part_offset" in arrays:
+        p = np.asarray(arrays["part_offset"])
+        _check_shape(where, "part_offset", p, (N, J, 3))
+        out["part_offset"] = _check_float(where, "part_offset", p)
+
+    present = [n for n in MIXTURE_DATASETS if n in arrays]
+    if present:
+        missing = [n for n in MIXTURE_DATASETS if n not in arrays]
+        if missing:
+            raise DataFormatError(f"{where}: mixture datasets must come together; missing {', '.join(map(repr, missing))}")
+        if MIXTURE_LAYOUT_ATTR not in arrays:
+            raise DataFormatError(f"{where}: mixture datasets without the {MIXTURE_LAYOUT_ATTR!r} attribute")
+        layout = _parse_layout(where, arrays[MIXTURE_LAYOUT_ATTR])
+        w = np.asarray(arrays["mixture_weights"])
+        _check_shape(where, "mixture_weights", w, (N, None))
+        M = w.shape[1]
+        if M == 0:
+            raise DataFormatError(f"{where}/mixture_weights: zero components")
+        mu = np.asarray(arrays["mixture_means"])
+        _check_shape(where, "mixture_means", mu, (N, M, len(layout)))
+        sigma = np.asarray(arrays["mixture_scales"])
+        _check_shape(where, "mixture_scales", sigma, (N, M, len(layout)))
+        w = _check_float(where, "mixture_weights", w)
+        mu = _check_float(where, "mixture_means", mu)
+        sigma = _check_float(where, "mixture_scales", sigma)
+        if (w < 0).any():
+            raise DataFormatError(f"{where}/mixture_weights: {int((w < 0).sum())} negative weights")
+        total = w.sum(axis=1)
+        if (total <= 0).any():
+            raise DataFormatError(f"{where}/mixture_weights: {int((total <= 0).sum())} rows with all weights zero")
+        if (sigma <= 0).any():
+            raise DataFormatError(f"{where}/mixture_scales: {int((sigma <= 0).sum())} scales <= 0")
+        if normalise:
+            bad = np.abs(total - 1.0) > WEIGHT_SUM_TOL
+            if bad.any():
+                log.warning("%s/mixture_weights: %d rows do not sum to 1 (%.4g..%.4g); renormalised",
+                            where, int(bad.sum()), float(total.min()), float(total.max()))
+            w = w / total[:, None]
+        out.update(mixture_weights=w, mixture_means=mu, mixture_scales=sigma)
+        out[MIXTURE_LAYOUT_ATTR] = layout
+    elif MIXTURE_LAYOUT_ATTR in arrays:
+        raise DataFormatError(f"{where}: attribute {MIXTURE_LAYOUT_ATTR!r} without mixture datasets")
+    return out
+
+
+def _attr_value(v):
+    if isinstance(v, bytes):
+        return v.decode()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def write_predictions(path: str | Path, method: str, per_class: dict[str, dict[str, np.ndarray]],
+                      attrs: dict | None = None) -> None:
+    """Validate ``per_class`` and write it to ``path`` (replacing an existing file).
+
+    ``per_class[class_name]`` maps dataset names (see the module docstring) to arrays and,
+    with mixtures, ``"mixture_layout"`` to the list of the D column names.  Float datasets
+    keep float32 or float64 as given (other numeric dtypes are stored as float64);
+    ``sample_id`` is stored as int64.  ``attrs`` are extra root attributes (str/number; other
+    values are stored as JSON).  Invalid input raises :class:`UserError`.
+    """
+    if not isinstance(method, str) or not method.strip():
+        raise UserError("write_predictions: method must be a non-empty string")
+    if not per_class:
+        raise UserError("write_predictions: no classes to write")
+    path = Path(path)
+    checked = {}
+    for cls, arrays in per_class.items():
+        if not isinstance(cls, str) or not cls or "/" in cls:
+            raise UserError(f"write_predictions: invalid class name {cls!r}")
+        checked[cls] = validate_class(f"{path}:/{cls}", arrays, normalise=False)
+    tmp = path.with_name(path.name + ".partial")
+    with h5py.File(tmp, "w") as f:
+        f.attrs["format_version"] = PREDICTIONS_FORMAT_VERSION
+        f.attrs["method"] = method
+        for k, v in (attrs or {}).items():
+            if k in ("format_version", "method"):
+                raise UserError(f"write_predictions: attribute {k!r} is set by the writer")
+            f.attrs[k] = v if isinstance(v, (str, int, float, np.integer, np.floating)) else json.dumps(v)
+        for cls, arrays in per_class.items():
+            grp = f.create_group(cls)
+            for name in ALL_DATASETS:
+                if name not in arrays:
+                    continue
+                a = np.asarray(arrays[name])
+                if name == "sample_id":
+                    a = a.astype(np.int64)
+                elif a.dtype not in (np.float32, np.float64):
+                    a = a.astype(np.float64)
+                grp.create_dataset(name, data=a)
+            if MIXTURE_LAYOUT_ATTR in checked[cls]:
+                grp.attrs[MIXTURE_LAYOUT_ATTR] = json.dumps(checked[cls][MIXTURE_LAYOUT_ATTR])
+    tmp.replace(path)
+
+
+def read_predictions(path: str | Path) -> tuple[dict, dict[str, dict[str, np.ndarray]]]:
+    """Read and validate a predictions file: ``(root attrs, {class: {dataset: array}})``.
+
+    Arrays come back as float64 (``sample_id`` int64) with unit quaternions and weights that
+    sum to 1; ``"mixture_layout"`` (a list of str) is present with mixtures.  Any problem is a
+    :class:`DataFormatError` (a :class:`UserError`) naming the file and dataset.
+    """
+    path = Path(path)
+    with open_h5(path) as f:
+        attrs = {k: _attr_value(v) for k, v in f.attrs.items()}
+        if "format_version" not in attrs:
+            raise DataFormatError(f"{path}: not a predictions file (no format_version attribute)")
+        major = str(attrs["format_version"]).split(".")[0]
+        if major != PREDICTIONS_FORMAT_VERSION.split(".")[0]:
+            raise DataFormatError(f"{path}: predictions format version {attrs['format_version']} is not readable "
+                                  f"(this package reads {PREDICTIONS_FORMAT_VERSION.split('.')[0]}.x)")
+        method = attrs.get("method")
+        if not isinstance(method, str) or not method.strip():
+            raise DataFormatError(f"{path}: missing or empty root attribute 'method'")
+        per_class = {}
+        for cls, grp in f.items():
+            where = f"{path}:/{cls}"
+            if not isinstance(grp, h5py.Group):
+                raise DataFormatError(f"{where}: expected a class group, found a dataset")
+            arrays: dict = {}
+            for name, ds in grp.items():
+                if not isinstance(ds, h5py.Dataset):
+                    raise DataFormatError(f"{where}/{name}: expected a dataset, found a group")
+                if ds.dtype.kind not in "fiub":
+                    raise DataFormatError(f"{where}/{name}: dtype {ds.dtype} is not numeric")
+                arrays[name] = ds[()]
+            if MIXTURE_LAYOUT_ATTR in grp.attrs:
+                arrays[MIXTURE_LAYOUT_ATTR] = _attr_value(grp.attrs[MIXTURE_LAYOUT_ATTR])
+            per_class[cls] = validate_class(where, arrays)
+    if not per_class:
+        raise DataFormatError(f"{path}: no class groups (nothing predicted)")
+    return attrs, per_class

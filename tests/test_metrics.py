@@ -1,0 +1,269 @@
+"""Metric functions: hand-worked cases and independent brute-force references on random data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from articulated_dataset import metrics as M
+from articulated_dataset.registry import PRISMATIC, REVOLUTE
+from articulated_dataset.scoring import image_metrics
+
+
+def quat_about(axis, angle_deg):
+    """Unit quaternion (w, x, y, z) of a rotation by ``angle_deg`` about ``axis``."""
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    h = np.radians(angle_deg) / 2
+    return np.concatenate([[np.cos(h)], np.sin(h) * axis])
+
+
+def random_quats(rng, n):
+    q = rng.normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+Z = [0.0, 0.0, 1.0]
+
+
+# ---------------------------------------------------------------- hand-worked cases
+
+def test_position_error_3cm_shift_along_x():
+    o = np.array([1.5, -0.2, 0.4])
+    assert M.axis_position_error_cm(o + [0.03, 0, 0], o) == pytest.approx(3.0, abs=1e-9)
+    assert M.axis_position_error_cm(o + [0.03, 0.04, 0], o) == pytest.approx(5.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("angle, expected", [(5.0, 5.0), (-5.0, 5.0), (179.0, 179.0), (200.0, 160.0), (360.0, 0.0), (-350.0, 10.0)])
+def test_rotation_error_about_z(angle, expected):
+    true = quat_about([1, 2, 0.5], 37.0)  # arbitrary true axis frame
+    pred = M.quat_multiply(quat_about(Z, angle), true)  # rotated about the camera z axis
+    assert M.axis_rotation_error_deg(pred, true) == pytest.approx(expected, abs=1e-9)
+    # the sign of either quaternion does not matter
+    assert M.axis_rotation_error_deg(-pred, true) == pytest.approx(expected, abs=1e-9)
+
+
+def test_rotation_error_ignores_swing():
+    true = quat_about([0, 1, 0], 90.0)
+    for axis in ([1, 0, 0], [0, 1, 0], [1, -1, 0]):  # horizontal axes: pure swing, no twist about z
+        pred = M.quat_multiply(quat_about(axis, 30.0), true)
+        assert M.axis_rotation_error_deg(pred, true) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_configuration_error_units():
+    prismatic = np.array([False, True])
+    err = M.configuration_error(np.array([0.1, 0.35]), np.array([0.0, 0.30]), prismatic)
+    assert err[0] == pytest.approx(np.degrees(0.1))
+    assert err[1] == pytest.approx(5.0)
+
+
+@pytest.mark.parametrize("theta, expected", [(0, 0), (30, 30), (90, 90), (120, 60), (180, 0), (179, 1)])
+def test_direction_error_folded(theta, expected):
+    t = np.radians(theta)
+    d_true = np.array([0.0, 0.0, 1.0])
+    d_pred = 2.5 * np.array([np.sin(t), 0.0, np.cos(t)])  # length does not matter
+    assert M.axis_direction_error_deg(d_pred, d_true) == pytest.approx(expected, abs=1e-9)
+
+
+def test_line_distance_parallel_offset_lines():
+    d = np.array([0.0, 0.0, 1.0])
+    assert M.line_distance_cm([0.0, 0.0, 0.0], d, [0.03, 0.04, 7.0], d) == pytest.approx(5.0)
+    assert M.line_distance_cm([0.0, 0.0, 0.0], d, [0.03, 0.04, -2.0], -d) == pytest.approx(5.0)  # antiparallel
+    assert M.line_distance_cm([0.0, 0.0, 0.0], d, [0.0, 0.0, 3.0], d) == pytest.approx(0.0)  # same line
+
+
+def test_line_distance_skew_and_intersecting():
+    # x axis and the line through (0, 0, 0.1) along y: common perpendicular is 10 cm along z
+    assert M.line_distance_cm([5, 0, 0], [1, 0, 0], [0, -3, 0.1], [0, 1, 0]) == pytest.approx(10.0)
+    assert M.line_distance_cm([0, 0, 0], [1, 0, 0], [0, 0, 0], [1, 1, 0]) == pytest.approx(0.0, abs=1e-12)
+    # nearly parallel (1e-6 rad) but skew lines: far from the parallel formula, still well defined
+    d2 = [np.sin(1e-6), 0.0, np.cos(1e-6)]
+    assert M.line_distance_cm([0, 0, 0], Z, [0.0, 0.05, 0.0], d2) == pytest.approx(5.0, rel=1e-6)
+
+
+def test_point_to_line_distance():
+    assert M.point_to_line_distance_cm([0.03, 0.04, 9.0], [0, 0, 0], [0, 0, 2.0]) == pytest.approx(5.0)
+
+
+def test_opd_success_thresholds():
+    diag = np.array([1.0])  # 1 m diagonal -> origin threshold 25 cm
+    assert M.opd_success(9.9, 24.9, diag, True) == 1.0
+    assert M.opd_success(10.1, 0.0, diag, True) == 0.0
+    assert M.opd_success(0.0, 25.1, diag, True) == 0.0
+    assert M.opd_success(0.0, 300.0, diag, False) == 1.0  # prismatic: origin not checked
+    assert M.object_diagonal_m([0.3, 0.4, 1.2, 1.0]) == pytest.approx(1.3)
+
+
+def test_geometry_and_chirality():
+    err = M.geometry_error_cm([0.5, 0.6, 0.7, 0.9], [0.52, 0.6, 0.65, 1.0])
+    np.testing.assert_allclose(err, [2.0, 0.0, 5.0], atol=1e-9)
+    assert M.chirality_correct([0, 0, 0, 0.9], [0, 0, 0, 1.0]) == 1.0
+    assert M.chirality_correct([0, 0, 0, 0.2], [0, 0, 0, 1.0]) == 0.0
+    assert M.chirality_correct([0, 0, 0, 0.0], [0, 0, 0, 0.0]) == 1.0
+
+
+def _pose(origin, quat):
+    return np.concatenate([origin, quat])
+
+
+def test_two_dof_object_averages_its_joints():
+    q0 = quat_about(Z, 0.0)
+    truth = {
+        "axis_pose": np.array([[_pose([1, 0.3, 0], q0), _pose([1, -0.3, 0], q0)]]),
+        "q": np.array([[0.2, 0.4]]),
+        "geometry": np.array([[0.5, 0.8, 1.0, 0.0]]),
+        "part_offset": np.zeros((1, 2, 3)),
+    }
+    pred = {
+        "axis_pose": np.array([[_pose([1.02, 0.3, 0], quat_about(Z, 4.0)), _pose([1, -0.3, 0.04], quat_about(Z, -8.0))]]),
+        "q": np.array([[0.2 + np.radians(1.0), 0.4 - np.radians(3.0)]]),
+    }
+    out, per_joint = image_metrics(pred, truth, (REVOLUTE, REVOLUTE))
+    assert out["axis_position_error_cm"][0] == pytest.approx(3.0)  # (2 + 4) / 2
+    assert out["axis_rotation_error_deg"][0] == pytest.approx(6.0)  # (4 + 8) / 2
+    assert out["configuration_error"][0] == pytest.approx(2.0)  # (1 + 3) / 2
+    np.testing.assert_allclose(per_joint["axis_position_error_cm"][0], [2.0, 4.0])
+    # joint 0 is shifted perpendicular to its (vertical) axis by 2 cm; joint 1 along its axis: 0
+    assert out["axis_line_distance_cm"][0] == pytest.approx(1.0)
+    assert out["opd_success"][0] == 1.0
+
+
+def test_prismatic_joint_in_image_metrics():
+    q0 = quat_about([0, 1, 0], 90.0)  # axis along camera x (a drawer facing the camera)
+    truth = {"axis_pose": np.array([[_pose([1, 0, 0], q0)]]), "q": np.array([[0.1]]),
+             "geometry": np.array([[0.5, 0.5, 0.5, 0.0]]), "part_offset": np.zeros((1, 1, 3))}
+    pred = {"axis_pose": np.array([[_pose([1, 0.5, 0], q0)]]), "q": np.array([[0.13]])}
+    out, _ = image_metrics(pred, truth, (PRISMATIC,))
+    assert out["configuration_error"][0] == pytest.approx(3.0)  # cm
+    assert "axis_line_distance_cm" not in out  # no revolute joint
+    assert out["opd_success"][0] == 1.0  # origin not checked for prismatic joints
+
+
+# ---------------------------------------------------------------- brute-force references
+
+def test_quaternion_helpers_match_scipy():
+    Rotation = pytest.importorskip("scipy.spatial.transform").Rotation
+    rng = np.random.default_rng(0)
+    q = random_quats(rng, 50)
+    R = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()
+    np.testing.assert_allclose(M.quat_to_matrix(q), R, atol=1e-12)
+    np.testing.assert_allclose(M.quat_axis_z(q), R[:, :, 2], atol=1e-12)
+    np.testing.assert_allclose(M.quat_axis_x(q), R[:, :, 0], atol=1e-12)
+    a, b = random_quats(rng, 50), random_quats(rng, 50)
+    np.testing.assert_allclose(M.quat_to_matrix(M.quat_multiply(a, b)), M.quat_to_matrix(a) @ M.quat_to_matrix(b), atol=1e-12)
+
+
+def _rz(theta):
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_rotation_error_matches_brute_force_twist_search():
+    """Twist = the rotation about z closest to R_pred R_true^T: found by a dense angle search."""
+    Rotation = pytest.importorskip("scipy.spatial.transform").Rotation
+    from scipy.optimize import minimize_scalar
+
+    rng = np.random.default_rng(1)
+    qp, qt = random_quats(rng, 40), random_quats(rng, 40)
+    got = M.axis_rotation_error_deg(qp, qt)
+    grid = np.radians(np.arange(-180.0, 180.0, 0.25))
+    rz = np.stack([_rz(t) for t in grid])
+    for i in range(len(qp)):
+        R_rel = Rotation.from_quat(qp[i, [1, 2, 3, 0]]).as_matrix() @ Rotation.from_quat(qt[i, [1, 2, 3, 0]]).as_matrix().T
+        score = np.einsum("kij,ij->k", rz, R_rel)  # trace(Rz^T R_rel)
+        t0 = grid[np.argmax(score)]
+        res = minimize_scalar(lambda t: -np.trace(_rz(t).T @ R_rel), bounds=(t0 - 0.01, t0 + 0.01), method="bounded",
+                              options={"xatol": 1e-10})
+        expected = abs((np.degrees(res.x) + 180.0) % 360.0 - 180.0)
+        assert got[i] == pytest.approx(expected, abs=1e-4)
+
+
+def test_direction_error_matches_arccos():
+    rng = np.random.default_rng(2)
+    a, b = rng.normal(size=(200, 3)), rng.normal(size=(200, 3))
+    cos = np.sum(a * b, 1) / np.linalg.norm(a, axis=1) / np.linalg.norm(b, axis=1)
+    theta = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+    np.testing.assert_allclose(M.axis_direction_error_deg(a, b), np.minimum(theta, 180 - theta), atol=1e-9)
+
+
+def _brute_line_distance(o1, d1, o2, d2):
+    """min over (s, t) of ||o1 + s d1 - o2 - t d2||: dense grid, then a local minimisation."""
+    from scipy.optimize import minimize
+
+    s = np.linspace(-10, 10, 401)
+    P1 = o1 + s[:, None] * d1
+    P2 = o2 + s[:, None] * d2
+    dist = np.linalg.norm(P1[:, None, :] - P2[None, :, :], axis=-1)
+    i, j = np.unravel_index(np.argmin(dist), dist.shape)
+    res = minimize(lambda x: np.sum((o1 + x[0] * d1 - o2 - x[1] * d2) ** 2), x0=[s[i], s[j]], method="BFGS",
+                   options={"gtol": 1e-14})
+    return 100.0 * np.sqrt(max(res.fun, 0.0))
+
+
+def test_line_distance_matches_brute_force():
+    pytest.importorskip("scipy")
+    rng = np.random.default_rng(3)
+    for k in range(30):
+        o1, o2 = rng.normal(size=3), rng.normal(size=3)
+        d1 = rng.normal(size=3)
+        d1 /= np.linalg.norm(d1)
+        # a third of the cases exactly parallel (or antiparallel)
+        d2 = d1 * (-1) ** k if k % 3 == 0 else rng.normal(size=3)
+        d2 /= np.linalg.norm(d2)
+        got = M.line_distance_cm(o1, d1, o2, d2)
+        assert got == pytest.approx(_brute_line_distance(o1, d1, o2, d2), abs=1e-4)
+
+
+def _random_mixture(rng, n, m, d):
+    w = rng.uniform(0.1, 1.0, size=(n, m))
+    w /= w.sum(1, keepdims=True)
+    mu = rng.normal(size=(n, m, d))
+    sigma = rng.uniform(0.2, 1.5, size=(n, m, d))
+    return w, mu, sigma
+
+
+def test_mixture_nll_matches_direct_density():
+    stats = pytest.importorskip("scipy.stats")
+    rng = np.random.default_rng(4)
+    w, mu, sigma = _random_mixture(rng, 20, 3, 4)
+    y = rng.normal(size=(20, 4))
+    density = np.sum(w * np.prod(stats.norm.pdf(y[:, None, :], mu, sigma), axis=-1), axis=-1)
+    np.testing.assert_allclose(M.mixture_nll(y, w, mu, sigma), -np.log(density), rtol=1e-10)
+    # far in the tail the product underflows, log-sum-exp does not
+    assert np.isfinite(M.mixture_nll(y + 60.0, w, mu, sigma)).all()
+
+
+def test_mixture_nll_single_gaussian_by_hand():
+    # N(0; 0, 1) in 1-D: log sqrt(2 pi) = 0.918939 nats
+    assert M.mixture_nll(np.zeros((1, 1)), np.ones((1, 1)), np.zeros((1, 1, 1)), np.ones((1, 1, 1)))[0] == pytest.approx(0.9189385332)
+
+
+def test_mixture_interval_matches_root_finding_and_coverage():
+    stats = pytest.importorskip("scipy.stats")
+    from scipy.optimize import brentq
+
+    rng = np.random.default_rng(5)
+    w, mu, sigma = _random_mixture(rng, 6, 3, 2)
+    lo, hi = M.mixture_marginal_interval(w, mu, sigma, 0.9)
+    for i in range(6):
+        for d in range(2):
+            F = lambda x: np.sum(w[i] * stats.norm.cdf(x, mu[i, :, d], sigma[i, :, d]))  # noqa: E731
+            assert lo[i, d] == pytest.approx(brentq(lambda x: F(x) - 0.05, -50, 50, xtol=1e-12), abs=1e-8)
+            assert hi[i, d] == pytest.approx(brentq(lambda x: F(x) - 0.95, -50, 50, xtol=1e-12), abs=1e-8)
+    # coverage by the PIT equals membership of the bisected interval
+    y = rng.normal(scale=2.0, size=(6, 2))
+    np.testing.assert_array_equal(M.interval_coverage(y, w, mu, sigma, 0.9), ((y >= lo) & (y <= hi)).astype(float))
+    # single Gaussian: the central 50% interval is mu +/- 0.6745 sigma
+    lo1, hi1 = M.mixture_marginal_interval(np.ones((1, 1)), np.zeros((1, 1, 1)), np.full((1, 1, 1), 2.0), 0.5)
+    assert hi1[0, 0] == pytest.approx(2.0 * 0.6744897502, abs=1e-8) and lo1[0, 0] == pytest.approx(-hi1[0, 0])
+
+
+def test_coverage_of_samples_from_the_mixture_is_calibrated():
+    pytest.importorskip("scipy")
+    rng = np.random.default_rng(6)
+    n = 20000
+    w, mu, sigma = _random_mixture(rng, 1, 3, 2)
+    w, mu, sigma = (np.repeat(a, n, axis=0) for a in (w, mu, sigma))
+    comp = np.array([rng.choice(3, p=w[0]) for _ in range(n)])
+    y = mu[np.arange(n), comp] + sigma[np.arange(n), comp] * rng.normal(size=(n, 2))
+    for mass in (0.5, 0.9):
+        assert M.interval_coverage(y, w, mu, sigma, mass).mean() == pytest.approx(mass, abs=0.015)
