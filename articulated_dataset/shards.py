@@ -29,8 +29,12 @@ log = logging.getLogger(__name__)
 MANIFEST_NAME = "manifest.json"
 SHARD_PATTERN = "shard-{:05d}.h5"
 TMP_SUFFIX = ".partial"
-#: deflate level for depth/mask chunks: 4 is within 3% of level 9's size at a third of its time.
-GZIP_LEVEL = 4
+#: Deflate level of the per-image depth/mask chunks.  Compression is the costliest step after
+#: rendering: level 1 takes ~40% of level 4's time for ~1.4x its size, still well under the
+#: 4 KB/image budget (benchmarks/generation.py prints bytes per image).
+IMAGE_GZIP_LEVEL = 1
+#: Deflate level of the (small) label datasets.
+LABEL_GZIP_LEVEL = 4
 
 
 def shard_name(index: int) -> str:
@@ -83,11 +87,11 @@ def write_shard(path: str | Path, arrays: dict, attrs: dict, K: np.ndarray, R: n
         for field in FIELDS:
             a = arrays[field.name]
             if field.name in IMAGE_FIELDS:
-                f.create_dataset(field.name, data=a, chunks=(1, H, W), shuffle=True,
-                                 compression="gzip", compression_opts=GZIP_LEVEL, track_times=False)
+                f.create_dataset(field.name, data=a, chunks=(1, H, W), shuffle=a.dtype.itemsize > 1,
+                                 compression="gzip", compression_opts=IMAGE_GZIP_LEVEL, track_times=False)
             else:
                 f.create_dataset(field.name, data=a, shuffle=a.dtype.itemsize > 1,
-                                 compression="gzip", compression_opts=GZIP_LEVEL, track_times=False)
+                                 compression="gzip", compression_opts=LABEL_GZIP_LEVEL, track_times=False)
             f[field.name].attrs["units"] = field.units
             f[field.name].attrs["frame"] = field.frame
         f.create_dataset(K_DATASET, data=np.asarray(K, np.float64), track_times=False)
