@@ -36,7 +36,7 @@ import h5py
 import numpy as np
 
 from .errors import DataFormatError, UserError
-from .shards import open_h5
+from .shards import attr_value, open_h5
 
 log = logging.getLogger(__name__)
 
@@ -202,16 +202,6 @@ def validate_class(where: str, arrays: dict, *, normalise: bool = True) -> dict:
     return out
 
 
-def _attr_value(v):
-    if isinstance(v, bytes):
-        return v.decode()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, np.generic):
-        return v.item()
-    return v
-
-
 def write_predictions(path: str | Path, method: str, per_class: dict[str, dict[str, np.ndarray]],
                       attrs: dict | None = None) -> None:
     """Validate ``per_class`` and write it to ``path`` (replacing an existing file).
@@ -265,7 +255,7 @@ def read_predictions(path: str | Path) -> tuple[dict, dict[str, dict[str, np.nda
     """
     path = Path(path)
     with open_h5(path) as f:
-        attrs = {k: _attr_value(v) for k, v in f.attrs.items()}
+        attrs = {k: attr_value(v) for k, v in f.attrs.items()}
         if "format_version" not in attrs:
             raise DataFormatError(f"{path}: not a predictions file (no format_version attribute)")
         major = str(attrs["format_version"]).split(".")[0]
@@ -288,7 +278,7 @@ def read_predictions(path: str | Path) -> tuple[dict, dict[str, dict[str, np.nda
                     raise DataFormatError(f"{where}/{name}: dtype {ds.dtype} is not numeric")
                 arrays[name] = ds[()]
             if MIXTURE_LAYOUT_ATTR in grp.attrs:
-                arrays[MIXTURE_LAYOUT_ATTR] = _attr_value(grp.attrs[MIXTURE_LAYOUT_ATTR])
+                arrays[MIXTURE_LAYOUT_ATTR] = attr_value(grp.attrs[MIXTURE_LAYOUT_ATTR])
             per_class[cls] = validate_class(where, arrays)
     if not per_class:
         raise DataFormatError(f"{path}: no class groups (nothing predicted)")

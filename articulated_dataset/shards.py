@@ -134,7 +134,7 @@ class Shard:
 
     @property
     def attrs(self) -> dict:
-        return {k: _attr_value(v) for k, v in self.file.attrs.items()}
+        return {k: attr_value(v) for k, v in self.file.attrs.items()}
 
     def __len__(self) -> int:
         return int(self.file["depth"].shape[0])
@@ -166,7 +166,8 @@ class Shard:
         self.__init__(state["path"])
 
 
-def _attr_value(v):
+def attr_value(v):
+    """An HDF5 attribute as a plain Python value (str, list, int/float)."""
     if isinstance(v, bytes):
         return v.decode()
     if isinstance(v, np.ndarray):
