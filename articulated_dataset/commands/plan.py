@@ -1,0 +1,129 @@
+"""``artdata plan``: grasp + waypoints that open one test object, optionally simulated."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import click
+import numpy as np
+
+from ..errors import UserError
+
+
+def _fmt_vec(v, digits: int = 4) -> str:
+    return "(" + ", ".join(f"{x:.{digits}f}" for x in v) + ")"
+
+
+@click.command("plan")
+@click.option("--data", "data_dir", type=click.Path(), required=True,
+              help="A generated split folder (<root>/<class>/<split>) holding the object.")
+@click.option("--index", type=int, required=True, help="Image index in the split (0-based, storage order).")
+@click.option("--joint", type=int, default=0, show_default=True, help="Joint to actuate (label order).")
+@click.option("--predictions", "predictions_path", type=click.Path(), default=None,
+              help="Plan from this predictions.h5 (matched by sample_id) instead of the truth labels.")
+@click.option("--target", default=None,
+              help="Target configuration with units: 60deg, 1.0rad (revolute), 0.2m, 20cm (prismatic). "
+                   "Default 60deg / 0.2m; clipped to the joint's range.")
+@click.option("--step", default=None, help="Waypoint spacing with units (default 1deg / 1cm).")
+@click.option("--simulate", is_flag=True, help="Execute the waypoints on the true object in MuJoCo and report the outcome.")
+@click.option("--out", "out_path", type=click.Path(dir_okay=False), default=None, help="Write the plan (and outcome) as JSON.")
+@click.option("--quiet", "-q", is_flag=True, help="Do not list the waypoints.")
+def plan_cmd(data_dir, index, joint, predictions_path, target, step, simulate, out_path, quiet):
+    """Plan end-effector waypoints that open joint JOINT of image INDEX's object.
+
+    The handle's grasp pose is estimated from the (true or predicted) axis pose, part offset
+    and configuration; the waypoints carry it along the arc (revolute) or line (prismatic) to
+    the target.  See docs/manipulation.md.
+    """
+    from .. import manipulation as M
+
+    if index < 0:
+        raise UserError(f"--index must be >= 0, got {index}")
+    manifest, labels = M.split_row_labels(data_dir, index)
+    obj = M.load_true_object(manifest, labels)
+    if not 0 <= joint < obj.n_joints:
+        raise UserError(f"--joint {joint} out of range: {obj.class_name} has {obj.n_joints} joint(s) (0..{obj.n_joints - 1})")
+    joint_type = obj.joint_types[joint]
+
+    def _quantity(text: str, option: str) -> float:
+        value, kind = M.parse_quantity(text)
+        if kind != joint_type:
+            raise UserError(f"{option} {text!r} is a {kind} quantity but joint {joint} of {obj.class_name} is {joint_type}")
+        return value
+
+    q_target = M.default_target(joint_type) if target is None else _quantity(target, "--target")
+    if step is None:
+        step_value = M.DEFAULT_STEP_RAD if joint_type == M.REVOLUTE else M.DEFAULT_STEP_M
+    else:
+        step_value = _quantity(step, "--step")
+        if step_value <= 0:
+            raise UserError(f"--step must be positive, got {step!r}")
+    clipped = obj.clip_target(joint, q_target)
+
+    sample_id = int(labels["sample_id"])
+    if predictions_path is None:
+        estimate = obj.truth()
+    else:
+        _method, estimates = M.load_prediction_estimates(predictions_path, obj.class_name)
+        if sample_id not in estimates:
+            raise UserError(f"{predictions_path}: no prediction for sample_id {sample_id} "
+                            f"(image {index} of {obj.class_name}/{manifest['split']})")
+        estimate = estimates[sample_id]
+        if estimate.q.shape[0] != obj.n_joints:
+            raise UserError(f"{predictions_path}: {estimate.q.shape[0]} joints predicted for {obj.class_name} "
+                            f"({obj.n_joints} expected)")
+
+    plan = M.plan_from_estimate(estimate, joint, joint_type, clipped,
+                                step_rad=step_value, step_m=step_value)
+    fq = lambda v: M.format_q(v, joint_type)  # noqa: E731
+    click.echo(f"{obj.class_name}/{manifest['split']} image {index} (object {int(labels['object_index'])}, "
+               f"view {int(labels['image_index'])}, sample_id {sample_id}), joint {joint} ({joint_type}); "
+               f"kinematics: {plan.source}")
+    click.echo(f"axis: origin {_fmt_vec(plan.axis_origin)} m, direction {_fmt_vec(plan.axis_direction)}")
+    click.echo(f"grasp: position {_fmt_vec(plan.grasp_pose[:3])} m, quaternion {_fmt_vec(plan.grasp_pose[3:])}")
+    note = "" if clipped == q_target else f" (clipped from {fq(q_target)} to the joint range)"
+    click.echo(f"q: {fq(plan.q_current)} -> {fq(plan.q_target)}{note}: {len(plan.waypoints)} waypoints, "
+               f"step {fq(step_value)}")
+    if not quiet:
+        click.echo("    k      x_m      y_m      z_m       qw       qx       qy       qz")
+        for k, wp in enumerate(plan.waypoints):
+            click.echo(f"{k:5d} " + " ".join(f"{x:8.4f}" for x in wp))
+
+    record = {
+        "class": obj.class_name, "split": manifest["split"], "data": str(Path(data_dir)), "index": index,
+        "object_index": int(labels["object_index"]), "image_index": int(labels["image_index"]),
+        "sample_id": sample_id, "predictions": None if predictions_path is None else str(predictions_path),
+        "units": {"position": "m (camera frame)", "quaternion": "w, x, y, z", "q": "rad (revolute) | m (prismatic)"},
+        "step": step_value, "q_true": float(labels["q"][joint]), **plan.to_dict(),
+    }
+    if simulate:
+        result = M.execute_plan(obj, plan.waypoints, joint, clipped)
+        record["simulation"] = result.to_dict()
+        record["limits"] = {"max_force_n": M.MAX_FORCE_N, "max_torque_nm": M.MAX_TORQUE_NM,
+                            "tolerance": M.success_tolerance(joint_type), "grasp_capture_m": M.GRASP_CAPTURE_M}
+        verdict = "SUCCESS" if result.success else f"FAILURE ({result.failure_reason()})"
+        click.echo(f"simulation: true q {fq(result.q_start)} -> reached {fq(result.q_reached)} "
+                   f"(target {fq(result.q_target)}, error {fq(result.error)}, tolerance {fq(M.success_tolerance(joint_type))}); "
+                   f"grasp {100 * result.grasp_error_m:.1f} cm from the handle; max force {result.max_force_n:.1f} N "
+                   f"(limit {M.MAX_FORCE_N:.0f}), max torque {result.max_torque_nm:.2f} N m (limit {M.MAX_TORQUE_NM:.0f}), "
+                   f"max tracking error {100 * result.max_position_error_m:.2f} cm / "
+                   f"{math.degrees(result.max_rotation_error_rad):.2f} deg: {verdict}")
+    if out_path:
+        try:
+            Path(out_path).write_text(json.dumps(record, indent=1, default=_json_default) + "\n")
+        except OSError as exc:
+            raise UserError(f"cannot write {out_path}: {exc.strerror or exc}") from None
+        click.echo(f"wrote {out_path}")
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+COMMANDS = [plan_cmd]

@@ -1,0 +1,787 @@
+"""From estimated kinematics to manipulation: grasp, waypoints and simulated execution.
+
+The paper (Sec. 4.2) opens novel objects with a fixed grasp on the handle and end-effector
+waypoints computed from the estimated kinematics, the end-effector pose and the desired
+configuration.  This module does the same in three steps (formulas in docs/manipulation.md):
+
+1. :func:`grasp_pose_from_estimate` -- the handle's grasp pose (camera frame) from an axis
+   pose, part offset and configuration, by the rule the Xacro templates follow
+   (``urdf_templates/common.xacro``: handles sit :data:`HANDLE_INSET_M` in from the free
+   edge, standing :data:`HANDLE_STANDOFF_M` out of the panel's outer face).
+2. :func:`plan_waypoints` -- end-effector poses carrying the grasp along the arc (revolute:
+   rotation about the axis line) or the line (prismatic: translation along the axis) from
+   the current to the target configuration, every :data:`DEFAULT_STEP_RAD` /
+   :data:`DEFAULT_STEP_M`, ending exactly at the target.
+3. :func:`execute_plan` -- the TRUE object (rebuilt from a test split, :func:`load_true_object`)
+   is simulated in MuJoCo while a compliant gripper (a Cartesian spring-damper between the
+   planned pose and the grasped point of the part, like an impedance-controlled arm) tracks
+   the waypoints.  The reached configuration, the gripper's force and torque and the
+   tracking error are measured; success = grasp on the handle, final configuration within
+   :data:`SUCCESS_TOL_RAD` / :data:`SUCCESS_TOL_M` of the target, and force/torque never
+   above :data:`MAX_FORCE_N` / :data:`MAX_TORQUE_NM`.
+
+Poses are ``(7,)`` arrays: position (m, camera frame) + quaternion (w, x, y, z).  Planning
+functions are pure (numpy in, numpy out); only the execution touches MuJoCo state.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from .errors import UserError
+from .labels import HANDLE_SUFFIX, MASK_FIRST_PART, ModelInfo, mat_to_quat, model_info, read_object_labels
+from .registry import JOINT_TYPES, PRISMATIC, REVOLUTE
+from .scene import build_model, set_configuration
+
+log = logging.getLogger(__name__)
+
+# --------------------------------------------------------------------------------------
+# Template constants (mirrors of urdf_templates/common.xacro; tests check the grasp rule
+# against the compiled handle geoms, so a template change that breaks the rule fails CI)
+# --------------------------------------------------------------------------------------
+
+#: Distance of the handle bar's centre line from the panel's free edge (common.xacro ``handle_inset_m``).
+HANDLE_INSET_M = 0.05
+#: How far the handle bar stands out of the panel's outer face (``handle_standoff_m``); the
+#: grasp point is the bar's centre, half of it out of the face.
+HANDLE_STANDOFF_M = 0.03
+#: Thickness of doors and drawer fronts (``panel_m``): the hinge line lies on the panel's
+#: outer face, so the part centre sits half of it behind the hinge plane.
+PANEL_THICKNESS_M = 0.02
+
+# --------------------------------------------------------------------------------------
+# Planning defaults
+# --------------------------------------------------------------------------------------
+
+#: Revolute waypoint spacing: 1 degree.  On the largest door (handle radius ~1.35 m) the
+#: chord between waypoints deviates from the arc by r (1 - cos(step / 2)) = 0.05 mm.
+DEFAULT_STEP_RAD = math.radians(1.0)
+#: Prismatic waypoint spacing: 1 cm (the path is a straight line, so spacing only sets
+#: the resolution of the plan).
+DEFAULT_STEP_M = 0.01
+#: Default opening targets of the benchmark: 60 degrees / 20 cm (clipped to the joint range).
+DEFAULT_TARGET_RAD = math.radians(60.0)
+DEFAULT_TARGET_M = 0.20
+#: Success tolerance on the reached configuration: 5 degrees (revolute) / 2 cm (prismatic).
+SUCCESS_TOL_RAD = math.radians(5.0)
+SUCCESS_TOL_M = 0.02
+#: The grasp closes on the handle if the planned grasp point lies within 3 cm of the
+#: handle bar's surface: with the bar's half-thickness (1-1.5 cm) the bar's centre line is
+#: then within ~half the 85 mm stroke of a common parallel gripper, so it still ends up
+#: between the fingers.
+GRASP_CAPTURE_M = 0.03
+
+# --------------------------------------------------------------------------------------
+# Simulated gripper (Cartesian impedance) and its limits
+# --------------------------------------------------------------------------------------
+
+#: Translational stiffness of the grasp (N/m): the upper end of the Cartesian stiffness
+#: used with impedance-controlled arms (a few hundred to ~3000 N/m).  It makes the force
+#: limit below a limit on path mismatch: 2000 N/m * 2.5 cm = 50 N.
+GRIPPER_STIFFNESS_N_PER_M = 2000.0
+#: Effective mass at the handle (kg) for which the translational damping is critical.
+GRIPPER_DAMPING_REFERENCE_MASS_KG = 5.0
+#: Translational damping (N s/m): critical, 2 sqrt(k m), for the reference mass (200 N s/m);
+#: heavier doors are underdamped, lighter ones overdamped (all stable at the 2 ms time
+#: step: b dt / m < 2 down to m = 0.2 kg).
+GRIPPER_DAMPING_N_S_PER_M = 2.0 * math.sqrt(GRIPPER_STIFFNESS_N_PER_M * GRIPPER_DAMPING_REFERENCE_MASS_KG)
+#: Rotational stiffness (N m/rad) and damping (N m s/rad) of the grasp: a firm wrist.
+GRIPPER_ROT_STIFFNESS_NM_PER_RAD = 50.0
+GRIPPER_ROT_DAMPING_NM_S_PER_RAD = 2.0
+#: Force limit (N).  Opening a door along its true arc needs little force: inertia at the
+#: commanded acceleration, hinge damping and, for the toaster's drop-down door, its weight
+#: (true-kinematics peaks are <= 16 N over the benchmark; docs/manipulation.md).  The US
+#: accessibility standard (ADA 404.2.9) caps the force to open an interior door at 22 N; we
+#: allow a little over twice that.  A plan about a wrong axis stretches the grasp spring by
+#: the path mismatch, so 50 N also means "the arc deviates from the true one by ~2.5 cm".
+MAX_FORCE_N = 50.0
+#: Torque limit (N m) at the grasp: a wrist-twist budget; a true arc needs < ~2 N m
+#: (the grasp turns with the part), a tilted axis twists the wrist by the tilt angle
+#: times the rotational stiffness (10 N m = 11 degrees of twist).
+MAX_TORQUE_NM = 10.0
+#: Peak handle acceleration of the commanded motion (m/s^2): with a minimum-jerk profile
+#: the motion takes T = sqrt(MINJERK_PEAK_ACCEL * L / a) for a handle path of length L.
+PEAK_HANDLE_ACCEL_M_S2 = 0.5
+#: Peak acceleration of a minimum-jerk profile s(t) = 10 t^3 - 15 t^4 + 6 t^5 is
+#: (10 / sqrt(3)) L / T^2.
+MINJERK_PEAK_ACCEL = 10.0 / math.sqrt(3.0)
+#: Shortest commanded motion (s) and the hold after the last waypoint before the
+#: configuration is read (s).
+MIN_DURATION_S = 1.0
+SETTLE_S = 0.5
+#: Gravity is ON (MuJoCo's default -9.81 m/s^2 along the camera's -z, which is the objects'
+#: down): the gripper must also hold the toaster's drop-down door.  Contacts are disabled:
+#: the gripper has no geometry and the object's parts only interact through their joints.
+GRAVITY_ON = True
+#: Vectors/quaternions shorter than this have no direction (axis, rotation): rejected.
+ZERO_LENGTH = 1e-9
+#: A step count |dq| / step within this of an integer is that integer (so 60 deg in 1 deg
+#: steps is 60 steps, not 61, despite floating-point round-off).
+STEP_COUNT_SLACK = 1e-9
+#: A rebuilt true object's axis origins must match the stored labels to 1 mm (float32
+#: labels agree to ~1e-6 m; a larger gap means the data came from other templates).
+REBUILD_TOL_M = 1e-3
+
+
+# --------------------------------------------------------------------------------------
+# Small rotation helpers (MuJoCo's quaternion routines)
+# --------------------------------------------------------------------------------------
+
+def quat_to_mat(quat) -> np.ndarray:
+    """3x3 rotation matrix of a quaternion (w, x, y, z) (normalised first)."""
+    q = np.asarray(quat, np.float64)
+    q = q / np.linalg.norm(q)
+    out = np.zeros(9)
+    mujoco.mju_quat2Mat(out, q)
+    return out.reshape(3, 3)
+
+
+def axis_angle_quat(axis, angle_rad: float) -> np.ndarray:
+    """Quaternion of a rotation by ``angle_rad`` about the unit vector ``axis``."""
+    out = np.zeros(4)
+    mujoco.mju_axisAngle2Quat(out, np.asarray(axis, np.float64), float(angle_rad))
+    return out
+
+
+def quat_mul(a, b) -> np.ndarray:
+    """Hamilton product ``a * b`` (apply ``b`` first, then ``a``)."""
+    out = np.zeros(4)
+    mujoco.mju_mulQuat(out, np.asarray(a, np.float64), np.asarray(b, np.float64))
+    return out
+
+
+def quat_angle(a, b) -> float:
+    """Angle (rad) of the rotation between two orientations: 2 acos(|<a, b>|)."""
+    d = abs(float(np.dot(a, b))) / (np.linalg.norm(a) * np.linalg.norm(b))
+    return 2.0 * math.acos(min(1.0, d))
+
+
+def _canonical(quat: np.ndarray) -> np.ndarray:
+    q = np.asarray(quat, np.float64)
+    q = q / np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+# --------------------------------------------------------------------------------------
+# Inputs
+# --------------------------------------------------------------------------------------
+
+def _check_joint_type(joint_type: str) -> None:
+    if joint_type not in JOINT_TYPES:
+        raise UserError(f"joint type must be one of {', '.join(JOINT_TYPES)}, got {joint_type!r}")
+
+
+def _vec(name: str, v, n: int) -> np.ndarray:
+    a = np.asarray(v, np.float64)
+    if a.shape != (n,):
+        raise ValueError(f"{name} must have shape ({n},), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise UserError(f"{name} has NaN/inf values: {a.tolist()}")
+    return a
+
+
+def _unit(name: str, v) -> np.ndarray:
+    a = _vec(name, v, 3)
+    n = np.linalg.norm(a)
+    if n < ZERO_LENGTH:
+        raise UserError(f"{name} has zero length")
+    return a / n
+
+
+def axis_frame(axis_pose) -> tuple[np.ndarray, np.ndarray]:
+    """``(origin (3,), R (3, 3))`` of an axis pose; ``R[:, 2]`` is the axis direction."""
+    pose = _vec("axis_pose", axis_pose, 7)
+    if np.linalg.norm(pose[3:]) < ZERO_LENGTH:
+        raise UserError("axis_pose has a zero-length quaternion")
+    return pose[:3].copy(), quat_to_mat(pose[3:])
+
+
+def parse_quantity(text: str) -> tuple[float, str]:
+    """Parse ``"60deg"``, ``"1.2rad"``, ``"0.2m"``, ``"20cm"``, ``"150mm"``.
+
+    Returns ``(value in rad or m, joint type it applies to)``.  A malformed string is a
+    :class:`UserError`.
+    """
+    m = re.fullmatch(r"\s*([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)\s*(deg|rad|m|cm|mm)\s*", str(text))
+    if m is None:
+        raise UserError(f"cannot parse {text!r}: expected a number with a unit, e.g. 60deg, 1.0rad, 0.2m, 20cm")
+    value, unit = float(m.group(1)), m.group(2)
+    scale = {"deg": (math.pi / 180.0, REVOLUTE), "rad": (1.0, REVOLUTE),
+             "m": (1.0, PRISMATIC), "cm": (0.01, PRISMATIC), "mm": (0.001, PRISMATIC)}[unit]
+    return value * scale[0], scale[1]
+
+
+def default_target(joint_type: str) -> float:
+    """The benchmark's opening target: 60 deg (revolute) or 0.2 m (prismatic)."""
+    _check_joint_type(joint_type)
+    return DEFAULT_TARGET_RAD if joint_type == REVOLUTE else DEFAULT_TARGET_M
+
+
+def success_tolerance(joint_type: str) -> float:
+    """Allowed |q_reached - q_target|: 5 deg in rad (revolute) or 0.02 m (prismatic)."""
+    _check_joint_type(joint_type)
+    return SUCCESS_TOL_RAD if joint_type == REVOLUTE else SUCCESS_TOL_M
+
+
+def format_q(value: float, joint_type: str) -> str:
+    """A configuration in display units: degrees (revolute) or centimetres (prismatic)."""
+    return f"{math.degrees(value):.2f} deg" if joint_type == REVOLUTE else f"{100.0 * value:.2f} cm"
+
+
+# --------------------------------------------------------------------------------------
+# Grasp rule
+# --------------------------------------------------------------------------------------
+
+def handle_offset_in_axis_frame(part_offset, joint_type: str) -> np.ndarray:
+    """Handle centre at q = 0 in the axis frame, from the part centre ``c = part_offset``.
+
+    Revolute (doors; the built-in templates put the hinge line on the panel's outer face):
+    with ``r = |(c_x, c_y)|``, the door's half-width is ``L = sqrt(r^2 - (t/2)^2)`` (t =
+    :data:`PANEL_THICKNESS_M`), the panel runs along ``u = R_z(beta + alpha) e_x`` with
+    ``beta = atan2(c_y, c_x)`` and ``alpha = atan2(t/2, L)``, and its outward normal is
+    ``n = e_z x u``.  The handle bar sits ``HANDLE_INSET_M`` in from the free edge (radius
+    ``2 L - inset``), ``HANDLE_STANDOFF_M / 2`` out of the face, at the part centre's
+    height along the axis::
+
+        h = (2 L - inset) u + (standoff / 2) n + c_z e_z
+
+    Prismatic (drawers): the centre of the front face -- the part centre moved along the
+    axis onto the leading face, which is the axis origin's plane (z = 0) -- plus half the
+    standoff along the axis: ``h = (c_x, c_y, standoff / 2)``.
+    """
+    _check_joint_type(joint_type)
+    c = _vec("part_offset", part_offset, 3)
+    if joint_type == PRISMATIC:
+        return np.array([c[0], c[1], 0.5 * HANDLE_STANDOFF_M])
+    r = float(np.hypot(c[0], c[1]))
+    half_t = 0.5 * PANEL_THICKNESS_M
+    half_width = math.sqrt(max(r * r - half_t * half_t, 0.0))
+    angle = math.atan2(c[1], c[0]) + math.atan2(half_t, half_width)
+    u = np.array([math.cos(angle), math.sin(angle), 0.0])
+    n = np.array([-math.sin(angle), math.cos(angle), 0.0])  # e_z x u
+    radius = max(2.0 * half_width - HANDLE_INSET_M, 0.0)
+    return radius * u + 0.5 * HANDLE_STANDOFF_M * n + np.array([0.0, 0.0, c[2]])
+
+
+def part_offset_from_geometry(geometry, axis_direction, joint_type: str) -> np.ndarray:
+    """Coarse part offset when an estimate has none, from the body geometry alone.
+
+    Revolute: the door is assumed to span the body's extent across the axis -- the width
+    ``geometry[1]`` if the axis is within 45 degrees of vertical (camera z = the objects'
+    up), else the height ``geometry[2]`` -- so ``c = (extent / 2, 0, 0)``.  Prismatic: the
+    front face is centred on the axis origin, ``c = (0, 0, -depth / 2)``.  This is right
+    for full-width doors only (cabinet, refrigerator, toaster's height) and overestimates
+    narrower doors (microwave, cabinet2): prefer a predicted ``part_offset``.
+    """
+    _check_joint_type(joint_type)
+    g = _vec("geometry", geometry, 4)
+    a = _unit("axis_direction", axis_direction)
+    if joint_type == PRISMATIC:
+        return np.array([0.0, 0.0, -0.5 * g[0]])
+    vertical = abs(a[2]) >= math.cos(math.pi / 4)
+    extent = g[1] if vertical else g[2]
+    return np.array([0.5 * extent, 0.0, 0.0])
+
+
+def move_pose(pose, joint_type: str, axis_origin, axis_direction, delta: float) -> np.ndarray:
+    """A pose carried by the part when its joint moves by ``delta`` (rad or m).
+
+    Revolute: ``p' = o + R(a, delta) (p - o)``, ``quat' = quat(a, delta) * quat``.
+    Prismatic: ``p' = p + delta a``, orientation unchanged.
+    """
+    _check_joint_type(joint_type)
+    pose = _vec("pose", pose, 7)
+    o = _vec("axis_origin", axis_origin, 3)
+    a = _unit("axis_direction", axis_direction)
+    out = pose.copy()
+    if joint_type == PRISMATIC:
+        out[:3] = pose[:3] + delta * a
+        return out
+    rq = axis_angle_quat(a, delta)
+    rot = quat_to_mat(rq)
+    out[:3] = o + rot @ (pose[:3] - o)
+    out[3:] = _canonical(quat_mul(rq, pose[3:]))
+    return out
+
+
+def grasp_pose_from_estimate(axis_pose, part_offset, geometry, joint_type: str, q: float) -> np.ndarray:
+    """The handle's grasp pose (7,) in the camera frame at configuration ``q``.
+
+    Position: :func:`handle_offset_in_axis_frame` mapped to the camera frame through the
+    axis pose (``o + R h``) and moved by ``q`` (:func:`move_pose`).  Orientation: the axis
+    frame carried with the part (x: radial (revolute) / object up (prismatic), z: the axis,
+    y = z x x).  For a door y points out of the panel (the gripper approaches along -y);
+    for a drawer z does (it approaches along -z).
+    ``part_offset`` may be None: then :func:`part_offset_from_geometry` estimates it from
+    ``geometry`` (which is otherwise unused).
+    """
+    _check_joint_type(joint_type)
+    origin, rot = axis_frame(axis_pose)
+    if part_offset is None:
+        if geometry is None:
+            raise UserError("the estimate has neither part_offset nor geometry: cannot place the handle")
+        part_offset = part_offset_from_geometry(geometry, rot[:, 2], joint_type)
+        log.info("no part_offset: handle placed from the geometry (coarse)")
+    h = handle_offset_in_axis_frame(part_offset, joint_type)
+    pose0 = np.concatenate([origin + rot @ h, _canonical(mat_to_quat(rot))])
+    return move_pose(pose0, joint_type, origin, rot[:, 2], float(q))
+
+
+# --------------------------------------------------------------------------------------
+# Waypoints
+# --------------------------------------------------------------------------------------
+
+def waypoint_configurations(q_current: float, q_target: float, step: float) -> np.ndarray:
+    """Configurations of the waypoints: ``n = max(1, ceil(|dq| / step))`` equal steps from
+    ``q_current`` to exactly ``q_target`` (n + 1 values; one value if they are equal)."""
+    if not (math.isfinite(q_current) and math.isfinite(q_target)):
+        raise UserError(f"configurations must be finite, got {q_current} -> {q_target}")
+    if not step > 0:
+        raise UserError(f"waypoint step must be positive, got {step}")
+    dq = q_target - q_current
+    if dq == 0.0:
+        return np.array([q_current])
+    n = max(1, math.ceil(abs(dq) / step - STEP_COUNT_SLACK))
+    qs = q_current + dq * np.arange(n + 1) / n
+    qs[-1] = q_target
+    return qs
+
+
+def plan_waypoints(joint_type: str, axis_origin, axis_direction, q_current: float, q_target: float, grasp_pose,
+                   step_rad: float = DEFAULT_STEP_RAD, step_m: float = DEFAULT_STEP_M) -> np.ndarray:
+    """End-effector poses (K, 7) moving a grasped handle from ``q_current`` to ``q_target``.
+
+    Waypoint k is ``grasp_pose`` moved by ``q_k - q_current`` (:func:`move_pose`): for a
+    revolute joint a rotation about the line through ``axis_origin`` along
+    ``axis_direction`` (consecutive positions are ``2 r sin(step / 2)`` apart for a handle at
+    distance r from the axis, orientations ``step`` apart); for a prismatic joint a
+    translation along the direction (positions ``step`` apart, fixed orientation).  The
+    first pose is ``grasp_pose``; the last is exactly the pose at ``q_target``.
+    """
+    _check_joint_type(joint_type)
+    o = _vec("axis_origin", axis_origin, 3)
+    a = _unit("axis_direction", axis_direction)
+    pose = _vec("grasp_pose", grasp_pose, 7)
+    if np.linalg.norm(pose[3:]) < ZERO_LENGTH:
+        raise UserError("grasp_pose has a zero-length quaternion")
+    pose[3:] = _canonical(pose[3:])
+    step = step_rad if joint_type == REVOLUTE else step_m
+    qs = waypoint_configurations(float(q_current), float(q_target), float(step))
+    return np.stack([move_pose(pose, joint_type, o, a, dq) for dq in qs - float(q_current)])
+
+
+# --------------------------------------------------------------------------------------
+# Estimates (truth labels or predictions) and plans
+# --------------------------------------------------------------------------------------
+
+@dataclass
+class Estimate:
+    """Kinematics of one image as seen by a planner (all joints; camera frame)."""
+
+    axis_pose: np.ndarray  # (J, 7)
+    q: np.ndarray  # (J,)
+    part_offset: np.ndarray | None = None  # (J, 3)
+    geometry: np.ndarray | None = None  # (4,)
+    source: str = "truth"
+
+    def axis(self, joint: int) -> tuple[np.ndarray, np.ndarray]:
+        origin, rot = axis_frame(self.axis_pose[joint])
+        return origin, rot[:, 2]
+
+
+@dataclass
+class Plan:
+    """A grasp and its waypoints for one joint."""
+
+    joint: int
+    joint_type: str
+    q_current: float
+    q_target: float
+    grasp_pose: np.ndarray  # (7,)
+    waypoints: np.ndarray  # (K, 7)
+    axis_origin: np.ndarray
+    axis_direction: np.ndarray
+    source: str
+
+    def to_dict(self) -> dict:
+        return {
+            "joint": self.joint, "joint_type": self.joint_type, "source": self.source,
+            "q_current": self.q_current, "q_target": self.q_target,
+            "axis_origin": self.axis_origin.tolist(), "axis_direction": self.axis_direction.tolist(),
+            "grasp_pose": self.grasp_pose.tolist(), "waypoints": self.waypoints.tolist(),
+        }
+
+
+def plan_from_estimate(estimate: Estimate, joint: int, joint_type: str, q_target: float,
+                       step_rad: float = DEFAULT_STEP_RAD, step_m: float = DEFAULT_STEP_M) -> Plan:
+    """Grasp (:func:`grasp_pose_from_estimate`) and waypoints (:func:`plan_waypoints`) of
+    joint ``joint`` from the estimated current configuration to ``q_target``."""
+    if not 0 <= joint < len(estimate.q):
+        raise UserError(f"joint {joint} out of range: the object has {len(estimate.q)} joint(s)")
+    po = None if estimate.part_offset is None else estimate.part_offset[joint]
+    q_now = float(estimate.q[joint])
+    grasp = grasp_pose_from_estimate(estimate.axis_pose[joint], po, estimate.geometry, joint_type, q_now)
+    origin, direction = estimate.axis(joint)
+    wps = plan_waypoints(joint_type, origin, direction, q_now, q_target, grasp, step_rad, step_m)
+    return Plan(joint, joint_type, q_now, float(q_target), grasp, wps, origin, direction, estimate.source)
+
+
+# --------------------------------------------------------------------------------------
+# The true object
+# --------------------------------------------------------------------------------------
+
+@dataclass
+class TrueObject:
+    """A test image's true object compiled in MuJoCo, with its labels."""
+
+    class_name: str
+    joint_types: tuple[str, ...]
+    q_ranges: tuple[tuple[float, float], ...]
+    labels: dict  # label fields of the image (numpy, float64 where numeric)
+    model: mujoco.MjModel
+    info: ModelInfo
+    urdf: str
+    pose: dict  # x_m, y_m, z_m, yaw_rad
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_types)
+
+    def truth(self) -> Estimate:
+        L = self.labels
+        return Estimate(L["axis_pose"].astype(np.float64), L["q"].astype(np.float64),
+                        L["part_offset"].astype(np.float64), L["geometry"].astype(np.float64), source="truth")
+
+    def clip_target(self, joint: int, q_target: float) -> float:
+        lo, hi = self.q_ranges[joint]
+        return float(min(max(q_target, lo), hi))
+
+
+def read_split_labels(split_dir: str | Path) -> tuple[Path, dict, dict]:
+    """``(split folder, manifest, {field: (N, ...) array})`` of every label field of a split
+    (storage order; ``class`` decoded to str)."""
+    from .schema import IMAGE_FIELDS, LABEL_FIELDS
+    from .shards import find_split_dirs, open_split
+
+    dirs = find_split_dirs(split_dir)
+    if len(dirs) != 1:
+        raise UserError(f"{split_dir}: holds {len(dirs)} splits; pass one split folder (<root>/<class>/<split>)")
+    manifest, shards = open_split(dirs[0])
+    if not shards:
+        raise UserError(f"{dirs[0]}: no shards (generation not finished?)")
+    parts: dict[str, list] = {k: [] for k in LABEL_FIELDS if k not in IMAGE_FIELDS}
+    try:
+        for sh in shards:
+            for k in parts:
+                parts[k].append(sh.read(k))
+    finally:
+        for sh in shards:
+            sh.close()
+    labels = {k: np.concatenate(v) for k, v in parts.items()}
+    labels["class"] = np.array([c.decode() if isinstance(c, bytes) else str(c) for c in labels["class"]])
+    return dirs[0], manifest, labels
+
+
+def label_row(labels: dict, index: int) -> dict:
+    """The labels of one image from :func:`read_split_labels`' arrays."""
+    row = {k: v[index] for k, v in labels.items()}
+    row["class"] = str(row["class"])
+    return row
+
+
+def split_row_labels(split_dir: str | Path, index: int) -> tuple[dict, dict]:
+    """``(manifest, labels)`` of image ``index`` (0-based, storage order) of a split folder."""
+    path, manifest, labels = read_split_labels(split_dir)
+    n = len(labels["sample_id"])
+    if not 0 <= index < n:
+        raise UserError(f"--index {index} out of range: {path} has {n} images (0..{n - 1})")
+    return manifest, label_row(labels, index)
+
+
+def load_true_object(manifest: dict, labels: dict, camera=None) -> TrueObject:
+    """Rebuild the true object of an image in MuJoCo.
+
+    Geometry and chirality come from the split's generation config
+    (:func:`~articulated_dataset.pipeline.object_sample`); the pose comes from the stored
+    labels (``object_pose`` position and ``object_yaw``), because the pipeline redraws a
+    pose whose view hides a part, and ``object_sample`` returns the first draw.  The
+    rebuilt model's axis labels are checked against the stored ones.  ``camera`` overrides
+    the image size (for figures); the physics is the same.
+    """
+    from .pipeline import GenerationConfig, object_sample
+    from .templating import render_urdf
+
+    config = GenerationConfig.from_dict(manifest["config"])
+    obj_class = config.obj_class
+    sample = object_sample(config, int(labels["object_index"]))
+    op = np.asarray(labels["object_pose"], np.float64)
+    pose = {"x_m": float(op[0]), "y_m": float(op[1]), "z_m": float(op[2]), "yaw_rad": float(labels["object_yaw"])}
+    urdf = render_urdf(obj_class.template_path(), sample.template_mappings(config.table))
+    model = build_model(urdf, pose, camera or config.camera, obj_class.base_link)
+    info = model_info(model, obj_class)
+    # check: the rebuilt object has the stored axes (float32 labels: ~1e-6 m)
+    data = mujoco.MjData(model)
+    set_configuration(model, data, info.joint_ids, np.zeros(obj_class.n_joints))
+    rebuilt = read_object_labels(model, data, info, obj_class)
+    err = float(np.abs(rebuilt["axis_pose"][:, :3] - labels["axis_pose"][:, :3]).max())
+    if err > REBUILD_TOL_M:
+        raise UserError(f"object {int(labels['object_index'])} of {config.class_name}/{config.split}: the rebuilt "
+                        f"model's axes differ from the stored labels by {err:.4f} m (data from another version?)")
+    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+    if not GRAVITY_ON:
+        model.opt.gravity[:] = 0.0
+    return TrueObject(config.class_name, obj_class.joint_types, tuple(config.table.q), dict(labels),
+                      model, info, urdf, pose)
+
+
+def handle_geom(obj: TrueObject, joint: int) -> int:
+    """Model id of the handle geom (``*_handle``) of joint ``joint``'s part."""
+    info = obj.info
+    ids = np.nonzero((info.geom_part == MASK_FIRST_PART + joint) & info.geom_is_handle)[0]
+    if len(ids) != 1:
+        raise UserError(f"{obj.class_name}: the part of joint {joint} has {len(ids)} geoms named *{HANDLE_SUFFIX} "
+                        "(simulated grasping needs exactly one handle)")
+    return int(ids[0])
+
+
+def point_box_distance(point, centre, rot, half_size) -> float:
+    """Euclidean distance (m) from a point to a solid box (0 inside): ``|max(|R^T (p - c)| - h, 0)|``."""
+    local = np.asarray(rot).T @ (np.asarray(point) - np.asarray(centre))
+    return float(np.linalg.norm(np.maximum(np.abs(local) - np.asarray(half_size), 0.0)))
+
+
+# --------------------------------------------------------------------------------------
+# Execution
+# --------------------------------------------------------------------------------------
+
+@dataclass
+class ExecutionResult:
+    """What the simulated robot achieved with one plan on the true object."""
+
+    joint: int
+    joint_type: str
+    q_start: float  # true configuration before the motion
+    q_target: float
+    q_reached: float
+    grasped: bool
+    grasp_error_m: float  # planned grasp point to the true handle bar (0 = on the bar)
+    max_force_n: float
+    max_torque_nm: float
+    max_position_error_m: float  # planned pose vs grasped point of the part
+    max_rotation_error_rad: float
+    duration_s: float
+    trace: dict = field(default_factory=dict, repr=False)  # time, q, force, grasp positions
+
+    @property
+    def error(self) -> float:
+        return abs(self.q_reached - self.q_target)
+
+    @property
+    def reached(self) -> bool:
+        return self.error <= success_tolerance(self.joint_type)
+
+    @property
+    def within_limits(self) -> bool:
+        return self.max_force_n <= MAX_FORCE_N and self.max_torque_nm <= MAX_TORQUE_NM
+
+    @property
+    def success(self) -> bool:
+        return self.grasped and self.reached and self.within_limits
+
+    def failure_reason(self) -> str:
+        if not self.grasped:
+            return f"missed the handle by {100 * self.grasp_error_m:.1f} cm"
+        reasons = []
+        if not self.reached:
+            reasons.append(f"reached {format_q(self.q_reached, self.joint_type)}, target {format_q(self.q_target, self.joint_type)}")
+        if self.max_force_n > MAX_FORCE_N:
+            reasons.append(f"force {self.max_force_n:.0f} N > {MAX_FORCE_N:.0f} N")
+        if self.max_torque_nm > MAX_TORQUE_NM:
+            reasons.append(f"torque {self.max_torque_nm:.1f} N m > {MAX_TORQUE_NM:.0f} N m")
+        return "; ".join(reasons)
+
+    def to_dict(self) -> dict:
+        return {
+            "joint": self.joint, "joint_type": self.joint_type, "q_start": self.q_start, "q_target": self.q_target,
+            "q_reached": self.q_reached, "error": self.error, "grasped": self.grasped,
+            "grasp_error_m": self.grasp_error_m, "max_force_n": self.max_force_n, "max_torque_nm": self.max_torque_nm,
+            "max_position_error_m": self.max_position_error_m, "max_rotation_error_rad": self.max_rotation_error_rad,
+            "duration_s": self.duration_s, "reached": self.reached, "within_limits": self.within_limits,
+            "success": self.success, "failure": "" if self.success else self.failure_reason(),
+        }
+
+
+def minimum_jerk(tau: np.ndarray) -> np.ndarray:
+    """Minimum-jerk time scaling ``s = 10 tau^3 - 15 tau^4 + 6 tau^5`` for ``tau`` in [0, 1]."""
+    t = np.clip(tau, 0.0, 1.0)
+    return t**3 * (10.0 - 15.0 * t + 6.0 * t * t)
+
+
+def motion_duration(waypoints: np.ndarray) -> float:
+    """Duration (s) of the commanded motion: ``max(MIN_DURATION_S, sqrt(c L / a_max))`` with
+    L the length of the waypoint polyline (m), c = :data:`MINJERK_PEAK_ACCEL` and
+    a_max = :data:`PEAK_HANDLE_ACCEL_M_S2`."""
+    length = float(np.linalg.norm(np.diff(waypoints[:, :3], axis=0), axis=1).sum())
+    return max(MIN_DURATION_S, math.sqrt(MINJERK_PEAK_ACCEL * length / PEAK_HANDLE_ACCEL_M_S2))
+
+
+def _interpolate(waypoints: np.ndarray, s: float) -> np.ndarray:
+    """Pose at path parameter s in [0, 1]: linear in position, slerp in orientation,
+    between the two waypoints around ``s (K - 1)``."""
+    K = len(waypoints)
+    if K == 1:
+        return waypoints[0].copy()
+    u = s * (K - 1)
+    i = min(int(u), K - 2)
+    f = u - i
+    a, b = waypoints[i], waypoints[i + 1]
+    out = np.empty(7)
+    out[:3] = (1.0 - f) * a[:3] + f * b[:3]
+    qb = b[3:] if np.dot(a[3:], b[3:]) >= 0 else -b[3:]
+    vel = np.zeros(3)
+    mujoco.mju_subQuat(vel, qb, a[3:])
+    q = a[3:].copy()
+    mujoco.mju_quatIntegrate(q, vel, f)
+    out[3:] = q
+    return out
+
+
+def execute_plan(obj: TrueObject, waypoints: np.ndarray, joint: int, q_target: float, *,
+                 q_start: np.ndarray | None = None, record: bool = False) -> ExecutionResult:
+    """Simulate a compliant gripper tracking ``waypoints`` on the true object.
+
+    1. The object starts at ``q_start`` (default: the image's true configuration), at rest.
+    2. Grasp: the gripper closes at ``waypoints[0]``; it holds the handle if that point lies
+       within :data:`GRASP_CAPTURE_M` of the true handle bar's box (else the trial fails with
+       nothing moved).  The grasped point and orientation are then fixed in the part's frame.
+    3. The commanded pose follows the waypoints with a minimum-jerk time scaling over
+       :func:`motion_duration`, then holds the last one for :data:`SETTLE_S`.  At every 2 ms
+       physics step the gripper applies, at the grasped point ``g`` of the part,
+       ``F = k (p_cmd - g) + b (v_cmd - v_g)`` and ``tau = k_r theta + b_r (w_cmd - w_g)``
+       (``theta``: rotation vector from the grasp's orientation to the commanded one).
+    4. Reported: the joint's final configuration, the peak |F| and |tau| and the peak
+       position / rotation tracking error.
+    """
+    model = obj.model
+    data = mujoco.MjData(model)
+    info = obj.info
+    joint_type = obj.joint_types[joint]
+    q0 = np.asarray(obj.labels["q"], np.float64) if q_start is None else np.asarray(q_start, np.float64)
+    set_configuration(model, data, info.joint_ids, q0)
+    data.qvel[:] = 0.0
+    mujoco.mj_forward(model, data)
+    adr = int(info.qpos_adr[joint])
+
+    g = handle_geom(obj, joint)
+    grasp_error = point_box_distance(waypoints[0, :3], data.geom_xpos[g], data.geom_xmat[g].reshape(3, 3), model.geom_size[g])
+    base = dict(joint=joint, joint_type=joint_type, q_start=float(q0[joint]), q_target=float(q_target),
+                grasp_error_m=grasp_error)
+    if grasp_error > GRASP_CAPTURE_M:
+        return ExecutionResult(q_reached=float(q0[joint]), grasped=False, max_force_n=0.0, max_torque_nm=0.0,
+                               max_position_error_m=0.0, max_rotation_error_rad=0.0, duration_s=0.0, **base)
+
+    body = info.part_bodies[joint]
+    rot_b = data.xmat[body].reshape(3, 3)
+    p_local = rot_b.T @ (waypoints[0, :3] - data.xpos[body])
+    q_inv_b = np.zeros(4)
+    mujoco.mju_negQuat(q_inv_b, data.xquat[body])
+    quat_local = quat_mul(q_inv_b, waypoints[0, 3:])
+
+    dt = model.opt.timestep
+    duration = motion_duration(waypoints)
+    n_move = int(math.ceil(duration / dt))
+    n_total = n_move + int(math.ceil(SETTLE_S / dt))
+    s = minimum_jerk(np.arange(n_total + 1) * dt / duration)
+    cmd = np.stack([_interpolate(waypoints, float(si)) for si in s])
+
+    k, b = GRIPPER_STIFFNESS_N_PER_M, GRIPPER_DAMPING_N_S_PER_M
+    kr, br = GRIPPER_ROT_STIFFNESS_NM_PER_RAD, GRIPPER_ROT_DAMPING_NM_S_PER_RAD
+    jacp = np.zeros((3, model.nv))
+    jacr = np.zeros((3, model.nv))
+    rotvec = np.zeros(3)
+    w_cmd = np.zeros(3)
+    gq = np.zeros(4)
+    max_f = max_t = max_pe = max_re = 0.0
+    trace = {k_: [] for k_ in ("t", "q", "force", "grasp", "command")} if record else {}
+    for i in range(n_total):
+        # mj_step1 computes the kinematics of the current state; the gripper's wrench is
+        # then set from it and mj_step2 integrates (MuJoCo's split step for state feedback)
+        mujoco.mj_step1(model, data)
+        rot_b = data.xmat[body].reshape(3, 3)
+        gp = data.xpos[body] + rot_b @ p_local
+        mujoco.mju_mulQuat(gq, data.xquat[body], quat_local)
+        mujoco.mj_jac(model, data, jacp, jacr, gp, body)
+        v = jacp @ data.qvel
+        w = jacr @ data.qvel
+        target, nxt = cmd[i], cmd[i + 1]
+        v_cmd = (nxt[:3] - target[:3]) / dt
+        tq = target[3:] if np.dot(target[3:], gq) >= 0 else -target[3:]
+        mujoco.mju_subQuat(rotvec, tq, gq)  # local to the grasp frame
+        theta = quat_to_mat(gq) @ rotvec
+        mujoco.mju_subQuat(w_cmd, nxt[3:] if np.dot(nxt[3:], target[3:]) >= 0 else -nxt[3:], target[3:])
+        w_cmd_world = quat_to_mat(target[3:]) @ w_cmd / dt
+        pos_err = target[:3] - gp
+        force = k * pos_err + b * (v_cmd - v)
+        torque = kr * theta + br * (w_cmd_world - w)
+        data.qfrc_applied[:] = 0.0
+        mujoco.mj_applyFT(model, data, force, torque, gp, body, data.qfrc_applied)
+        max_f = max(max_f, float(np.linalg.norm(force)))
+        max_t = max(max_t, float(np.linalg.norm(torque)))
+        max_pe = max(max_pe, float(np.linalg.norm(pos_err)))
+        max_re = max(max_re, float(np.linalg.norm(theta)))
+        if record:
+            trace["t"].append(i * dt)
+            trace["q"].append(data.qpos[info.qpos_adr].copy())
+            trace["force"].append(float(np.linalg.norm(force)))
+            trace["grasp"].append(gp.copy())
+            trace["command"].append(target[:3].copy())
+        mujoco.mj_step2(model, data)
+    if record:
+        trace = {k_: np.asarray(v_) for k_, v_ in trace.items()}
+    return ExecutionResult(q_reached=float(data.qpos[adr]), grasped=True, max_force_n=max_f, max_torque_nm=max_t,
+                           max_position_error_m=max_pe, max_rotation_error_rad=max_re,
+                           duration_s=n_total * dt, trace=trace, **base)
+
+
+def run_trial(obj: TrueObject, estimate: Estimate, joint: int, q_target: float | None = None, *,
+              step_rad: float = DEFAULT_STEP_RAD, step_m: float = DEFAULT_STEP_M,
+              record: bool = False) -> tuple[Plan, ExecutionResult]:
+    """Plan with ``estimate`` (target default: :func:`default_target`, clipped to the joint's
+    range) and execute on the true object from the image's true configuration."""
+    if not 0 <= joint < obj.n_joints:
+        raise UserError(f"joint {joint} out of range: {obj.class_name} has {obj.n_joints} joint(s)")
+    joint_type = obj.joint_types[joint]
+    target = obj.clip_target(joint, default_target(joint_type) if q_target is None else q_target)
+    plan = plan_from_estimate(estimate, joint, joint_type, target, step_rad, step_m)
+    return plan, execute_plan(obj, plan.waypoints, joint, target, record=record)
+
+
+# --------------------------------------------------------------------------------------
+# Predictions
+# --------------------------------------------------------------------------------------
+
+def load_prediction_estimates(path: str | Path, class_name: str) -> tuple[str, dict[int, Estimate]]:
+    """``(method, {sample_id: Estimate})`` for one class of a predictions file
+    (:func:`articulated_dataset.predictions.read_predictions`)."""
+    from .predictions import read_predictions
+
+    attrs, per_class = read_predictions(path)
+    if class_name not in per_class:
+        raise UserError(f"{path}: no predictions for class {class_name!r} (has {', '.join(per_class)})")
+    p = per_class[class_name]
+    method = str(attrs.get("method", Path(path).stem))
+    out = {}
+    for i, sid in enumerate(p["sample_id"]):
+        out[int(sid)] = Estimate(
+            axis_pose=p["axis_pose"][i], q=p["q"][i],
+            part_offset=p["part_offset"][i] if "part_offset" in p else None,
+            geometry=p["geometry"][i] if "geometry" in p else None, source=method,
+        )
+    return method, out

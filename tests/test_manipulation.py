@@ -1,0 +1,317 @@
+"""Manipulation: grasp rule, waypoints, simulated execution on the true objects, `artdata plan`."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from articulated_dataset import manipulation as M
+from articulated_dataset.cli import main
+from articulated_dataset.errors import UserError
+from articulated_dataset.registry import PRISMATIC, REVOLUTE, all_classes
+from articulated_dataset.scene import set_configuration
+
+CLASSES = [c.name for c in all_classes()]
+REVOLUTE_CLASSES = [c.name for c in all_classes() if c.joint_types[0] == REVOLUTE]
+BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "manipulation.py"
+
+
+def _rodrigues(axis, angle):
+    """Independent reference rotation matrix: I + sin(t) [a]x + (1 - cos(t)) [a]x^2."""
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
+def _first_view(root, cls):
+    """(manifest, labels row, TrueObject) of object 0's view nearest closed in the tiny test split."""
+    path, manifest, labels = M.read_split_labels(root / cls / "test")
+    rows = np.nonzero(labels["object_index"] == 0)[0]
+    r = int(rows[np.argmin(labels["q"][rows].sum(axis=1))])
+    row = M.label_row(labels, r)
+    return manifest, row, M.load_true_object(manifest, row)
+
+
+# --------------------------------------------------------------------------------------
+# waypoints (pure)
+# --------------------------------------------------------------------------------------
+
+def test_revolute_quarter_turn_hand_worked():
+    grasp = np.array([1.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0])
+    wps = M.plan_waypoints(REVOLUTE, [0, 0, 0], [0, 0, 1], 0.0, math.pi / 2, grasp, step_rad=math.radians(1))
+    assert wps.shape == (91, 7)
+    np.testing.assert_allclose(wps[0], grasp, atol=1e-12)
+    np.testing.assert_allclose(wps[-1, :3], [0.0, 1.0, 0.5], atol=1e-12)
+    np.testing.assert_allclose(wps[-1, 3:], [math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)], atol=1e-12)
+    steps = np.linalg.norm(np.diff(wps[:, :3], axis=0), axis=1)
+    np.testing.assert_allclose(steps, 2 * math.sin(math.radians(0.5)), rtol=1e-9)  # chord of 1 degree at r = 1
+
+
+def test_prismatic_line_hand_worked():
+    grasp = np.array([1.0, 2.0, 3.0, 0.5, 0.5, 0.5, 0.5])
+    wps = M.plan_waypoints(PRISMATIC, [9, 9, 9], [0, 3, 4], 0.05, 0.25, grasp, step_m=0.01)
+    assert wps.shape == (21, 7)
+    np.testing.assert_allclose(wps[-1, :3], [1.0, 2.0 + 0.2 * 0.6, 3.0 + 0.2 * 0.8], atol=1e-12)
+    np.testing.assert_allclose(wps[:, 3:], np.tile(grasp[3:], (21, 1)), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(np.diff(wps[:, :3], axis=0), axis=1), 0.01, rtol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_waypoints_continuous_and_end_at_target(seed):
+    rng = np.random.default_rng(seed)
+    origin, axis = rng.normal(size=3), rng.normal(size=3)
+    q0, q1 = rng.uniform(-1, 2, size=2)
+    quat = rng.normal(size=4)
+    quat /= np.linalg.norm(quat)
+    grasp = np.concatenate([rng.normal(size=3), quat])
+    step = math.radians(rng.uniform(0.3, 3.0))
+    wps = M.plan_waypoints(REVOLUTE, origin, axis, q0, q1, grasp, step_rad=step)
+    assert len(wps) == max(1, math.ceil(abs(q1 - q0) / step)) + 1
+    a = axis / np.linalg.norm(axis)
+    radius = np.linalg.norm(np.cross(grasp[:3] - origin, a))
+    steps = np.linalg.norm(np.diff(wps[:, :3], axis=0), axis=1)
+    assert steps.max() <= 2 * radius * math.sin(step / 2) + 1e-9
+    turns = [M.quat_angle(wps[i, 3:], wps[i + 1, 3:]) for i in range(len(wps) - 1)]
+    assert max(turns) <= step + 1e-7
+    # the last pose is the grasp rotated by exactly q1 - q0 (independent Rodrigues reference)
+    R = _rodrigues(a, q1 - q0)
+    np.testing.assert_allclose(wps[-1, :3], origin + R @ (grasp[:3] - origin), atol=1e-9)
+    np.testing.assert_allclose(M.quat_to_mat(wps[-1, 3:]), R @ M.quat_to_mat(quat), atol=1e-9)
+    # the distance to the axis line is preserved along the arc
+    d = np.linalg.norm(np.cross(wps[:, :3] - origin, a), axis=1)
+    np.testing.assert_allclose(d, radius, rtol=1e-9)
+
+
+def test_waypoints_degenerate_and_closing():
+    grasp = np.array([1.0, 0, 0, 1, 0, 0, 0])
+    one = M.plan_waypoints(REVOLUTE, [0, 0, 0], [0, 0, 1], 0.3, 0.3, grasp)
+    assert one.shape == (1, 7)
+    closing = M.plan_waypoints(PRISMATIC, [0, 0, 0], [1, 0, 0], 0.2, 0.0, grasp, step_m=0.03)
+    assert len(closing) == 8 and closing[-1, 0] == pytest.approx(0.8)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"joint_type": "screw"}, "joint type"),
+    ({"axis_direction": [0, 0, 0]}, "zero length"),
+    ({"q_target": float("nan")}, "finite"),
+    ({"step_rad": 0.0}, "positive"),
+    ({"grasp_pose": [0, 0, 0, 0, 0, 0, 0]}, "quaternion"),
+])
+def test_plan_waypoints_bad_inputs(kwargs, match):
+    args = dict(joint_type=REVOLUTE, axis_origin=[0, 0, 0], axis_direction=[0, 0, 1], q_current=0.0, q_target=1.0,
+                grasp_pose=[1, 0, 0, 1, 0, 0, 0])
+    args.update(kwargs)
+    with pytest.raises(UserError, match=match):
+        M.plan_waypoints(**args)
+
+
+@pytest.mark.parametrize("text, value, kind", [
+    ("60deg", math.radians(60), REVOLUTE), ("1.5rad", 1.5, REVOLUTE), ("0.2m", 0.2, PRISMATIC),
+    ("20cm", 0.2, PRISMATIC), (" 150 mm ", 0.15, PRISMATIC), ("-5deg", math.radians(-5), REVOLUTE),
+])
+def test_parse_quantity(text, value, kind):
+    v, k = M.parse_quantity(text)
+    assert v == pytest.approx(value) and k == kind
+
+
+@pytest.mark.parametrize("text", ["60", "deg", "60 degrees", "1e", "20 cm cm"])
+def test_parse_quantity_rejects(text):
+    with pytest.raises(UserError, match="cannot parse"):
+        M.parse_quantity(text)
+
+
+# --------------------------------------------------------------------------------------
+# grasp rule against the compiled models
+# --------------------------------------------------------------------------------------
+
+def test_handle_offset_hand_worked():
+    # a 0.5 m wide door: r = |(0.25, 0.01)|, handle 0.45 m out along the panel, 1.5 cm out of it
+    r = math.hypot(0.25, 0.01)
+    h = M.handle_offset_in_axis_frame([r, 0.0, 0.0], REVOLUTE)
+    alpha = math.atan2(0.01, 0.25)
+    u, n = np.array([math.cos(alpha), math.sin(alpha), 0]), np.array([-math.sin(alpha), math.cos(alpha), 0])
+    np.testing.assert_allclose(h, 0.45 * u + 0.015 * n, atol=1e-12)
+    np.testing.assert_allclose(M.handle_offset_in_axis_frame([0.0, 0.0, -0.3], PRISMATIC), [0, 0, 0.015], atol=1e-12)
+
+
+@pytest.mark.parametrize("cls", CLASSES)
+def test_grasp_rule_matches_handle_geoms(tiny_root, cls):
+    """At every view of object 0, the rule puts the grasp at the handle geom's centre."""
+    path, manifest, labels = M.read_split_labels(tiny_root / cls / "test")
+    rows = np.nonzero(labels["object_index"] == 0)[0]
+    obj = M.load_true_object(manifest, M.label_row(labels, int(rows[0])))
+    data = mujoco.MjData(obj.model)
+    for r in rows[::5]:
+        row = M.label_row(labels, int(r))
+        set_configuration(obj.model, data, obj.info.joint_ids, row["q"].astype(np.float64))
+        for j, jt in enumerate(obj.joint_types):
+            g = M.handle_geom(obj, j)
+            pose = M.grasp_pose_from_estimate(row["axis_pose"][j], row["part_offset"][j], row["geometry"], jt, row["q"][j])
+            assert np.linalg.norm(pose[:3] - data.geom_xpos[g]) < 1e-3, (cls, int(r), j)
+            assert M.point_box_distance(pose[:3], data.geom_xpos[g], data.geom_xmat[g].reshape(3, 3),
+                                        obj.model.geom_size[g]) == 0.0
+            # the grasp frame's y (doors) / z (drawers) axis points out of the panel: from the
+            # part centre (labels, carried to q) towards the handle
+            origin, rot = M.axis_frame(row["axis_pose"][j])
+            centre0 = np.concatenate([origin + rot @ row["part_offset"][j], [1, 0, 0, 0]])
+            centre = M.move_pose(centre0, jt, origin, rot[:, 2], float(row["q"][j]))[:3]
+            out_axis = M.quat_to_mat(pose[3:])[:, 1 if jt == REVOLUTE else 2]
+            assert (pose[:3] - centre) @ out_axis > 0.5 * M.HANDLE_STANDOFF_M
+
+
+def test_grasp_from_geometry_fallback_on_full_width_door(tiny_root):
+    """Without part_offset, a full-width cabinet door's handle is placed from the width alone."""
+    _, row, obj = _first_view(tiny_root, "cabinet")
+    data = mujoco.MjData(obj.model)
+    set_configuration(obj.model, data, obj.info.joint_ids, row["q"].astype(np.float64))
+    pose = M.grasp_pose_from_estimate(row["axis_pose"][0], None, row["geometry"], REVOLUTE, row["q"][0])
+    assert np.linalg.norm(pose[:3] - data.geom_xpos[M.handle_geom(obj, 0)]) < 0.01
+    with pytest.raises(UserError, match="neither part_offset nor geometry"):
+        M.grasp_pose_from_estimate(row["axis_pose"][0], None, None, REVOLUTE, 0.0)
+
+
+# --------------------------------------------------------------------------------------
+# simulated execution
+# --------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("cls", CLASSES)
+def test_true_kinematics_open_every_class(tiny_root, cls):
+    _, row, obj = _first_view(tiny_root, cls)
+    for j, jt in enumerate(obj.joint_types):
+        plan, res = M.run_trial(obj, obj.truth(), j)
+        assert res.grasped and res.grasp_error_m == 0.0
+        assert res.q_target == pytest.approx(M.default_target(jt))
+        assert res.error <= M.success_tolerance(jt), (cls, j, res)
+        assert res.max_force_n <= M.MAX_FORCE_N and res.max_torque_nm <= M.MAX_TORQUE_NM, (cls, j, res)
+        assert res.success
+        # the joint actually moved from where it started
+        assert abs(res.q_reached - res.q_start) > 0.5 * abs(res.q_target - res.q_start)
+
+
+@pytest.mark.parametrize("cls", REVOLUTE_CLASSES)
+def test_arc_about_offset_axis_fails_force_limit(tiny_root, cls):
+    """The true grasp moved along an arc about an axis shifted 10 cm (perpendicular to it):
+    the gripper fights the hinge."""
+    _, row, obj = _first_view(tiny_root, cls)
+    truth = obj.truth()
+    target = obj.clip_target(0, M.DEFAULT_TARGET_RAD)
+    grasp = M.grasp_pose_from_estimate(truth.axis_pose[0], truth.part_offset[0], truth.geometry, REVOLUTE, truth.q[0])
+    origin, rot = M.axis_frame(truth.axis_pose[0])
+    for shift in (rot[:, 0], -rot[:, 0], rot[:, 1], -rot[:, 1]):
+        wps = M.plan_waypoints(REVOLUTE, origin + 0.10 * shift, rot[:, 2], truth.q[0], target, grasp)
+        res = M.execute_plan(obj, wps, 0, target)
+        assert res.grasped
+        assert res.max_force_n > M.MAX_FORCE_N, (cls, shift, res)
+        assert not res.success
+    # control: sliding the axis 10 cm ALONG itself leaves the arc unchanged
+    wps = M.plan_waypoints(REVOLUTE, origin + 0.10 * rot[:, 2], rot[:, 2], truth.q[0], target, grasp)
+    assert M.execute_plan(obj, wps, 0, target).success
+
+
+def test_missed_grasp_moves_nothing(tiny_root):
+    _, row, obj = _first_view(tiny_root, "drawer")
+    plan, _ = M.run_trial(obj, obj.truth(), 0)
+    off = plan.waypoints.copy()
+    off[:, 2] += 2 * M.GRASP_CAPTURE_M + 0.05  # above the bar by more than the capture distance
+    res = M.execute_plan(obj, off, 0, plan.q_target)
+    assert not res.grasped and not res.success and res.q_reached == res.q_start
+    assert res.grasp_error_m > M.GRASP_CAPTURE_M
+
+
+# --------------------------------------------------------------------------------------
+# CLI
+# --------------------------------------------------------------------------------------
+
+def _oracle_predictions(root, cls, path, shift_m=0.0):
+    """A predictions file holding the truth labels (axis shifted by shift_m along the axis frame's y)."""
+    from articulated_dataset.predictions import write_predictions
+
+    _, _, labels = M.read_split_labels(root / cls / "test")
+    pose = labels["axis_pose"].astype(np.float64).copy()
+    for i in range(len(pose)):
+        for j in range(pose.shape[1]):
+            origin, rot = M.axis_frame(pose[i, j])
+            pose[i, j, :3] = origin + shift_m * rot[:, 1]
+    write_predictions(path, "oracle", {cls: {"sample_id": labels["sample_id"], "axis_pose": pose,
+                                             "q": labels["q"].astype(np.float64),
+                                             "part_offset": labels["part_offset"].astype(np.float64),
+                                             "geometry": labels["geometry"].astype(np.float64)}})
+    return labels
+
+
+def test_cli_plan_simulate_truth_writes_json(tiny_root, tmp_path):
+    out = tmp_path / "plan.json"
+    r = CliRunner().invoke(main, ["plan", "--data", str(tiny_root / "cabinet2" / "test"), "--index", "0",
+                                  "--joint", "1", "--target", "45deg", "--simulate", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "SUCCESS" in r.output
+    rec = json.loads(out.read_text())
+    assert rec["joint"] == 1 and rec["q_target"] == pytest.approx(math.radians(45))
+    wps = np.array(rec["waypoints"])
+    assert wps.shape[1] == 7 and len(wps) >= 2
+    assert rec["simulation"]["success"] and abs(rec["simulation"]["q_reached"] - math.radians(45)) < M.SUCCESS_TOL_RAD
+
+
+def test_cli_plan_from_predictions(tiny_root, tmp_path):
+    good, bad = tmp_path / "oracle.h5", tmp_path / "shifted.h5"
+    _oracle_predictions(tiny_root, "microwave", good)
+    _oracle_predictions(tiny_root, "microwave", bad, shift_m=0.10)
+    data = str(tiny_root / "microwave" / "test")
+    r = CliRunner().invoke(main, ["plan", "--data", data, "--index", "2", "--predictions", str(good), "--simulate", "-q"])
+    assert r.exit_code == 0, r.output
+    assert "kinematics: oracle" in r.output and "SUCCESS" in r.output
+    r = CliRunner().invoke(main, ["plan", "--data", data, "--index", "2", "--predictions", str(bad), "--simulate", "-q"])
+    assert r.exit_code == 0, r.output
+    assert "FAILURE" in r.output and "force" in r.output
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--index", "100000"], "out of range"),
+    (["--index", "0", "--joint", "3"], "--joint 3 out of range"),
+    (["--index", "0", "--target", "20cm"], "prismatic quantity"),
+    (["--index", "0", "--target", "sixty"], "cannot parse"),
+    (["--index", "0", "--step", "-1deg"], "positive"),
+    (["--index", "0", "--predictions", "missing.h5"], "not found"),
+])
+def test_cli_plan_bad_inputs(tiny_root, args, message):
+    r = CliRunner().invoke(main, ["plan", "--data", str(tiny_root / "cabinet" / "test"), *args])
+    assert r.exit_code == 2, r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("artdata: error:") and message in lines[0], r.output
+
+
+def test_cli_plan_bad_data_and_unpredicted_sample(tiny_root, tmp_path):
+    r = CliRunner().invoke(main, ["plan", "--data", str(tiny_root), "--index", "0"])
+    assert r.exit_code == 2 and "pass one split folder" in r.output
+    preds = tmp_path / "p.h5"
+    _oracle_predictions(tiny_root, "drawer", preds)
+    r = CliRunner().invoke(main, ["plan", "--data", str(tiny_root / "cabinet" / "test"), "--index", "0",
+                                  "--predictions", str(preds)])
+    assert r.exit_code == 2 and "no predictions for class 'cabinet'" in r.output
+
+
+# --------------------------------------------------------------------------------------
+# benchmark script
+# --------------------------------------------------------------------------------------
+
+def test_benchmark_script_truth_and_predictions(tiny_root, tmp_path, capsys):
+    spec = importlib.util.spec_from_file_location("manipulation_benchmark", BENCHMARK)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    preds = tmp_path / "shifted.h5"
+    _oracle_predictions(tiny_root, "cabinet", preds, shift_m=0.10)
+    out = tmp_path / "m.json"
+    assert bench.main(["--data", str(tiny_root), "--classes", "cabinet", "drawer", "--objects", "2",
+                       "--predictions", f"shifted={preds}", "--json", str(out), "-q"]) == 0
+    summary = {(s["class"], s["method"]): s for s in json.loads(out.read_text())["summary"]}
+    assert summary[("cabinet", "truth")]["success"] == 1.0 and summary[("cabinet", "truth")]["trials"] == 2
+    assert summary[("drawer", "truth")]["success"] == 1.0
+    assert summary[("cabinet", "shifted")]["success"] == 0.0
+    assert "shifted" in capsys.readouterr().out
