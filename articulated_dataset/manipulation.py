@@ -509,20 +509,18 @@ def load_true_object(manifest: dict, labels: dict, camera=None) -> TrueObject:
     """Rebuild the true object of an image in MuJoCo.
 
     Geometry and chirality come from the split's generation config
-    (:func:`~articulated_dataset.pipeline.object_sample`); the pose comes from the stored
-    labels (``object_pose`` position and ``object_yaw``), because the pipeline redraws a
-    pose whose view hides a part, and ``object_sample`` returns the first draw.  The
+    and the pose from the stored labels (:func:`~articulated_dataset.pipeline.stored_sample`:
+    the pipeline redraws a pose whose view hides a part).  The
     rebuilt model's axis labels are checked against the stored ones.  ``camera`` overrides
     the image size (for figures); the physics is the same.
     """
-    from .pipeline import GenerationConfig, object_sample
+    from .pipeline import GenerationConfig, stored_sample
     from .templating import render_urdf
 
     config = GenerationConfig.from_dict(manifest["config"])
     obj_class = config.obj_class
-    sample = object_sample(config, int(labels["object_index"]))
-    op = np.asarray(labels["object_pose"], np.float64)
-    pose = {"x_m": float(op[0]), "y_m": float(op[1]), "z_m": float(op[2]), "yaw_rad": float(labels["object_yaw"])}
+    sample = stored_sample(config, int(labels["object_index"]), labels["object_pose"], labels["object_yaw"])
+    pose = sample.pose
     urdf = render_urdf(obj_class.template_path(), sample.template_mappings(config.table))
     model = build_model(urdf, pose, camera or config.camera, obj_class.base_link)
     info = model_info(model, obj_class)

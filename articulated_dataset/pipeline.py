@@ -224,6 +224,18 @@ def object_sample(config: GenerationConfig, object_index: int) -> ObjectSample:
     return sample
 
 
+def stored_sample(config: GenerationConfig, object_index: int, object_pose, object_yaw: float) -> ObjectSample:
+    """The sample of object ``object_index`` as it was rendered and stored.
+
+    :func:`object_sample` returns the object's *first* pose draw; the pipeline redraws the
+    pose while a part is hidden, so code that rebuilds a stored object (figures, physics)
+    must take the pose from the stored labels (``object_pose`` position, ``object_yaw``).
+    """
+    sample = object_sample(config, object_index)
+    p = np.asarray(object_pose, dtype=np.float64)
+    return replace(sample, pose={"x_m": float(p[0]), "y_m": float(p[1]), "z_m": float(p[2]), "yaw_rad": float(object_yaw)})
+
+
 def shard_attrs(config: GenerationConfig, objects: range) -> dict:
     obj_class = config.obj_class
     assert set(obj_class.joint_types) <= set(JOINT_TYPES)
