@@ -108,7 +108,8 @@ def markdown_table() -> str:
     rows = ["| dataset | dtype | shape | units | frame | meaning |", "|---|---|---|---|---|---|"]
     for f in FIELDS:
         shape = "(" + ", ".join(str(s) for s in f.shape) + ")"
-        rows.append(f"| `{f.name}` | {f.dtype} | {shape} | {f.units} | {f.frame} | {f.description} |")
+        cells = [f"`{f.name}`", f.dtype, shape, f.units, f.frame, f.description]
+        rows.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
     return "\n".join(rows)
 
 

@@ -96,8 +96,10 @@ def write_shard(path: str | Path, arrays: dict, attrs: dict, K: np.ndarray, R: n
             f[field.name].attrs["frame"] = field.frame
         f.create_dataset(K_DATASET, data=np.asarray(K, np.float64), track_times=False)
         f.create_dataset(R_DATASET, data=np.asarray(R, np.float64), track_times=False)
-        for k, v in attrs.items():
-            f.attrs[k] = v
+        # Sorted: HDF5 bytes depend on attribute creation order, and every writer (generator,
+        # EXR import, ingest) must give the same bytes for the same content.
+        for k in sorted(attrs):
+            f.attrs[k] = attrs[k]
         f.flush()
     with open(tmp, "rb+") as fh:
         os.fsync(fh.fileno())
@@ -211,16 +213,16 @@ def write_manifest(split_dir: str | Path, manifest: dict) -> None:
     atomic_write_bytes(Path(split_dir) / MANIFEST_NAME, (json.dumps(manifest, indent=1, sort_keys=True) + "\n").encode())
 
 
-def find_split_dirs(path: str | Path) -> list[Path]:
-    """Split folders (holding a manifest) at ``path`` or below it (class/split layout)."""
+def find_split_dirs(path: str | Path, *, marker: str = MANIFEST_NAME, what: str = "generated split") -> list[Path]:
+    """Split folders (holding ``marker``) at ``path`` or one/two levels below (class/split layout)."""
     path = Path(path)
-    if not path.exists():
+    if not path.is_dir():
         raise UserError(f"no such directory: {path}")
-    if (path / MANIFEST_NAME).is_file():
+    if (path / marker).is_file():
         return [path]
-    found = sorted(p.parent for p in path.glob(f"*/{MANIFEST_NAME}")) + sorted(p.parent for p in path.glob(f"*/*/{MANIFEST_NAME}"))
+    found = sorted(p.parent for p in path.glob(f"*/{marker}")) + sorted(p.parent for p in path.glob(f"*/*/{marker}"))
     if not found:
-        raise UserError(f"{path}: no generated split found (expected {MANIFEST_NAME} in it or in <class>/<split>/ below it)")
+        raise UserError(f"{path}: no {what} found (expected {marker} in it or in <class>/<split>/ below it)")
     return found
 
 

@@ -1,0 +1,613 @@
+"""Galleries of labelled depth images (``artdata show``).
+
+Each panel shows one stored image: depth colour-mapped per image (near = bright, far =
+dark, :data:`DEPTH_CMAP`, perceptually uniform) with pixels without a return in a neutral
+light grey, lightly hill-shaded so surfaces read as 3-D; the labelled joint axes are drawn
+on top, projected with the shard's intrinsics ``K`` (:func:`articulated_dataset.camera.project`):
+
+* revolute joint: the hinge line through ``axis_origin`` along ``axis_direction``, over
+  the moving part's visible extent along the axis (its mask pixels back-projected), with
+  an arrowhead at the ``+axis_direction`` end (positive q opens, right-hand rule);
+* prismatic joint: an arrow from ``axis_origin`` (the part's front face at q = 0) to
+  ``axis_origin + q_max * axis_direction`` (the table's full travel), with a ring at the
+  front face's current position ``axis_origin + q * axis_direction``;
+* a filled dot at ``axis_origin``.
+
+One colour per joint (:data:`JOINT_COLOURS`), shared by the axis, the q read-out and the
+moving part's outline.  ``rgb=True`` adds a shaded colour preview rendered from the same
+scene, rebuilt from the manifest's generation config (body grey, parts tinted in their
+joint's colour).
+
+Figures are laid out with fixed sizes (no tight bounding box), so a gallery's pixel size is
+:func:`gallery_size_px` and every panel's position is known (:class:`Panel`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .camera import backproject, project
+from .errors import DataFormatError, UserError
+from .labels import MASK_BACKGROUND, MASK_FIRST_PART
+from .registry import PRISMATIC
+from .shards import Shard, read_manifest
+
+log = logging.getLogger(__name__)
+
+#: Perceptually uniform colormap for depth; near pixels get the bright end.
+DEPTH_CMAP = "viridis"
+#: Colour of pixels without a depth return (neutral light grey, outside the colormap).
+BACKGROUND_RGB = (0.88, 0.88, 0.88)
+#: One colour per joint (j-th joint uses entry j mod len): red, white-ish magenta, orange,
+#: cyan -- all far from viridis's purple-green-yellow and from the grey background.
+JOINT_COLOURS = ("#ff1f3d", "#ff5cf4", "#ff8c00", "#00e5ff")
+#: Hill-shading strength: fraction of a pixel's colour taken from the light-source shade.
+SHADE_FRACTION = 0.35
+#: Light direction for the hill shading (degrees): from the upper left, as usual for reliefs.
+LIGHT_AZIMUTH_DEG = 315.0
+LIGHT_ALTITUDE_DEG = 45.0
+#: Revolute axes span the moving part's visible extent along the axis, plus this fraction
+#: at each end; without visible part pixels, this fraction of the body's extent.
+AXIS_MARGIN_FRACTION = 0.12
+AXIS_LENGTH_FRACTION = 0.8
+#: Layout (inches): panel width, title band above each sample, gap between samples,
+#: header band above each split, footer band with the legend.
+PANEL_WIDTH_IN = 3.2
+TITLE_IN = 0.32
+GAP_IN = 0.12
+HEADER_IN = 0.42
+FOOTER_IN = 0.34
+DEFAULT_DPI = 100
+DEFAULT_N_SAMPLES = 12
+DEFAULT_COLUMNS = 4
+#: With --rgb each sample takes two panels (depth | colour).
+DEFAULT_COLUMNS_RGB = 2
+#: Marker sizes (points) of the axis origin dot and the prismatic position ring.
+ORIGIN_MARKER_PT = 7.5
+RING_MARKER_PT = 9.0
+AXIS_LINE_PT = 2.2
+#: Height (inches) of one q read-out line in the caption band below each panel.
+CAPTION_LINE_IN = 0.19
+#: Space between a panel and its caption (inches).
+CAPTION_GAP_IN = 0.03
+#: RGB preview: colour of the body (warm light grey) and how much white the parts' joint
+#: colours are mixed with.
+BODY_RGBA = (0.72, 0.70, 0.66, 1.0)
+PART_TINT_WHITE = 0.35
+#: Radians to degrees / metres to centimetres for the q read-out.
+DEG_PER_RAD = 180.0 / math.pi
+CM_PER_M = 100.0
+
+
+def joint_colour(j: int) -> str:
+    return JOINT_COLOURS[j % len(JOINT_COLOURS)]
+
+
+# --------------------------------------------------------------------------------------
+# Pure helpers
+# --------------------------------------------------------------------------------------
+
+def depth_to_rgb(depth_m: np.ndarray, focal_px: float | None = None, *, cmap: str = DEPTH_CMAP,
+                 shade: float = SHADE_FRACTION) -> np.ndarray:
+    """Colour-map one depth image to (H, W, 3) floats in [0, 1].
+
+    Valid pixels (depth > 0) map ``t = (d_max - d) / (d_max - d_min)`` (near = 1) through
+    ``cmap``; pixels with depth 0 get :data:`BACKGROUND_RGB`.  With ``focal_px`` the colour
+    is blended (weight ``shade``) with a Lambertian shade of the surface: the depth image
+    is treated as a height field in pixel units, ``relief = -depth * f / median(depth)``
+    (a pixel spans ``depth / f`` metres), so the shading follows the true surface slopes.
+    """
+    from matplotlib import colormaps
+    from matplotlib.colors import LightSource
+
+    depth_m = np.asarray(depth_m, np.float64)
+    valid = depth_m > 0
+    out = np.empty(depth_m.shape + (3,))
+    out[:] = BACKGROUND_RGB
+    if not valid.any():
+        return out
+    lo, hi = depth_m[valid].min(), depth_m[valid].max()
+    t = np.where(valid, (hi - depth_m) / max(hi - lo, 1e-9), 0.0)
+    rgb = colormaps[cmap](t)[..., :3]
+    if shade > 0 and focal_px:
+        scale = focal_px / float(np.median(depth_m[valid]))
+        # background at the far plane: silhouettes get a thin shaded rim
+        relief = -np.where(valid, depth_m, hi) * scale
+        ls = LightSource(azdeg=LIGHT_AZIMUTH_DEG, altdeg=LIGHT_ALTITUDE_DEG)
+        intensity = ls.hillshade(relief, vert_exag=1.0, dx=1.0, dy=1.0)
+        rgb = np.clip(rgb * ((1 - shade) + shade * 2.0 * intensity[..., None]), 0.0, 1.0)
+    out[valid] = rgb[valid]
+    return out
+
+
+def extent_along(direction: np.ndarray, object_quat_wxyz: np.ndarray, dims_m: np.ndarray) -> float:
+    """Extent (m) of the object's body box along a unit direction (camera frame).
+
+    ``sum_i |d . e_i| * dims_i`` with ``e_i`` the object's axes (columns of the rotation of
+    ``object_quat_wxyz``) and ``dims = (depth, width, height)``.
+    """
+    w, x, y, z = object_quat_wxyz
+    R = np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+    return float(np.abs(R.T @ np.asarray(direction, np.float64)) @ np.asarray(dims_m, np.float64))
+
+
+def axis_segment_m(joint_type: str, origin: np.ndarray, direction: np.ndarray, *, q: float, q_max: float,
+                   body_extent_m: float, part_points_m: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """3-D end points (2, 3) of the drawn axis (camera frame, m) and the marker point(s).
+
+    Revolute, with the moving part's visible points ``P`` (camera frame): the hinge line
+    over the part's extent along the axis, ``t = (P - origin) . a``, from
+    ``origin + (t_min - m) a`` to ``origin + (t_max + m) a`` with a margin
+    ``m = AXIS_MARGIN_FRACTION (t_max - t_min)``; without points, ``origin -/+ (L/2) a``
+    with ``L = AXIS_LENGTH_FRACTION * body_extent_m``.  Marker: the origin.
+    Prismatic: ``origin`` to ``origin + q_max a``; markers: the origin and the current
+    front-face position ``origin + q a``.
+    """
+    origin, a = np.asarray(origin, np.float64), np.asarray(direction, np.float64)
+    if joint_type == PRISMATIC:
+        return np.stack([origin, origin + q_max * a]), np.stack([origin, origin + q * a])
+    if part_points_m is not None and len(part_points_m):
+        t = (np.asarray(part_points_m, np.float64) - origin) @ a
+        lo, hi = float(t.min()), float(t.max())
+        margin = AXIS_MARGIN_FRACTION * (hi - lo)
+        return np.stack([origin + (lo - margin) * a, origin + (hi + margin) * a]), origin[None]
+    half = 0.5 * AXIS_LENGTH_FRACTION * body_extent_m
+    return np.stack([origin - half * a, origin + half * a]), origin[None]
+
+
+def format_q(joint_type: str, q: float) -> str:
+    """q for people: degrees for revolute joints, centimetres for prismatic ones."""
+    return f"{q * CM_PER_M:.1f} cm" if joint_type == PRISMATIC else f"{q * DEG_PER_RAD:.1f}\u00b0"
+
+
+# --------------------------------------------------------------------------------------
+# Data access
+# --------------------------------------------------------------------------------------
+
+@dataclass
+class SplitView:
+    """A split folder opened for display: manifest, shards and the class's joint info."""
+
+    split_dir: Path
+    manifest: dict
+    shards: list[Shard]
+    joint_names: list[str]
+    joint_types: list[str]
+    q_max: list[float]
+    images_per_object: int
+
+    @classmethod
+    def open(cls, split_dir: str | Path) -> "SplitView":
+        split_dir = Path(split_dir)
+        manifest = read_manifest(split_dir)
+        if not manifest.get("shards"):
+            raise DataFormatError(f"{split_dir}: the manifest lists no shards (nothing generated yet)")
+        shards = [Shard(split_dir / rec["file"]) for rec in manifest["shards"]]
+        attrs = shards[0].attrs
+        try:
+            table = json.loads(attrs["sampling_table"])
+            return cls(split_dir, manifest, shards, json.loads(attrs["joint_names"]), json.loads(attrs["joint_types"]),
+                       [float(r[1]) for r in table["q"]], int(attrs["images_per_object"]))
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise DataFormatError(f"{shards[0].path}: unreadable joint attributes ({exc})") from None
+
+    @property
+    def name(self) -> str:
+        return f"{self.manifest['class_name']}/{self.split_dir.name}"
+
+    @property
+    def n_objects(self) -> int:
+        return int(self.manifest["n_objects"])
+
+    def locate(self, object_index: int) -> tuple[Shard, int]:
+        """The shard holding ``object_index`` and the row of its first image."""
+        for rec, sh in zip(self.manifest["shards"], self.shards):
+            if rec["object_start"] <= object_index < rec["object_stop"]:
+                return sh, (object_index - rec["object_start"]) * self.images_per_object
+        raise UserError(f"object {object_index} is not in {self.name} (it holds objects 0..{self.n_objects - 1})")
+
+    def sample(self, object_index: int, image_index: int) -> dict:
+        sh, row = self.locate(object_index)
+        s = sh.sample(row + image_index)
+        if int(s["object_index"]) != object_index or int(s["image_index"]) != image_index:
+            raise DataFormatError(f"{sh.path}: row {row + image_index} holds object {int(s['object_index'])} image "
+                                  f"{int(s['image_index'])}, expected object {object_index} image {image_index}")
+        s["K"] = sh.K
+        return s
+
+    def close(self) -> None:
+        for sh in self.shards:
+            sh.close()
+
+
+def select_samples(n_objects: int, images_per_object: int, n: int, objects=None, images=None) -> list[tuple[int, int]]:
+    """``n`` (object, image) pairs spread over the candidates.
+
+    Objects are taken evenly spaced over ``objects`` (default: all) and images evenly
+    spaced over ``images`` (default: all), so a gallery sweeps from closed to open.  With
+    fewer candidate pairs than ``n``, all of them are returned.
+    """
+    objects = list(range(n_objects)) if objects is None else list(objects)
+    images = list(range(images_per_object)) if images is None else list(images)
+    pairs = [(o, i) for o in objects for i in images]
+    if len(pairs) <= n:
+        return pairs
+    if len(objects) >= n:
+        objs = [objects[(k * len(objects)) // n] for k in range(n)]
+    else:
+        objs = [objects[k % len(objects)] for k in range(n)]
+    if n == 1:
+        return [(objs[0], images[0])]
+    imgs = [images[round(k * (len(images) - 1) / (n - 1))] for k in range(n)]
+    out, seen = [], set()
+    for p in zip(objs, imgs):
+        if p not in seen:
+            seen.add(p)
+            out.append(p)
+    for p in pairs:  # fill duplicates (few objects, few images) from the remaining pairs
+        if len(out) >= n:
+            break
+        if p not in seen:
+            seen.add(p)
+            out.append(p)
+    return sorted(out)
+
+
+# --------------------------------------------------------------------------------------
+# RGB preview (rebuilds the scene)
+# --------------------------------------------------------------------------------------
+
+def preview_rgb(manifest: dict, object_index: int, image_indices, stored_depth: dict | None = None) -> dict[int, np.ndarray]:
+    """Shaded colour renders (H, W, 3) uint8 of one object's images, from its rebuilt scene.
+
+    The object is re-sampled from the manifest's config (``object_sample``), rendered with
+    :func:`pipeline.render_object` to get the final pose (visibility redraws included),
+    then recompiled with geom colours by part and rendered with ``render_rgb``.  If
+    ``stored_depth`` ({image_index: depth}) is given, a mismatch with the re-rendered
+    depth is logged as a warning (the stored data came from another package version).
+    """
+    import mujoco
+
+    from .labels import model_info
+    from .pipeline import GenerationConfig, object_sample, render_object
+    from .render import process_renderer
+    from .scene import build_model, set_configuration
+    from .templating import render_urdf
+    from matplotlib.colors import to_rgba
+
+    try:
+        config = GenerationConfig.from_dict(manifest["config"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DataFormatError(f"manifest config cannot be read back ({exc}); --rgb needs it") from None
+    renderer = process_renderer(config.camera)
+    sample0 = object_sample(config, object_index)
+    arrays, sample, _ = render_object(sample0, config, renderer, check_visibility=not config.mean)
+    obj_class = config.obj_class
+    if stored_depth:
+        for i, d in stored_depth.items():
+            if not np.array_equal(arrays["depth"][i], d):
+                log.warning("%s object %d image %d: re-rendered depth differs from the stored image; the RGB preview "
+                            "may not match (data from another package version?)", config.class_name, object_index, i)
+                break
+    urdf = render_urdf(obj_class.template_path(), sample.template_mappings(config.table))
+    model = build_model(urdf, sample.pose, config.camera, obj_class.base_link)
+    info = model_info(model, obj_class)
+    for g in range(model.ngeom):
+        part = int(info.geom_part[g])
+        if part >= MASK_FIRST_PART:
+            c = np.array(to_rgba(joint_colour(part - MASK_FIRST_PART)))
+            model.geom_rgba[g] = (1 - PART_TINT_WHITE) * c + PART_TINT_WHITE * np.ones(4)
+        elif part != MASK_BACKGROUND:
+            model.geom_rgba[g] = BODY_RGBA
+    data = mujoco.MjData(model)
+    renderer.bind(model)
+    out = {}
+    for i in image_indices:
+        set_configuration(model, data, info.joint_ids, sample.q[i])
+        out[i] = renderer.render_rgb(data)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Drawing
+# --------------------------------------------------------------------------------------
+
+@dataclass
+class Panel:
+    """Where one image landed in a saved figure (for tests and tools).
+
+    ``box_px``: (left, top, width, height) of the image in the PNG's pixel coordinates
+    (origin top-left); ``size``: the image's (W, H).
+    """
+
+    file: Path
+    split: str
+    object_index: int
+    image_index: int
+    kind: str  # "depth" or "rgb"
+    box_px: tuple[float, float, float, float]
+    size: tuple[int, int]
+    axis_origin: np.ndarray = field(repr=False, default=None)
+    K: np.ndarray = field(repr=False, default=None)
+
+    def to_png(self, uv: np.ndarray) -> np.ndarray:
+        """Image pixel coordinates (integer = pixel centre) -> PNG pixel coordinates (x, y)."""
+        left, top, width, height = self.box_px
+        W, H = self.size
+        uv = np.atleast_2d(uv)
+        return np.stack([left + (uv[:, 0] + 0.5) * width / W, top + (uv[:, 1] + 0.5) * height / H], axis=1)
+
+
+def _draw_axes(ax, s: dict, view: SplitView) -> None:
+    """Axis lines, origin dots and prismatic position rings of one sample (image coords)."""
+    import matplotlib.patheffects as pe
+    from matplotlib.patches import FancyArrowPatch
+
+    K = s["K"]
+    halo = [pe.Stroke(linewidth=AXIS_LINE_PT + 1.6, foreground="white", alpha=0.85), pe.Normal()]
+    markers = []
+    for j, jtype in enumerate(view.joint_types):
+        colour = joint_colour(j)
+        extent = extent_along(s["axis_direction"][j], s["object_pose"][3:], s["geometry"][:3])
+        part = backproject(s["depth"], K, s["mask"] == MASK_FIRST_PART + j)
+        seg, marks = axis_segment_m(jtype, s["axis_origin"][j], s["axis_direction"][j], q=float(s["q"][j]),
+                                    q_max=view.q_max[j], body_extent_m=extent, part_points_m=part)
+        uv, _ = project(seg, K)
+        if np.all(np.isfinite(uv)):
+            arrow = FancyArrowPatch(tuple(uv[0]), tuple(uv[1]), arrowstyle="-|>,head_length=5,head_width=2.6",
+                                    color=colour, lw=AXIS_LINE_PT, shrinkA=0, shrinkB=0, zorder=4, path_effects=halo)
+            ax.add_patch(arrow)  # patches added to axes are clipped to them
+        muv, _ = project(marks, K)
+        markers.append((j, colour, muv))
+    for j, colour, muv in markers:  # dots above every line
+        if np.all(np.isfinite(muv[0])):
+            ax.plot(*muv[0], "o", ms=ORIGIN_MARKER_PT, mfc=colour, mec="white", mew=1.2, zorder=6)
+        if len(muv) > 1 and np.all(np.isfinite(muv[1])):
+            ax.plot(*muv[1], "o", ms=RING_MARKER_PT, mfc="none", mec=colour, mew=2.0, zorder=5,
+                    path_effects=[pe.Stroke(linewidth=3.2, foreground="white", alpha=0.85), pe.Normal()])
+
+
+def _draw_outlines(ax, mask: np.ndarray, n_joints: int) -> None:
+    for j in range(n_joints):
+        part = (mask == MASK_FIRST_PART + j).astype(float)
+        if part.any() and not part.all():
+            ax.contour(part, levels=[0.5], colors=[joint_colour(j)], linewidths=0.8, alpha=0.9, zorder=3)
+
+
+def _text_colour_on(colour) -> str:
+    """Black or white, whichever contrasts more with ``colour`` (relative luminance > 0.5: black)."""
+    from matplotlib.colors import to_rgb
+
+    r, g, b = to_rgb(colour)
+    return "#111111" if 0.2126 * r + 0.7152 * g + 0.0722 * b > 0.5 else "white"
+
+
+def _draw_caption(fig, s: dict, view: SplitView, *, left_in, top_in, fig_w_in, fig_h_in) -> None:
+    """q of each joint, one line per joint below the panel: a bullet in the joint's colour,
+    the joint name and q (degrees or centimetres)."""
+    for j, (name, jtype) in enumerate(zip(view.joint_names, view.joint_types)):
+        y = (top_in - (j + 0.5) * CAPTION_LINE_IN) / fig_h_in
+        fig.text(left_in / fig_w_in, y, "\u25cf", color=joint_colour(j), fontsize=9, ha="left", va="center")
+        fig.text((left_in + 0.16) / fig_w_in, y, name, color="#333333", fontsize=8, ha="left", va="center")
+        fig.text((left_in + PANEL_WIDTH_IN) / fig_w_in, y, format_q(jtype, float(s["q"][j])), color="#111111",
+                 fontsize=8, fontweight="bold", ha="right", va="center")
+
+
+def _panel_axes(fig, left_in, bottom_in, width_in, height_in, fig_w_in, fig_h_in):
+    ax = fig.add_axes((left_in / fig_w_in, bottom_in / fig_h_in, width_in / fig_w_in, height_in / fig_h_in))
+    ax.set_axis_off()
+    return ax
+
+
+def _draw_sample(fig, s: dict, view: SplitView, rgb_img, *, left_in, bottom_in, panel_w_in, panel_h_in, fig_w_in,
+                 fig_h_in, outline: bool) -> list:
+    """Title, depth panel (and RGB panel) of one sample; returns [(kind, axes)]."""
+    H, W = s["depth"].shape
+    obj, img = int(s["object_index"]), int(s["image_index"])
+    n_panels = 2 if rgb_img is not None else 1
+    cell_w = n_panels * panel_w_in + (n_panels - 1) * GAP_IN / 2
+    fig.text((left_in + cell_w / 2) / fig_w_in, (bottom_in + panel_h_in + TITLE_IN * 0.45) / fig_h_in,
+             f"{view.manifest['class_name']}  \u00b7  object {obj}  \u00b7  image {img}", ha="center", va="center",
+             fontsize=9.5, color="#222222")
+    out = []
+    ax = _panel_axes(fig, left_in, bottom_in, panel_w_in, panel_h_in, fig_w_in, fig_h_in)
+    ax.imshow(depth_to_rgb(s["depth"], float(s["K"][0, 0])), interpolation="nearest", extent=(-0.5, W - 0.5, H - 0.5, -0.5), aspect="auto")
+    valid = s["depth"][s["depth"] > 0]
+    if valid.size:
+        ax.text(0.985, 0.975, f"{valid.min():.2f}\u2013{valid.max():.2f} m", transform=ax.transAxes, fontsize=6.5,
+                color="#333333", ha="right", va="top", zorder=7,
+                bbox=dict(boxstyle="round,pad=0.15", fc=(1, 1, 1, 0.6), ec="none"))
+    if outline:
+        _draw_outlines(ax, s["mask"], len(view.joint_types))
+    _draw_axes(ax, s, view)
+    _draw_caption(fig, s, view, left_in=left_in, top_in=bottom_in - CAPTION_GAP_IN, fig_w_in=fig_w_in, fig_h_in=fig_h_in)
+    ax.set_xlim(-0.5, W - 0.5)
+    ax.set_ylim(H - 0.5, -0.5)
+    out.append(("depth", ax))
+    if rgb_img is not None:
+        rgb = rgb_img.astype(np.float64) / 255.0
+        rgb[s["mask"] == MASK_BACKGROUND] = BACKGROUND_RGB
+        ax2 = _panel_axes(fig, left_in + panel_w_in + GAP_IN / 2, bottom_in, panel_w_in, panel_h_in, fig_w_in, fig_h_in)
+        ax2.imshow(rgb, interpolation="nearest", extent=(-0.5, W - 0.5, H - 0.5, -0.5), aspect="auto")
+        _draw_axes(ax2, s, view)
+        ax2.set_xlim(-0.5, W - 0.5)
+        ax2.set_ylim(H - 0.5, -0.5)
+        out.append(("rgb", ax2))
+    return out
+
+
+LEGEND = ("colour: depth per image, near = bright, far = dark (grey: no return)   \u00b7   line: joint axis "
+          "(arrow = +q; dot = axis origin; ring = drawer front now)   \u00b7   one colour per joint")
+
+
+def gallery_size_px(n_rows_per_split: list[int], cols: int, image_wh: tuple[int, int], *, rgb: bool,
+                    n_joints: int, dpi: int = DEFAULT_DPI) -> tuple[int, int]:
+    """Pixel size (width, height) of a gallery with the given rows per split, whose classes
+    have at most ``n_joints`` joints (one caption line each)."""
+    w_in, h_in, _, _, _ = _layout(n_rows_per_split, cols, image_wh, rgb=rgb, n_joints=n_joints)
+    return int(round(w_in * dpi)), int(round(h_in * dpi))
+
+
+def _layout(n_rows_per_split, cols, image_wh, *, rgb, n_joints):
+    """Figure width/height, sample cell width, panel height and row height (inches)."""
+    W, H = image_wh
+    panel_h = PANEL_WIDTH_IN * H / W
+    n_panels = 2 if rgb else 1
+    cell_w = n_panels * PANEL_WIDTH_IN + (n_panels - 1) * GAP_IN / 2
+    row_h = TITLE_IN + panel_h + CAPTION_GAP_IN + n_joints * CAPTION_LINE_IN + GAP_IN
+    fig_w = cols * cell_w + (cols + 1) * GAP_IN
+    fig_h = sum(HEADER_IN + r * row_h for r in n_rows_per_split) + FOOTER_IN
+    return fig_w, fig_h, cell_w, panel_h, row_h
+
+
+def _new_figure(w_in: float, h_in: float, dpi: int):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(w_in, h_in), dpi=dpi, facecolor="white")
+    return fig
+
+
+def _save(fig, path: Path, dpi: int) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=dpi, facecolor="white")
+    except OSError as exc:
+        raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+def _panel_record(fig, ax, kind, file, view, s, dpi) -> Panel:
+    fig_h_px = fig.get_figheight() * dpi
+    bb = ax.get_position()  # figure fraction
+    fig_w_px = fig.get_figwidth() * dpi
+    box = (bb.x0 * fig_w_px, fig_h_px - bb.y1 * fig_h_px, bb.width * fig_w_px, bb.height * fig_h_px)
+    H, W = s["depth"].shape
+    return Panel(file, view.name, int(s["object_index"]), int(s["image_index"]), kind, box, (W, H),
+                 np.asarray(s["axis_origin"]), np.asarray(s["K"]))
+
+
+def check_output_format(path: str | Path) -> Path:
+    """The output path if matplotlib can write its format (by extension), else a UserError."""
+    from matplotlib.figure import Figure
+
+    path = Path(path)
+    ext = path.suffix.lower().lstrip(".")
+    supported = Figure().canvas.get_supported_filetypes()
+    if ext not in supported:
+        raise UserError(f"cannot write {path}: unknown image format {('.' + ext) if ext else '(no extension)'}; "
+                        f"use one of {', '.join('.' + e for e in sorted(supported))}")
+    return path
+
+
+def make_gallery(split_dirs, *, out: str | Path | None = None, per_sample_dir: str | Path | None = None,
+                 n: int = DEFAULT_N_SAMPLES, objects=None, images=None, rgb: bool = False, cols: int = DEFAULT_COLUMNS,
+                 dpi: int = DEFAULT_DPI, outline: bool = True, progress=None) -> list[Panel]:
+    """Draw ``n`` samples of each split into one gallery (``out``) and/or one PNG per sample
+    (``per_sample_dir``).  Returns the panels drawn (with their positions in the files).
+
+    ``objects`` / ``images``: candidate object and image indices (default: all).
+    ``progress(k)`` is called after each sample.
+    """
+    if out is None and per_sample_dir is None:
+        raise UserError("nothing to write: give --out FILE and/or --per-sample DIR")
+    if n <= 0:
+        raise UserError(f"number of samples must be positive, got {n}")
+    if cols <= 0:
+        raise UserError(f"number of columns must be positive, got {cols}")
+    if dpi <= 0:
+        raise UserError(f"dpi must be positive, got {dpi}")
+    if out is not None:
+        out = check_output_format(out)
+    views = [SplitView.open(d) for d in split_dirs]
+    try:
+        return _make_gallery(views, out, Path(per_sample_dir) if per_sample_dir else None, n, objects, images, rgb,
+                             cols, dpi, outline, progress)
+    finally:
+        for v in views:
+            v.close()
+
+
+def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi, outline, progress) -> list[Panel]:
+    picks = []
+    for v in views:
+        for o in objects or []:
+            if not 0 <= o < v.n_objects:
+                raise UserError(f"object {o} is not in {v.name} (it holds objects 0..{v.n_objects - 1})")
+        for i in images or []:
+            if not 0 <= i < v.images_per_object:
+                raise UserError(f"image {i} is not in {v.name} (objects have images 0..{v.images_per_object - 1})")
+        picks.append(select_samples(v.n_objects, v.images_per_object, n, objects, images))
+    samples, rgbs = [], []
+    for v, pairs in zip(views, picks):
+        ss = [v.sample(o, i) for o, i in pairs]
+        samples.append(ss)
+        if rgb:
+            by_obj: dict[int, list[int]] = {}
+            for o, i in pairs:
+                by_obj.setdefault(o, []).append(i)
+            stored = {(int(s["object_index"]), int(s["image_index"])): s["depth"] for s in ss}
+            rendered = {}
+            for o, idx in by_obj.items():
+                for i, im in preview_rgb(v.manifest, o, idx, {i: stored[(o, i)] for i in idx}).items():
+                    rendered[(o, i)] = im
+            rgbs.append([rendered[p] for p in pairs])
+        else:
+            rgbs.append([None] * len(pairs))
+    panels: list[Panel] = []
+    if out is not None:
+        panels += _gallery_figure(views, samples, rgbs, out, cols, dpi, outline, rgb)
+    if per_sample_dir is not None:
+        for v, ss, rr in zip(views, samples, rgbs):
+            for s, r in zip(ss, rr):
+                name = f"{v.manifest['class_name']}_{v.split_dir.name}_o{int(s['object_index']):06d}_i{int(s['image_index']):03d}.png"
+                panels += _gallery_figure([v], [[s]], [[r]], per_sample_dir / name, 1, dpi, outline, rgb, header=False)
+                if progress is not None:
+                    progress(1)
+    return panels
+
+
+def _gallery_figure(views, samples, rgbs, path: Path, cols: int, dpi: int, outline: bool, rgb: bool,
+                    header: bool = True) -> list[Panel]:
+    H, W = samples[0][0]["depth"].shape
+    cols = min(cols, max(len(ss) for ss in samples))
+    rows = [-(-len(ss) // cols) for ss in samples]
+    max_j = max(len(v.joint_types) for v in views)
+    fig_w, fig_h, cell_w, panel_h, row_h = _layout(rows, cols, (W, H), rgb=rgb, n_joints=max_j)
+    if not header:
+        fig_h -= HEADER_IN + FOOTER_IN
+        fig_h += GAP_IN
+    fig = _new_figure(fig_w, fig_h, dpi)
+    placed = []
+    top = fig_h
+    for v, ss, rr, n_rows in zip(views, samples, rgbs, rows):
+        if header:
+            cfg = v.manifest.get("config", {})
+            cam = cfg.get("camera", {})
+            fig.text(GAP_IN / fig_w, (top - HEADER_IN * 0.5) / fig_h,
+                     f"{v.name}   \u2014   {v.manifest['n_objects']} objects, {v.manifest['n_images']} images, "
+                     f"{cam.get('width_px', W)}\u00d7{cam.get('height_px', H)} px, seed {v.manifest['seed']}",
+                     ha="left", va="center", fontsize=11, fontweight="bold", color="#111111")
+            top -= HEADER_IN
+        else:
+            top -= GAP_IN
+        for k, (s, r) in enumerate(zip(ss, rr)):
+            row, col = divmod(k, cols)
+            left = GAP_IN + col * (cell_w + GAP_IN)
+            bottom = top - row * row_h - TITLE_IN - panel_h
+            for kind, ax in _draw_sample(fig, s, v, r, left_in=left, bottom_in=bottom, panel_w_in=PANEL_WIDTH_IN,
+                                         panel_h_in=panel_h, fig_w_in=fig_w, fig_h_in=fig_h, outline=outline):
+                placed.append((ax, kind, v, s))
+        top -= n_rows * row_h
+    if header:
+        fig.text(GAP_IN / fig_w, (FOOTER_IN * 0.5) / fig_h, LEGEND, ha="left", va="center", fontsize=7.5, color="#555555")
+    _save(fig, path, dpi)
+    return [_panel_record(fig, ax, kind, path, v, s, dpi) for ax, kind, v, s in placed]
