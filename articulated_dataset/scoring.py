@@ -283,6 +283,9 @@ class ScoreRow:
     joint_types: tuple[str, ...]
     metrics: dict[str, tuple[float, float]]
     per_joint: dict[str, list[float]] = field(default_factory=dict)
+    #: images whose truth defines the metric, where fewer than n_scored (real captures may
+    #: lack some ground truth, stored as NaN): metric name -> count.
+    n_defined: dict[str, int] = field(default_factory=dict)
 
     @property
     def complete(self) -> bool:
@@ -315,14 +318,27 @@ class ScoreRow:
                 for name, (mean, std) in self.metrics.items()
             },
             "per_joint": {k: [_clean(v) for v in vals] for k, vals in self.per_joint.items()},
+            "n_defined": dict(self.n_defined),
         }
 
 
-def aggregate(per_image: dict, per_joint: dict) -> tuple[dict, dict]:
-    """Mean and population std of each per-image metric; per-joint means."""
-    metrics = {name: (float(v.mean()), float(v.std())) for name, v in per_image.items()}
-    joints = {name: [float(x) for x in per_joint[name].mean(axis=0)] for name in PER_JOINT_METRICS if name in per_joint}
-    return metrics, joints
+def _finite_mean_std(v: np.ndarray) -> tuple[float, float]:
+    v = v[np.isfinite(v)]
+    return (float(v.mean()), float(v.std())) if len(v) else (float("nan"), float("nan"))
+
+
+def aggregate(per_image: dict, per_joint: dict) -> tuple[dict, dict, dict]:
+    """Mean and population std of each per-image metric over the images where it is defined
+    (finite: real truth may lack labels); per-joint means; counts of defined images for the
+    metrics undefined somewhere."""
+    metrics = {name: _finite_mean_std(np.asarray(v, dtype=np.float64)) for name, v in per_image.items()}
+    joints = {}
+    for name in PER_JOINT_METRICS:
+        if name in per_joint:
+            pj = np.asarray(per_joint[name], dtype=np.float64)
+            joints[name] = [_finite_mean_std(pj[:, j])[0] for j in range(pj.shape[1])]
+    defined = {name: int(np.isfinite(v).sum()) for name, v in per_image.items() if not np.isfinite(v).all()}
+    return metrics, joints, defined
 
 
 def _pm(mean: float, std: float, digits: int = 2) -> str:
@@ -446,11 +462,12 @@ def score_class(pred: dict, truth: TruthSet, method: str, predictions_path: str)
     if J_pred != J_true:
         raise DataFormatError(f"{where}/axis_pose: {J_pred} joints predicted, the truth ({truth.path}) has {J_true}")
     t = {k: v[idx] for k, v in truth.arrays.items()}
-    per_image, per_joint = image_metrics(pred, t, truth.joint_types, where)
-    metrics, joints = aggregate(per_image, per_joint)
+    with np.errstate(invalid="ignore"):
+        per_image, per_joint = image_metrics(pred, t, truth.joint_types, where)
+    metrics, joints, defined = aggregate(per_image, per_joint)
     return ScoreRow(class_name=truth.class_name, method=method, split=truth.split, truth_path=str(truth.path),
                     predictions_path=str(predictions_path), n_scored=len(idx), n_truth=truth.n_images,
-                    joint_types=truth.joint_types, metrics=metrics, per_joint=joints)
+                    joint_types=truth.joint_types, metrics=metrics, per_joint=joints, n_defined=defined)
 
 
 def _class_order(name: str) -> tuple:
@@ -493,6 +510,8 @@ def score(predictions, truth_path: str | Path, split: str | None = None) -> Repo
                        f"predicted ({100.0 * row.n_scored / row.n_truth:.1f}%)")
                 log.warning(msg)
                 notes.append(msg)
+            for name, k in row.n_defined.items():
+                notes.append(f"{cls} - {method}: {name} averaged over the {k} of {row.n_scored} images whose truth defines it")
             incomplete = f"{cls}: truth split {truth[cls].path} is incomplete (generation was interrupted)"
             if not truth[cls].complete and incomplete not in notes:
                 notes.append(incomplete)

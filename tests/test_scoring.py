@@ -328,3 +328,37 @@ def test_non_unit_quaternions_are_normalised_with_a_warning(good, tiny_root, tmp
     assert any("non-unit quaternions" in r.getMessage() and "normalised" in r.getMessage() for r in caplog.records)
     assert report.rows[0].metrics["axis_rotation_error_deg"][0] == pytest.approx(0.0, abs=1e-4)
     assert run("score", p, "--truth", tiny_root).exit_code == 0
+
+
+def test_truth_without_some_labels_is_averaged_where_defined(tiny_root, tmp_path):
+    """Real captures may lack ground truth (NaN): metrics use the images that define them."""
+    import shutil
+
+    import h5py
+    import numpy as np
+
+    from articulated_dataset.predictions import write_predictions
+    from articulated_dataset.scoring import score
+    from articulated_dataset.shards import open_split
+
+    split = tmp_path / "drawer" / "test"
+    shutil.copytree(tiny_root / "drawer" / "test", split)
+    _, shards = open_split(split)
+    pred = {k: np.concatenate([s.read(k) for s in shards]) for k in ("sample_id", "axis_pose", "q", "geometry")}
+    for s in shards:
+        s.close()
+    n = len(pred["sample_id"])
+    missing = 10
+    with h5py.File(shards[0].path, "r+") as f:
+        pose = f["axis_pose"][()]
+        pose[:missing] = np.nan
+        f["axis_pose"][...] = pose
+    pred["axis_pose"][:, :, 0] += 0.02  # 2 cm shift everywhere
+    write_predictions(tmp_path / "p.h5", "shifted", {"drawer": pred})
+    report = score(tmp_path / "p.h5", split)
+    row = report.rows[0]
+    assert row.metrics["axis_position_error_cm"][0] == pytest.approx(2.0, abs=1e-3)
+    assert row.metrics["configuration_error"][0] == pytest.approx(0.0, abs=1e-6)
+    assert row.n_defined["axis_position_error_cm"] == n - missing
+    assert "configuration_error" not in row.n_defined
+    assert any(f"{n - missing} of {n}" in note for note in report.notes)
