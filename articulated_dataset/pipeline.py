@@ -124,13 +124,15 @@ class _ClassCache:
         self.joint_names = [j.name for j in obj_class.joints]
 
 
-def render_object(sample: ObjectSample, config: GenerationConfig, renderer: DepthRenderer, *, check_visibility: bool = True):
+def render_object(sample: ObjectSample, config: GenerationConfig, renderer: DepthRenderer, *, check_visibility: bool = True,
+                  out: dict | None = None):
     """Template, compile, render and label one sampled object.
 
     Redraws the pose (from the object's own generator, after its other draws) while a moving
     part covers fewer than ``config.min_part_pixels`` in some view.  Returns
     ``(arrays, sample, attempts)`` where ``arrays`` holds every schema field for the
-    object's images.
+    object's images.  ``out`` may hold preallocated ``depth`` (n, H, W) float32 and ``mask``
+    (n, H, W) uint8 arrays (views into a shard's buffers) to render into.
     """
     obj_class = config.obj_class
     urdf = render_urdf(obj_class.template_path(), sample.template_mappings(config.table))
@@ -144,8 +146,8 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
         info = model_info(model, obj_class)
         labels = read_object_labels(model, data, info, obj_class)
         renderer.bind(model)
-        depth = np.empty((n, H, W), np.float32)
-        mask = np.empty((n, H, W), np.uint8)
+        depth = out["depth"] if out is not None else np.empty((n, H, W), np.float32)
+        mask = out["mask"] if out is not None else np.empty((n, H, W), np.uint8)
         q = np.empty((n, J), np.float64)
         vis = np.empty((n, 1 + J), np.int32)
         ok = True
@@ -180,8 +182,10 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
         K = config.camera.K
         for i in range(n):
             depth[i] = apply_noise(depth[i], K, nrng)
-    if config.depth_quantum_m > 0:
-        depth = (np.round(depth / config.depth_quantum_m) * config.depth_quantum_m).astype(np.float32)
+    if config.depth_quantum_m > 0:  # in place: depth may be a view into the shard's buffer
+        np.divide(depth, config.depth_quantum_m, out=depth)
+        np.round(depth, out=depth)
+        np.multiply(depth, config.depth_quantum_m, out=depth)
     ids = np.array([sample_id(config.class_name, config.split, config.seed, sample.object_index, i) for i in range(n)], np.int64)
     arrays = {
         "depth": depth,
@@ -270,16 +274,21 @@ def generate_shard(config: GenerationConfig, shard_index: int, split_dir: str | 
     """
     renderer = process_renderer(config.camera)
     objects = config.shard_objects(shard_index)
-    parts: dict[str, list] = {f.name: [] for f in FIELDS}
+    n = config.images_per_object
+    H, W = config.camera.height_px, config.camera.width_px
+    # Images are rendered straight into the shard's buffers (no per-object copies).
+    images = {"depth": np.empty((len(objects) * n, H, W), np.float32), "mask": np.empty((len(objects) * n, H, W), np.uint8)}
+    labels: dict[str, list] = {f.name: [] for f in FIELDS if f.name not in images}
     attempts = 0
-    for k in objects:
-        arrays, _, tries = render_object(object_sample(config, k), config, renderer, check_visibility=not config.mean)
+    for p, k in enumerate(objects):
+        out = {name: buf[p * n:(p + 1) * n] for name, buf in images.items()}
+        arrays, _, tries = render_object(object_sample(config, k), config, renderer, check_visibility=not config.mean, out=out)
         attempts += tries
-        for name, a in arrays.items():
-            parts[name].append(a)
+        for name in labels:
+            labels[name].append(arrays[name])
         if progress is not None:
-            progress(config.images_per_object)
-    arrays = {name: np.concatenate(v, axis=0) for name, v in parts.items()}
+            progress(n)
+    arrays = {**images, **{name: np.concatenate(v, axis=0) for name, v in labels.items()}}
     attrs = shard_attrs(config, objects)
     attrs["pose_attempts"] = attempts
     record = write_shard(Path(split_dir) / shard_name(shard_index), arrays, attrs, config.camera.K, R_CAMERA_TO_OPTICAL)
