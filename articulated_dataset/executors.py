@@ -4,13 +4,22 @@ An executor has one method, ``map_unordered(fn, tasks, progress=None)``, yieldin
 ``fn(task)`` results in any order.  ``fn`` must be a picklable top-level function of one
 argument returning ``(shard_index, record)``; in-process executors may pass a
 ``progress(n_images)`` callback as a keyword argument.
+
+:class:`RayExecutor` runs one Ray task per shard on a Ray cluster (``pip install ray``);
+:func:`get_executor` picks an executor by name (``artdata generate --executor``).
 """
 
 from __future__ import annotations
 
+import logging
 import multiprocessing as mp
 import os
+from pathlib import Path
 from typing import Callable, Iterable, Iterator
+
+from .errors import UserError
+
+log = logging.getLogger(__name__)
 
 
 class SerialExecutor:
@@ -35,17 +44,220 @@ class ProcessExecutor:
         self.workers = workers
 
     def map_unordered(self, fn: Callable, tasks: Iterable, progress=None) -> Iterator:
+        # concurrent.futures rather than multiprocessing.Pool: a worker that dies (killed,
+        # out of memory, a crash in the GL driver) breaks the pool with an error, where
+        # Pool would replace the worker and wait for its lost task forever.
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+        from concurrent.futures.process import BrokenProcessPool
+
         tasks = list(tasks)
         if not tasks:
             return
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(processes=min(self.workers, len(tasks)), initializer=_worker_init) as pool:
-            for result in pool.imap_unordered(fn, tasks):
+        pool = ProcessPoolExecutor(max_workers=min(self.workers, len(tasks)), mp_context=mp.get_context("spawn"),
+                                   initializer=_worker_init)
+        try:
+            futures = [pool.submit(fn, task) for task in tasks]
+            for future in as_completed(futures):
+                try:
+                    result = future.result()
+                except BrokenProcessPool:
+                    raise RuntimeError(
+                        "a generation worker process died (killed or out of memory?); completed shards are kept, "
+                        "continue with --resume"
+                    ) from None
                 if progress is not None:
                     progress(result[1]["n_images"])
                 yield result
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
 def local_executor(workers: int):
     """Serial for one worker, a process pool otherwise."""
     return SerialExecutor() if workers <= 1 else ProcessExecutor(workers)
+
+
+# --------------------------------------------------------------------------------------
+# Ray
+# --------------------------------------------------------------------------------------
+
+#: Times Ray re-runs a task whose worker process or node died (a shard is a pure function
+#: of its config and index, so a re-run writes the same bytes).
+DEFAULT_MAX_RETRIES = 3
+#: CPUs reserved per task: one renderer (one llvmpipe thread) per task.
+CPUS_PER_TASK = 1
+RAY_INSTALL_HELP = "--executor ray needs Ray: pip install 'articulated_dataset[ray]' (or pip install 'ray>=2.9')"
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError:
+        raise UserError(RAY_INSTALL_HELP) from None
+    return ray
+
+
+#: Driver environment variables passed on to Ray workers when set (GL backend, the
+#: processed-URDF cache folder of articulated_dataset.urdf_import).
+FORWARDED_ENV = ("PYOPENGL_PLATFORM", "ARTDATA_CACHE_DIR")
+
+
+def _worker_env() -> dict[str, str]:
+    """Environment of Ray workers: one llvmpipe thread, the driver's GL backend."""
+    env = {"LP_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    env.update({k: os.environ[k] for k in FORWARDED_ENV if os.environ.get(k)})
+    return env
+
+
+def _ray_task(fn: Callable, task, driver_version: str):
+    """Body of every Ray task: refuse a node whose package differs from the driver's, then run."""
+    from . import __version__
+
+    if __version__ != driver_version:
+        import socket
+
+        raise UserError(
+            f"Ray node {socket.gethostname()} has articulated_dataset {__version__}, the driver {driver_version}; "
+            "install the same version on every node"
+        )
+    return fn(task)
+
+
+def _is_shard_task(task) -> bool:
+    """Pipeline shard tasks are ``(config, shard_index, split_dir)``."""
+    return isinstance(task, tuple) and len(task) == 3 and isinstance(task[2], (str, Path))
+
+
+def _absolute_task(task):
+    """A shard task with an absolute output folder (Ray workers do not run in the driver's
+    working directory)."""
+    if _is_shard_task(task):
+        return (task[0], task[1], Path(task[2]).absolute())
+    return task
+
+
+def _check_visible(task, result) -> None:
+    """For pipeline shard tasks: the driver must see the shard a worker wrote, i.e. the
+    output folder is on a filesystem shared by every node."""
+    if not _is_shard_task(task):
+        return
+    record = result[1] if isinstance(result, tuple) and len(result) == 2 else None
+    if not isinstance(record, dict) or "file" not in record:
+        return
+    path = Path(task[2]) / record["file"]
+    if not path.is_file() or path.stat().st_size != record.get("bytes"):
+        raise UserError(
+            f"shard {path} written by a Ray worker is not visible to the driver: --out must be a shared "
+            "filesystem mounted at the same path on every node"
+        )
+
+
+class RayExecutor:
+    """One Ray task per shard on a Ray cluster; results are yielded as tasks finish.
+
+    ``address``: ``None`` (``RAY_ADDRESS`` if set, else start a local Ray instance),
+    ``"auto"`` (the cluster this machine belongs to) or ``"HOST:PORT"`` /
+    ``"ray://HOST:PORT"``.  If Ray is already initialised in this process that instance is
+    used.  ``workers``: at most this many tasks in flight (None: as many as there are
+    shards; Ray schedules them on free CPUs); for a local instance also its CPU count.
+    ``max_retries``: re-runs of a task whose worker died (an exception raised by the task
+    itself is not retried: generation is deterministic, it would fail again).
+    """
+
+    def __init__(self, address: str | None = None, workers: int | None = None, max_retries: int = DEFAULT_MAX_RETRIES):
+        if workers is not None and workers < 1:
+            raise UserError(f"--workers must be positive, got {workers}")
+        if max_retries < 0:
+            raise ValueError("max_retries must be >= 0")
+        self.address = address
+        self.workers = workers
+        self.max_retries = max_retries
+
+    def _connect(self, ray) -> bool:
+        """Initialise Ray unless it already is; True if this call started it."""
+        if ray.is_initialized():
+            return False
+        kwargs = {"include_dashboard": False, "log_to_driver": False, "runtime_env": {"env_vars": _worker_env()}}
+        if self.address is None and self.workers is not None and not os.environ.get("RAY_ADDRESS"):
+            kwargs["num_cpus"] = self.workers
+        try:
+            ray.init(address=self.address, **kwargs)
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise UserError(f"cannot connect to the Ray cluster at {self.address or 'RAY_ADDRESS/local'}: {first}") from None
+        return True
+
+    def map_unordered(self, fn: Callable, tasks: Iterable, progress=None) -> Iterator:
+        from . import __version__
+
+        tasks = [_absolute_task(t) for t in tasks]
+        if not tasks:
+            return
+        ray = _import_ray()
+        started = self._connect(ray)
+        remote = ray.remote(_ray_task).options(
+            num_cpus=CPUS_PER_TASK, max_retries=self.max_retries, retry_exceptions=False,
+            runtime_env={"env_vars": _worker_env()},
+        )
+        limit = self.workers or len(tasks)
+        queue = iter(tasks)
+        pending: dict = {}
+
+        def submit() -> None:
+            for task in queue:
+                pending[remote.remote(fn, task, __version__)] = task
+                if len(pending) >= limit:
+                    return
+
+        try:
+            submit()
+            while pending:
+                done, _ = ray.wait(list(pending), num_returns=1)
+                ref = done[0]
+                task = pending.pop(ref)
+                result = self._get(ray, ref)
+                _check_visible(task, result)
+                submit()
+                if progress is not None:
+                    progress(result[1]["n_images"])
+                yield result
+        finally:
+            for ref in pending:  # interrupted or failed: do not leave tasks writing shards
+                ray.cancel(ref, force=True)
+            if started:
+                ray.shutdown()
+
+    @staticmethod
+    def _get(ray, ref):
+        """``ray.get``, re-raising a task's UserError as itself (one line, no Ray traceback)."""
+        try:
+            return ray.get(ref)
+        except ray.exceptions.RayTaskError as exc:
+            cause = getattr(exc, "cause", None)
+            if isinstance(cause, UserError):
+                raise UserError(str(cause)) from None
+            if isinstance(cause, ModuleNotFoundError):
+                raise UserError(f"a Ray node cannot import {cause.name!r}: install articulated_dataset on every node") from None
+            raise
+
+
+#: Executors by ``--executor`` name: factory(workers, address).
+EXECUTORS: dict[str, Callable] = {
+    "local": lambda workers, address: local_executor(workers or os.cpu_count() or 1),
+    "ray": lambda workers, address: RayExecutor(address=address, workers=workers),
+}
+
+
+def get_executor(name: str = "local", workers: int | None = None, address: str | None = None):
+    """The executor called ``name`` (see :data:`EXECUTORS`).
+
+    ``workers``: local processes (default: all cores) or, for Ray, the most tasks in
+    flight.  ``address`` (Ray only): ``auto`` or ``HOST:PORT``.
+    """
+    if name not in EXECUTORS:
+        raise UserError(f"unknown executor {name!r}; choose from: {', '.join(EXECUTORS)}")
+    if workers is not None and workers < 1:
+        raise UserError(f"--workers must be positive, got {workers}")
+    if address is not None and name != "ray":
+        raise UserError("--address is for --executor ray")
+    return EXECUTORS[name](workers, address)

@@ -66,7 +66,9 @@ class GenerationConfig:
     third_party: dict | None = None
 
     def __post_init__(self) -> None:
-        obj_class = self.obj_class  # UserError for unknown names
+        # UserError for unknown names.  A third-party class with its table given (e.g. read
+        # back from a manifest) is not rebuilt here: its URDF files are needed only to render.
+        obj_class = self.obj_class if self.third_party is None or self.table is None else None
         if self.n_objects <= 0:
             raise UserError(f"number of objects must be positive, got {self.n_objects}")
         if self.images_per_object <= 0:

@@ -2,16 +2,55 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import re
 import time
 
 import click
 
 from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, KINECT_V2_VFOV_DEG, CameraConfig
 from ..errors import UserError
+from ..executors import EXECUTORS, get_executor
 from ..pipeline import DEFAULT_IMAGES_PER_OBJECT, DEFAULT_OBJECTS_PER_SHARD, DEFAULT_SEED, GenerationConfig, generate_split
 from ..registry import class_names, get_class
 from ..tables import load_table_file
+
+
+class _NoiseChoice(click.ParamType):
+    """Noise models of :mod:`articulated_dataset.noise` (just ``none`` while it does not exist)."""
+
+    name = "noise"
+
+    @staticmethod
+    def choices() -> list[str]:
+        if importlib.util.find_spec("articulated_dataset.noise") is None:
+            return ["none"]
+        from ..noise import NOISE_MODELS
+
+        names = list(NOISE_MODELS)
+        return names if "none" in names else ["none", *names]
+
+    def get_metavar(self, param, ctx=None):
+        return "[" + "|".join(self.choices()) + "]"
+
+    def convert(self, value, param, ctx):
+        if value not in self.choices():
+            self.fail(f"unknown noise model {value!r}; choose from: {', '.join(self.choices())}", param, ctx)
+        return value
+
+
+#: ``--address``: ``auto``, ``HOST:PORT`` or a Ray client address ``ray://HOST:PORT``.
+_ADDRESS = re.compile(r"^(auto|(ray://)?[^\s:/]+:\d+)$")
+
+
+def _split_names(text: str | None) -> list[str] | None:
+    if text is None:
+        return None
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise UserError("--joints needs at least one joint name (NAME,NAME,...)")
+    return names
 
 
 class _ClassChoice(click.ParamType):
@@ -30,7 +69,14 @@ class _ClassChoice(click.ParamType):
 
 
 @click.command("generate")
-@click.option("--class", "class_name", type=_ClassChoice(), required=True, help="Object class to generate.")
+@click.option("--class", "class_name", type=_ClassChoice(), default=None, help="Object class to generate (or --urdf).")
+@click.option("--urdf", "urdf_path", type=click.Path(dir_okay=False), default=None,
+              help="Generate a third-party articulated object from this URDF file instead of a --class (docs/third_party_urdf.md).")
+@click.option("--joints", "joint_names", default=None, metavar="NAME,...",
+              help="With --urdf: joints to articulate, in label order (default: every revolute/continuous/prismatic joint).")
+@click.option("--class-name", "urdf_class_name", default=None,
+              help="With --urdf: class name stored in the shards and used for OUT/<class>/ (default: <folder>-<file stem>).")
+@click.option("--skip-missing-meshes", is_flag=True, help="With --urdf: drop mesh references whose file does not exist.")
 @click.option("--n", "n_objects", type=int, default=100, show_default=True, help="Number of objects (each gives --images images).")
 @click.option("--split", default="train", show_default=True, help="Split name (train, val, test...); splits never share objects.")
 @click.option("--out", "out_root", type=click.Path(file_okay=False), default="data", show_default=True, help="Output root: shards go to OUT/<class>/<split>/.")
@@ -41,35 +87,66 @@ class _ClassChoice(click.ParamType):
 @click.option("--height", type=int, default=DEFAULT_HEIGHT_PX, show_default=True, help="Image height (px).")
 @click.option("--vfov", type=float, default=KINECT_V2_VFOV_DEG, show_default=True, help="Vertical field of view (deg).")
 @click.option("--table", "table_file", type=click.Path(dir_okay=False), default=None, help="JSON/TOML file overriding (part of) the class's sampling table.")
-@click.option("--workers", type=int, default=None, help="Worker processes (default: all cores).")
+@click.option("--workers", type=int, default=None,
+              help="Worker processes (default: all cores); with --executor ray: most shard tasks in flight (default: no limit).")
+@click.option("--executor", type=click.Choice(list(EXECUTORS)), default="local", show_default=True,
+              help="local: processes on this machine; ray: one task per shard on a Ray cluster (docs/cluster.md).")
+@click.option("--address", default=None, metavar="auto|HOST:PORT",
+              help="With --executor ray: the cluster to join (default: RAY_ADDRESS, else a local Ray instance).")
+@click.option("--noise", type=_NoiseChoice(), default="none", show_default=True, help="Depth sensor-noise model.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run of the same command.")
 @click.option("--overwrite", is_flag=True, help="Replace existing data of this class and split.")
 @click.option("--mean", "mean_object", is_flag=True, help="Render the class's mean object (centre of every range) into OUT/<class>/mean/.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
-def generate_cmd(class_name, n_objects, split, out_root, seed, images_per_object, objects_per_shard, width, height,
-                 vfov, table_file, workers, resume, overwrite, mean_object, quiet):
-    """Generate labelled depth images of one object class into HDF5 shards."""
-    obj_class = get_class(class_name)
-    table = obj_class.table
-    if table_file:
-        table = table.override(load_table_file(table_file))
+def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missing_meshes, n_objects, split, out_root,
+                 seed, images_per_object, objects_per_shard, width, height, vfov, table_file, workers, executor, address,
+                 noise, resume, overwrite, mean_object, quiet):
+    """Generate labelled depth images of one object class (or one URDF object) into HDF5 shards."""
     try:
         camera = CameraConfig(width, height, vfov)
     except ValueError as exc:
         raise UserError(str(exc)) from None
+    third_party = None
+    if urdf_path is not None:
+        if class_name is not None:
+            raise UserError("give either --class or --urdf, not both")
+        from ..urdf_import import import_urdf
+
+        imported = import_urdf(urdf_path, joints=_split_names(joint_names), class_name=urdf_class_name,
+                               skip_missing_meshes=skip_missing_meshes, camera=camera)
+        obj_class, third_party = imported.obj_class, imported.definition
+        if not quiet:
+            for line in imported.summary():
+                click.echo(line)
+    elif class_name is None:
+        raise UserError("missing --class NAME (or --urdf FILE)")
+    else:
+        unused = [opt for opt, v in (("--joints", joint_names), ("--class-name", urdf_class_name),
+                                     ("--skip-missing-meshes", skip_missing_meshes)) if v]
+        if unused:
+            raise UserError(f"{unused[0]} is for --urdf objects")
+        obj_class = get_class(class_name)
+    table = obj_class.table
+    if table_file:
+        table = table.override(load_table_file(table_file))
     if mean_object:
         n_objects = 1
-    if workers is None:
-        workers = os.cpu_count() or 1
-    if workers <= 0:
+    if workers is not None and workers <= 0:
         raise UserError(f"--workers must be positive, got {workers}")
+    if address is not None and not _ADDRESS.match(address):
+        raise UserError(f"--address must be auto, HOST:PORT or ray://HOST:PORT, got {address!r}")
+    if executor == "local" and workers is None:
+        workers = os.cpu_count() or 1
+    runner = get_executor(executor, workers, address)
     config = GenerationConfig(
-        class_name=class_name, split=split, n_objects=n_objects, seed=seed, images_per_object=images_per_object,
-        objects_per_shard=objects_per_shard, camera=camera, table=table, mean=mean_object,
+        class_name=obj_class.name, split=split, n_objects=n_objects, seed=seed, images_per_object=images_per_object,
+        objects_per_shard=objects_per_shard, camera=camera, table=table, mean=mean_object, noise=noise,
+        third_party=third_party,
     )
     t0 = time.perf_counter()
     try:
-        split_dir = generate_split(config, out_root, workers=workers, resume=resume, overwrite=overwrite, progress=not quiet)
+        split_dir = generate_split(config, out_root, workers=workers or 1, resume=resume, overwrite=overwrite,
+                                   progress=not quiet, executor=runner)
     except KeyboardInterrupt:
         raise click.ClickException(
             "interrupted; completed shards are kept. Continue with the same command plus --resume"
