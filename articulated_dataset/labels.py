@@ -101,13 +101,21 @@ def _is_descendant(model: mujoco.MjModel, body: int, ancestor: int) -> bool:
     return ancestor == 0
 
 
+def _geom_points_local(model: mujoco.MjModel, g: int) -> np.ndarray:
+    """Points spanning geom ``g``'s extent in its own frame: a mesh's vertices (MuJoCo stores
+    them in the geom frame), else the corners of the geom's local bounding box (exact for
+    boxes, the primitives of the built-in classes)."""
+    if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH:
+        mesh = model.geom_dataid[g]
+        start = model.mesh_vertadr[mesh]
+        return model.mesh_vert[start:start + model.mesh_vertnum[mesh]].astype(np.float64)
+    centre, half = model.geom_aabb[g, :3], model.geom_aabb[g, 3:]
+    return centre + _BOX_CORNERS * half
+
+
 def _geom_corners_world(model: mujoco.MjModel, data: mujoco.MjData, geoms: np.ndarray) -> np.ndarray:
-    """World coordinates (8 * len(geoms), 3) of the corners of each geom's local bounding box."""
-    out = []
-    for g in geoms:
-        centre, half = model.geom_aabb[g, :3], model.geom_aabb[g, 3:]
-        local = centre + _BOX_CORNERS * half
-        out.append(data.geom_xpos[g] + local @ data.geom_xmat[g].reshape(3, 3).T)
+    """World coordinates of points spanning each geom's extent (see :func:`_geom_points_local`)."""
+    out = [data.geom_xpos[g] + _geom_points_local(model, g) @ data.geom_xmat[g].reshape(3, 3).T for g in geoms]
     return np.concatenate(out, axis=0)
 
 

@@ -4,13 +4,15 @@ One :class:`DepthRenderer` per process owns the GL context and one ``MjrContext`
 frame is a single render pass whose colour buffer holds segmentation ids and whose depth
 buffer holds depth, read back together.  Models made only of primitive geoms (all built-in
 classes) share the one ``MjrContext``; a model with meshes, textures or height fields gets
-its own (built once per model).
+one built for its assets, reused by later models with the same assets.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
+from collections import OrderedDict
 
 import mujoco
 import numpy as np
@@ -51,6 +53,29 @@ def _needs_own_context(model: mujoco.MjModel) -> bool:
     return bool(model.nmesh or model.ntex or model.nhfield or model.nskin)
 
 
+#: Model arrays an ``MjrContext`` uploads (meshes, textures, height fields, skins): two models
+#: equal in all of them can share a context (e.g. every object of a third-party URDF class,
+#: which differ only in pose).
+_CONTEXT_ASSET_FIELDS = (
+    "mesh_vertadr", "mesh_vertnum", "mesh_faceadr", "mesh_facenum", "mesh_normaladr", "mesh_texcoordadr",
+    "mesh_vert", "mesh_normal", "mesh_face", "mesh_facenormal", "mesh_facetexcoord", "mesh_texcoord",
+    "tex_type", "tex_height", "tex_width", "tex_nchannel", "tex_data", "hfield_size", "hfield_nrow",
+    "hfield_ncol", "hfield_data", "skin_vertnum", "skin_vert", "skin_face",
+)
+#: Asset-holding contexts kept per renderer (least recently used dropped first).
+_ASSET_CONTEXT_CACHE_SIZE = 4
+
+
+def _asset_key(model: mujoco.MjModel) -> bytes:
+    h = hashlib.blake2b(digest_size=16)
+    for name in _CONTEXT_ASSET_FIELDS:
+        a = getattr(model, name, None)
+        if a is not None:
+            h.update(name.encode())
+            h.update(np.ascontiguousarray(a).tobytes())
+    return h.digest()
+
+
 class DepthRenderer:
     """Renders z-depth (m) and per-geom segmentation of a model's camera.
 
@@ -61,6 +86,7 @@ class DepthRenderer:
         self.camera = camera
         self._gl = _make_gl_context(camera.width_px, camera.height_px)
         self._shared_con: mujoco.MjrContext | None = None
+        self._asset_cons: OrderedDict[bytes, mujoco.MjrContext] = OrderedDict()
         self._con = None
         self._model = None
         self._rgb = np.zeros((camera.height_px, camera.width_px, 3), np.uint8)
@@ -73,7 +99,13 @@ class DepthRenderer:
     def _context_for(self, model: mujoco.MjModel) -> mujoco.MjrContext:
         self._gl.make_current()
         if _needs_own_context(model):
-            con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_50)
+            key = _asset_key(model)
+            con = self._asset_cons.pop(key, None)
+            if con is None:
+                con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_50)
+            self._asset_cons[key] = con
+            while len(self._asset_cons) > _ASSET_CONTEXT_CACHE_SIZE:
+                self._asset_cons.popitem(last=False)
         else:
             if self._shared_con is None:
                 self._shared_con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_50)
@@ -143,6 +175,7 @@ class DepthRenderer:
 
     def close(self) -> None:
         self._shared_con = self._con = None
+        self._asset_cons.clear()
         if self._gl is not None:
             try:
                 self._gl.free()

@@ -273,6 +273,12 @@ def test_data_is_verified_without_the_urdf_files(objects, tmp_path):
     r = CliRunner().invoke(main, ["verify", str(split), "--quiet"])
     assert r.exit_code == 0, r.output
     assert GenerationConfig.from_dict(read_manifest(split)["config"]).third_party == obj.definition
+    # the loaders read it too (joint count from the manifest, not the registry)
+    from articulated_dataset.loaders.reader import ShardReader
+
+    reader = ShardReader([split])
+    sample = reader[len(reader) - 1]
+    assert sample["axis_pose"].shape == (obj.obj_class.n_joints, 7) and sample["depth"].shape == (108, 192)
 
 
 def _simple(tmp_path, joint_xml, name="simple", child_mesh=True):

@@ -156,7 +156,11 @@ class ShardReader:
             raise DataFormatError(f"{split_dir}: manifest lacks the image size or class ({exc})") from None
         from ..registry import class_names, get_class
 
-        if class_name in class_names():
+        config = manifest.get("config")
+        table_q = config.get("table", {}).get("q") if isinstance(config, dict) else None
+        if isinstance(table_q, list):  # every generated split records its table (one q range per joint)
+            J = len(table_q)
+        elif class_name in class_names():
             J = get_class(class_name).n_joints
         elif manifest.get("shards"):  # a class registered elsewhere: ask the first shard (opened and closed)
             with open_h5(split_dir / manifest["shards"][0]["file"]) as f:
