@@ -1,1 +1,42 @@
-"""articulated_dataset.baselines"""
+"""The paper's Table 1 baselines: Mean, nearest neighbour (NN) and ICP to the mean object.
+
+Each baseline predicts, for every image of a class's test split, the axis pose, the
+configuration, the geometry and the part offset, and is written as a ``predictions.h5``
+(:mod:`articulated_dataset.predictions`) so that ``artdata score`` scores it like any other
+method.  See docs/baselines.md.
+
+``run_baseline(name, train_dir, test_dir, out, ...)`` runs one of :data:`BASELINES` and
+writes its predictions; the modules (:mod:`.mean`, :mod:`.nn`, :mod:`.icp`) hold the
+algorithms.  scipy (ICP) is imported only when ICP runs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import UserError
+
+#: CLI name -> (module, method name written in predictions files).
+BASELINES = {"mean": ("mean", "Mean"), "nn": ("nn", "NN"), "icp": ("icp", "ICP")}
+
+
+def baseline_module(name: str):
+    """The module implementing baseline ``name`` (one of :data:`BASELINES`)."""
+    import importlib
+
+    if name not in BASELINES:
+        raise UserError(f"unknown baseline {name!r}; choose from: {', '.join(BASELINES)}")
+    return importlib.import_module(f"{__name__}.{BASELINES[name][0]}")
+
+
+def run_baseline(name: str, train_dir, test_dir, out, *, mean_dir=None, workers: int = 1, progress: bool = False,
+                 **options):
+    """Run baseline ``name`` on one class and write ``out`` (predictions.h5); returns the
+    :class:`~.common.BaselineResult`.  Every baseline's ``predict`` takes the same arguments
+    (``mean_dir``: the mean-object split, used by ICP only; ``options``: baseline specific)."""
+    from .common import write_result
+
+    result = baseline_module(name).predict(train_dir, test_dir, mean_dir=mean_dir, workers=workers,
+                                           progress=progress, **options)
+    write_result(result, Path(out))
+    return result

@@ -1,0 +1,152 @@
+"""Shared plumbing of the baselines: reading splits, checking them, packing predictions.
+
+Every baseline is a function ``predict(train_dir, test_dir, ...) -> BaselineResult`` whose
+``predictions`` hold, for every test image (in the test split's storage order):
+
+* ``sample_id`` (N,) int64 -- the test image's id;
+* ``axis_pose`` (N, J, 7) -- axis position (m, camera frame) + quaternion (w, x, y, z);
+* ``q`` (N, J) -- configuration (rad | m);
+* ``geometry`` (N, 4) -- depth, width, height (m), chirality;
+* ``part_offset`` (N, J, 3) -- part centre in the axis frame (m).
+
+:func:`write_result` stores it with :func:`articulated_dataset.predictions.write_predictions`
+so that ``artdata score`` scores a baseline like any other submission.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UserError
+from ..shards import Shard, open_split
+
+log = logging.getLogger(__name__)
+
+#: The label fields a baseline predicts (the subset of the schema that is scored).
+PREDICTED_FIELDS = ("axis_pose", "q", "geometry", "part_offset")
+
+
+@dataclass
+class SplitInfo:
+    """A generated split folder: its manifest, shards and the facts the baselines need."""
+
+    path: Path
+    manifest: dict
+    shards: list[Shard]
+
+    @property
+    def class_name(self) -> str:
+        return str(self.manifest["class_name"])
+
+    @property
+    def n_images(self) -> int:
+        return int(self.manifest["n_images"])
+
+    @property
+    def config(self) -> dict:
+        return self.manifest.get("config", {})
+
+    @property
+    def n_joints(self) -> int:
+        return int(self.shards[0].attrs["n_joints"])
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(height, width) in pixels."""
+        a = self.shards[0].attrs
+        return int(a["image_height"]), int(a["image_width"])
+
+    @property
+    def yaw_range_rad(self) -> tuple[float, float]:
+        """The yaw range (rad) of the split's sampling table (the class prior of object rotations)."""
+        lo, hi = self.config["table"]["pose"]["yaw_rad"]
+        return float(lo), float(hi)
+
+    def read(self, name: str) -> np.ndarray:
+        """One dataset concatenated over all shards, in storage order."""
+        return np.concatenate([sh.read(name) for sh in self.shards], axis=0)
+
+    def close(self) -> None:
+        for sh in self.shards:
+            sh.close()
+
+
+def open_split_checked(path, role: str) -> SplitInfo:
+    """Open the split folder ``path`` used as ``role`` (train/test/mean); one-line UserErrors."""
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"{role} split folder not found: {path}")
+    if not path.is_dir():
+        raise UserError(f"{role} split must be a folder holding manifest.json, got a file: {path}")
+    manifest, shards = open_split(path)
+    if not shards or int(manifest.get("n_images", 0)) == 0:
+        raise UserError(f"{role} split {path} holds no images")
+    if not manifest.get("complete", True):
+        log.warning("%s split %s is incomplete (%d images); using what is there", role, path, manifest["n_images"])
+    return SplitInfo(path, manifest, shards)
+
+
+def check_compatible(reference: SplitInfo, other: SplitInfo, *, same_image_size: bool = False) -> None:
+    """Raise a UserError unless ``other`` is of the same class (and image size, if asked)."""
+    if reference.class_name != other.class_name:
+        raise UserError(
+            f"class mismatch: {reference.path} holds {reference.class_name!r} but {other.path} holds {other.class_name!r}"
+        )
+    if reference.n_joints != other.n_joints:
+        raise UserError(f"{other.path}: {other.n_joints} joints, {reference.path} has {reference.n_joints}")
+    if same_image_size and reference.image_size != other.image_size:
+        raise UserError(
+            f"image size mismatch: {reference.path} is {reference.image_size[1]}x{reference.image_size[0]} px, "
+            f"{other.path} is {other.image_size[1]}x{other.image_size[0]} px"
+        )
+
+
+@dataclass
+class BaselineResult:
+    """Predictions of one baseline on one class's test split, plus run facts for the file's attrs."""
+
+    method: str
+    class_name: str
+    predictions: dict
+    attrs: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)  # diagnostics (not written), e.g. NN's chosen training rows
+
+    def __post_init__(self) -> None:
+        n = len(self.predictions["sample_id"])
+        for name in PREDICTED_FIELDS:
+            if name in self.predictions and len(self.predictions[name]) != n:
+                raise ValueError(f"{self.method}: {name} has {len(self.predictions[name])} rows, expected {n}")
+
+
+def broadcast_labels(labels: dict, n: int) -> dict:
+    """Repeat one set of labels (no leading image axis) ``n`` times, float32."""
+    return {k: np.repeat(np.asarray(v, np.float32)[None], n, axis=0) for k, v in labels.items()}
+
+
+def write_result(result: BaselineResult, out_path, attrs: dict | None = None) -> Path:
+    """Write ``result`` as a predictions file (``articulated_dataset.predictions`` format)."""
+    from ..predictions import write_predictions
+
+    out_path = Path(out_path)
+    if out_path.is_dir():
+        raise UserError(f"--out {out_path} is a directory; give a file name such as predictions.h5")
+    try:
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create the output folder {out_path.parent}: {exc.strerror}") from None
+    all_attrs = {**{k: _attr(v) for k, v in result.attrs.items()}, **(attrs or {})}
+    write_predictions(out_path, result.method, {result.class_name: result.predictions}, attrs=all_attrs)
+    return out_path
+
+
+def _attr(v):
+    """HDF5-attribute-friendly value (dicts/lists/tuples become JSON strings)."""
+    import json
+
+    if isinstance(v, (dict, list, tuple)):
+        return json.dumps(v)
+    return v
