@@ -157,13 +157,12 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
         # check (doors edge-on or swung out of the frame), so a rejected pose costs few renders.
         for i in np.argsort(-sample.q.sum(axis=1), kind="stable"):
             set_configuration(model, data, info.joint_ids, sample.q[i])
-            d, geom_id = renderer.render(data)
+            _, geom_id = renderer.render(data, depth_out=depth[i])
             mask[i] = info.mask_from_geoms(geom_id)
             vis[i] = visible_pixels(mask[i], J)
             if check_visibility and vis[i, 1:].min() < config.min_part_pixels:
                 ok = False
                 break
-            depth[i] = d
             q[i] = read_configuration(data, info)
         if ok:
             break

@@ -133,30 +133,39 @@ class DepthRenderer:
         self._near = model.vis.map.znear * extent
         self._far = model.vis.map.zfar * extent
 
-    def render(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
+    def render(self, data: mujoco.MjData, depth_out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Render the bound model in state ``data`` (kinematics must be up to date).
 
         Returns ``(depth_m, geom_id)``: float32 z-depth along the optical axis in metres
         (0 where nothing was hit) and int32 MuJoCo geom ids (-1 for background), both
-        (H, W) with row 0 at the top of the image.
+        (H, W) with row 0 at the top of the image.  ``depth_out`` (H, W) float32, if given,
+        receives the depth (and is returned).
         """
         model = self._model
         mujoco.mjv_updateScene(model, data, self._opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL, self._scn)
         mujoco.mjr_render(self._viewport, self._scn, self._con)
         mujoco.mjr_readPixels(self._rgb, self._depth, self._viewport, self._con)
-        # Segmentation colour encodes (index in scene geoms + 1); 0 = background.
+        # Segmentation colour encodes (index in scene geoms + 1) in R, G, B (low byte first);
+        # 0 = background.  Scenes of fewer than 255 geoms need only the red channel.
+        ngeom = self._scn.ngeom
         rgb = self._rgb[::-1]
-        seg = rgb[..., 0].astype(np.int32) | (rgb[..., 1].astype(np.int32) << 8) | (rgb[..., 2].astype(np.int32) << 16)
-        lookup = np.full(self._scn.ngeom + 1, -1, np.int32)
-        for i in range(self._scn.ngeom):
+        if ngeom < 255:
+            seg = rgb[..., 0]
+        else:
+            seg = rgb[..., 0].astype(np.int32) | (rgb[..., 1].astype(np.int32) << 8) | (rgb[..., 2].astype(np.int32) << 16)
+        lookup = np.full(ngeom + 1, -1, np.int32)
+        for i in range(ngeom):
             g = self._scn.geoms[i]
             if g.objtype == mujoco.mjtObj.mjOBJ_GEOM:
                 lookup[i + 1] = g.objid
         geom_id = lookup[seg]
         buf = self._depth[::-1]
         near, far = self._near, self._far
+        depth = np.empty(buf.shape, np.float32) if depth_out is None else depth_out
         # OpenGL depth buffer value d in [0, 1] -> linear z: z = n / (1 - d (1 - n / f)).
-        depth = (near / (1.0 - buf * (1.0 - near / far))).astype(np.float32)
+        np.multiply(buf, -(1.0 - near / far), out=depth)
+        depth += 1.0
+        np.divide(near, depth, out=depth)
         depth[buf >= 1.0] = 0.0
         return depth, geom_id
 

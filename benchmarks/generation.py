@@ -78,16 +78,19 @@ def _one_raster_thread() -> None:
     os.environ.setdefault("LP_NUM_THREADS", "1")
 
 
-def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: Path) -> tuple[int, float, int]:
-    from articulated_dataset.pipeline import GenerationConfig, generate_split
+def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: Path) -> tuple[int, float, int, float]:
+    """(images, seconds, bytes, mean pose draws per object) of one generate_split run."""
+    from articulated_dataset.pipeline import DEFAULT_OBJECTS_PER_SHARD, GenerationConfig, generate_split
     from articulated_dataset.shards import read_manifest
 
-    config = GenerationConfig(class_name, n_objects=n_objects, seed=seed, objects_per_shard=max(1, n_objects // max(workers, 1) // 2))
+    per_shard = min(DEFAULT_OBJECTS_PER_SHARD, max(1, n_objects // max(workers, 1) // 2))
+    config = GenerationConfig(class_name, n_objects=n_objects, seed=seed, objects_per_shard=per_shard)
     t0 = time.perf_counter()
     split = generate_split(config, out, workers=workers, overwrite=True)
     seconds = time.perf_counter() - t0
     m = read_manifest(split)
-    return m["n_images"], seconds, sum(s["bytes"] for s in m["shards"])
+    attempts = sum(s["pose_attempts"] for s in m["shards"]) / m["n_objects"]
+    return m["n_images"], seconds, sum(s["bytes"] for s in m["shards"]), attempts
 
 
 def main() -> None:
@@ -97,30 +100,35 @@ def main() -> None:
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--classes", nargs="*", default=None)
-    ap.add_argument("--objects", type=int, default=48, help="objects per class")
+    ap.add_argument("--objects", type=int, default=48, help="objects per class, single-process comparison")
     ap.add_argument("--workers", type=int, nargs="*", default=[2], help="whole-machine runs with these worker counts")
+    ap.add_argument("--machine-objects", type=int, default=256,
+                    help="objects per class in the whole-machine runs (start-up of the worker processes included)")
     ap.add_argument("--seed", type=int, default=1234)
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = ap.parse_args()
     classes = args.classes or class_names()
     process_renderer(CameraConfig())  # GL context creation is per process, not per image
     results = {"per_class": {}, "machine": {}, "cpu_count": os.cpu_count()}
-    print(f"{'class':14s} {'e2e img/s':>10s} {'bare img/s':>11s} {'ratio':>6s} {'bytes/img':>10s}")
+    print(f"{'class':14s} {'e2e img/s':>10s} {'bare img/s':>11s} {'ratio':>6s} {'bytes/img':>10s} {'pose draws/obj':>15s}")
     with tempfile.TemporaryDirectory() as tmp:
         for name in classes:
             _end_to_end(name, 2, args.seed + 1, 1, Path(tmp) / "warm")  # warm caches (template parse)
-            n, sec, nbytes = _end_to_end(name, args.objects, args.seed, 1, Path(tmp))
+            n, sec, nbytes, attempts = _end_to_end(name, args.objects, args.seed, 1, Path(tmp))
             bn, bsec = _bare_render((name, range(args.objects), args.objects, args.seed))
             e2e, bare = n / sec, bn / bsec
-            results["per_class"][name] = {"e2e_img_s": e2e, "bare_img_s": bare, "ratio": e2e / bare, "bytes_per_img": nbytes / n}
-            print(f"{name:14s} {e2e:10.0f} {bare:11.0f} {e2e / bare:6.2f} {nbytes / n:10.0f}")
+            results["per_class"][name] = {"e2e_img_s": e2e, "bare_img_s": bare, "ratio": e2e / bare,
+                                          "bytes_per_img": nbytes / n, "pose_draws_per_object": attempts}
+            print(f"{name:14s} {e2e:10.0f} {bare:11.0f} {e2e / bare:6.2f} {nbytes / n:10.0f} {attempts:15.2f}")
         for w in args.workers:
             ctx = mp.get_context("spawn")
             tot_n = tot_sec = 0.0
             bare_n = 0
             bare_wall = 0.0
+            per_class = {}
             for name in classes:
-                n, sec, _ = _end_to_end(name, args.objects, args.seed, w, Path(tmp))
+                n, sec, _, _ = _end_to_end(name, args.machine_objects, args.seed, w, Path(tmp))
+                per_class[name] = n / sec
                 tot_n += n
                 tot_sec += sec
                 chunks = [(name, range(i, args.objects, w), args.objects, args.seed) for i in range(w)]
@@ -129,7 +137,8 @@ def main() -> None:
                 bare_n += sum(p[0] for p in parts)
                 bare_wall += max(p[1] for p in parts)
             e2e, bare = tot_n / tot_sec, bare_n / bare_wall
-            results["machine"][w] = {"e2e_img_s": e2e, "bare_img_s": bare, "ratio": e2e / bare}
+            results["machine"][w] = {"e2e_img_s": e2e, "bare_img_s": bare, "ratio": e2e / bare, "per_class_e2e_img_s": per_class}
+            print("  per class: " + ", ".join(f"{k} {v:.0f}" for k, v in per_class.items()))
             print(f"whole machine, {w} workers: end to end {e2e:.0f} img/s (incl. process start-up), bare render {bare:.0f} img/s, ratio {e2e / bare:.2f}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
