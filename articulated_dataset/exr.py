@@ -29,7 +29,7 @@ import numpy as np
 
 from .errors import DataFormatError, UserError
 from .schema import FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, R_DATASET, resolve_shape
-from .shards import find_split_dirs, open_split, write_manifest, write_shard
+from .shards import find_split_dirs, open_split, read_json_object, write_manifest, write_shard
 
 log = logging.getLogger(__name__)
 
@@ -136,18 +136,6 @@ def read_mask_png(path: str | Path) -> np.ndarray:
         raise DataFormatError(f"{path}: not a readable PNG ({str(exc).splitlines()[0][:150]})") from None
 
 
-def _read_json(path: Path, what: str) -> dict:
-    if not path.is_file():
-        raise DataFormatError(f"{path}: missing {what}")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataFormatError(f"{path}: corrupt {what} ({exc})") from None
-    if not isinstance(data, dict):
-        raise DataFormatError(f"{path}: corrupt {what} (not a JSON object)")
-    return data
-
-
 # --------------------------------------------------------------------------------------
 # Export
 # --------------------------------------------------------------------------------------
@@ -238,7 +226,7 @@ def _label_array(records: list[dict], name: str, where: Path) -> np.ndarray:
 def load_index(export_dir: str | Path) -> dict:
     """The ``split.json`` of an exported folder, checked for format and version."""
     export_dir = Path(export_dir)
-    index = _read_json(export_dir / INDEX_NAME, "export index")
+    index = read_json_object(export_dir / INDEX_NAME, "export index")
     if index.get("format") != EXPORT_FORMAT:
         raise DataFormatError(f"{export_dir / INDEX_NAME}: not an articulated_dataset EXR export (format {index.get('format')!r})")
     if str(index.get("format_version", "")).split(".")[0] != EXPORT_FORMAT_VERSION.split(".")[0]:
@@ -292,7 +280,7 @@ def import_split(export_dir: str | Path, split_dir: str | Path, *, overwrite: bo
                     raise DataFormatError(f"{export_dir / (stem + suffix)}: {what} is {a.shape[1]}x{a.shape[0]} px, "
                                           f"expected {W}x{H}")
             depth[i], mask[i] = d, m
-            lab = _read_json(export_dir / (stem + LABEL_SUFFIX), "label file")
+            lab = read_json_object(export_dir / (stem + LABEL_SUFFIX), "label file")
             for name in LABEL_FIELDS:
                 shape = resolve_shape(FIELDS_BY_NAME[name].shape[1:], N=0, J=J, H=H, W=W)
                 if name not in lab:

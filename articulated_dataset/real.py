@@ -156,6 +156,17 @@ def _to_metres(raw: np.ndarray, units: str, path: Path) -> np.ndarray:
     return depth
 
 
+def _read_image(path: Path, what: str) -> tuple[np.ndarray, str]:
+    """Pixels and PIL mode of an image file; an unreadable file is a one-line UserError."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return np.array(im), im.mode
+    except Exception as exc:
+        raise UserError(f"{path}: not a readable {what} ({str(exc).splitlines()[0]})") from None
+
+
 def load_depth(path: str | Path, units: str = "auto") -> np.ndarray:
     """A depth image in metres, (H, W) float64, 0 = no return.
 
@@ -168,14 +179,7 @@ def load_depth(path: str | Path, units: str = "auto") -> np.ndarray:
         raise UserError(f"depth file not found: {path}")
     suffix = path.suffix.lower()
     if suffix == ".png":
-        from PIL import Image
-
-        try:
-            with Image.open(path) as im:
-                mode = im.mode
-                raw = np.array(im)
-        except Exception as exc:
-            raise UserError(f"{path}: not a readable PNG ({str(exc).splitlines()[0]})") from None
+        raw, mode = _read_image(path, "PNG")
         if mode not in ("I;16", "I;16B", "I;16L", "I") or raw.ndim != 2:
             raise UserError(f"{path}: depth PNG must be single-channel 16-bit (millimetres), got mode {mode}; "
                             f"units of 8-bit or colour PNGs are unknown")
@@ -217,17 +221,10 @@ def load_mask(path: str | Path, shape: tuple[int, int], n_joints: int) -> np.nda
     A mask whose values are all in {0, 255} or {0, 1} is binary (object = body).  Otherwise its
     values must be labels 0 .. 1 + J.  Its size must equal ``shape`` (H, W) of the depth.
     """
-    from PIL import Image
-
     path = Path(path)
     if not path.is_file():
         raise UserError(f"mask file not found: {path}")
-    try:
-        with Image.open(path) as im:
-            mode = im.mode
-            raw = np.array(im)
-    except Exception as exc:
-        raise UserError(f"{path}: not a readable image ({str(exc).splitlines()[0]})") from None
+    raw, mode = _read_image(path, "image")
     if raw.ndim != 2:
         raise UserError(f"{path}: mask must be a single-channel image, got mode {mode}")
     if raw.shape != tuple(shape):

@@ -196,15 +196,27 @@ def _short(exc: Exception) -> str:
     return str(exc).splitlines()[0][:200]
 
 
+def read_json_object(path: str | Path, what: str) -> dict:
+    """A JSON object from ``path``; a missing, unparsable or non-object file is a DataFormatError
+    naming ``what`` (e.g. "manifest")."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(f"{path}: missing {what}")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataFormatError(f"{path}: corrupt {what} ({exc})") from None
+    if not isinstance(data, dict):
+        raise DataFormatError(f"{path}: corrupt {what} (not a JSON object)")
+    return data
+
+
 def read_manifest(split_dir: str | Path) -> dict:
     split_dir = Path(split_dir)
     path = split_dir / MANIFEST_NAME
     if not path.is_file():
         raise DataFormatError(f"{split_dir}: no {MANIFEST_NAME} (not a generated split folder)")
-    try:
-        manifest = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataFormatError(f"{path}: corrupt manifest ({exc})") from None
+    manifest = read_json_object(path, "manifest")
     check_version(manifest.get("format_version", "?"), str(path))
     return manifest
 
