@@ -1,0 +1,67 @@
+"""``artdata train``: train the per-class ResNet-18 mixture density network."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import click
+
+from ..errors import UserError
+from .generate import _ClassChoice
+
+
+def _prepare_torch(threads: int | None) -> int:
+    """Import torch once for the command (with passive OpenMP waiting unless the user chose
+    a policy: spinning threads slow a busy 2-core machine ten-fold) and set its threads."""
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        raise UserError("PyTorch is not installed; install it with: pip install torch==2.13.0") from None
+    from ..mdn.train import configure_threads
+
+    if threads is not None and threads <= 0:
+        raise UserError(f"--threads must be positive, got {threads}")
+    return configure_threads(threads)
+
+
+@click.command("train")
+@click.option("--class", "class_name", type=_ClassChoice(), required=True, help="Object class (one network per class).")
+@click.option("--data", type=click.Path(), required=True, help="The class's TRAINING split folder, e.g. data/cabinet/train.")
+@click.option("--out", type=click.Path(dir_okay=False), required=True, help="Checkpoint file (written after every epoch).")
+@click.option("--small", is_flag=True, help="Reduced network at 96x54 input: minutes per class on a 2-core CPU.")
+@click.option("--epochs", type=int, default=None, help="Epochs (default: 30, or 8 with --small).")
+@click.option("--batch-size", type=int, default=None, help="Images per step (default: 128, or 64 with --small).")
+@click.option("--lr", type=float, default=None, help="Peak learning rate of AdamW (default: 1e-3, or 2e-3 with --small).")
+@click.option("--components", type=int, default=None, help="Mixture components (default 20).")
+@click.option("--val-fraction", type=float, default=0.1, show_default=True,
+              help="Fraction of the training split's OBJECTS held out for validation (0: none).")
+@click.option("--max-objects", type=int, default=None, help="Train on the first N objects of the split only.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the initialisation, validation split and batch order.")
+@click.option("--device", default="auto", show_default=True, help="auto (GPU if present), cpu, cuda or cuda:N.")
+@click.option("--threads", type=int, default=None, help="CPU threads for torch (default: all cores of this process).")
+@click.option("--resume", is_flag=True, help="Continue the interrupted training stored in --out (same options).")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bars or per-epoch lines.")
+def train_cmd(class_name, data, out, small, epochs, batch_size, lr, components, val_fraction, max_objects, seed, device,
+              threads, resume, quiet):
+    """Train the mixture density network of one class on its training split."""
+    _prepare_torch(threads)
+    from ..mdn.train import TrainConfig, train
+
+    if max_objects is not None and max_objects <= 0:
+        raise UserError(f"--max-objects must be positive, got {max_objects}")
+    config = TrainConfig(class_name=class_name, preset="small" if small else "full", epochs=epochs, batch_size=batch_size,
+                         lr=lr, val_fraction=val_fraction, seed=seed, n_components=components, max_objects=max_objects)
+    t0 = time.perf_counter()
+    try:
+        ckpt = train(data, out, config, device=device, resume=resume, progress=not quiet,
+                     echo=None if quiet else click.echo)
+    except KeyboardInterrupt:
+        raise click.ClickException(f"interrupted; the last finished epoch is in {out}. Continue with the same command plus --resume") from None
+    if not quiet:
+        click.echo(f"{out}: {ckpt['class_name']}, {ckpt['epoch']} epochs ({ckpt['data']['n_train']} training / "
+                   f"{ckpt['data']['n_val']} validation images) in {time.perf_counter() - t0:.0f} s")
+
+
+COMMANDS = [train_cmd]
