@@ -30,6 +30,7 @@ import mujoco
 import numpy as np
 
 from .registry import PRISMATIC, ObjectClass
+from .rotations import matrix_to_quat
 from .scene import OBJECT_PREFIX, object_joint_ids, set_configuration
 
 #: Mask values: 0 background, 1 body (everything not moved by a joint), 2 + j moving part j.
@@ -132,11 +133,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / n
 
 
-def mat_to_quat(rot: np.ndarray) -> np.ndarray:
-    """Quaternion (w, x, y, z), w >= 0, of a 3x3 rotation matrix."""
-    quat = np.zeros(4)
-    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(rot, dtype=np.float64).reshape(9))
-    return quat if quat[0] >= 0 else -quat
+mat_to_quat = matrix_to_quat  # quaternion (w, x, y, z), w >= 0, of a rotation matrix
 
 
 def read_object_labels(model: mujoco.MjModel, data: mujoco.MjData, info: ModelInfo, obj_class: ObjectClass) -> dict:

@@ -38,6 +38,7 @@ import numpy as np
 from .errors import UserError
 from .labels import HANDLE_SUFFIX, MASK_FIRST_PART, ModelInfo, mat_to_quat, model_info, read_object_labels
 from .registry import JOINT_TYPES, PRISMATIC, REVOLUTE
+from .rotations import axis_angle_quat, quat_multiply, quat_to_matrix  # noqa: F401  (re-exported)
 from .scene import build_model, set_configuration
 
 log = logging.getLogger(__name__)
@@ -134,29 +135,6 @@ REBUILD_TOL_M = 1e-3
 # Small rotation helpers (MuJoCo's quaternion routines)
 # --------------------------------------------------------------------------------------
 
-def quat_to_mat(quat) -> np.ndarray:
-    """3x3 rotation matrix of a quaternion (w, x, y, z) (normalised first)."""
-    q = np.asarray(quat, np.float64)
-    q = q / np.linalg.norm(q)
-    out = np.zeros(9)
-    mujoco.mju_quat2Mat(out, q)
-    return out.reshape(3, 3)
-
-
-def axis_angle_quat(axis, angle_rad: float) -> np.ndarray:
-    """Quaternion of a rotation by ``angle_rad`` about the unit vector ``axis``."""
-    out = np.zeros(4)
-    mujoco.mju_axisAngle2Quat(out, np.asarray(axis, np.float64), float(angle_rad))
-    return out
-
-
-def quat_mul(a, b) -> np.ndarray:
-    """Hamilton product ``a * b`` (apply ``b`` first, then ``a``)."""
-    out = np.zeros(4)
-    mujoco.mju_mulQuat(out, np.asarray(a, np.float64), np.asarray(b, np.float64))
-    return out
-
-
 def quat_angle(a, b) -> float:
     """Angle (rad) of the rotation between two orientations: 2 acos(|<a, b>|)."""
     d = abs(float(np.dot(a, b))) / (np.linalg.norm(a) * np.linalg.norm(b))
@@ -200,7 +178,7 @@ def axis_frame(axis_pose) -> tuple[np.ndarray, np.ndarray]:
     pose = _vec("axis_pose", axis_pose, 7)
     if np.linalg.norm(pose[3:]) < ZERO_LENGTH:
         raise UserError("axis_pose has a zero-length quaternion")
-    return pose[:3].copy(), quat_to_mat(pose[3:])
+    return pose[:3].copy(), quat_to_matrix(pose[3:])
 
 
 def parse_quantity(text: str) -> tuple[float, str]:
@@ -305,9 +283,9 @@ def move_pose(pose, joint_type: str, axis_origin, axis_direction, delta: float) 
         out[:3] = pose[:3] + delta * a
         return out
     rq = axis_angle_quat(a, delta)
-    rot = quat_to_mat(rq)
+    rot = quat_to_matrix(rq)
     out[:3] = o + rot @ (pose[:3] - o)
-    out[3:] = _canonical(quat_mul(rq, pose[3:]))
+    out[3:] = _canonical(quat_multiply(rq, pose[3:]))
     return out
 
 
@@ -690,7 +668,7 @@ def execute_plan(obj: TrueObject, waypoints: np.ndarray, joint: int, q_target: f
     p_local = rot_b.T @ (waypoints[0, :3] - data.xpos[body])
     q_inv_b = np.zeros(4)
     mujoco.mju_negQuat(q_inv_b, data.xquat[body])
-    quat_local = quat_mul(q_inv_b, waypoints[0, 3:])
+    quat_local = quat_multiply(q_inv_b, waypoints[0, 3:])
 
     dt = model.opt.timestep
     duration = motion_duration(waypoints)
@@ -722,9 +700,9 @@ def execute_plan(obj: TrueObject, waypoints: np.ndarray, joint: int, q_target: f
         v_cmd = (nxt[:3] - target[:3]) / dt
         tq = target[3:] if np.dot(target[3:], gq) >= 0 else -target[3:]
         mujoco.mju_subQuat(rotvec, tq, gq)  # local to the grasp frame
-        theta = quat_to_mat(gq) @ rotvec
+        theta = quat_to_matrix(gq) @ rotvec
         mujoco.mju_subQuat(w_cmd, nxt[3:] if np.dot(nxt[3:], target[3:]) >= 0 else -nxt[3:], target[3:])
-        w_cmd_world = quat_to_mat(target[3:]) @ w_cmd / dt
+        w_cmd_world = quat_to_matrix(target[3:]) @ w_cmd / dt
         pos_err = target[:3] - gp
         force = k * pos_err + b * (v_cmd - v)
         torque = kr * theta + br * (w_cmd_world - w)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .rotations import quat_conjugate, quat_multiply
 #: Centimetres per metre (errors are reported in cm).
 CM_PER_M = 100.0
 #: Degrees per radian.
@@ -38,37 +39,6 @@ BISECTION_STEPS = 60
 # --------------------------------------------------------------------------------------
 # Quaternions and frames
 # --------------------------------------------------------------------------------------
-
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product ``a * b`` of quaternions ``(..., 4)`` in ``(w, x, y, z)`` order.
-
-    The rotation matrix of ``a * b`` is ``R(a) @ R(b)``.
-    """
-    aw, ax, ay, az = np.moveaxis(np.asarray(a, np.float64), -1, 0)
-    bw, bx, by, bz = np.moveaxis(np.asarray(b, np.float64), -1, 0)
-    return np.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ], axis=-1)
-
-
-def quat_conjugate(q: np.ndarray) -> np.ndarray:
-    """Conjugate ``(w, -x, -y, -z)``: the inverse rotation of a unit quaternion."""
-    q = np.asarray(q, np.float64)
-    return np.concatenate([q[..., :1], -q[..., 1:]], axis=-1)
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(..., 3, 3)`` of unit quaternions ``(..., 4)`` (w, x, y, z)."""
-    w, x, y, z = np.moveaxis(np.asarray(q, np.float64), -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=-1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1),
-    ], axis=-2)
-
 
 def quat_axis_z(q: np.ndarray) -> np.ndarray:
     """Third column of ``R(q)`` (the frame's z axis = the joint axis direction), ``(..., 3)``.

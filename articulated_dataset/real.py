@@ -39,6 +39,7 @@ from .camera import R_CAMERA_TO_OPTICAL, CameraConfig
 from .errors import UserError
 from .labels import MASK_BODY, MASK_FIRST_PART, mat_to_quat, visible_pixels
 from .registry import get_class
+from .rotations import quat_to_matrix
 from .schema import FIELDS
 
 log = logging.getLogger(__name__)
@@ -457,14 +458,6 @@ def _array(d: dict, key: str, shape: tuple, path: Path) -> np.ndarray | None:
     return a
 
 
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    import mujoco
-
-    m = np.zeros(9)
-    mujoco.mju_quat2Mat(m, np.ascontiguousarray(q, np.float64))
-    return m.reshape(3, 3)
-
-
 def _unit(v: np.ndarray, what: str, path: Path) -> np.ndarray:
     n = np.linalg.norm(v, axis=-1, keepdims=True)
     if (n < 1e-9).any():
@@ -528,7 +521,7 @@ def load_ground_truth(path: str | Path, n_joints: int, class_name: str | None = 
     direction = _array(d, "axis_direction", (J, 3), path)
     if pose is not None:
         quat = _unit(pose[:, 3:], "axis_pose quaternion", path)
-        rots = np.stack([Rt @ _quat_matrix(qq) for qq in quat])
+        rots = np.stack([Rt @ quat_to_matrix(qq) for qq in quat])
         pos = pose[:, :3] @ Rt.T
         if origin is not None and np.abs(origin @ Rt.T - pos).max() > 1e-4:
             raise UserError(f"{path}: axis_origin disagrees with the position of axis_pose")
@@ -552,7 +545,7 @@ def load_ground_truth(path: str | Path, n_joints: int, class_name: str | None = 
         out["geometry"] = geometry
     obj_pose = _array(d, "object_pose", (7,), path)
     if obj_pose is not None:
-        r = Rt @ _quat_matrix(_unit(obj_pose[3:], "object_pose quaternion", path))
+        r = Rt @ quat_to_matrix(_unit(obj_pose[3:], "object_pose quaternion", path))
         out["object_pose"] = np.concatenate([Rt @ obj_pose[:3], mat_to_quat(r)])
         out["object_yaw"] = np.array(math.atan2(r[1, 0], r[0, 0]))
     if d.get("object_yaw") is not None:

@@ -40,6 +40,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
+from articulated_dataset.rotations import axis_angle_quat, quat_multiply  # noqa: E402
 
 #: Table 1 metrics shown beside the success rate (keys of ``artdata score --json`` rows).
 TABLE1_METRICS = (("axis_position_error_cm", "pos cm"), ("axis_rotation_error_deg", "rot deg"),
@@ -78,7 +79,7 @@ def perturb(estimate, joint_types, rng: np.random.Generator, errors: tuple[float
         phi = rng.uniform(0, 2 * math.pi)
         turn_axis = math.cos(phi) * rot[:, 0] + math.sin(phi) * rot[:, 1]
         angle = abs(rng.normal(0.0, rot_e * math.sqrt(math.pi / 2)))
-        pose[j, 3:] = M.quat_mul(M.axis_angle_quat(turn_axis, angle), pose[j, 3:])
+        pose[j, 3:] = quat_multiply(axis_angle_quat(turn_axis, angle), pose[j, 3:])
         q_scale = q_e[0] if joint_types[j] == M.REVOLUTE else q_e[1]
         q[j] += rng.normal(0.0, q_scale * math.sqrt(math.pi / 2))
     return Estimate(pose, q, estimate.part_offset, estimate.geometry, source=name)

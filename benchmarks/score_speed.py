@@ -24,7 +24,7 @@ import numpy as np
 
 from articulated_dataset import FORMAT_VERSION
 from articulated_dataset.camera import R_CAMERA_TO_OPTICAL, CameraConfig
-from articulated_dataset.metrics import quat_multiply
+from articulated_dataset.rotations import quat_multiply
 from articulated_dataset.predictions import write_predictions
 from articulated_dataset.registry import all_classes
 from articulated_dataset.schema import FIELDS

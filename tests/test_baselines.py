@@ -10,6 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from articulated_dataset import metrics
+from articulated_dataset import rotations
 from articulated_dataset.baselines import BASELINES, icp, mean, nn
 from articulated_dataset.baselines.common import open_split_checked
 from articulated_dataset.cli import main
@@ -57,14 +58,14 @@ def test_rotation_mean_about_one_axis_is_circular_mean():
 def test_rotation_mean_equals_projected_matrix_mean():
     rng = np.random.default_rng(3)
     base = _quat_from_axis_angle([0.3, -0.5, 0.8], 2.5)
-    quats = metrics.quat_multiply(base, np.stack([_quat_from_axis_angle(rng.normal(size=3), rng.uniform(0, 0.8))
+    quats = rotations.quat_multiply(base, np.stack([_quat_from_axis_angle(rng.normal(size=3), rng.uniform(0, 0.8))
                                                   for _ in range(50)]))
     quats *= rng.choice([-1.0, 1.0], size=(50, 1))
     m = mean.rotation_mean_quat(quats)
     # independent reference: project the mean rotation matrix onto SO(3) with an SVD
-    u, _, vt = np.linalg.svd(metrics.quat_to_matrix(quats).mean(axis=0))
+    u, _, vt = np.linalg.svd(rotations.quat_to_matrix(quats).mean(axis=0))
     ref = u @ np.diag([1, 1, np.linalg.det(u @ vt)]) @ vt
-    np.testing.assert_allclose(metrics.quat_to_matrix(m), ref, atol=1e-10)
+    np.testing.assert_allclose(rotations.quat_to_matrix(m), ref, atol=1e-10)
 
 
 @pytest.mark.parametrize("class_name", ["drawer", "cabinet2"])
@@ -87,9 +88,9 @@ def test_mean_baseline_equals_analytic_mean(tiny_root, class_name):
     np.testing.assert_allclose(p["geometry"][0], truth["geometry"].mean(0), atol=1e-6)
     np.testing.assert_allclose(p["part_offset"][0], truth["part_offset"].mean(0), atol=1e-6)
     for j in range(J):
-        u, _, vt = np.linalg.svd(metrics.quat_to_matrix(truth["axis_pose"][:, j, 3:]).mean(axis=0))
+        u, _, vt = np.linalg.svd(rotations.quat_to_matrix(truth["axis_pose"][:, j, 3:]).mean(axis=0))
         ref = u @ np.diag([1, 1, np.linalg.det(u @ vt)]) @ vt
-        np.testing.assert_allclose(metrics.quat_to_matrix(p["axis_pose"][0, j, 3:]), ref, atol=1e-5)
+        np.testing.assert_allclose(rotations.quat_to_matrix(p["axis_pose"][0, j, 3:]), ref, atol=1e-5)
 
 
 # --------------------------------------------------------------------------------------
@@ -164,7 +165,7 @@ def test_nn_duplicate_of_a_training_image_returns_its_labels(tiny_root):
 def test_kabsch_recovers_a_known_transform_with_outliers_weighted_out():
     rng = np.random.default_rng(2)
     src = rng.normal(size=(2, 50, 3))
-    rot = np.stack([metrics.quat_to_matrix(_quat_from_axis_angle(rng.normal(size=3), a)) for a in (0.4, 3.0)])
+    rot = np.stack([rotations.quat_to_matrix(_quat_from_axis_angle(rng.normal(size=3), a)) for a in (0.4, 3.0)])
     t = rng.normal(size=(2, 3))
     dst = np.einsum("hij,hnj->hni", rot, src) + t[:, None]
     w = np.ones((2, 50))
@@ -180,7 +181,7 @@ def test_matrix_to_quat_round_trip_including_half_turns():
     q = rng.normal(size=(200, 4))
     q[:3] = [[0, 1, 0, 0], [0, 0.6, -0.8, 0], [0, 0, 0, 1]]  # half-turns: w = 0
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    back = icp.matrix_to_quat(metrics.quat_to_matrix(q))
+    back = rotations.matrix_to_quat(rotations.quat_to_matrix(q))
     assert np.all(back[:, 0] >= 0)
     np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", back, q)), 1.0, atol=1e-12)
 

@@ -16,6 +16,7 @@ from articulated_dataset import manipulation as M
 from articulated_dataset.cli import main
 from articulated_dataset.errors import UserError
 from articulated_dataset.registry import PRISMATIC, REVOLUTE, all_classes
+from articulated_dataset.rotations import quat_to_matrix
 from articulated_dataset.scene import set_configuration
 
 CLASSES = [c.name for c in all_classes()]
@@ -83,7 +84,7 @@ def test_waypoints_continuous_and_end_at_target(seed):
     # the last pose is the grasp rotated by exactly q1 - q0 (independent Rodrigues reference)
     R = _rodrigues(a, q1 - q0)
     np.testing.assert_allclose(wps[-1, :3], origin + R @ (grasp[:3] - origin), atol=1e-9)
-    np.testing.assert_allclose(M.quat_to_mat(wps[-1, 3:]), R @ M.quat_to_mat(quat), atol=1e-9)
+    np.testing.assert_allclose(quat_to_matrix(wps[-1, 3:]), R @ quat_to_matrix(quat), atol=1e-9)
     # the distance to the axis line is preserved along the arc
     d = np.linalg.norm(np.cross(wps[:, :3] - origin, a), axis=1)
     np.testing.assert_allclose(d, radius, rtol=1e-9)
@@ -162,7 +163,7 @@ def test_grasp_rule_matches_handle_geoms(tiny_root, cls):
             origin, rot = M.axis_frame(row["axis_pose"][j])
             centre0 = np.concatenate([origin + rot @ row["part_offset"][j], [1, 0, 0, 0]])
             centre = M.move_pose(centre0, jt, origin, rot[:, 2], float(row["q"][j]))[:3]
-            out_axis = M.quat_to_mat(pose[3:])[:, 1 if jt == REVOLUTE else 2]
+            out_axis = quat_to_matrix(pose[3:])[:, 1 if jt == REVOLUTE else 2]
             assert (pose[:3] - centre) @ out_axis > 0.5 * M.HANDLE_STANDOFF_M
 
 

@@ -67,6 +67,7 @@ import numpy as np
 
 from ..camera import backproject
 from ..labels import MASK_BACKGROUND
+from ..rotations import matrix_to_quat
 from .common import BaselineResult, SplitInfo, check_compatible, open_split_checked
 
 log = logging.getLogger(__name__)
@@ -209,39 +210,6 @@ def cloud_with_normals(depth_m: np.ndarray, K: np.ndarray, valid: np.ndarray) ->
     flip = np.einsum("hwc,hwc->hw", n, p) > 0  # the camera is at the origin
     n[flip] *= -1.0
     return p[ok], n[ok]
-
-
-def matrix_to_quat(rot: np.ndarray) -> np.ndarray:
-    """Unit quaternions ``(..., 4)`` (w, x, y, z), w >= 0, of rotation matrices ``(..., 3, 3)``.
-
-    Shepperd's method: the largest of ``4w^2 = 1 + tr``, ``4x^2 = 1 + 2R_xx - tr``, ... is
-    computed first and divides the others (no cancellation near half-turns).
-    """
-    r = np.asarray(rot, np.float64)
-    shape = r.shape[:-2]
-    r = r.reshape(-1, 3, 3)
-    tr = np.trace(r, axis1=1, axis2=2)
-    diag = np.stack([tr, r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]], axis=1)
-    choice = np.argmax(diag, axis=1)
-    q = np.empty((len(r), 4))
-    for i in range(len(r)):
-        m = r[i]
-        c = choice[i]
-        if c == 0:
-            s = 2.0 * np.sqrt(max(1.0 + tr[i], 0.0))
-            q[i] = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-        elif c == 1:
-            s = 2.0 * np.sqrt(max(1.0 + m[0, 0] - m[1, 1] - m[2, 2], 0.0))
-            q[i] = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-        elif c == 2:
-            s = 2.0 * np.sqrt(max(1.0 + m[1, 1] - m[0, 0] - m[2, 2], 0.0))
-            q[i] = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
-        else:
-            s = 2.0 * np.sqrt(max(1.0 + m[2, 2] - m[0, 0] - m[1, 1], 0.0))
-            q[i] = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    q[q[:, 0] < 0] *= -1.0
-    return q.reshape(*shape, 4)
 
 
 @dataclass
@@ -390,7 +358,7 @@ class MeanObjectModel:
 
     def predict_labels(self, fit: IcpFit) -> dict:
         """Labels implied by a fit: the model image's axis frames mapped into the observation."""
-        from ..metrics import quat_to_matrix
+        from ..rotations import quat_to_matrix
 
         m = fit.model_index
         pose = self.labels["axis_pose"][m].astype(np.float64)  # (J, 7)
