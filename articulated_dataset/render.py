@@ -9,6 +9,7 @@ one built for its assets, reused by later models with the same assets.
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import logging
 import os
@@ -194,6 +195,14 @@ class DepthRenderer:
 
 
 _PROCESS_RENDERERS: dict[tuple[int, CameraConfig], DepthRenderer] = {}
+
+
+@atexit.register
+def _close_process_renderers() -> None:
+    """Free GL contexts before interpreter shutdown (OSMesa's destructor fails once modules
+    are torn down, printing an ignored exception)."""
+    for key in [k for k in _PROCESS_RENDERERS if k[0] == os.getpid()]:
+        _PROCESS_RENDERERS.pop(key).close()
 
 
 def process_renderer(camera: CameraConfig) -> DepthRenderer:

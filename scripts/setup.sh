@@ -6,12 +6,13 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 
-# 1. System libraries for MuJoCo's offscreen EGL rendering (Mesa's software rasteriser).
-if ! ldconfig -p 2>/dev/null | grep -q "libEGL_mesa.so"; then
+# 1. System libraries for MuJoCo's offscreen rendering: Mesa's EGL (default backend) and
+#    OSMesa (the MUJOCO_GL=osmesa fallback; the tests check both give identical data).
+if ! ldconfig -p 2>/dev/null | grep -q "libEGL_mesa.so" || ! ldconfig -p 2>/dev/null | grep -q "libOSMesa.so"; then
   if [ "$(id -u)" = 0 ]; then
-    apt-get update -qq && apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 >/dev/null
+    apt-get update -qq && apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libosmesa6 >/dev/null
   else
-    echo "setup: EGL libraries missing; run: sudo apt-get install -y libegl1 libegl-mesa0 libgl1-mesa-dri" >&2
+    echo "setup: rendering libraries missing; run: sudo apt-get install -y libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6" >&2
     exit 1
   fi
 fi
