@@ -20,7 +20,7 @@ import numpy as np
 from . import FORMAT_VERSION, __version__
 from .camera import R_CAMERA_TO_OPTICAL, CameraConfig
 from .errors import UserError
-from .labels import MASK_FIRST_PART, model_info, read_configuration, read_object_labels, visible_pixels
+from .labels import model_info, read_configuration, read_object_labels, visible_pixels
 from .registry import JOINT_TYPES, ObjectClass, get_class
 from .render import DepthRenderer, process_renderer
 from .sampling import ObjectSample, mean_object, sample_id, sample_object, sample_pose

@@ -20,7 +20,6 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from . import FORMAT_VERSION
 from .errors import DataFormatError, UserError
 from .schema import FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, R_DATASET, check_version, validate_arrays
 

@@ -10,7 +10,7 @@ import pytest
 import yourdfpy
 
 from articulated_dataset.camera import project
-from articulated_dataset.labels import HANDLE_SUFFIX, MASK_BODY, MASK_FIRST_PART
+from articulated_dataset.labels import MASK_BODY, MASK_FIRST_PART
 from articulated_dataset.registry import PRISMATIC, all_classes
 from articulated_dataset.shards import open_split
 from helpers_core import (compile_object, final_object, part_points, render_at, rotate_about_axis, surface_distances,
