@@ -171,7 +171,7 @@ def read_object_labels(model: mujoco.MjModel, data: mujoco.MjData, info: ModelIn
         axis_pose[j, :3], axis_pose[j, 3:] = origin, mat_to_quat(r_axis)
         part_offset[j] = r_axis.T @ (centre - origin)
 
-    body_geoms = np.nonzero(info.geom_part == 1)[0]
+    body_geoms = np.nonzero(info.geom_part == MASK_BODY)[0]
     lo, hi = _box_in_frame(_geom_corners_world(model, data, body_geoms), base_pos, base_rot)
     size = hi - lo
     chirality = 0

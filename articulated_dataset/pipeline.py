@@ -23,7 +23,7 @@ from .errors import UserError
 from .labels import model_info, read_configuration, read_object_labels, visible_pixels
 from .registry import JOINT_TYPES, ObjectClass, get_class
 from .render import DepthRenderer, process_renderer
-from .sampling import ObjectSample, mean_object, sample_id, sample_object, sample_pose
+from .sampling import ObjectSample, mean_object, object_rng, sample_id, sample_object, sample_pose
 from .scene import build_model, set_configuration
 from .schema import FIELDS
 from .shards import shard_name, write_shard
@@ -117,15 +117,6 @@ class GenerationConfig:
         return cls(**d)
 
 
-class _ClassCache:
-    """Per-process cache of what does not change between objects of a class."""
-
-    def __init__(self, obj_class: ObjectClass):
-        self.obj_class = obj_class
-        self.template = str(obj_class.template_path())
-        self.joint_names = [j.name for j in obj_class.joints]
-
-
 def render_object(sample: ObjectSample, config: GenerationConfig, renderer: DepthRenderer, *, check_visibility: bool = True,
                   out: dict | None = None):
     """Template, compile, render and label one sampled object.
@@ -214,10 +205,7 @@ NOISE_STREAM = 1
 
 def noise_rng(config: GenerationConfig, object_index: int) -> np.random.Generator:
     """Generator of the sensor noise of one object, independent of its sampling stream."""
-    from .sampling import stable_key
-
-    ss = np.random.SeedSequence([config.seed, stable_key(config.class_name), stable_key(config.split), object_index, NOISE_STREAM])
-    return np.random.Generator(np.random.PCG64(ss))
+    return object_rng(config.seed, config.class_name, config.split, object_index, stream=NOISE_STREAM)
 
 
 def object_sample(config: GenerationConfig, object_index: int) -> ObjectSample:
@@ -370,15 +358,15 @@ def _prepare_output(split_dir: Path, config: GenerationConfig, *, resume: bool, 
 
             sh = Shard(path)
             try:
-                if sh.attrs.get("object_start") != config.shard_objects(i).start:
-                    continue
-                n = len(sh)
+                attrs, n = sh.attrs, len(sh)
             finally:
                 sh.close()
             objects = config.shard_objects(i)
+            if attrs.get("object_start") != objects.start:
+                continue
             records[i] = {"file": path.name, "n_images": n, "bytes": path.stat().st_size, "sha256": sha256_file(path),
                           "object_start": objects.start, "object_stop": objects.stop,
-                          "pose_attempts": int(Shard(path).attrs.get("pose_attempts", 0))}
+                          "pose_attempts": int(attrs.get("pose_attempts", 0))}
     return records
 
 

@@ -25,11 +25,16 @@ def stable_key(text: str) -> int:
     return int.from_bytes(hashlib.blake2b(text.encode("utf-8"), digest_size=4).digest(), "little")
 
 
-def object_rng(seed: int, class_name: str, split: str, object_index: int) -> np.random.Generator:
-    """The random generator of one object: ``SeedSequence([seed, H(class), H(split), index])``."""
+def object_rng(seed: int, class_name: str, split: str, object_index: int, *, stream: int | None = None) -> np.random.Generator:
+    """The random generator of one object: ``SeedSequence([seed, H(class), H(split), index])``.
+
+    ``stream`` appends one more word, giving an independent generator for the same object
+    (e.g. its sensor noise) that leaves the sampling stream untouched.
+    """
     if seed < 0 or object_index < 0:
         raise ValueError("seed and object_index must be >= 0")
-    ss = np.random.SeedSequence([int(seed), stable_key(class_name), stable_key(split), int(object_index)])
+    words = [int(seed), stable_key(class_name), stable_key(split), int(object_index)]
+    ss = np.random.SeedSequence(words if stream is None else words + [int(stream)])
     return np.random.Generator(np.random.PCG64(ss))
 
 
