@@ -4,15 +4,19 @@ Subcommands live in :mod:`articulated_dataset.commands`, one module each, exposi
 ``COMMANDS`` (a list of click commands); they are discovered automatically.
 
 Errors: a :class:`~articulated_dataset.errors.UserError` (bad option, bad file, existing
-output...) is printed as one line ``artdata: error: ...`` and exits with code 2; anything
-else is a bug and keeps its traceback.  A machine that cannot render offscreen (no EGL/OSMesa)
-gets one line and exit code 3.
+output...) and every click usage error (unknown option, bad value, missing option or
+argument, bad choice) are printed as one line ``artdata: error: ...`` and exit with code 2;
+anything else is a bug and keeps its traceback.  A machine that cannot render offscreen (no
+EGL/OSMesa) gets one line and exit code 3 from the commands that render; the others
+(``score``, ``info``, ``verify``, ...) work without a GL library.
 """
 
 from __future__ import annotations
 
+import functools
 import importlib
 import logging
+import os
 import pkgutil
 import sys
 
@@ -24,17 +28,66 @@ from .errors import RenderError, UserError
 EXIT_USER_ERROR = 2
 #: The machine lacks something rendering needs (EGL/OSMesa libraries).
 EXIT_ENVIRONMENT_ERROR = 3
+#: Commands that always render with MuJoCo (the others render only on request and then
+#: report a missing GL library through :class:`RenderError`, or never render).
+RENDERING_COMMANDS = ("generate",)
+#: ``MUJOCO_GL`` value under which MuJoCo imports without any GL library (physics only).
+_GL_DISABLED = "disable"
+
+#: One-line message when MuJoCo cannot start with the chosen GL backend; None when it can.
+MUJOCO_GL_PROBLEM: str | None = None
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _usage_error_line(exc: click.UsageError) -> str:
+    """``artdata: error: <message> (see artdata CMD --help)`` for a click usage error."""
+    where = "artdata"
+    if exc.ctx is not None:
+        words = exc.ctx.command_path.split()
+        where = " ".join(["artdata", *words[1:]])
+    return f"artdata: error: {_one_line(exc.format_message())} (see {where} --help)"
 
 
 class _Group(click.Group):
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        """Click's entry point with one-line errors: usage errors exit 2, other click
+        exceptions (e.g. an interrupted run) exit with their own code, always on one line."""
+        try:
+            rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except click.exceptions.NoArgsIsHelpError as exc:
+            if exc.ctx is not None and exc.ctx.parent is None:  # plain 'artdata': its help
+                click.echo(exc.ctx.get_help())
+                code = 0
+            else:  # a group without its subcommand
+                names = ", ".join(exc.ctx.command.list_commands(exc.ctx)) if exc.ctx is not None else ""
+                click.echo(_usage_error_line(click.UsageError(f"missing command (one of: {names})", exc.ctx)), err=True)
+                code = EXIT_USER_ERROR
+        except click.UsageError as exc:
+            click.echo(_usage_error_line(exc), err=True)
+            code = EXIT_USER_ERROR
+        except click.ClickException as exc:
+            click.echo(f"artdata: error: {_one_line(exc.format_message())}", err=True)
+            code = exc.exit_code
+        except click.Abort:
+            click.echo("artdata: error: aborted", err=True)
+            code = 1
+        else:
+            code = rv if isinstance(rv, int) and not isinstance(rv, bool) else 0
+        if not standalone_mode:
+            return code
+        sys.exit(code)
+
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
         except UserError as exc:
-            click.echo(f"artdata: error: {exc}", err=True)
+            click.echo(f"artdata: error: {_one_line(exc)}", err=True)
             ctx.exit(EXIT_USER_ERROR)
         except RenderError as exc:
-            click.echo(f"artdata: error: {exc}", err=True)
+            click.echo(f"artdata: error: {_one_line(exc)}", err=True)
             ctx.exit(EXIT_ENVIRONMENT_ERROR)
 
 
@@ -47,19 +100,63 @@ def main(verbose: int) -> None:
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
 
 
-def _check_mujoco_imports() -> None:
-    """MuJoCo picks its GL backend when imported and raises if it cannot; say so in one line."""
+def _mujoco_message(backend: str, exc: BaseException) -> str:
+    first = (str(exc).splitlines() or [type(exc).__name__])[0]
+    return (f"MuJoCo cannot start with MUJOCO_GL={backend!r} ({first}). "
+            "Rendering needs EGL from Mesa (apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri) "
+            "or OSMesa (apt-get install libosmesa6, then MUJOCO_GL=osmesa).")
+
+
+def _import_mujoco() -> None:
+    """Import MuJoCo once.  If its GL backend cannot start, remember the one-line message
+    (:data:`MUJOCO_GL_PROBLEM`) and import it without GL, so that commands which do not render
+    still work; ``MUJOCO_GL`` is restored so that rendering later fails with the same cause."""
+    global MUJOCO_GL_PROBLEM
     try:
         import mujoco  # noqa: F401
-    except Exception as exc:  # ImportError, RuntimeError, OSError from the GL loaders
-        backend = __import__("os").environ.get("MUJOCO_GL", "egl")
-        click.echo(
-            f"artdata: error: MuJoCo cannot start with MUJOCO_GL={backend!r} ({str(exc).splitlines()[0]}). "
-            "Rendering needs EGL from Mesa (apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri) "
-            "or OSMesa (apt-get install libosmesa6, then MUJOCO_GL=osmesa).",
-            err=True,
-        )
-        sys.exit(EXIT_ENVIRONMENT_ERROR)
+        return
+    except Exception as exc:  # ImportError, RuntimeError, OSError, AttributeError from the GL loaders
+        backend = os.environ.get("MUJOCO_GL", "egl")
+        MUJOCO_GL_PROBLEM = _mujoco_message(backend, exc)
+    for name in [m for m in sys.modules if m == "mujoco" or m.startswith("mujoco.")]:
+        if not name.startswith("mujoco._"):  # compiled bindings cannot be imported twice
+            del sys.modules[name]
+    os.environ["MUJOCO_GL"] = _GL_DISABLED
+    try:
+        import mujoco  # noqa: F401,F811
+    except Exception:  # MuJoCo itself is unusable: the commands that need it report it
+        pass
+    finally:
+        os.environ["MUJOCO_GL"] = backend
+
+
+def _needs_rendering(cmd: click.Command) -> click.Command:
+    """Make ``cmd`` stop with the one-line exit-3 message when MuJoCo cannot render (checked
+    when it runs, so ``--help`` still works)."""
+    callback = cmd.callback
+
+    @functools.wraps(callback)
+    def checked(*args, **kwargs):
+        if MUJOCO_GL_PROBLEM is not None:
+            click.echo(f"artdata: error: {MUJOCO_GL_PROBLEM}", err=True)
+            click.get_current_context().exit(EXIT_ENVIRONMENT_ERROR)
+        return callback(*args, **kwargs)
+
+    cmd.callback = checked
+    return cmd
+
+
+def _unavailable_command(name: str, exc: BaseException) -> click.Command:
+    """Stand-in for a command whose module cannot be imported because MuJoCo is unusable."""
+    message = MUJOCO_GL_PROBLEM or _mujoco_message(os.environ.get("MUJOCO_GL", "egl"), exc)
+
+    @click.command(name, context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
+                   add_help_option=False, help="Unavailable on this machine: MuJoCo cannot start.")
+    def unavailable():
+        click.echo(f"artdata: error: {message}", err=True)
+        click.get_current_context().exit(EXIT_ENVIRONMENT_ERROR)
+
+    return unavailable
 
 
 def _register_commands() -> None:
@@ -68,12 +165,18 @@ def _register_commands() -> None:
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda i: i.name):
         if info.name.startswith("_"):
             continue
-        module = importlib.import_module(f"{commands.__name__}.{info.name}")
+        try:
+            module = importlib.import_module(f"{commands.__name__}.{info.name}")
+        except Exception as exc:
+            if MUJOCO_GL_PROBLEM is None and "mujoco" not in sys.modules:
+                main.add_command(_unavailable_command(info.name, exc))
+                continue
+            raise
         for cmd in getattr(module, "COMMANDS", []):
-            main.add_command(cmd)
+            main.add_command(_needs_rendering(cmd) if cmd.name in RENDERING_COMMANDS else cmd)
 
 
-_check_mujoco_imports()
+_import_mujoco()
 _register_commands()
 
 if __name__ == "__main__":  # pragma: no cover
