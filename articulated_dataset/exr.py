@@ -21,15 +21,29 @@ import contextlib
 import json
 import logging
 import os
+import re
 import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .errors import DataFormatError, UserError
 from .schema import FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, R_DATASET, resolve_shape
-from .shards import find_split_dirs, open_split, read_json_object, write_manifest, write_shard
+from .shards import (
+    MANIFEST_NAME,
+    TMP_SUFFIX,
+    check_manifest_names,
+    check_shard_file,
+    find_split_dirs,
+    open_split,
+    read_json_object,
+    reading,
+    resolve_inside,
+    write_manifest,
+    write_shard,
+)
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +55,8 @@ DEPTH_SUFFIX = ".exr"
 MASK_SUFFIX = ".mask.png"
 LABEL_SUFFIX = ".json"
 LABEL_FIELDS = tuple(f.name for f in FIELDS if f.name not in IMAGE_FIELDS)
+#: An image stem as :func:`sample_stem` writes it (read back from ``split.json``).
+_STEM_RE = re.compile(r"o[0-9]{6,}_i[0-9]{3,}")
 
 
 def sample_stem(object_index: int, image_index: int) -> str:
@@ -140,27 +156,61 @@ def read_mask_png(path: str | Path) -> np.ndarray:
 # Export
 # --------------------------------------------------------------------------------------
 
-def _prepare_dir(path: Path, overwrite: bool, what: str) -> None:
+def _check_target(path: Path, overwrite: bool, what: str, marker: str) -> None:
+    """Refuse an output folder before any work: not a folder, a symbolic link, not empty
+    without ``overwrite``, or (with ``overwrite``) not a folder this tool wrote (no ``marker``)."""
+    if path.is_symlink():
+        raise UserError(f"{what} {path} is a symbolic link; name the real folder")
     if path.exists() and not path.is_dir():
         raise UserError(f"{what} {path} exists and is not a directory")
     if path.is_dir() and any(path.iterdir()):
         if not overwrite:
             raise UserError(f"{what} {path} is not empty; pass --overwrite to replace it")
-        shutil.rmtree(path)
+        if not (path / marker).is_file():
+            raise UserError(f"{what} {path} holds no {marker}: not written by artdata, so --overwrite does not replace it")
+
+
+@contextlib.contextmanager
+def _staged_dir(final: Path, overwrite: bool, what: str, marker: str):
+    """Yield a temporary sibling folder of ``final`` to write into; on success it replaces
+    ``final`` (renamed into place; the old folder is removed only then), on failure it is
+    removed and ``final`` is untouched."""
+    _check_target(final, overwrite, what, marker)
     try:
-        path.mkdir(parents=True, exist_ok=True)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=TMP_SUFFIX, dir=final.parent))
     except OSError as exc:
-        raise UserError(f"cannot create {path}: {exc.strerror or exc}") from None
+        raise UserError(f"cannot create {final}: {exc.strerror or exc}") from None
+    try:
+        yield tmp
+        _check_target(final, overwrite, what, marker)  # unchanged meanwhile
+        old = None
+        if final.is_dir() and any(final.iterdir()):
+            old = final.with_name(f".{final.name}.old{TMP_SUFFIX}")
+            os.rename(final, old)
+        os.replace(tmp, final)  # onto a missing or empty folder
+        if old is not None:
+            shutil.rmtree(old)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def export_split(split_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False, progress=None) -> Path:
     """Export one split folder to ``out_dir`` (EXR depth, PNG mask, JSON labels per image).
 
+    The files are written to a temporary sibling folder that replaces ``out_dir`` only when
+    complete; ``overwrite`` replaces only a folder holding an export (``split.json``).
     ``progress(n)`` is called after each shard with its image count.  Returns ``out_dir``.
     """
     split_dir, out_dir = Path(split_dir), Path(out_dir)
     manifest, shards = open_split(split_dir)
-    _prepare_dir(out_dir, overwrite, "export folder")
+    with _staged_dir(out_dir, overwrite, "export folder", INDEX_NAME) as tmp:
+        _export_into(tmp, manifest, shards, progress)
+    return out_dir
+
+
+def _export_into(out_dir: Path, manifest: dict, shards: list, progress) -> None:
     index = {
         "format": EXPORT_FORMAT,
         "format_version": EXPORT_FORMAT_VERSION,
@@ -173,9 +223,10 @@ def export_split(split_dir: str | Path, out_dir: str | Path, *, overwrite: bool 
         "shards": [],
     }
     for sh in shards:
-        attrs = {k: _json_value(sh.file.attrs[k]) for k in sh.file.attrs}
-        K = sh.file[K_DATASET][()]
-        R = sh.file[R_DATASET][()]
+        f = sh.file
+        with reading(sh.path):
+            attrs = {k: _json_value(f.attrs[k]) for k in f.attrs}
+        K, R = sh.read(K_DATASET, ()), sh.read(R_DATASET, ())
         depth, mask = sh.read("depth"), sh.read("mask")
         labels = sh.labels()
         stems = []
@@ -194,7 +245,6 @@ def export_split(split_dir: str | Path, out_dir: str | Path, *, overwrite: bool 
             progress(len(stems))
     # the index is written last: a folder without it is an incomplete export
     (out_dir / INDEX_NAME).write_text(json.dumps(index, indent=1) + "\n")
-    return out_dir
 
 
 # --------------------------------------------------------------------------------------
@@ -232,17 +282,36 @@ def load_index(export_dir: str | Path) -> dict:
     if str(index.get("format_version", "")).split(".")[0] != EXPORT_FORMAT_VERSION.split(".")[0]:
         raise DataFormatError(f"{export_dir / INDEX_NAME}: export format version {index.get('format_version')} is not "
                               f"readable by this package (reads {EXPORT_FORMAT_VERSION.split('.')[0]}.x)")
+    where = str(export_dir / INDEX_NAME)
     if not isinstance(index.get("manifest"), dict) or not isinstance(index["manifest"].get("class_name"), str):
-        raise DataFormatError(f"{export_dir / INDEX_NAME}: corrupt export index (no source manifest with a class name)")
+        raise DataFormatError(f"{where}: corrupt export index (no source manifest with a class name)")
+    check_manifest_names(index["manifest"], where)
+    shards = index.get("shards")
+    if not isinstance(shards, list) or not all(isinstance(s, dict) for s in shards):
+        raise DataFormatError(f"{where}: corrupt export index (shards must be a list of objects)")
+    for s in shards:
+        check_shard_file(s.get("file"), where)
+        samples = s.get("samples")
+        if not isinstance(samples, list) or not all(isinstance(x, str) and _STEM_RE.fullmatch(x) for x in samples):
+            bad = next((x for x in samples if not (isinstance(x, str) and _STEM_RE.fullmatch(x))), samples) \
+                if isinstance(samples, list) else samples
+            raise DataFormatError(f"{where}: invalid image stem {str(bad)[:80]!r} (expected o<object>_i<image>, "
+                                  "e.g. o000012_i003)")
     return index
+
+
+def target_dir(out_root: str | Path, index_or_manifest: dict, split: str) -> Path:
+    """``out_root/<class>/<split>`` for a manifest (or an export index holding one), the class
+    name checked and the path checked to stay inside ``out_root``."""
+    manifest = index_or_manifest.get("manifest", index_or_manifest)
+    return resolve_inside(out_root, f"{manifest['class_name']}/{split}", where=f"class {manifest['class_name']!r}")
 
 
 def import_tree(path: str | Path, out_root: str | Path, *, overwrite: bool = False, progress=None) -> list[Path]:
     """Import every exported split at ``path`` into ``out_root/<class>/<split>/``."""
     out = []
     for d in find_exports(path):
-        cls = load_index(d)["manifest"]["class_name"]
-        out.append(import_split(d, Path(out_root) / cls / d.name, overwrite=overwrite, progress=progress))
+        out.append(import_split(d, target_dir(out_root, load_index(d), d.name), overwrite=overwrite, progress=progress))
     return out
 
 
@@ -273,8 +342,11 @@ def import_split(export_dir: str | Path, split_dir: str | Path, *, overwrite: bo
         mask = np.empty((len(stems), H, W), np.uint8)
         labels = []
         for i, stem in enumerate(stems):
-            d = read_depth_exr(export_dir / (stem + DEPTH_SUFFIX))
-            m = read_mask_png(export_dir / (stem + MASK_SUFFIX))
+            inside = resolve_inside(export_dir, stem)  # a checked stem; its files must not be links leading out
+            for suffix in (DEPTH_SUFFIX, MASK_SUFFIX, LABEL_SUFFIX):
+                resolve_inside(export_dir, stem + suffix)
+            d = read_depth_exr(inside.with_name(stem + DEPTH_SUFFIX))
+            m = read_mask_png(inside.with_name(stem + MASK_SUFFIX))
             for what, a, suffix in (("depth", d, DEPTH_SUFFIX), ("mask", m, MASK_SUFFIX)):
                 if a.shape != (H, W):
                     raise DataFormatError(f"{export_dir / (stem + suffix)}: {what} is {a.shape[1]}x{a.shape[0]} px, "
@@ -293,14 +365,14 @@ def import_split(export_dir: str | Path, split_dir: str | Path, *, overwrite: bo
         for name in LABEL_FIELDS:
             arrays[name] = _label_array(labels, name, export_dir / file)
         shards.append((file, attrs, K, R, arrays, rec))
-    _prepare_dir(split_dir, overwrite, "output folder")
     new_records = []
-    for file, attrs, K, R, arrays, rec in shards:
-        out = write_shard(split_dir / file, arrays, attrs, K, R)
-        new_records.append({**rec, **out})
-        if progress is not None:
-            progress(len(arrays["depth"]))
-    write_manifest(split_dir, {**manifest, "shards": new_records})
+    with _staged_dir(split_dir, overwrite, "output folder", MANIFEST_NAME) as tmp:
+        for file, attrs, K, R, arrays, rec in shards:
+            out = write_shard(resolve_inside(tmp, file), arrays, attrs, K, R)
+            new_records.append({**rec, **out})
+            if progress is not None:
+                progress(len(arrays["depth"]))
+        write_manifest(tmp, {**manifest, "shards": new_records})
     changed = [r["file"] for r, old in zip(new_records, (s[5] for s in shards)) if r["sha256"] != old["sha256"]]
     if changed:
         log.warning("%s: re-imported shards %s are not byte-identical to the originals (arrays are equal; "

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
 #: Interchange formats ``artdata export`` can write.
@@ -26,15 +24,19 @@ def export_cmd(path, out_root, fmt, overwrite, quiet):
     """
     from tqdm import tqdm
 
-    from ..exr import export_split
-    from ..shards import find_split_dirs, read_manifest
+    from ..exr import export_split, target_dir
+    from ..shards import find_split_dirs, open_split
 
     split_dirs = find_split_dirs(path)
-    manifests = [read_manifest(d) for d in split_dirs]
-    total = sum(m["n_images"] for m in manifests)
+    opened = [open_split(d) for d in split_dirs]  # names and shard paths checked before any output
+    targets = [target_dir(out_root, m, d.name) for d, (m, _) in zip(split_dirs, opened)]
+    total = sum(len(sh) for _, shards in opened for sh in shards)
+    for _, shards in opened:
+        for sh in shards:
+            sh.close()
     with tqdm(total=total, unit="img", desc=f"export {fmt}", disable=quiet, dynamic_ncols=True, leave=False) as bar:
-        for d, m in zip(split_dirs, manifests):
-            export_split(d, Path(out_root) / m["class_name"] / d.name, overwrite=overwrite, progress=bar.update)
+        for d, target in zip(split_dirs, targets):
+            export_split(d, target, overwrite=overwrite, progress=bar.update)
     if not quiet:
         click.echo(f"exported {total} images from {len(split_dirs)} split(s) to {out_root}")
 
@@ -49,15 +51,15 @@ def import_cmd(path, out_root, overwrite, quiet):
     """Rebuild HDF5 shards from folders written by 'artdata export --format exr' (exact round trip)."""
     from tqdm import tqdm
 
-    from ..exr import find_exports, import_split, load_index
+    from ..exr import find_exports, import_split, load_index, target_dir
 
     exports = find_exports(path)
     indexes = [load_index(d) for d in exports]  # bad folders fail here, before any output
-    total = sum(int(ix["manifest"].get("n_images", 0)) for ix in indexes)
+    targets = [target_dir(out_root, ix, d.name) for d, ix in zip(exports, indexes)]
+    total = sum(len(s["samples"]) for ix in indexes for s in ix["shards"])
     with tqdm(total=total, unit="img", desc="import exr", disable=quiet, dynamic_ncols=True, leave=False) as bar:
-        for d, ix in zip(exports, indexes):
-            import_split(d, Path(out_root) / ix["manifest"]["class_name"] / d.name, overwrite=overwrite,
-                         progress=bar.update)
+        for d, target in zip(exports, targets):
+            import_split(d, target, overwrite=overwrite, progress=bar.update)
     if not quiet:
         click.echo(f"imported {total} images into {len(exports)} split(s) under {out_root}")
 

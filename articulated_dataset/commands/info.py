@@ -7,7 +7,8 @@ import json
 import click
 import numpy as np
 
-from ..shards import find_split_dirs, open_split
+from ..errors import DataFormatError
+from ..shards import MANIFEST_NAME, find_split_dirs, open_split
 
 _SUMMARY_FIELDS = ("q", "axis_origin", "geometry", "object_yaw", "visible_pixels")
 
@@ -20,20 +21,10 @@ def summarize_split(split_dir) -> dict:
         for k in _SUMMARY_FIELDS:
             stats[k].append(sh.read(k))
         sh.close()
-    summary = {
-        "path": str(split_dir),
-        "class": manifest["class_name"],
-        "split": manifest["split"],
-        "seed": manifest["seed"],
-        "format_version": manifest["format_version"],
-        "complete": manifest["complete"],
-        "objects": manifest["n_objects"],
-        "images": manifest["n_images"],
-        "shards": len(manifest["shards"]),
-        "bytes": sum(s["bytes"] for s in manifest["shards"]),
-        "image_size": [manifest["config"]["camera"]["width_px"], manifest["config"]["camera"]["height_px"]],
-        "labels": {},
-    }
+    try:
+        summary = _manifest_summary(split_dir, manifest)
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise DataFormatError(f"{split_dir / MANIFEST_NAME}: corrupt manifest ({type(exc).__name__}: {exc})") from None
     for k, parts in stats.items():
         if not parts:
             continue
@@ -41,6 +32,23 @@ def summarize_split(split_dir) -> dict:
         a = a.reshape(a.shape[0], -1)
         summary["labels"][k] = {"min": a.min(0).round(4).tolist(), "mean": a.mean(0).round(4).tolist(), "max": a.max(0).round(4).tolist()}
     return summary
+
+
+def _manifest_summary(split_dir, manifest: dict) -> dict:
+    return {
+        "path": str(split_dir),
+        "class": manifest["class_name"],
+        "split": str(manifest["split"]),
+        "seed": int(manifest["seed"]),
+        "format_version": str(manifest["format_version"]),
+        "complete": bool(manifest["complete"]),
+        "objects": int(manifest["n_objects"]),
+        "images": int(manifest["n_images"]),
+        "shards": len(manifest["shards"]),
+        "bytes": int(sum(int(s["bytes"]) for s in manifest["shards"])),
+        "image_size": [int(manifest["config"]["camera"]["width_px"]), int(manifest["config"]["camera"]["height_px"])],
+        "labels": {},
+    }
 
 
 def _fmt(v):

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import DataFormatError, UserError
 from ..schema import FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, resolve_shape
-from ..shards import Shard, find_split_dirs, open_h5, read_manifest
+from ..shards import Shard, find_split_dirs, open_h5, read_manifest, reading, shard_paths
 
 log = logging.getLogger(__name__)
 
@@ -131,8 +131,8 @@ class ShardReader:
             self._split_meta.append(meta)
             if meta["class_name"] not in self.class_names:
                 self.class_names.append(meta["class_name"])
-            for rec in manifest["shards"]:
-                paths.append(split_dir / rec["file"])
+            for rec, path in zip(manifest["shards"], shard_paths(split_dir, manifest)):  # names checked
+                paths.append(path)
                 sizes.append(int(rec["n_images"]))
                 shard_split.append(s)
                 shard_class.append(self.class_names.index(meta["class_name"]))
@@ -163,7 +163,7 @@ class ShardReader:
         elif class_name in class_names():
             J = get_class(class_name).n_joints
         elif manifest.get("shards"):  # a class registered elsewhere: ask the first shard (opened and closed)
-            with open_h5(split_dir / manifest["shards"][0]["file"]) as f:
+            with open_h5(shard_paths(split_dir, manifest)[0]) as f:
                 J = int(f.attrs.get("n_joints", 0))
         else:
             J = 0
@@ -266,7 +266,7 @@ class ShardReader:
     def _K(self, s: int) -> np.ndarray:  # noqa: N802
         state = self._local()
         if s not in state.K:
-            state.K[s] = np.asarray(self._shard(s).file[K_DATASET][()], dtype=np.float64)
+            state.K[s] = np.asarray(self._shard(s).read(K_DATASET, ()), dtype=np.float64)
         return state.K[s]
 
     def close(self) -> None:
@@ -350,7 +350,9 @@ class ShardReader:
                 runs = [(int(loc[ra]), a + int(ra), int(rb - ra))  # (first image in shard, row in out, count)
                         for ra, rb in zip(np.concatenate([[0], run_cuts]), np.concatenate([run_cuts, [b - a]]))]
                 for name in image_names:
-                    _read_runs(self._dataset(s, name), out[name], runs)
+                    ds = self._dataset(s, name)
+                    with reading(self.shard_paths[s], name):
+                        _read_runs(ds, out[name], runs)
             if label_names:
                 labels = self._labels(s)
                 for name in label_names:
