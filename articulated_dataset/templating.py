@@ -16,6 +16,9 @@ from .errors import UserError
 
 log = logging.getLogger(__name__)
 
+#: Only files with this suffix (our own templates) go through xacro; any other URDF is read as is.
+XACRO_SUFFIX = ".xacro"
+
 
 @functools.lru_cache(maxsize=64)
 def _parsed(path: str):
@@ -24,10 +27,15 @@ def _parsed(path: str):
 
 
 def render_urdf(template_path: str | Path, mappings: dict[str, str]) -> str:
-    """Expand ``template_path`` with xacro arguments ``mappings`` and return the URDF text."""
+    """Expand ``template_path`` with xacro arguments ``mappings`` and return the URDF text.
+
+    Only ``*.xacro`` templates are expanded; a plain ``.urdf`` file is returned unchanged."""
     path = str(template_path)
     if not Path(path).is_file():
         raise UserError(f"URDF template not found: {path}")
+    if not path.endswith(XACRO_SUFFIX):
+        # A plain URDF (a third-party object processed by urdf_import) is data: never expanded.
+        return Path(path).read_text(encoding="utf-8")
     doc = _parsed(path).cloneNode(True)
     xacro.init_stacks(path)  # includes resolve relative to the template's folder
     try:
