@@ -55,6 +55,30 @@ MM_PER_M = 1000.0
 #: Depths beyond this (m) are not plausible for an indoor sensor: a float image in metres with
 #: larger values is most likely in millimetres (refused; pass the units).
 MAX_PLAUSIBLE_DEPTH_M = 20.0
+#: Depth sensors return nothing closer than about 0.1 m (Kinect v2: 0.5 m; RealSense D4xx:
+#: 0.1-0.3 m): a capture whose median depth is below this is in other units than assumed.
+MIN_PLAUSIBLE_DEPTH_M = 0.1
+#: Fields of view (deg) a pinhole depth camera can have: intrinsics outside them (e.g.
+#: fx = 1e308 px) are a mistake, not a lens.
+MIN_PLAUSIBLE_FOV_DEG = 1.0
+MAX_PLAUSIBLE_FOV_DEG = 170.0
+#: Largest source frame accepted (pixels): ten times a 12-megapixel frame; larger is not a
+#: depth sensor's image (and would exhaust memory when rasterised).
+MAX_SOURCE_PIXELS = 120_000_000
+#: Largest body dimension or part offset (m) of a labelled household object.
+MAX_PLAUSIBLE_OBJECT_SIZE_M = 5.0
+#: Ground-truth configurations may exceed the class's joint range by this much (rad for
+#: revolute, m for prismatic joints): AR-tag / motion-capture labels of a closed or fully open
+#: part are accurate to a few degrees or centimetres.
+REAL_Q_TOLERANCE = {"revolute": math.radians(5.0), "prismatic": 0.02}
+#: Allowed | |q| - 1 | of a given quaternion before it is normalised (labels written with a few
+#: digits are not exactly unit); farther is a typo, not rounding.
+QUAT_NORM_TOL = 1e-2
+#: Allowed disagreement (rad) between a given ``object_yaw`` and the yaw of ``object_pose``.
+YAW_AGREEMENT_RAD = 1e-3
+#: Label fields of a real image that are NaN where the capture's labels do not give them.
+REAL_LABEL_FIELDS = ("q", "axis_origin", "axis_direction", "axis_pose", "part_offset", "object_pose", "object_yaw",
+                     "geometry")
 #: Stored depth is rounded to multiples of 2**-13 m (0.12 mm), like generated depth.
 DEPTH_QUANTUM_M = 2.0**-13
 #: Margin added on each side of the mask's bounding box in ``fit="crop"`` (fraction of its size).
@@ -72,12 +96,53 @@ GT_FRAMES = ("camera", "optical")
 # Intrinsics
 # --------------------------------------------------------------------------------------
 
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def _numbers(value, what: str) -> np.ndarray:
+    """``value`` (a number or nested lists of numbers, as read from JSON/YAML) as float64;
+    strings, booleans, null and mappings are a :class:`UserError` (never converted)."""
+    def ok(v) -> bool:
+        return _is_number(v) or (isinstance(v, (list, tuple)) and all(ok(x) for x in v))
+    if not ok(value):
+        raise UserError(f"{what} must be numbers, got {str(value)[:80]}")
+    try:
+        return np.asarray(value, np.float64)
+    except (TypeError, ValueError, OverflowError):  # ragged lists, integers beyond float64
+        raise UserError(f"{what} must be a regular array of numbers, got {str(value)[:80]}") from None
+
+
 def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float, where: str = "intrinsics") -> np.ndarray:
     """3x3 OpenCV K from focal lengths and principal point (px); checks they are usable."""
     vals = np.array([fx, fy, cx, cy], np.float64)
     if not np.isfinite(vals).all() or fx <= 0 or fy <= 0:
         raise UserError(f"{where}: focal lengths must be positive and all values finite, got fx={fx}, fy={fy}, cx={cx}, cy={cy}")
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def check_intrinsics(K: np.ndarray, size: tuple[int, int], where: str) -> None:
+    """Intrinsics ``K`` must describe a pinhole camera for a ``size`` = (W, H) image: both
+    fields of view within [:data:`MIN_PLAUSIBLE_FOV_DEG`, :data:`MAX_PLAUSIBLE_FOV_DEG`] and
+    the principal point inside the image (pixel k covers [k - 1/2, k + 1/2])."""
+    W, H = size
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    for axis, f, n in (("horizontal", fx, W), ("vertical", fy, H)):
+        fov = math.degrees(2.0 * math.atan(0.5 * n / f))
+        if not MIN_PLAUSIBLE_FOV_DEG <= fov <= MAX_PLAUSIBLE_FOV_DEG:
+            raise UserError(f"{where}: intrinsics fx={fx:g}, fy={fy:g} give a {axis} field of view of {fov:.3g} deg "
+                            f"for a {W}x{H} image (a depth camera has {MIN_PLAUSIBLE_FOV_DEG:g}-"
+                            f"{MAX_PLAUSIBLE_FOV_DEG:g} deg); check the focal lengths (px)")
+    if not (-0.5 <= cx <= W - 0.5 and -0.5 <= cy <= H - 0.5):
+        raise UserError(f"{where}: principal point ({cx:g}, {cy:g}) px lies outside the {W}x{H} image; check cx, cy")
+
+
+def check_source_size(size: tuple[int, int], where: str) -> None:
+    """A source frame of ``size`` = (W, H) pixels must be at most :data:`MAX_SOURCE_PIXELS`."""
+    W, H = size
+    if W <= 0 or H <= 0 or W * H > MAX_SOURCE_PIXELS:
+        raise UserError(f"{where}: a {W}x{H} frame is not a depth sensor's image "
+                        f"(at most {MAX_SOURCE_PIXELS:,} pixels)")
 
 
 def _read_mapping(path: Path) -> dict:
@@ -112,27 +177,38 @@ def load_intrinsics(path: str | Path) -> tuple[np.ndarray, tuple[int, int] | Non
     """
     path = Path(path)
     d = _read_mapping(path)
-    try:
-        if all(k in d for k in ("fx", "fy", "cx", "cy")):
-            K = intrinsics_matrix(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), str(path))
-        else:
-            raw = d.get("K", d.get("k"))
-            if raw is None and isinstance(d.get("camera_matrix"), dict):
-                raw = d["camera_matrix"].get("data")
-            if raw is None:
-                raise UserError(f"{path}: no intrinsics found (expected fx/fy/cx/cy, K, k or camera_matrix.data)")
-            m = np.asarray(raw, np.float64).reshape(3, 3)
-            if abs(m[0, 1]) > 0 or abs(m[1, 0]) > 0 or abs(m[2, 2] - 1.0) > 1e-9:
-                raise UserError(f"{path}: camera matrix must be [[fx,0,cx],[0,fy,cy],[0,0,1]] (no skew)")
-            K = intrinsics_matrix(m[0, 0], m[1, 1], m[0, 2], m[1, 2], str(path))
-        w = d.get("width", d.get("image_width"))
-        h = d.get("height", d.get("image_height"))
-        size = (int(w), int(h)) if w is not None and h is not None else None
-    except (TypeError, ValueError) as exc:
-        raise UserError(f"{path}: malformed intrinsics ({exc})") from None
-    if size is not None and (size[0] <= 0 or size[1] <= 0):
-        raise UserError(f"{path}: image size must be positive, got {size[0]}x{size[1]}")
+    if all(k in d for k in ("fx", "fy", "cx", "cy")):
+        K = intrinsics_matrix(*(_scalar(d, k, path) for k in ("fx", "fy", "cx", "cy")), str(path))
+    else:
+        raw = d.get("K", d.get("k"))
+        if raw is None and isinstance(d.get("camera_matrix"), dict):
+            raw = d["camera_matrix"].get("data")
+        if raw is None:
+            raise UserError(f"{path}: no intrinsics found (expected fx/fy/cx/cy, K, k or camera_matrix.data)")
+        m = _numbers(raw, f"{path}: camera matrix")
+        if m.size != 9:
+            raise UserError(f"{path}: camera matrix must have 9 numbers, got {m.size}")
+        m = m.reshape(3, 3)
+        if abs(m[0, 1]) > 0 or abs(m[1, 0]) > 0 or abs(m[2, 2] - 1.0) > 1e-9 or m[2, 0] != 0 or m[2, 1] != 0:
+            raise UserError(f"{path}: camera matrix must be [[fx,0,cx],[0,fy,cy],[0,0,1]] (no skew)")
+        K = intrinsics_matrix(m[0, 0], m[1, 1], m[0, 2], m[1, 2], str(path))
+    w = d.get("width", d.get("image_width"))
+    h = d.get("height", d.get("image_height"))
+    size = None
+    if w is not None or h is not None:
+        if not all(isinstance(v, int) and not isinstance(v, bool) for v in (w, h)):
+            raise UserError(f"{path}: image width and height must both be whole numbers of pixels, got {w!r} x {h!r}")
+        size = (w, h)
+        check_source_size(size, str(path))
+        check_intrinsics(K, size, str(path))
     return K, size
+
+
+def _scalar(d: dict, key: str, path: Path) -> float:
+    a = _numbers(d[key], f"{path}: {key}")
+    if a.ndim != 0:
+        raise UserError(f"{path}: {key} must be one number, got {str(d[key])[:80]}")
+    return float(a)
 
 
 # --------------------------------------------------------------------------------------
@@ -154,7 +230,19 @@ def _to_metres(raw: np.ndarray, units: str, path: Path) -> np.ndarray:
     if top > MAX_PLAUSIBLE_DEPTH_M:
         hint = "; it looks like millimetres: pass --depth-units mm" if units == "m" else ""
         raise UserError(f"{path}: depth up to {top:.1f} m is not plausible for a depth sensor{hint}")
+    returns = depth[depth > 0]
+    median = float(np.median(returns)) if returns.size else 0.0
+    if returns.size and median < MIN_PLAUSIBLE_DEPTH_M:
+        as_m = median * (MM_PER_M if units == "mm" else 1.0)
+        hint = ("; it looks like metres: pass --depth-units m" if units == "mm" and MIN_PLAUSIBLE_DEPTH_M <= as_m <= MAX_PLAUSIBLE_DEPTH_M
+                else "; check the depth units (--depth-units)")
+        raise UserError(f"{path}: median depth {1000 * median:.3g} mm read as {units_name(units)} is closer than any "
+                        f"depth sensor measures ({MIN_PLAUSIBLE_DEPTH_M:g} m){hint}")
     return depth
+
+
+def units_name(units: str) -> str:
+    return "millimetres" if units == "mm" else "metres"
 
 
 def _read_image(path: Path, what: str) -> tuple[np.ndarray, str]:
@@ -163,7 +251,10 @@ def _read_image(path: Path, what: str) -> tuple[np.ndarray, str]:
 
     try:
         with Image.open(path) as im:
+            check_source_size(im.size, str(path))
             return np.array(im), im.mode
+    except UserError:
+        raise
     except Exception as exc:
         raise UserError(f"{path}: not a readable {what} ({str(exc).splitlines()[0]})") from None
 
@@ -203,11 +294,13 @@ def load_depth(path: str | Path, units: str = "auto") -> np.ndarray:
         return _to_metres(raw, "m" if units == "auto" else units, path)
     if suffix == ".npy":
         try:
-            raw = np.load(path, allow_pickle=False)
+            raw = np.load(path, allow_pickle=False, mmap_mode="r")
         except Exception as exc:
             raise UserError(f"{path}: not a readable .npy array ({str(exc).splitlines()[0]})") from None
         if raw.ndim != 2 or raw.dtype.kind not in "fiu":
             raise UserError(f"{path}: expected a 2-D numeric depth array, got shape {raw.shape} dtype {raw.dtype}")
+        check_source_size((raw.shape[1], raw.shape[0]), str(path))
+        raw = np.array(raw)
         if units == "auto":
             if raw.dtype.kind != "f":
                 raise UserError(f"{path}: integer depth array has unknown units; pass --depth-units mm or m")
@@ -445,24 +538,94 @@ def mask_fraction_inside(mask: np.ndarray, K_src: np.ndarray, K_dst: np.ndarray,
 # --------------------------------------------------------------------------------------
 
 def _array(d: dict, key: str, shape: tuple, path: Path) -> np.ndarray | None:
+    """``d[key]`` as a float64 array of ``shape``; None if absent or null (not available).
+    NaN, infinite, non-numeric values or another shape are a :class:`UserError`."""
     if key not in d or d[key] is None:
         return None
-    try:
-        a = np.asarray(d[key], np.float64)
-    except (TypeError, ValueError):
-        raise UserError(f"{path}: {key!r} must be numbers") from None
+    a = _numbers(d[key], f"{path}: {key!r}")
     if a.shape != shape:
         raise UserError(f"{path}: {key!r} has shape {a.shape}, expected {shape}")
     if not np.isfinite(a).all():
-        raise UserError(f"{path}: {key!r} has non-finite values")
+        raise UserError(f"{path}: {key!r} has NaN or infinite values; leave the key out (or null) when it is "
+                        f"not known")
     return a
 
 
-def _unit(v: np.ndarray, what: str, path: Path) -> np.ndarray:
+def _unit(v: np.ndarray, what: str, path: Path, tol: float | None = None) -> np.ndarray:
+    """``v`` (..., n) normalised; zero length (or, with ``tol``, a norm farther than ``tol``
+    from 1) is a :class:`UserError`."""
     n = np.linalg.norm(v, axis=-1, keepdims=True)
     if (n < 1e-9).any():
         raise UserError(f"{path}: {what} has a zero-length vector")
+    if tol is not None and (np.abs(n - 1.0) > tol).any():
+        raise UserError(f"{path}: {what} has norm {float(n.reshape(-1)[np.argmax(np.abs(n - 1.0))]):.4g}, "
+                        f"expected a unit quaternion (w, x, y, z)")
     return v / n
+
+
+def _wrap_angle(a: float) -> float:
+    """``a`` (rad) in (-pi, pi]."""
+    w = math.remainder(a, 2.0 * math.pi)
+    return math.pi if w == -math.pi else w
+
+
+def real_label_problems(labels: dict, joint_types, q_ranges, has_ground_truth=None) -> list[tuple[str, np.ndarray]]:
+    """What is wrong with the labels of N real images: ``[(message, bad (N,) bool)]``.
+
+    ``labels`` maps every field of :data:`REAL_LABEL_FIELDS` to an (N, ...) array (NaN where
+    the capture does not give the value).  The rules (docs/real_data.md): no infinite values;
+    each group (a joint's origin, direction, axis position, axis quaternion, part offset; the
+    object position, the object quaternion, the geometry) is given or NaN as a whole, and
+    ``axis_pose``'s position / quaternion are given exactly where ``axis_origin`` /
+    ``axis_direction`` are; ``object_yaw`` is given where ``object_pose`` is; an image without
+    ground truth (``has_ground_truth`` 0) has only NaN.  Given values: ``q`` within the class's
+    joint range (``q_ranges``, widened by :data:`REAL_Q_TOLERANCE`), positions within
+    :data:`MAX_PLAUSIBLE_DEPTH_M` of the camera, body dimensions and part offsets positive /
+    within :data:`MAX_PLAUSIBLE_OBJECT_SIZE_M`, chirality 0 or 1, ``object_yaw`` in [-pi, pi].
+    """
+    out: list[tuple[str, np.ndarray]] = []
+    L = {k: np.asarray(labels[k], np.float64) for k in REAL_LABEL_FIELDS}
+    n = L["q"].shape[0]
+
+    def flag(message: str, bad: np.ndarray) -> None:
+        bad = np.asarray(bad, bool).reshape(n, -1).any(axis=1)
+        if bad.any():
+            out.append((message, bad))
+
+    for k, v in L.items():
+        flag(f"{k}: infinite values", np.isinf(v))
+    groups = (("axis_origin", slice(None), ""), ("axis_direction", slice(None), ""), ("axis_pose", slice(0, 3), " position"),
+              ("axis_pose", slice(3, 7), " quaternion"), ("part_offset", slice(None), ""),
+              ("object_pose", slice(0, 3), " position"), ("object_pose", slice(3, 7), " quaternion"), ("geometry", slice(None), ""))
+    for k, sl, part in groups:
+        nan = np.isnan(L[k][..., sl])
+        flag(f"{k}{part}: partly NaN (a value is given, or not available, as a whole)", nan.any(-1) & ~nan.all(-1))
+    flag("axis_pose position and axis_origin: one is given without the other",
+         np.isnan(L["axis_pose"][..., 0]) != np.isnan(L["axis_origin"][..., 0]))
+    flag("axis_pose quaternion and axis_direction: one is given without the other",
+         np.isnan(L["axis_pose"][..., 3]) != np.isnan(L["axis_direction"][..., 0]))
+    flag("object_yaw: NaN although object_pose gives it", ~np.isnan(L["object_pose"][:, 3]) & np.isnan(L["object_yaw"]))
+    if has_ground_truth is not None:
+        given = np.stack([~np.isnan(v.reshape(n, -1)).all(axis=1) for v in L.values()], axis=1)
+        flag("labels present although has_ground_truth is 0", (np.asarray(has_ground_truth) == 0)[:, None] & given)
+    with np.errstate(invalid="ignore"):  # NaN (not available) compares False: only given values are checked
+        for j, (jtype, (lo, hi)) in enumerate(zip(joint_types, q_ranges)):
+            tol = REAL_Q_TOLERANCE[jtype]
+            unit = "rad" if jtype == "revolute" else "m"
+            flag(f"q[{j}]: outside the class's joint range [{lo:.4g}, {hi:.4g}] {unit} (by more than {tol:.3g} {unit})",
+                 (L["q"][:, j] < lo - tol) | (L["q"][:, j] > hi + tol))
+        for k, sl in (("axis_origin", slice(None)), ("object_pose", slice(0, 3))):
+            flag(f"{k}: position farther than {MAX_PLAUSIBLE_DEPTH_M:g} m from the camera",
+                 np.linalg.norm(L[k][..., sl], axis=-1) > MAX_PLAUSIBLE_DEPTH_M)
+        flag(f"part_offset: longer than {MAX_PLAUSIBLE_OBJECT_SIZE_M:g} m",
+             np.linalg.norm(L["part_offset"], axis=-1) > MAX_PLAUSIBLE_OBJECT_SIZE_M)
+        dims = L["geometry"][:, :3]
+        flag(f"geometry: body dimensions not in (0, {MAX_PLAUSIBLE_OBJECT_SIZE_M:g}] m",
+             (dims <= 0) | (dims > MAX_PLAUSIBLE_OBJECT_SIZE_M))
+        chir = L["geometry"][:, 3]
+        flag("geometry: chirality not 0 or 1", ~np.isnan(chir) & ~np.isin(chir, (0.0, 1.0)))
+        flag("object_yaw: outside [-pi, pi] rad", np.abs(L["object_yaw"]) > math.pi + YAW_AGREEMENT_RAD)
+    return out
 
 
 #: Camera-frame up (z) and forward (x) directions used to complete an axis frame from its z axis.
@@ -502,9 +665,9 @@ def load_ground_truth(path: str | Path, n_joints: int, class_name: str | None = 
     path = Path(path)
     d = _read_mapping(path)
     if class_name is not None and d.get("class") not in (None, class_name):
-        raise UserError(f"{path}: ground truth is for class {d.get('class')!r}, not {class_name!r}")
+        raise UserError(f"{path}: ground truth is for class {str(d.get('class'))[:80]!r}, not {class_name!r}")
     frame = d.get("frame", "camera")
-    if frame not in GT_FRAMES:
+    if not isinstance(frame, str) or frame not in GT_FRAMES:
         raise UserError(f"{path}: unknown frame {frame!r}; choose from: {', '.join(GT_FRAMES)}")
     unknown = set(d) - {"frame", "q", "axis_pose", "axis_origin", "axis_direction", "part_offset", "geometry",
                         "object_pose", "object_yaw", "class", "object", "comment"}
@@ -520,7 +683,7 @@ def load_ground_truth(path: str | Path, n_joints: int, class_name: str | None = 
     origin = _array(d, "axis_origin", (J, 3), path)
     direction = _array(d, "axis_direction", (J, 3), path)
     if pose is not None:
-        quat = _unit(pose[:, 3:], "axis_pose quaternion", path)
+        quat = _unit(pose[:, 3:], "axis_pose quaternion", path, QUAT_NORM_TOL)
         rots = np.stack([Rt @ quat_to_matrix(qq) for qq in quat])
         pos = pose[:, :3] @ Rt.T
         if origin is not None and np.abs(origin @ Rt.T - pos).max() > 1e-4:
@@ -545,15 +708,28 @@ def load_ground_truth(path: str | Path, n_joints: int, class_name: str | None = 
         out["geometry"] = geometry
     obj_pose = _array(d, "object_pose", (7,), path)
     if obj_pose is not None:
-        r = Rt @ quat_to_matrix(_unit(obj_pose[3:], "object_pose quaternion", path))
+        r = Rt @ quat_to_matrix(_unit(obj_pose[3:], "object_pose quaternion", path, QUAT_NORM_TOL))
         out["object_pose"] = np.concatenate([Rt @ obj_pose[:3], mat_to_quat(r)])
         out["object_yaw"] = np.array(math.atan2(r[1, 0], r[0, 0]))
-    if d.get("object_yaw") is not None:
+    yaw = _array(d, "object_yaw", (), path)
+    if yaw is not None:
         if frame != "camera":
             raise UserError(f"{path}: object_yaw is a camera-frame angle; give object_pose in the optical frame instead")
-        out["object_yaw"] = np.array(float(d["object_yaw"]))
+        yaw = _wrap_angle(float(yaw))
+        if obj_pose is not None and abs(_wrap_angle(yaw - float(out["object_yaw"]))) > YAW_AGREEMENT_RAD:
+            raise UserError(f"{path}: object_yaw {yaw:.4f} rad disagrees with the yaw of object_pose "
+                            f"({float(out['object_yaw']):.4f} rad)")
+        out["object_yaw"] = np.array(yaw)
     obj = d.get("object")
-    out["object"] = None if obj is None else str(obj)
+    if obj is not None and not (isinstance(obj, str) and obj.strip()):
+        raise UserError(f"{path}: 'object' must be a non-empty name (string), got {str(obj)[:80]!r}")
+    out["object"] = obj
+    if class_name is not None:
+        obj_class = get_class(class_name)
+        problems = real_label_problems({k: np.asarray(out[k])[None] for k in REAL_LABEL_FIELDS},
+                                       obj_class.joint_types, obj_class.table.q)
+        if problems:
+            raise UserError(f"{path}: {problems[0][0]}")
     return out
 
 
@@ -687,6 +863,8 @@ def ingest_capture(files: CaptureFiles, class_name: str, options: IngestOptions)
         if size is None:
             raise UserError(f"{files.data}: rasterising a point cloud needs the sensor's image size "
                             f"(width/height in the camera file, or --source-size WxH)")
+        check_source_size(size, str(files.data))
+        check_intrinsics(K_src, size, str(files.data))
         points = load_cloud(files.data)
         if options.cloud_frame == "camera":
             points = points @ R_CAMERA_TO_OPTICAL.T
@@ -699,6 +877,7 @@ def ingest_capture(files: CaptureFiles, class_name: str, options: IngestOptions)
         if size is not None and (depth.shape[1], depth.shape[0]) != tuple(size):
             raise UserError(f"{files.data}: depth is {depth.shape[1]}x{depth.shape[0]} px but the camera file "
                             f"{files.camera} says {size[0]}x{size[1]}")
+        check_intrinsics(K_src, (depth.shape[1], depth.shape[0]), str(files.data))
     if files.mask is not None:
         mask = load_mask(files.mask, depth.shape, J)
         if not mask.any():
@@ -726,6 +905,10 @@ def ingest_capture(files: CaptureFiles, class_name: str, options: IngestOptions)
     depth_r, mask_r = resample_depth(depth, mask, K_src, K_dst, out_size, options.resample)
     if files.mask is not None and not options.keep_background:
         depth_r = np.where(mask_r > 0, depth_r, 0.0)
+    if (depth[mask > 0] > 0).any() and not (depth_r[mask_r > 0] > 0).any():
+        raise UserError(f"{files.data}: no depth return of the object survives resampling onto the "
+                        f"{out_size[0]}x{out_size[1]} training camera (fx={K_src[0, 0]:g}, fy={K_src[1, 1]:g} px); "
+                        f"check the intrinsics, or use --fit crop")
     depth_r = (np.round(depth_r / DEPTH_QUANTUM_M) * DEPTH_QUANTUM_M).astype(np.float32)
     labels = load_ground_truth(files.labels, J, class_name) if files.labels is not None else empty_labels(J)
     return Capture(files.name, depth_r, mask_r, K_dst, labels, inside, files.labels is not None)

@@ -5,10 +5,16 @@ from __future__ import annotations
 import click
 
 from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, KINECT_V2_VFOV_DEG, CameraConfig
-from ..errors import UserError
+from ..errors import UserError, check_memory
+
+#: Bytes per training-resolution pixel held per capture while ingesting: stored float32 depth
+#: and uint8 mask, plus float64 depth and int64 index temporaries of the resampling.
+_BYTES_PER_PIXEL = 4 + 1 + 8 + 8
 
 
 def _parse_size(text: str | None) -> tuple[int, int] | None:
+    from ..real import check_source_size
+
     if text is None:
         return None
     try:
@@ -17,6 +23,7 @@ def _parse_size(text: str | None) -> tuple[int, int] | None:
         raise UserError(f"--source-size must look like 512x424, got {text!r}") from None
     if w <= 0 or h <= 0:
         raise UserError(f"--source-size must be positive, got {text!r}")
+    check_source_size((w, h), "--source-size")
     return w, h
 
 
@@ -77,7 +84,7 @@ def ingest_cmd(captures, class_name, out_root, split, mask_path, labels_path, in
 
     from tqdm import tqdm
 
-    from ..real import IngestOptions, find_captures, ingest_capture, intrinsics_matrix, load_intrinsics, write_real_split
+    from ..real import IngestOptions, check_intrinsics, find_captures, ingest_capture, intrinsics_matrix, load_intrinsics, write_real_split
     from ..registry import get_class
 
     get_class(class_name)
@@ -100,11 +107,16 @@ def ingest_cmd(captures, class_name, out_root, split, mask_path, labels_path, in
             camera = CameraConfig(width, height, vfov)
         except ValueError as exc:
             raise UserError(str(exc)) from None
+    check_memory(float(camera.width_px) * camera.height_px * _BYTES_PER_PIXEL,
+                 f"a {camera.width_px}x{camera.height_px} training image")
+    check_intrinsics(camera.K, (camera.width_px, camera.height_px), "training camera (--width/--height/--vfov)")
     options = IngestOptions(camera=camera, fit=fit, resample=resample, crop_margin=crop_margin, depth_units=depth_units,
                             cloud_frame=cloud_frame, keep_background=keep_background, intrinsics=K, source_size=size)
     files = find_captures(captures)
     if (mask_path or labels_path) and len(files) != 1:
         raise UserError(f"--mask and --labels name the files of one capture; {len(files)} captures were given")
+    check_memory(float(len(files)) * camera.width_px * camera.height_px * _BYTES_PER_PIXEL,
+                 f"{len(files)} captures at {camera.width_px}x{camera.height_px} px")
     if mask_path:
         files[0].mask = Path(mask_path)
     if labels_path:
