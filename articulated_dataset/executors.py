@@ -11,6 +11,7 @@ argument returning ``(shard_index, record)``; in-process executors may pass a
 
 from __future__ import annotations
 
+import itertools
 import logging
 import multiprocessing as mp
 import os
@@ -30,13 +31,56 @@ class SerialExecutor:
             yield fn(task, progress=progress)
 
 
-def _worker_init() -> None:
+#: Linux ``prctl`` option: signal this process when its parent dies.
+PR_SET_PDEATHSIG = 1
+#: Seconds between a worker's checks that its parent (the generate command) is alive.
+PARENT_POLL_S = 0.5
+#: Tasks queued per worker beyond the one it runs (tasks are produced lazily: a split of a
+#: billion shards never becomes a list).
+QUEUED_TASKS_PER_WORKER = 2
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """Make this worker end when the process that started it ends, however it ends
+    (SIGKILL included): the kernel's parent-death signal on Linux, and everywhere a thread
+    that exits the worker once its parent has gone (the worker is re-parented)."""
+    import signal
+    import sys
+    import threading
+    import time
+
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        except (OSError, AttributeError):  # no prctl: the thread below still ends the worker
+            log.debug("prctl(PR_SET_PDEATHSIG) unavailable")
+    if os.getppid() != parent_pid:  # the parent died before the signal was armed
+        os._exit(1)
+
+    def watch() -> None:
+        while True:
+            time.sleep(PARENT_POLL_S)
+            if os.getppid() != parent_pid:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="artdata-parent-watch", daemon=True).start()
+
+
+def _worker_init(parent_pid: int) -> None:
     # One llvmpipe rasteriser thread per worker: the pool provides the parallelism.
     os.environ.setdefault("LP_NUM_THREADS", "1")
+    _die_with_parent(parent_pid)
 
 
 class ProcessExecutor:
-    """Run tasks in ``workers`` local processes (spawned: GL contexts never cross a fork)."""
+    """Run tasks in ``workers`` local processes (spawned: GL contexts never cross a fork).
+
+    Workers end with the process that started them (killed included), so a killed
+    ``generate`` leaves no process writing its split.
+    """
 
     def __init__(self, workers: int):
         if workers < 1:
@@ -47,27 +91,32 @@ class ProcessExecutor:
         # concurrent.futures rather than multiprocessing.Pool: a worker that dies (killed,
         # out of memory, a crash in the GL driver) breaks the pool with an error, where
         # Pool would replace the worker and wait for its lost task forever.
-        from concurrent.futures import ProcessPoolExecutor, as_completed
+        from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
         from concurrent.futures.process import BrokenProcessPool
 
-        tasks = list(tasks)
-        if not tasks:
+        queue = iter(tasks)
+        first = list(itertools.islice(queue, self.workers))
+        if not first:
             return
-        pool = ProcessPoolExecutor(max_workers=min(self.workers, len(tasks)), mp_context=mp.get_context("spawn"),
-                                   initializer=_worker_init)
+        pool = ProcessPoolExecutor(max_workers=len(first), mp_context=mp.get_context("spawn"),
+                                   initializer=_worker_init, initargs=(os.getpid(),))
+        limit = len(first) * (1 + QUEUED_TASKS_PER_WORKER)
         try:
-            futures = [pool.submit(fn, task) for task in tasks]
-            for future in as_completed(futures):
-                try:
-                    result = future.result()
-                except BrokenProcessPool:
-                    raise RuntimeError(
-                        "a generation worker process died (killed or out of memory?); completed shards are kept, "
-                        "continue with --resume"
-                    ) from None
-                if progress is not None:
-                    progress(result[1]["n_images"])
-                yield result
+            pending = {pool.submit(fn, task) for task in first}
+            while pending:
+                pending.update(pool.submit(fn, task) for task in itertools.islice(queue, limit - len(pending)))
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for future in done:
+                    try:
+                        result = future.result()
+                    except BrokenProcessPool:
+                        raise RuntimeError(
+                            "a generation worker process died (killed or out of memory?); completed shards are kept, "
+                            "continue with --resume"
+                        ) from None
+                    if progress is not None:
+                        progress(result[1]["n_images"])
+                    yield result
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
 
@@ -86,6 +135,9 @@ def local_executor(workers: int):
 DEFAULT_MAX_RETRIES = 3
 #: CPUs reserved per task: one renderer (one llvmpipe thread) per task.
 CPUS_PER_TASK = 1
+#: Tasks in flight without --workers (Ray queues them until CPUs are free; a bound keeps a
+#: split of millions of shards from being submitted at once).
+DEFAULT_TASKS_IN_FLIGHT = 1024
 RAY_INSTALL_HELP = "--executor ray needs Ray: pip install 'articulated_dataset[ray]' (or pip install 'ray>=2.9')"
 
 
@@ -158,11 +210,14 @@ class RayExecutor:
     ``address``: ``None`` (``RAY_ADDRESS`` if set, else start a local Ray instance),
     ``"auto"`` (the cluster this machine belongs to) or ``"HOST:PORT"`` /
     ``"ray://HOST:PORT"``.  If Ray is already initialised in this process that instance is
-    used.  ``workers``: at most this many tasks in flight (None: as many as there are
-    shards; Ray schedules them on free CPUs); for a local instance also its CPU count.
+    used.  ``workers``: at most this many tasks in flight (None:
+    :data:`DEFAULT_TASKS_IN_FLIGHT`; Ray schedules them on free CPUs); for a local instance also its CPU count.
     ``max_retries``: re-runs of a task whose worker died (an exception raised by the task
     itself is not retried: generation is deterministic, it would fail again).
     """
+
+    #: Shards are built in the memory of the cluster's nodes, not this machine's.
+    remote = True
 
     def __init__(self, address: str | None = None, workers: int | None = None, max_retries: int = DEFAULT_MAX_RETRIES):
         if workers is not None and workers < 1:
@@ -190,17 +245,18 @@ class RayExecutor:
     def map_unordered(self, fn: Callable, tasks: Iterable, progress=None) -> Iterator:
         from . import __version__
 
-        tasks = [_absolute_task(t) for t in tasks]
-        if not tasks:
+        queue = (_absolute_task(t) for t in tasks)
+        first = next(queue, None)
+        if first is None:
             return
+        queue = itertools.chain([first], queue)
         ray = _import_ray()
         started = self._connect(ray)
         remote = ray.remote(_ray_task).options(
             num_cpus=CPUS_PER_TASK, max_retries=self.max_retries, retry_exceptions=False,
             runtime_env={"env_vars": _worker_env()},
         )
-        limit = self.workers or len(tasks)
-        queue = iter(tasks)
+        limit = self.workers or DEFAULT_TASKS_IN_FLIGHT
         pending: dict = {}
 
         def submit() -> None:

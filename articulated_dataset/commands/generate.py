@@ -40,6 +40,12 @@ class _NoiseChoice(click.ParamType):
         return value
 
 
+#: Objects generated without --n.
+DEFAULT_N_OBJECTS = 100
+#: Largest image side: OpenGL drivers cap offscreen buffers (Mesa's llvmpipe at 16384 px);
+#: larger sizes would fail inside the driver instead of with a message.
+MAX_IMAGE_SIDE_PX = 16384
+
 #: ``--address``: ``auto``, ``HOST:PORT`` or a Ray client address ``ray://HOST:PORT``.
 _ADDRESS = re.compile(r"^(auto|(ray://)?[^\s:/]+:\d+)$")
 
@@ -77,7 +83,8 @@ class _ClassChoice(click.ParamType):
 @click.option("--class-name", "urdf_class_name", default=None,
               help="With --urdf: class name stored in the shards and used for OUT/<class>/ (default: <folder>-<file stem>).")
 @click.option("--skip-missing-meshes", is_flag=True, help="With --urdf: drop mesh references whose file does not exist.")
-@click.option("--n", "n_objects", type=int, default=100, show_default=True, help="Number of objects (each gives --images images).")
+@click.option("--n", "n_objects", type=int, default=None,
+              help=f"Number of objects (each gives --images images)  [default: {DEFAULT_N_OBJECTS}; 1 with --mean]")
 @click.option("--split", default="train", show_default=True, help="Split name (train, val, test...); splits never share objects.")
 @click.option("--out", "out_root", type=click.Path(file_okay=False), default="data", show_default=True, help="Output root: shards go to OUT/<class>/<split>/.")
 @click.option("--seed", type=int, default=DEFAULT_SEED, show_default=True, help="Dataset seed (object k depends only on seed, class, split, k).")
@@ -88,7 +95,7 @@ class _ClassChoice(click.ParamType):
 @click.option("--vfov", type=float, default=KINECT_V2_VFOV_DEG, show_default=True, help="Vertical field of view (deg).")
 @click.option("--table", "table_file", type=click.Path(dir_okay=False), default=None, help="JSON/TOML file overriding (part of) the class's sampling table.")
 @click.option("--workers", type=int, default=None,
-              help="Worker processes (default: all cores); with --executor ray: most shard tasks in flight (default: no limit).")
+              help="Worker processes (default: all cores); with --executor ray: most shard tasks in flight (default: 1024).")
 @click.option("--executor", type=click.Choice(list(EXECUTORS)), default="local", show_default=True,
               help="local: processes on this machine; ray: one task per shard on a Ray cluster (docs/cluster.md).")
 @click.option("--address", default=None, metavar="auto|HOST:PORT",
@@ -102,6 +109,9 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
                  seed, images_per_object, objects_per_shard, width, height, vfov, table_file, workers, executor, address,
                  noise, resume, overwrite, mean_object, quiet):
     """Generate labelled depth images of one object class (or one URDF object) into HDF5 shards."""
+    for name, px in (("--width", width), ("--height", height)):
+        if px > MAX_IMAGE_SIDE_PX:
+            raise UserError(f"{name} {px} px is larger than the renderer's largest image side ({MAX_IMAGE_SIDE_PX} px)")
     try:
         camera = CameraConfig(width, height, vfov)
     except ValueError as exc:
@@ -130,7 +140,11 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
     if table_file:
         table = table.override(load_table_file(table_file))
     if mean_object:
+        if n_objects not in (None, 1):
+            raise UserError(f"--mean renders exactly one object (the class's mean object); drop --n {n_objects}")
         n_objects = 1
+    elif n_objects is None:
+        n_objects = DEFAULT_N_OBJECTS
     if workers is not None and workers <= 0:
         raise UserError(f"--workers must be positive, got {workers}")
     if address is not None and not _ADDRESS.match(address):
