@@ -924,7 +924,8 @@ def real_sample_id(class_name: str, split: str, capture_name: str) -> int:
     return int.from_bytes(hashlib.blake2b(text.encode("utf-8"), digest_size=8).digest(), "little") >> 1
 
 
-def _vfov_deg(K: np.ndarray, height_px: int) -> float:
+def vfov_deg_of(K: np.ndarray, height_px: int) -> float:
+    """Vertical field of view (deg) of intrinsics ``K`` for images ``height_px`` rows high."""
     return math.degrees(2.0 * math.atan(0.5 * height_px / K[1, 1]))
 
 
@@ -1039,7 +1040,7 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
                 "joint_types": json.dumps(list(obj_class.joint_types)),
                 "image_width": W,
                 "image_height": H,
-                "vfov_deg": _vfov_deg(K, H),
+                "vfov_deg": vfov_deg_of(K, H),
                 "depth_quantum_m": DEPTH_QUANTUM_M,
                 "min_part_pixels": 0,
                 "mean_object": 0,

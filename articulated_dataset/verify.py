@@ -25,6 +25,17 @@ or ``shard-NNNNN.h5``); nothing raises for bad data.  What is checked:
     ``image_index`` in generation order; ``sample_id`` equal to
     :func:`articulated_dataset.sampling.sample_id` and unique over the split;
   - ``class`` = the shard's class; positive body dimensions; chirality 0 or 1.
+
+**Real splits** (written by ``artdata ingest``: manifest key ``real``, shard attribute
+``real = 1``) follow their own rules (docs/real_data.md): label values the capture does not
+give are NaN (checked by :func:`articulated_dataset.real.real_label_problems`: never infinite,
+NaN per group as a whole, q within the class's joint range, plausible positions and sizes);
+``sample_id`` is :func:`articulated_dataset.real.real_sample_id` of the shard's
+``capture_names``; objects and images are numbered by capture, not by generation order, and a
+real object's pose differs between captures; the shard's K may be a crop's (it must be a
+pinhole matrix agreeing with ``vfov_deg``); the manifest's counts come from its ``real``
+record (objects, captures), not from a generation config.  Everything else (format,
+checksums, depth, masks, unit vectors, frames) is checked as for generated data.
 """
 
 from __future__ import annotations
@@ -236,6 +247,50 @@ def _check_manifest_counts(manifest: dict, config) -> list[Problem]:
     return out
 
 
+def _check_real_manifest(manifest: dict, config) -> tuple[list[Problem], dict]:
+    """Counts of an ingested real split from its ``real`` record (objects, captures), and the
+    captures each shard should hold (``{file: [names]}``; empty when the record is unusable)."""
+    out = []
+    rec = manifest["real"]
+    if not isinstance(rec, dict):
+        return [Problem(MANIFEST_NAME, "corrupt: 'real' must be an object with 'objects' and 'captures'")], {}
+    objects, captures = rec.get("objects"), rec.get("captures")
+    if not (isinstance(objects, list) and isinstance(captures, list)
+            and all(isinstance(x, str) and x for x in objects + captures)):
+        return [Problem(MANIFEST_NAME, "corrupt: real.objects and real.captures must be lists of names")], {}
+    records = manifest["shards"]
+    files = [r["file"] for r in records]
+    if len(set(files)) != len(files):
+        out.append(Problem(MANIFEST_NAME, "shard list names a file twice"))
+    if len(set(captures)) != len(captures):
+        out.append(Problem(MANIFEST_NAME, "real.captures names a capture twice"))
+    if len(set(objects)) != len(objects):
+        out.append(Problem(MANIFEST_NAME, "real.objects names an object twice"))
+    n_images = sum(int(r["n_images"]) for r in records)
+    for key, want, what in (("n_images", n_images, "the shards hold"), ("n_images", len(captures), "real.captures lists"),
+                            ("n_objects", len(objects), "real.objects lists"),
+                            ("n_shards_expected", len(records), "the shard list has")):
+        if manifest[key] != want:
+            out.append(Problem(MANIFEST_NAME, f"{key} is {manifest[key]} but {what} {want}"))
+    for key in ("class_name", "split", "seed"):
+        if config is not None and manifest[key] != getattr(config, key):
+            out.append(Problem(MANIFEST_NAME, f"{key} {manifest[key]!r} differs from its config's {getattr(config, key)!r}"))
+    from .shards import shard_name
+
+    captures_of, offset = {}, 0
+    for k, r in enumerate(records):
+        if r["file"] != shard_name(k):
+            out.append(Problem(MANIFEST_NAME, f"shard {k} is {r['file']!r}, expected {shard_name(k)}"))
+        if not 0 <= r["object_start"] < r["object_stop"] <= len(objects):
+            out.append(Problem(MANIFEST_NAME, f"{r['file']}: objects [{r['object_start']}, {r['object_stop']}) "
+                                              f"outside the {len(objects)} objects of real.objects"))
+        captures_of[r["file"]] = captures[offset:offset + int(r["n_images"])]
+        offset += int(r["n_images"])
+    if manifest["complete"] is not True:
+        out.append(Problem(MANIFEST_NAME, "'complete' is not true (an ingest that did not finish)"))
+    return out, (captures_of if offset == len(captures) else {})
+
+
 # --------------------------------------------------------------------------------------
 # Shards
 # --------------------------------------------------------------------------------------
@@ -253,6 +308,8 @@ class ShardExpectation:
     split: str | None = None
     seed: int | None = None
     camera: CameraConfig | None = None
+    real: bool | None = None  # the manifest says the split holds ingested real captures
+    capture_names: list | None = None  # real: the manifest's captures of this shard, in order
 
 
 @dataclass
@@ -333,7 +390,21 @@ def _check_open_shard(f: h5py.File, expect: ShardExpectation, res: ShardResult, 
         p.append("root attributes n_joints, image_height, image_width, images_per_object, object_start, "
                  "object_stop must all be integers; cannot check the datasets")
         return
-    N = (stop - start) * ipo
+    real = _is_real(attrs)
+    names = None
+    if expect.real is not None and real != expect.real:
+        p.append("attribute real = 1 but the manifest has no 'real' record" if real
+                 else "the manifest describes ingested real data but the shard has no attribute real = 1")
+    if real:
+        names, msg = _capture_names(attrs)
+        if msg:
+            p.append(msg)
+            return
+        N = len(names)
+        if expect.capture_names is not None and names != expect.capture_names:
+            p.append("attribute capture_names differs from the manifest's captures of this shard")
+    else:
+        N = (stop - start) * ipo
     res.n_images = N
     for key, want in (("class_name", expect.class_name), ("split", expect.split), ("seed", expect.seed),
                       ("object_start", expect.object_start), ("object_stop", expect.object_stop)):
@@ -366,7 +437,7 @@ def _check_open_shard(f: h5py.File, expect: ShardExpectation, res: ShardResult, 
             p.append(f"dataset {fd.name!r} has dtype {ds.dtype}, expected {fd.dtype}")
         else:
             good.append(fd.name)
-    _check_camera(f, attrs, W, H, p)
+    _check_camera(f, attrs, W, H, p, real)
     if not content:
         return
 
@@ -379,9 +450,30 @@ def _check_open_shard(f: h5py.File, expect: ShardExpectation, res: ShardResult, 
     table, msg = _table(attrs)
     if msg:
         p.append(msg)
-    _check_content(arrays, attrs, table, J=J, ipo=ipo, start=start, problems=p)
+    _check_content(arrays, attrs, table, J=J, ipo=ipo, start=start, problems=p, capture_names=names)
     if "sample_id" in arrays:
         res.sample_ids = arrays["sample_id"]
+
+
+def _is_real(attrs: dict) -> bool:
+    """A shard of ingested real captures (``real = 1``)."""
+    v = attrs.get("real", 0)
+    return isinstance(v, (int, np.integer)) and not isinstance(v, bool) and int(v) == 1
+
+
+def _capture_names(attrs: dict) -> tuple[list | None, str | None]:
+    """The ``capture_names`` attribute of a real shard (a JSON list of unique names), or a problem."""
+    try:
+        names = json.loads(attrs["capture_names"])
+    except KeyError:
+        return None, "real shard without attribute capture_names; cannot check the datasets"
+    except (json.JSONDecodeError, TypeError):
+        return None, "attribute capture_names is not a JSON list; cannot check the datasets"
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) and n for n in names):
+        return None, "attribute capture_names must be a non-empty JSON list of names; cannot check the datasets"
+    if len(set(names)) != len(names):
+        return None, "attribute capture_names names a capture twice"
+    return names, None
 
 
 def _check_registry(attrs: dict, J: int, p: list) -> None:
@@ -402,7 +494,7 @@ def _check_registry(attrs: dict, J: int, p: list) -> None:
         p.append(f"joint_types {list(types)} differ from class {obj_class.name}'s {list(obj_class.joint_types)}")
 
 
-def _check_camera(f: h5py.File, attrs: dict, W: int, H: int, p: list) -> None:
+def _check_camera(f: h5py.File, attrs: dict, W: int, H: int, p: list, real: bool = False) -> None:
     try:
         for name in (K_DATASET, R_DATASET):
             if name not in f or not isinstance(f[name], h5py.Dataset) or f[name].shape != (3, 3):
@@ -414,6 +506,9 @@ def _check_camera(f: h5py.File, attrs: dict, W: int, H: int, p: list) -> None:
         return
     if not np.array_equal(R, R_CAMERA_TO_OPTICAL):
         p.append(f"{R_DATASET} differs from the package's camera-to-optical rotation")
+    if real:  # the training camera, or a crop's intrinsics (``--fit crop``): a pinhole K agreeing with vfov_deg
+        _check_real_K(K, attrs, H, p)
+        return
     try:
         want = CameraConfig(W, H, float(attrs["vfov_deg"])).K
     except (KeyError, TypeError, ValueError):
@@ -421,6 +516,24 @@ def _check_camera(f: h5py.File, attrs: dict, W: int, H: int, p: list) -> None:
         return
     if not np.allclose(K, want, rtol=K_RTOL, atol=0.0):
         p.append(f"{K_DATASET} does not match image size {W}x{H} and vfov {attrs['vfov_deg']} deg")
+
+
+def _check_real_K(K: np.ndarray, attrs: dict, H: int, p: list) -> None:
+    from .real import vfov_deg_of
+
+    pinhole = (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0 and K[0, 1] == 0 and K[1, 0] == 0
+               and np.array_equal(K[2], [0.0, 0.0, 1.0]))
+    if not pinhole:
+        p.append(f"{K_DATASET} is not a pinhole matrix [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0")
+        return
+    try:
+        vfov = float(attrs["vfov_deg"])
+    except (KeyError, TypeError, ValueError):
+        p.append("attribute vfov_deg missing or not a number")
+        return
+    if not math.isclose(vfov, vfov_deg_of(K, H), rel_tol=K_RTOL):
+        p.append(f"{K_DATASET} gives a vertical field of view of {vfov_deg_of(K, H):.6g} deg, attribute vfov_deg "
+                 f"says {vfov:.6g}")
 
 
 def _table(attrs: dict):
@@ -451,11 +564,20 @@ def quat_rotate_z(quat_wxyz: np.ndarray) -> np.ndarray:
     return np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], axis=-1)
 
 
-def _check_content(a: dict, attrs: dict, table, *, J: int, ipo: int, start: int, problems: list) -> None:
+def _check_content(a: dict, attrs: dict, table, *, J: int, ipo: int, start: int, problems: list,
+                   capture_names: list | None = None) -> None:
+    """Label invariants; ``capture_names`` (real shards only) switches to the real rules."""
+    from .real import REAL_LABEL_FIELDS
+
     p = problems
+    real = capture_names is not None
     # labels are small: check them in float64; depth is checked in blocks of images
     f64 = {k: v.astype(np.float64) for k, v in a.items() if v.dtype.kind == "f" and k != "depth"}
+    if real:
+        _check_real_labels(f64, attrs, table, J, p)
     for name, v in f64.items():
+        if real and name in REAL_LABEL_FIELDS:
+            continue  # NaN = not available (infinite values reported above); NaN compares False below
         bad = _per_image(~np.isfinite(v))
         if bad.any():
             p.append(f"{name}: non-finite values in {_where(bad)}")
@@ -497,7 +619,7 @@ def _check_content(a: dict, attrs: dict, table, *, J: int, ipo: int, start: int,
         if bad.any():
             p.append(f"axis_pose: quaternion not normalised in {_where(bad)}")
         if "axis_origin" in f64:
-            bad = _per_image(f64["axis_pose"][..., :3] != f64["axis_origin"])
+            bad = _per_image(~_same(f64["axis_pose"][..., :3], f64["axis_origin"]))
             if bad.any():
                 p.append(f"axis_pose: position differs from axis_origin in {_where(bad)}")
         if "axis_direction" in f64:
@@ -518,17 +640,95 @@ def _check_content(a: dict, attrs: dict, table, *, J: int, ipo: int, start: int,
             bad = diff > FRAME_TOL_RAD
             if bad.any():
                 p.append(f"object_yaw: differs from the yaw of object_pose in {_where(bad)}")
-    if table is not None:
+    if table is not None and not real:  # real: the class's joint range in _check_real_labels; any pose
         _check_limits(f64, table, J, attrs, p)
     if "geometry" in f64:
         g = f64["geometry"]
         bad = _per_image(g[:, :3] <= 0)
         if bad.any():
             p.append(f"geometry: non-positive body dimensions in {_where(bad)}")
-        bad = ~np.isin(g[:, 3], (0.0, 1.0))
+        bad = ~np.isin(g[:, 3], (0.0, 1.0)) & ~np.isnan(g[:, 3])  # NaN: real data without geometry
         if bad.any():
             p.append(f"geometry: chirality not 0 or 1 in {_where(bad)}")
-    _check_order(a, attrs, J=J, ipo=ipo, start=start, problems=p)
+    if real:
+        _check_real_order(a, attrs, capture_names, problems=p)
+    else:
+        _check_order(a, attrs, J=J, ipo=ipo, start=start, problems=p)
+
+
+def _same(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Elementwise equality with NaN equal to NaN (real labels: both not available)."""
+    return (x == y) | (np.isnan(x) & np.isnan(y))
+
+
+def _check_real_labels(f64: dict, attrs: dict, table, J: int, p: list) -> None:
+    """:func:`articulated_dataset.real.real_label_problems` on the shard's label arrays."""
+    from .real import REAL_LABEL_FIELDS, real_label_problems
+
+    if not all(k in f64 for k in REAL_LABEL_FIELDS):
+        return  # already reported as missing or malformed datasets
+    n = f64["q"].shape[0]
+    gt = attrs.get("has_ground_truth")
+    gt = None if gt is None else np.asarray(gt).reshape(-1)
+    if gt is None or gt.shape != (n,) or not np.isin(gt, (0, 1)).all():
+        p.append(f"attribute has_ground_truth must hold {n} values 0 or 1")
+        gt = None
+    from .registry import get_class
+
+    try:
+        obj_class = get_class(str(attrs.get("class_name")))
+        types, ranges = obj_class.joint_types, obj_class.table.q
+    except UserError:  # a class from another package: the shard's own table and types
+        types = tuple(_json_list(attrs.get("joint_types")))
+        ranges = table.q if table is not None else ()
+    if len(types) != J or len(ranges) != J:
+        types, ranges = (), ()
+    for message, bad in real_label_problems({k: f64[k] for k in REAL_LABEL_FIELDS}, types, ranges, gt):
+        p.append(f"{message} in {_where(bad)}")
+
+
+def _json_list(text) -> list:
+    try:
+        v = json.loads(text)
+    except (json.JSONDecodeError, TypeError):
+        return []
+    return v if isinstance(v, list) else []
+
+
+def _check_real_order(a: dict, attrs: dict, capture_names: list, *, problems: list) -> None:
+    """Real shards: objects and images numbered by capture; ``sample_id`` from the capture names."""
+    from .real import real_sample_id
+
+    p = problems
+    n = len(capture_names)
+    try:
+        start, stop = int(attrs["object_start"]), int(attrs["object_stop"])
+    except (KeyError, TypeError, ValueError):
+        return  # reported with the root attributes
+    if "object_index" in a:
+        bad = (a["object_index"] < start) | (a["object_index"] >= stop)
+        if bad.any():
+            p.append(f"object_index: outside the shard's objects [{start}, {stop}) in {_where(bad)}")
+    if "image_index" in a:
+        bad = a["image_index"] < 0
+        if bad.any():
+            p.append(f"image_index: negative in {_where(bad)}")
+    if "object_index" in a and "image_index" in a:
+        pairs = a["object_index"].astype(np.int64) * (1 << 32) + a["image_index"].astype(np.int64)
+        uniq, counts = np.unique(pairs, return_counts=True)
+        if (counts > 1).any():
+            p.append(f"(object_index, image_index): {int((counts > 1).sum())} pairs repeated within the shard")
+    cls = str(attrs.get("class_name", ""))
+    if "class" in a:
+        bad = a["class"] != cls.encode("ascii", "replace")
+        if bad.any():
+            p.append(f"class: differs from the shard's class {cls!r} in {_where(bad)}")
+    if "sample_id" in a and a["sample_id"].shape == (n,):
+        split = str(attrs.get("split", ""))
+        want = np.array([real_sample_id(cls, split, name) for name in capture_names], np.int64)
+        bad = a["sample_id"] != want
+        if bad.any():
+            p.append(f"sample_id: differs from real_sample_id(class, split, capture name) in {_where(bad)}")
 
 
 def _check_depth(depth: np.ndarray, mask: np.ndarray | None, quantum_m: float, p: list) -> None:
@@ -647,7 +847,13 @@ def _plan_split(split_dir: Path, content: bool) -> tuple[SplitReport, list]:
     config, msg = _manifest_config(manifest)
     if msg:
         report.problems.append(Problem(MANIFEST_NAME, msg))
-    report.problems += _check_manifest_counts(manifest, config)
+    real = "real" in manifest
+    captures_of = {}
+    if real:
+        problems, captures_of = _check_real_manifest(manifest, config)
+        report.problems += problems
+    else:
+        report.problems += _check_manifest_counts(manifest, config)
     listed = [r["file"] for r in manifest["shards"]]
     for name in on_disk:
         if name not in listed:
@@ -658,7 +864,8 @@ def _plan_split(split_dir: Path, content: bool) -> tuple[SplitReport, list]:
         expect = ShardExpectation(
             n_images=r["n_images"], n_bytes=r["bytes"], sha256=r["sha256"], object_start=r["object_start"],
             object_stop=r["object_stop"], class_name=manifest["class_name"], split=manifest["split"],
-            seed=manifest["seed"], camera=config.camera if config is not None else None)
+            seed=manifest["seed"], camera=config.camera if config is not None else None, real=real,
+            capture_names=captures_of.get(r["file"]))
         tasks.append((split_dir / r["file"], expect, content))
     return report, tasks
 

@@ -304,3 +304,108 @@ def test_verify_split_api_reports_file_names(split):
     assert not report.ok
     assert {p.where for p in report.errors} == {"shard-00000.h5"}
     assert report.n_images == 6 * 16 and report.n_shards == 2
+
+
+# --------------------------------------------------------------------------------------
+# Ingested real splits: valid by their own rules, and corruption in them is still caught
+# --------------------------------------------------------------------------------------
+
+def _real_capture(folder, name, s, K, labels=None):
+    """A capture at the training resolution: 16-bit PNG depth (mm), binary mask, K, labels."""
+    from PIL import Image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.rint(s["depth"].astype(np.float64) * 1000).astype(np.uint16)).save(folder / f"{name}.png")
+    Image.fromarray((s["mask"] > 0).astype(np.uint8) * 255).save(folder / f"{name}.mask.png")
+    (folder / f"{name}.camera.json").write_text(json.dumps(
+        {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "width": s["depth"].shape[1],
+         "height": s["depth"].shape[0]}))
+    if labels is not None:
+        (folder / f"{name}.labels.json").write_text(json.dumps(labels))
+
+
+@pytest.fixture(scope="module")
+def real_split_source(tiny_root, tmp_path_factory):
+    """A cabinet2 real split of three captures: full labels, labels without part_offset /
+    object_pose (the docs' example), and none; the last with a crop fit in a second shard."""
+    from articulated_dataset.shards import open_split
+
+    root = tmp_path_factory.mktemp("real")
+    _, shards = open_split(tiny_root / "cabinet2" / "test")
+    sh = shards[0]
+    K = sh.K
+    s0, s1, s2 = (sh.sample(i) for i in (0, 5, 9))
+    full = {k: s0[k].tolist() for k in ("q", "axis_pose", "part_offset", "geometry", "object_pose")}
+    full["object"] = "kitchen"
+    docs_like = {"q": s1["q"].tolist(), "axis_pose": s1["axis_pose"].tolist(), "geometry": s1["geometry"].tolist(),
+                 "object": "kitchen"}
+    _real_capture(root / "caps", "a", s0, K, full)
+    _real_capture(root / "caps", "b", s1, K, docs_like)
+    _real_capture(root / "more", "c", s2, K)
+    for args in (["caps"], ["more", "--fit", "crop", "--append"]):
+        res = CliRunner().invoke(main, ["ingest", str(root / args[0]), "--class", "cabinet2", "--out", str(root / "out"),
+                                        "-q", *args[1:]])
+        assert res.exit_code == 0, res.output
+    return root / "out" / "cabinet2" / "real"
+
+
+@pytest.fixture()
+def real_split(real_split_source, tmp_path):
+    dst = tmp_path / "cabinet2" / "real"
+    shutil.copytree(real_split_source, dst)
+    return dst
+
+
+def test_ingested_real_split_verifies(real_split_source):
+    result = run_verify(real_split_source, "--workers", "1")
+    assert result.exit_code == 0, result.output
+    assert "OK, 2 shards, 3 images" in result.output
+
+
+def _set(name, index, value):
+    def fn(f):
+        a = f[name][()]
+        a[index] = value
+        f[name][...] = a
+    return fn
+
+
+def _set_attr(name, value):
+    return lambda f: f.attrs.__setitem__(name, value)
+
+
+@pytest.mark.parametrize("damage, needles", [
+    (_set("q", (0, 1), 100.0), ["q[1]: outside the class's joint range", "first: image 0"]),
+    (_set("q", (1, 0), -5.0), ["q[0]: outside the class's joint range", "first: image 1"]),
+    (_set("q", (0, 0), np.inf), ["q: infinite values"]),
+    (_set("part_offset", (0, 0, 1), np.nan), ["part_offset: partly NaN"]),
+    (_set("axis_origin", (1, 0, 1), np.nan), ["axis_origin: partly NaN", "axis_pose: position differs from axis_origin"]),
+    (_set("geometry", (1, 3), 0.5), ["geometry: chirality not 0 or 1"]),
+    (_set("geometry", (0, 0), -0.3), ["geometry: body dimensions not in (0, 5] m"]),
+    (_set("object_pose", (0, 0), 500.0), ["object_pose: position farther than 20 m"]),
+    (_set("axis_direction", (0, 0), 3.0), ["axis_direction: not unit length"]),
+    (_set("sample_id", 1, 12345), ["sample_id: differs from real_sample_id"]),
+    (_set("object_index", 0, 7), ["object_index: outside the shard's objects"]),
+    (_set("depth", (0, 50, 90), -1.0), ["depth: negative values"]),
+    (_set_attr("has_ground_truth", np.array([1, 0], np.int8)), ["labels present although has_ground_truth is 0"]),
+    (_set_attr("capture_names", json.dumps(["a", "x"])), ["capture_names differs from the manifest",
+                                                          "sample_id: differs from real_sample_id"]),
+    (_set_attr("real", 0), ["the manifest describes ingested real data"]),
+    (lambda f: f["K"].__setitem__((1, 1), f["K"][1, 1] * 1.5), ["gives a vertical field of view"]),
+], ids=["q-high", "q-negative", "q-inf", "offset-part-nan", "origin-part-nan", "chirality", "geometry", "far-pose",
+        "non-unit-axis", "sample-id", "object-index", "depth", "gt-flag", "capture-names", "real-attr", "K"])
+def test_real_split_damage_is_reported(real_split, damage, needles):
+    edit(real_split, "shard-00000.h5", damage)
+    result = run_verify(real_split, "--workers", "1")
+    assert_reported(result, "shard-00000.h5", *needles)
+    assert "shard-00001.h5" not in result.output
+
+
+def test_real_manifest_damage_is_reported(real_split):
+    m = json.loads((real_split / MANIFEST_NAME).read_text())
+    m["real"]["captures"][2] = "a"
+    m["n_objects"] = 5
+    (real_split / MANIFEST_NAME).write_text(json.dumps(m))
+    result = run_verify(real_split, "--workers", "1")
+    assert_reported(result, MANIFEST_NAME, "real.captures names a capture twice", "n_objects is 5 but real.objects lists 2")
+    assert_reported(result, "shard-00001.h5", "capture_names differs from the manifest")
