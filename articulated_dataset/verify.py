@@ -695,6 +695,16 @@ def _json_list(text) -> list:
     return v if isinstance(v, list) else []
 
 
+def _check_class(a: dict, attrs: dict, p: list) -> str:
+    """Every image's ``class`` equals the shard's ``class_name`` (returned)."""
+    cls = str(attrs.get("class_name", ""))
+    if "class" in a:
+        bad = a["class"] != cls.encode("ascii", "replace")
+        if bad.any():
+            p.append(f"class: differs from the shard's class {cls!r} in {_where(bad)}")
+    return cls
+
+
 def _check_real_order(a: dict, attrs: dict, capture_names: list, *, problems: list) -> None:
     """Real shards: objects and images numbered by capture; ``sample_id`` from the capture names."""
     from .real import real_sample_id
@@ -718,11 +728,7 @@ def _check_real_order(a: dict, attrs: dict, capture_names: list, *, problems: li
         uniq, counts = np.unique(pairs, return_counts=True)
         if (counts > 1).any():
             p.append(f"(object_index, image_index): {int((counts > 1).sum())} pairs repeated within the shard")
-    cls = str(attrs.get("class_name", ""))
-    if "class" in a:
-        bad = a["class"] != cls.encode("ascii", "replace")
-        if bad.any():
-            p.append(f"class: differs from the shard's class {cls!r} in {_where(bad)}")
+    cls = _check_class(a, attrs, p)
     if "sample_id" in a and a["sample_id"].shape == (n,):
         split = str(attrs.get("split", ""))
         want = np.array([real_sample_id(cls, split, name) for name in capture_names], np.int64)
@@ -805,11 +811,7 @@ def _check_order(a: dict, attrs: dict, *, J: int, ipo: int, start: int, problems
         bad = ~np.all((v == first) | (np.isnan(v) & np.isnan(first)) if v.dtype.kind == "f" else v == first, axis=1)
         if bad.any():
             p.append(f"{name}: differs between images of the same object in {_where(bad)}")
-    cls = str(attrs.get("class_name", ""))
-    if "class" in a:
-        bad = a["class"] != cls.encode("ascii", "replace")
-        if bad.any():
-            p.append(f"class: differs from the shard's class {cls!r} in {_where(bad)}")
+    cls = _check_class(a, attrs, p)
     if "sample_id" in a:
         ids = a["sample_id"]
         split, seed = str(attrs.get("split", "")), attrs.get("seed")
