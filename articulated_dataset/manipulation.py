@@ -126,6 +126,9 @@ ZERO_LENGTH = 1e-9
 #: A step count |dq| / step within this of an integer is that integer (so 60 deg in 1 deg
 #: steps is 60 steps, not 61, despite floating-point round-off).
 STEP_COUNT_SLACK = 1e-9
+#: Most waypoints one plan may have: a 0.001 deg step over a 90 deg door gives 90,000; a
+#: finer spacing resolves nothing the simulation or an arm controller could use.
+MAX_WAYPOINTS = 100_000
 #: A rebuilt true object's axis origins must match the stored labels to 1 mm (float32
 #: labels agree to ~1e-6 m; a larger gap means the data came from other templates).
 REBUILD_TOL_M = 1e-3
@@ -191,6 +194,8 @@ def parse_quantity(text: str) -> tuple[float, str]:
     if m is None:
         raise UserError(f"cannot parse {text!r}: expected a number with a unit, e.g. 60deg, 1.0rad, 0.2m, 20cm")
     value, unit = float(m.group(1)), m.group(2)
+    if not math.isfinite(value):
+        raise UserError(f"cannot use {text!r}: the number is too large to represent")
     scale = {"deg": (math.pi / 180.0, REVOLUTE), "rad": (1.0, REVOLUTE),
              "m": (1.0, PRISMATIC), "cm": (0.01, PRISMATIC), "mm": (0.001, PRISMATIC)}[unit]
     return value * scale[0], scale[1]
@@ -326,7 +331,11 @@ def waypoint_configurations(q_current: float, q_target: float, step: float) -> n
     dq = q_target - q_current
     if dq == 0.0:
         return np.array([q_current])
-    n = max(1, math.ceil(abs(dq) / step - STEP_COUNT_SLACK))
+    steps = abs(dq) / step
+    if not steps <= MAX_WAYPOINTS:
+        raise UserError(f"a step of {step:.3g} from {q_current:.4g} to {q_target:.4g} gives {steps:.3g} waypoints "
+                        f"(at most {MAX_WAYPOINTS:,}); use a larger step")
+    n = max(1, math.ceil(steps - STEP_COUNT_SLACK))
     qs = q_current + dq * np.arange(n + 1) / n
     qs[-1] = q_target
     return qs

@@ -16,6 +16,54 @@ def _fmt_vec(v, digits: int = 4) -> str:
     return "(" + ", ".join(f"{x:.{digits}f}" for x in v) + ")"
 
 
+class _CapturedObject:
+    """An image of an ingested real split: its class's joints and its labels, no model to
+    simulate (the same interface as :class:`~articulated_dataset.manipulation.TrueObject`
+    for planning)."""
+
+    def __init__(self, class_name: str, labels: dict):
+        from ..registry import get_class
+
+        obj_class = get_class(class_name)
+        self.class_name = obj_class.name
+        self.joint_types = obj_class.joint_types
+        self.q_ranges = tuple(obj_class.table.q)
+        self.labels = labels
+        self.n_joints = obj_class.n_joints
+
+    def truth(self):
+        from .. import manipulation as M
+
+        L = self.labels
+        return M.Estimate(L["axis_pose"].astype(np.float64), L["q"].astype(np.float64),
+                          L["part_offset"].astype(np.float64), L["geometry"].astype(np.float64), source="truth")
+
+    def clip_target(self, joint: int, q_target: float) -> float:
+        lo, hi = self.q_ranges[joint]
+        return float(min(max(q_target, lo), hi))
+
+
+def _usable_truth(estimate, joint: int, where: str):
+    """The truth labels of ``joint`` with every field planning needs, else a :class:`UserError`
+    naming those that are NaN (real captures: not given in their labels file).  A NaN
+    ``part_offset`` with a known ``geometry`` places the handle from the geometry."""
+    missing = []
+    if not np.isfinite(estimate.axis_pose[joint]).all():
+        missing.append("axis_pose")
+    if not np.isfinite(estimate.q[joint]):
+        missing.append("q")
+    offset_ok = estimate.part_offset is not None and np.isfinite(estimate.part_offset[joint]).all()
+    geometry_ok = estimate.geometry is not None and np.isfinite(estimate.geometry).all()
+    if not (offset_ok or geometry_ok):
+        missing.append("part_offset (or geometry)")
+    if missing:
+        raise UserError(f"{where}: the truth labels of joint {joint} lack {', '.join(missing)} (NaN: not in the "
+                        f"capture's labels file); add them there or plan from --predictions")
+    if not offset_ok:
+        estimate.part_offset = None
+    return estimate
+
+
 @click.command("plan")
 @click.option("--data", "data_dir", type=click.Path(), required=True,
               help="A generated split folder (<root>/<class>/<split>) holding the object.")
@@ -42,7 +90,11 @@ def plan_cmd(data_dir, index, joint, predictions_path, target, step, simulate, o
     if index < 0:
         raise UserError(f"--index must be >= 0, got {index}")
     manifest, labels = M.split_row_labels(data_dir, index)
-    obj = M.load_true_object(manifest, labels)
+    real = "real" in manifest
+    if real and simulate:
+        raise UserError(f"{data_dir}: image {index} is a real capture; there is no object model to simulate "
+                        f"(--simulate needs a generated split)")
+    obj = _CapturedObject(manifest["class_name"], labels) if real else M.load_true_object(manifest, labels)
     if not 0 <= joint < obj.n_joints:
         raise UserError(f"--joint {joint} out of range: {obj.class_name} has {obj.n_joints} joint(s) (0..{obj.n_joints - 1})")
     joint_type = obj.joint_types[joint]
@@ -64,7 +116,7 @@ def plan_cmd(data_dir, index, joint, predictions_path, target, step, simulate, o
 
     sample_id = int(labels["sample_id"])
     if predictions_path is None:
-        estimate = obj.truth()
+        estimate = _usable_truth(obj.truth(), joint, f"image {index} of {obj.class_name}/{manifest['split']}")
     else:
         _method, estimates = M.load_prediction_estimates(predictions_path, obj.class_name)
         if sample_id not in estimates:
@@ -96,7 +148,8 @@ def plan_cmd(data_dir, index, joint, predictions_path, target, step, simulate, o
         "object_index": int(labels["object_index"]), "image_index": int(labels["image_index"]),
         "sample_id": sample_id, "predictions": None if predictions_path is None else str(predictions_path),
         "units": {"position": "m (camera frame)", "quaternion": "w, x, y, z", "q": "rad (revolute) | m (prismatic)"},
-        "step": step_value, "q_true": float(labels["q"][joint]), **plan.to_dict(),
+        "step": step_value, "q_true": float(labels["q"][joint]) if np.isfinite(labels["q"][joint]) else None,
+        **plan.to_dict(),
     }
     if simulate:
         result = M.execute_plan(obj, plan.waypoints, joint, clipped)
