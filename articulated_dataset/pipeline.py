@@ -23,7 +23,7 @@ from . import FORMAT_VERSION, __version__
 from .camera import R_CAMERA_TO_OPTICAL, CameraConfig
 from .errors import DataFormatError, UserError
 from .labels import model_info, read_configuration, read_object_labels, visible_pixels
-from .registry import JOINT_TYPES, ObjectClass, get_class
+from .registry import JOINT_TYPES, REVOLUTE, ObjectClass, get_class
 from .render import DepthRenderer, process_renderer
 from .safeio import (TMP_SUFFIX, WriteError, available_memory_bytes, check_free_space, ensure_dir, format_bytes,
                      fsync_dir, remove_created_dirs, translated)
@@ -45,6 +45,8 @@ DEFAULT_MIN_PART_FRACTION = 0.002
 DEFAULT_IMAGES_PER_OBJECT = 16
 DEFAULT_OBJECTS_PER_SHARD = 64
 DEFAULT_SEED = 0
+#: Largest configuration of a revolute joint (rad): one full turn.
+MAX_REVOLUTE_Q_RAD = 2.0 * math.pi
 #: Largest seed: shards store it as a signed 64-bit integer attribute.
 MAX_SEED = 2**63 - 1
 #: Pose redraws allowed per object before giving up (a table that never shows the part).
@@ -89,6 +91,13 @@ class GenerationConfig:
             raise UserError(f"invalid split name {self.split!r}")
         if self.table is None:
             object.__setattr__(self, "table", obj_class.table)
+        if obj_class is not None:
+            if len(self.table.q) != obj_class.n_joints:
+                raise UserError(f"sampling table: q needs {obj_class.n_joints} ranges (one per joint), got {len(self.table.q)}")
+            for j, (joint, (_, hi)) in enumerate(zip(obj_class.joints, self.table.q)):
+                if joint.type == REVOLUTE and hi > MAX_REVOLUTE_Q_RAD:
+                    raise UserError(f"sampling table: q[{j}] (revolute joint {joint.name}) must be at most one turn "
+                                    f"({MAX_REVOLUTE_Q_RAD:.4f} rad), got {hi}")
         if self.min_part_pixels is None:
             area = self.camera.width_px * self.camera.height_px
             object.__setattr__(self, "min_part_pixels", int(math.ceil(DEFAULT_MIN_PART_FRACTION * area)))

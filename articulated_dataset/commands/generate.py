@@ -138,7 +138,11 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
         obj_class = get_class(class_name)
     table = obj_class.table
     if table_file:
-        table = table.override(load_table_file(table_file))
+        try:
+            table = table.override(load_table_file(table_file))
+        except UserError as exc:
+            message = str(exc)
+            raise UserError(message if str(table_file) in message else f"{table_file}: {message}") from None
     if mean_object:
         if n_objects not in (None, 1):
             raise UserError(f"--mean renders exactly one object (the class's mean object); drop --n {n_objects}")
