@@ -61,6 +61,16 @@ class SplitInfo:
         return int(a["image_height"]), int(a["image_width"])
 
     @property
+    def is_real(self) -> bool:
+        """Ingested real captures (labels NaN where a capture does not give them)."""
+        return "real" in self.manifest
+
+    @property
+    def is_mean_object(self) -> bool:
+        """The class's mean object (``artdata generate --mean``)."""
+        return self.config.get("mean") is True
+
+    @property
     def yaw_range_rad(self) -> tuple[float, float]:
         """The yaw range (rad) of the split's sampling table (the class prior of object rotations)."""
         lo, hi = self.config["table"]["pose"]["yaw_rad"]
@@ -85,9 +95,19 @@ def open_split_checked(path, role: str) -> SplitInfo:
     manifest, shards = open_split(path)
     if not shards or int(manifest.get("n_images", 0)) == 0:
         raise UserError(f"{role} split {path} holds no images")
+    info = SplitInfo(path, manifest, shards)
+    if role != "test" and info.is_real:
+        info.close()
+        raise UserError(f"{role} split {path} holds ingested real captures; the baselines learn from a generated "
+                        f"split (real splits can only be the --test split)")
+    if role == "mean-object" and not info.is_mean_object:
+        info.close()
+        raise UserError(f"{path} is the {manifest.get('split')!r} split, not a mean object: the mean object is built "
+                        f"from the class's training table ('artdata generate --class C --mean' or leave --mean-object "
+                        f"out)")
     if not manifest.get("complete", True):
         log.warning("%s split %s is incomplete (%d images); using what is there", role, path, manifest["n_images"])
-    return SplitInfo(path, manifest, shards)
+    return info
 
 
 def check_compatible(reference: SplitInfo, other: SplitInfo, *, same_image_size: bool = False) -> None:

@@ -43,6 +43,7 @@ import time
 
 import numpy as np
 
+from ..errors import UserError
 from .common import BaselineResult, check_compatible, open_split_checked
 
 log = logging.getLogger(__name__)
@@ -116,6 +117,21 @@ def _shard_features(args) -> np.ndarray:
         return depth_features(sh.read("depth"), block_px, normalization)
     finally:
         sh.close()
+
+
+def check_block(block_px: int, image_size: tuple[int, int], n_images: int) -> None:
+    """``block_px`` must be a positive integer no larger than the images (``(H, W)`` px), and
+    the features of ``n_images`` images (float32, plus the float64 block means of one shard)
+    must fit in this machine's memory; otherwise a one-line :class:`UserError`."""
+    from ..errors import check_memory
+
+    h, w = image_size
+    if isinstance(block_px, bool) or not isinstance(block_px, int) or block_px <= 0:
+        raise UserError(f"--block must be a positive whole number of pixels, got {block_px!r}")
+    if block_px > min(h, w):
+        raise UserError(f"--block {block_px} is larger than the {w}x{h} px images (at most {min(h, w)})")
+    check_memory(float(n_images) * (h // block_px) * (w // block_px) * np.dtype(np.float32).itemsize,
+                 f"NN features of {n_images} images at --block {block_px}")
 
 
 def split_features(split, block_px: int = BLOCK_PX, normalization: str = DEFAULT_NORMALIZATION,
@@ -238,6 +254,7 @@ def predict(train_dir, test_dir, *, mean_dir=None, workers: int = 1, progress: b
     test = open_split_checked(test_dir, "test")
     try:
         check_compatible(train, test, same_image_size=True)
+        check_block(block_px, train.image_size, train.n_images + test.n_images)
         t0 = time.perf_counter()
         x_train = split_features(train, block_px, normalization, workers, progress)
         x_test = split_features(test, block_px, normalization, workers, progress)
