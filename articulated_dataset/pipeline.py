@@ -180,6 +180,8 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
         raise UserError(
             f"{obj_class.name} object {sample.object_index}: no pose in the table shows every moving part "
             f"with >= {config.min_part_pixels} px after {MAX_POSE_ATTEMPTS} attempts; check the table"
+            + (" or choose the joints that open with --joints (a hidden part cannot be labelled)"
+               if config.third_party is not None else "")
         )
     if config.noise != "none":
         from .noise import get_noise_model  # seeded per object: see noise_rng

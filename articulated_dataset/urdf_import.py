@@ -4,17 +4,26 @@
 pose and configuration sampling and label definitions.  The URDF is turned into a
 *processed* URDF that the pipeline treats like any class template:
 
-* yourdfpy parses and checks the file; mesh paths are resolved relative to the URDF
-  (``package://`` prefixes are tried relative to the URDF's folder and its parents);
+* the file is data, never code: it is parsed as plain XML (lxml with entity expansion,
+  network access and DTDs off, no XInclude; a DOCTYPE is refused) and read into yourdfpy's
+  structures; it never goes through xacro (only our own ``*.xacro`` templates do), and link
+  and joint names must be plain identifiers (:data:`URDF_NAME_CHARS`);
+* mesh paths are resolved with yourdfpy relative to the URDF (``package://`` prefixes are
+  tried relative to the URDF's folder and its parents) and must lie inside the *mesh root*:
+  the URDF's folder, or the folder the user names (``--mesh-root``);
 * each link's geometry is its ``<visual>`` elements (its ``<collision>`` elements if it
   has no visual).  Meshes are loaded with trimesh, scaled, placed by their ``<origin>`` and
   merged into one binary STL per link (MuJoCo reads STL; a flat mesh gets a
   :data:`FLAT_MESH_THICKNESS_M` thickness because MuJoCo needs a 3-D convex hull), with
   every triangle made double-sided (MuJoCo culls back faces; see :func:`double_sided`);
   primitive boxes, cylinders and spheres are kept as they are;
-* the joints to articulate (``--joints``, default: every revolute, continuous and
-  prismatic joint with a non-empty range, in file order) keep their type; every other
-  joint is frozen (``fixed``) at its URDF zero, the pose the meshes are modelled in;
+* the joints to articulate (``--joints``, default: every revolute and prismatic joint with
+  a finite, non-empty range, in file order: the parts that open; ``continuous`` joints such
+  as knobs are articulated only when named) keep their type; every other joint is frozen
+  (``fixed``) at its URDF zero, the pose the meshes are modelled in;
+* ``--scale s`` multiplies every length (mesh vertices, primitive sizes, joint and element
+  origins, prismatic limits) by ``s``, for files in other units (PartNet-Mobility's are
+  normalised); labels are read from the scaled model, so they follow;
 * joint coordinates are re-parametrised so that q = 0 is a joint limit and positive q
   moves towards the other limit (the dataset's "q = 0 is closed, positive q opens"):
   limits ``[lo, hi]`` with ``lo >= 0`` are kept; ``hi <= 0`` flips the axis, giving
@@ -56,6 +65,7 @@ import numpy as np
 from .camera import CameraConfig
 from .errors import UserError
 from .registry import PRISMATIC, REVOLUTE, JointSpec, ObjectClass, class_names
+from .shards import MAX_CLASS_NAME_CHARS, is_class_name
 from .tables import SamplingTable
 
 log = logging.getLogger(__name__)
@@ -89,13 +99,29 @@ MIN_GEOMETRY_M = 1e-3
 VIEW_MARGIN = 1.25
 #: Farthest distance of the default pose table relative to the nearest one.
 FAR_DISTANCE_RATIO = 1.5
-#: Class names are stored in the shards' ``class`` field (S32: 32 ASCII bytes).
-MAX_CLASS_NAME_CHARS = 32
-_NAME_OK = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+#: Link and joint names: plain identifiers (ROS-style names also use ``/`` and ``:``).  A
+#: name holding ``$``, braces, quotes or control characters is refused (never evaluated).
+URDF_NAME_CHARS = "A-Z a-z 0-9 _ . - / : +"
+_URDF_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_./:+-]*")
+#: Longest link or joint name accepted.
+MAX_URDF_NAME_CHARS = 128
+#: Largest |limit| of a revolute joint (rad): one full turn, plus the rounding of files that
+#: write 2 pi as 6.2832.  Beyond that the value is a placeholder (1e30, "unlimited").
+LIMIT_ROUNDING_RAD = 1e-3
+MAX_REVOLUTE_LIMIT_RAD = 2 * math.pi + LIMIT_ROUNDING_RAD
+#: Largest |limit| of a prismatic joint (m, after --scale): no articulated object opens
+#: farther; a larger value is a placeholder or a unit mistake.
+MAX_PRISMATIC_LIMIT_M = 10.0
+#: Most triangles MuJoCo's STL reader takes in one mesh file (its stl_decoder's limit).
+MUJOCO_MAX_STL_FACES = 200_000
 #: yourdfpy validation messages not treated as errors: a <limit>'s effort and velocity do
 #: not matter for kinematics (PartNet-Mobility omits them), and URDF defaults a missing
 #: lower / upper to 0.
 _LENIENT_VALIDATION = re.compile(r"'(effort|velocity|lower|upper)'")
+#: Keys of a third-party definition (``GenerationConfig.third_party``); ``scale`` and
+#: ``mesh_root`` are present only when not the default (so default imports keep their bytes).
+_DEFINITION_KEYS = {"urdf", "class_name", "joints", "skip_missing_meshes", "camera", "sha256", "import_version"}
+_OPTIONAL_DEFINITION_KEYS = {"scale", "mesh_root"}
 
 
 # --------------------------------------------------------------------------------------
@@ -122,13 +148,8 @@ def view_pose_ranges(box_lo, box_hi, camera: CameraConfig, yaw_rad: tuple[float,
 
     Returns ``{"x_m": (lo, hi), "y_m": ..., "z_m": ..., "yaw_rad": ...}`` (metres, radians).
     """
-    lo, hi = np.asarray(box_lo, float), np.asarray(box_hi, float)
-    c_z = 0.5 * (lo[2] + hi[2])
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    r = float(np.max(np.linalg.norm(corners - np.array([0.0, 0.0, c_z]), axis=1)))
-    half_v = math.radians(camera.vfov_deg) / 2
-    half_h = math.atan(math.tan(half_v) * camera.width_px / camera.height_px)
-    alpha = min(half_v, half_h)
+    c_z, r = _yaw_sphere(box_lo, box_hi)
+    alpha = _half_fov(camera)
     d = VIEW_MARGIN * r / math.sin(alpha)
     s = (VIEW_MARGIN - 1.0) * r / math.cos(alpha)
     return {
@@ -137,6 +158,21 @@ def view_pose_ranges(box_lo, box_hi, camera: CameraConfig, yaw_rad: tuple[float,
         "z_m": (-s - c_z, s - c_z),
         "yaw_rad": (float(yaw_rad[0]), float(yaw_rad[1])),
     }
+
+
+def _yaw_sphere(box_lo, box_hi) -> tuple[float, float]:
+    """``(c_z, r)``: mid-height (m) and radius (m) of the sphere centred on the root z axis
+    at the box's mid-height that holds the box (see :func:`view_pose_ranges`)."""
+    lo, hi = np.asarray(box_lo, float), np.asarray(box_hi, float)
+    c_z = 0.5 * (lo[2] + hi[2])
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    return float(c_z), float(np.max(np.linalg.norm(corners - np.array([0.0, 0.0, c_z]), axis=1)))
+
+
+def _half_fov(camera: CameraConfig) -> float:
+    """The smaller half field of view (rad), vertical or horizontal."""
+    half_v = math.radians(camera.vfov_deg) / 2
+    return min(half_v, math.atan(math.tan(half_v) * camera.width_px / camera.height_px))
 
 
 def reparametrize_range(lower: float, upper: float) -> tuple[tuple[float, float], bool, float]:
@@ -177,11 +213,11 @@ def default_class_name(urdf_path: str | Path) -> str:
 
 
 def check_class_name(name: str) -> str:
-    """A valid, new class name (ASCII, <= 32 characters, not a built-in class)."""
-    if not _NAME_OK.match(name) or len(name) > MAX_CLASS_NAME_CHARS:
+    """A valid, new class name (:func:`articulated_dataset.shards.is_class_name`, not a built-in class)."""
+    if not is_class_name(name):
         raise UserError(
-            f"invalid class name {name!r}: use 1-{MAX_CLASS_NAME_CHARS} characters from A-Z a-z 0-9 _ . - "
-            "(pass --class-name)"
+            f"invalid class name {str(name)[:80]!r}: use 1-{MAX_CLASS_NAME_CHARS} characters from A-Z a-z 0-9 _ . -, "
+            "not starting with . or - (pass --class-name)"
         )
     if name in class_names():
         raise UserError(f"class name {name!r} is a built-in class; pass another --class-name")
@@ -209,6 +245,7 @@ class _Element:
     geometry: object  # yourdfpy Geometry
     mesh_file: str | None  # absolute path of a mesh
     source: str  # "visual" or "collision"
+    scale: float = 1.0  # --scale, applied to a mesh's vertices after its own <mesh scale>
 
 
 @dataclass
@@ -221,41 +258,168 @@ class _Parsed:
     missing: list  # (link, file) of mesh files not found
 
 
-def _parse(path: Path) -> object:
-    """yourdfpy Robot of ``path``, or a one-line UserError naming the file."""
-    import yourdfpy
+def _one_line(exc: Exception) -> str:
+    return (str(exc).splitlines() or [""])[0][:200]
+
+
+def _safe_xml(path: Path):
+    """The root element of ``path`` parsed as plain XML: no entity expansion, no DTD, no
+    network, no XInclude (lxml only includes when asked), comments and processing
+    instructions dropped.  A DOCTYPE (the only way to declare entities) is refused."""
     from lxml import etree
 
     if not path.is_file():
         raise UserError(f"URDF file not found: {path}")
+    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, dtd_validation=False,
+                             huge_tree=False, remove_blank_text=True, remove_comments=True, remove_pis=True)
     try:
-        etree.parse(str(path))  # yourdfpy silently "recovers" malformed XML: check first
-    except (etree.XMLSyntaxError, OSError) as exc:
-        raise UserError(f"cannot parse URDF {path}: {exc}") from None
+        tree = etree.parse(str(path), parser)
+    except (etree.XMLSyntaxError, OSError, ValueError) as exc:
+        raise UserError(f"cannot parse URDF {path}: {_one_line(exc)}") from None
+    if tree.docinfo.doctype or tree.docinfo.internalDTD is not None:
+        raise UserError(f"URDF {path} has a DOCTYPE; entity declarations are refused (a URDF needs none)")
+    root = tree.getroot()
+    if root.tag != "robot":
+        raise UserError(f"{path} is not a URDF (root element <{str(root.tag)[:40]}>, expected <robot>)")
+    if any(isinstance(e, etree._Entity) for e in root.iter()):
+        raise UserError(f"URDF {path} uses entity references; refused")
+    etree.cleanup_namespaces(root)
+    return root
+
+
+def _parse(path: Path) -> object:
+    """yourdfpy Robot of ``path`` (parsed by :func:`_safe_xml`), or a one-line UserError naming the file."""
+    import yourdfpy
+
+    root = _safe_xml(path)
     try:
-        urdf = yourdfpy.URDF.load(str(path), build_scene_graph=False, build_collision_scene_graph=False,
-                                  load_meshes=False, load_collision_meshes=False)
+        robot = yourdfpy.URDF._parse_robot(xml_element=root)
+        urdf = yourdfpy.URDF(robot=robot, build_scene_graph=False, build_collision_scene_graph=False,
+                             load_meshes=False, load_collision_meshes=False, mesh_dir=str(path.parent))
     except Exception as exc:  # yourdfpy raises KeyError/AttributeError/ValueError on bad elements
-        raise UserError(f"cannot parse URDF {path}: {type(exc).__name__}: {exc}") from None
+        raise UserError(f"cannot parse URDF {path}: {type(exc).__name__}: {_one_line(exc)}") from None
     for j in urdf.robot.joints:
         if j.type in ("revolute", "prismatic") and j.limit is None:
             raise UserError(f"{j.type} joint {j.name!r} of {path} has no <limit> (URDF requires one)")
     urdf.validate()
     errors = [e for e in urdf.errors if not _LENIENT_VALIDATION.search(str(e))]
     if errors:
-        raise UserError(f"invalid URDF {path}: {errors[0]}")
+        raise UserError(f"invalid URDF {path}: {_one_line(errors[0])}")
+    _check_names(urdf.robot, path)
+    _check_numbers(urdf.robot, path)
     return urdf.robot
 
 
-def _resolve_mesh(filename: str, urdf_dir: Path) -> str:
-    """Absolute path of a mesh reference (relative, absolute, ``file://`` or ``package://``)."""
+def _check_names(robot, path: Path) -> None:
+    """Every link and joint name is a plain identifier (see :data:`URDF_NAME_CHARS`)."""
+    for kind, items in (("link", robot.links), ("joint", robot.joints)):
+        for item in items:
+            name = item.name
+            if not isinstance(name, str) or len(name) > MAX_URDF_NAME_CHARS or not _URDF_NAME_RE.fullmatch(name):
+                raise UserError(f"URDF {path}: invalid {kind} name {str(name)[:60]!r} (use 1-{MAX_URDF_NAME_CHARS} "
+                                f"characters from {URDF_NAME_CHARS}; names are identifiers, never evaluated)")
+
+
+def _finite(values, what: str, path: Path) -> np.ndarray:
+    a = np.asarray(values, float)
+    if not np.all(np.isfinite(a)):
+        raise UserError(f"URDF {path}: {what} is not finite ({np.array2string(a.ravel()[:6], separator=' ')})")
+    return a
+
+
+def _check_numbers(robot, path: Path) -> None:
+    """Origins finite; mesh scales finite and non-zero; primitive sizes finite and positive."""
+    for j in robot.joints:
+        if j.origin is not None:
+            _finite(j.origin, f"origin of joint {j.name!r}", path)
+    for link in robot.links:
+        for kind, items in (("visual", link.visuals), ("collision", link.collisions)):
+            for item in items:
+                where = f"a {kind} of link {link.name!r}"
+                if item.origin is not None:
+                    _finite(item.origin, f"origin of {where}", path)
+                g = item.geometry
+                if g is None:
+                    continue
+                if g.mesh is not None and g.mesh.scale is not None:
+                    sc = _finite(g.mesh.scale, f"mesh scale of {where}", path)
+                    if np.any(sc == 0):
+                        raise UserError(f"URDF {path}: mesh scale of {where} has a zero factor")
+                sizes = []
+                if g.box is not None:
+                    sizes.append(("box size", g.box.size))
+                if g.cylinder is not None:
+                    sizes += [("cylinder radius", g.cylinder.radius), ("cylinder length", g.cylinder.length)]
+                if g.sphere is not None:
+                    sizes.append(("sphere radius", g.sphere.radius))
+                for what, v in sizes:
+                    a = _finite(0.0 if v is None else v, f"{what} of {where}", path)
+                    if np.any(a <= 0):
+                        raise UserError(f"URDF {path}: {what} of {where} must be positive, "
+                                        f"got {np.array2string(a.ravel(), separator=' ')}")
+
+
+def _resolve_mesh(filename: str, urdf_dir: Path, mesh_root: Path, link: str, path: Path) -> str:
+    """Absolute path of a mesh reference (relative, absolute, ``file://`` or ``package://``),
+    which must lie inside ``mesh_root`` (symbolic links resolved)."""
     import yourdfpy
 
-    return os.path.abspath(yourdfpy.filename_handler_magic(filename, dir=str(urdf_dir)))
+    if not isinstance(filename, str) or not filename or "\0" in filename:
+        raise UserError(f"URDF {path}: invalid mesh file name {str(filename)[:80]!r} (link {link!r})")
+    resolved = yourdfpy.filename_handler_magic(filename, dir=str(urdf_dir))
+    if not os.path.isfile(resolved):  # not found: report (and check) it relative to the URDF
+        resolved = os.path.join(urdf_dir, yourdfpy.filename_handler_ignore_directive(filename))
+    resolved = os.path.abspath(resolved)
+    try:
+        inside = Path(resolved).resolve().is_relative_to(mesh_root.resolve())
+    except (OSError, RuntimeError):  # a symbolic-link loop
+        inside = False
+    if not inside:
+        raise UserError(f"mesh file {filename[:120]!r} (link {link!r} of {path}) lies outside {mesh_root}: meshes are "
+                        "read only from the URDF's folder or the folder given with --mesh-root")
+    return resolved
 
 
-def _load_structure(path: Path) -> _Parsed:
+def _scaled_robot(robot, scale: float):
+    """``robot`` with joint origins and prismatic limits multiplied by ``scale`` (lengths)."""
+    joints = []
+    for j in robot.joints:
+        origin = None if j.origin is None else _scaled_origin(j.origin, scale)
+        limit = j.limit
+        if limit is not None and j.type == "prismatic":
+            limit = replace(limit, lower=None if limit.lower is None else limit.lower * scale,
+                            upper=None if limit.upper is None else limit.upper * scale)
+        joints.append(replace(j, origin=origin, limit=limit))
+    return replace(robot, joints=joints)
+
+
+def _scaled_origin(origin, scale: float) -> np.ndarray:
+    out = np.array(origin, float)
+    out[:3, 3] *= scale
+    return out
+
+
+def _scaled_geometry(geometry, scale: float):
+    """A primitive's sizes multiplied by ``scale`` (meshes are scaled when loaded)."""
+    import yourdfpy
+
+    if geometry.box is not None:
+        return replace(geometry, box=yourdfpy.Box(size=np.asarray(geometry.box.size, float) * scale))
+    if geometry.cylinder is not None:
+        return replace(geometry, cylinder=yourdfpy.Cylinder(radius=geometry.cylinder.radius * scale,
+                                                            length=geometry.cylinder.length * scale))
+    if geometry.sphere is not None:
+        return replace(geometry, sphere=yourdfpy.Sphere(radius=geometry.sphere.radius * scale))
+    return geometry
+
+
+def _load_structure(path: Path, mesh_root: Path | None = None, scale: float = 1.0) -> _Parsed:
+    """Parse and check ``path``; ``mesh_root``: the folder meshes must lie in (default the
+    URDF's folder); ``scale``: the --scale factor (1: the file as it is)."""
     robot = _parse(path)
+    if scale != 1.0:
+        robot = _scaled_robot(robot, scale)
+    mesh_root = path.parent if mesh_root is None else mesh_root
     links = [link.name for link in robot.links]
     if len(set(links)) != len(links):
         raise UserError(f"invalid URDF {path}: duplicate link names")
@@ -277,14 +441,20 @@ def _load_structure(path: Path) -> _Parsed:
         source, items = ("visual", link.visuals) if link.visuals else ("collision", link.collisions)
         out = []
         for item in items:
+            if item.geometry is None:
+                raise UserError(f"invalid URDF {path}: a {source} of link {link.name!r} has no <geometry>")
             origin = np.eye(4) if item.origin is None else np.asarray(item.origin, float)
             mesh_file = None
             if item.geometry.mesh is not None:
-                mesh_file = _resolve_mesh(item.geometry.mesh.filename, urdf_dir)
+                mesh_file = _resolve_mesh(item.geometry.mesh.filename, urdf_dir, mesh_root, link.name, path)
                 if not os.path.isfile(mesh_file):
                     missing.append((link.name, mesh_file))
                     continue
-            out.append(_Element(origin, item.geometry, mesh_file, source))
+            if scale != 1.0:
+                out.append(_Element(_scaled_origin(origin, scale), _scaled_geometry(item.geometry, scale), mesh_file,
+                                    source, scale))
+            else:
+                out.append(_Element(origin, item.geometry, mesh_file, source))
         elements[link.name] = out
     return _Parsed(path, robot, roots[0], parent_joint, elements, missing)
 
@@ -309,14 +479,21 @@ def _limits(joint) -> tuple[float, float]:
 
 
 def _infer_joints(parsed: _Parsed) -> list[str]:
-    """Every revolute / continuous / prismatic joint without ``<mimic>`` whose range is not empty."""
+    """The parts that open: every revolute / prismatic joint without ``<mimic>`` whose range
+    is not empty.  ``continuous`` joints (knobs, turntables) are used only when named."""
     names = []
     for j in parsed.robot.joints:
-        if j.type not in MOVABLE_TYPES or j.mimic is not None:
+        if j.type not in ("revolute", "prismatic") or j.mimic is not None:
             continue
-        if j.type != "continuous" and _limits(j)[1] <= _limits(j)[0]:
+        if _limits(j)[1] <= _limits(j)[0]:
             continue
         names.append(j.name)
+    if not names:
+        free = [j.name for j in parsed.robot.joints if j.type == "continuous" and j.mimic is None]
+        hint = (f"; its continuous joints ({', '.join(free[:5])}) turn freely: articulate them with --joints"
+                if free else "")
+        raise UserError(f"{parsed.path}: no joint to articulate by default (no revolute or prismatic joint with a "
+                        f"range){hint}")
     return names
 
 
@@ -350,10 +527,14 @@ def _plan_joint(parsed: _Parsed, name: str) -> _JointPlan:
         return _JointPlan(name, j.type, j.child, tuple(REVOLUTE_Q_RAD), False, 0.0,
                           f"{name}: continuous, q in the revolute default [0, pi/2] rad (set it with --table)")
     lower, upper = _limits(j)
+    unit = "m" if MOVABLE_TYPES[j.type] == PRISMATIC else "rad"
+    bound = MAX_PRISMATIC_LIMIT_M if unit == "m" else MAX_REVOLUTE_LIMIT_RAD
+    if not (math.isfinite(lower) and math.isfinite(upper)) or max(abs(lower), abs(upper)) > bound:
+        raise UserError(f"joint {name!r} of {parsed.path} has limits [{lower:g}, {upper:g}] {unit}, beyond "
+                        f"+-{bound:g} {unit} (a placeholder, not a range); fix the <limit> or choose other --joints")
     if upper <= lower:
         raise UserError(f"joint {name!r} of {parsed.path} has an empty range [{lower}, {upper}]")
     q_range, flip, offset = reparametrize_range(lower, upper)
-    unit = "m" if MOVABLE_TYPES[j.type] == PRISMATIC else "rad"
     how = "axis flipped" if flip else (f"zero moved to the lower limit {lower:g} {unit}" if offset else "as in the URDF")
     note = f"{name}: {j.type}, URDF limits [{lower:g}, {upper:g}] {unit} -> q in [{q_range[0]:g}, {q_range[1]:g}] {unit} ({how})"
     return _JointPlan(name, j.type, j.child, q_range, flip, offset, note)
@@ -367,15 +548,19 @@ def _load_mesh(path: str):
     import trimesh
 
     try:
+        # trimesh reads the files a mesh refers to (materials, buffers) only inside the
+        # mesh's folder; materials are skipped anyway.
         mesh = trimesh.load_mesh(path, process=False, skip_materials=True)
     except Exception as exc:  # unreadable or unsupported file: the user's
-        raise UserError(f"cannot read mesh file {path}: {exc}") from None
+        raise UserError(f"cannot read mesh file {path}: {_one_line(exc)}") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise UserError(f"mesh file {path} holds no triangles")
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise UserError(f"mesh file {path} has vertices that are not finite numbers")
     return mesh
 
 
-def _link_mesh(elements: list):
+def _link_mesh(elements: list, link: str = "", path: Path | None = None):
     """The link's meshes (scaled, placed) merged into one trimesh in the link frame, or None."""
     import trimesh
 
@@ -388,12 +573,19 @@ def _link_mesh(elements: list):
         if scale is not None:
             s = np.broadcast_to(np.asarray(scale, float), (3,))
             m.apply_transform(np.diag([s[0], s[1], s[2], 1.0]))
+        if e.scale != 1.0:
+            m.apply_scale(e.scale)
         m.apply_transform(e.origin)
         parts.append(m)
     if not parts:
         return None
-    mesh = _thicken_if_flat(trimesh.util.concatenate(parts) if len(parts) > 1 else parts[0])
-    return double_sided(mesh)
+    n_faces = sum(len(m.faces) for m in parts)
+    mesh = double_sided(_thicken_if_flat(trimesh.util.concatenate(parts) if len(parts) > 1 else parts[0]))
+    if len(mesh.faces) > MUJOCO_MAX_STL_FACES:
+        raise UserError(f"link {link!r} of {path}: its meshes have {n_faces} triangles, {len(mesh.faces)} once "
+                        f"double-sided, over MuJoCo's {MUJOCO_MAX_STL_FACES} per mesh; simplify them to under "
+                        f"{MUJOCO_MAX_STL_FACES // 2} triangles (e.g. trimesh's simplify_quadric_decimation)")
+    return mesh
 
 
 def double_sided(mesh):
@@ -481,7 +673,7 @@ def _write_processed(parsed: _Parsed, plans: list[_JointPlan], folder: Path, fin
 
     mesh_files = {}
     for i, link in enumerate(parsed.robot.links):
-        mesh = _link_mesh(parsed.elements[link.name])
+        mesh = _link_mesh(parsed.elements[link.name], link.name, parsed.path)
         if mesh is not None:
             name = f"link_{i:04d}.stl"
             mesh.export(str(folder / name), file_type="stl")
@@ -566,9 +758,12 @@ def _build_class(definition: dict) -> tuple[ObjectClass, tuple[str, ...]]:
     from .labels import MASK_BODY, MASK_FIRST_PART, model_info, read_object_labels
     from .scene import build_model
 
+    definition = _check_definition(definition)
     path = Path(definition["urdf"])
-    parsed = _load_structure(path)
-    notes = []
+    scale = float(definition.get("scale", 1.0))
+    mesh_root = Path(definition["mesh_root"]) if definition.get("mesh_root") else None
+    parsed = _load_structure(path, mesh_root, scale)
+    notes = [f"lengths scaled by {scale:g} (--scale)"] if scale != 1.0 else []
     if parsed.missing:
         if not definition["skip_missing_meshes"]:
             link, f = parsed.missing[0]
@@ -576,7 +771,7 @@ def _build_class(definition: dict) -> tuple[ObjectClass, tuple[str, ...]]:
         for link, f in parsed.missing:
             notes.append(f"skipped missing mesh {f} (link {link!r})")
     digest = _source_digest(parsed)
-    if definition.get("sha256") and definition["sha256"] != digest:
+    if definition["sha256"] != digest:
         raise UserError(
             f"{path} or its meshes differ from the files the generation was started with "
             "(changed since, or a different copy on this node)"
@@ -587,11 +782,16 @@ def _build_class(definition: dict) -> tuple[ObjectClass, tuple[str, ...]]:
     if len({p.name for p in plans}) != len(plans):
         raise UserError(f"{path}: a joint is listed twice in --joints")
     notes += [p.note for p in plans]
-    key = hashlib.sha256(json.dumps([IMPORT_VERSION, digest, definition["joints"], definition["skip_missing_meshes"]])
-                         .encode()).hexdigest()[:24]
+    recipe = [IMPORT_VERSION, digest, definition["joints"], definition["skip_missing_meshes"]]
+    if scale != 1.0:  # only then: default imports keep their cache key
+        recipe.append(scale)
+    key = hashlib.sha256(json.dumps(recipe).encode()).hexdigest()[:24]
     template = _ensure_processed(parsed, plans, key)
 
-    camera = CameraConfig(**definition["camera"])
+    try:
+        camera = CameraConfig(**definition["camera"])
+    except (TypeError, ValueError) as exc:
+        raise UserError(f"corrupt third-party URDF definition: camera ({_one_line(exc)})") from None
     provisional = SamplingTable(
         geometry={k: (1.0, 1.0) for k in ("depth_m", "width_m", "height_m")},
         pose={"x_m": (1, 1), "y_m": (0, 0), "z_m": (0, 0), "yaw_rad": (0, 0)},
@@ -604,7 +804,10 @@ def _build_class(definition: dict) -> tuple[ObjectClass, tuple[str, ...]]:
     )
     # Compile once at the identity pose (object frame = camera frame): checks that MuJoCo
     # reads the processed model and measures the object for the default pose table.
-    model = build_model(template.read_text(), {"x_m": 0.0, "y_m": 0.0, "z_m": 0.0, "yaw_rad": 0.0}, camera, parsed.root)
+    try:
+        model = build_model(template.read_text(), {"x_m": 0.0, "y_m": 0.0, "z_m": 0.0, "yaw_rad": 0.0}, camera, parsed.root)
+    except ValueError as exc:  # MuJoCo's compiler refuses the model (degenerate mesh, ...)
+        raise UserError(f"{path}: MuJoCo cannot compile the object ({_one_line(exc)})") from None
     data = mujoco.MjData(model)
     info = model_info(model, obj_class)
     for j, p in enumerate(plans):
@@ -620,12 +823,50 @@ def _build_class(definition: dict) -> tuple[ObjectClass, tuple[str, ...]]:
     pts = np.concatenate([_geom_points(model, data, g) for g in obj_geoms])
     body = np.concatenate([_geom_points(model, data, g) for g in np.nonzero(info.geom_part == MASK_BODY)[0]])
     size = np.maximum(body.max(axis=0) - body.min(axis=0), MIN_GEOMETRY_M)
+    _check_fits_camera(pts.min(axis=0), pts.max(axis=0), camera, path)
     table = SamplingTable(
         geometry={"depth_m": (size[0], size[0]), "width_m": (size[1], size[1]), "height_m": (size[2], size[2])},
         pose=view_pose_ranges(pts.min(axis=0), pts.max(axis=0), camera, YAW_RAD),
         q=tuple(p.q_range for p in plans),
     )
     return replace(obj_class, table=table), tuple(notes)
+
+
+def _check_fits_camera(box_lo, box_hi, camera: CameraConfig, path: Path) -> None:
+    """The default pose table's nearest and farthest views must lie within the depth range
+    (:data:`articulated_dataset.scene.NEAR_CLIP_M` .. ``FAR_CLIP_M``); else say --scale."""
+    from .scene import FAR_CLIP_M, NEAR_CLIP_M
+
+    _, r = _yaw_sphere(box_lo, box_hi)
+    d = VIEW_MARGIN * r / math.sin(_half_fov(camera))
+    if not math.isfinite(r) or FAR_DISTANCE_RATIO * d + r > FAR_CLIP_M:
+        raise UserError(f"{path}: the object is {2 * r:.3g} m across, too large to view within the camera's "
+                        f"{FAR_CLIP_M:g} m depth range; check its units and pass --scale (e.g. --scale 0.001 for mm)")
+    if d - r < NEAR_CLIP_M:
+        raise UserError(f"{path}: the object is {2 * r:.3g} m across, too small to view beyond the camera's "
+                        f"{NEAR_CLIP_M:g} m near plane; check its units and pass --scale")
+
+
+def _check_definition(definition) -> dict:
+    """A third-party definition (possibly read back from a manifest) with the expected keys
+    and types; a bad one is a one-line UserError."""
+    ok = (isinstance(definition, dict) and _DEFINITION_KEYS <= set(definition)
+          and set(definition) <= _DEFINITION_KEYS | _OPTIONAL_DEFINITION_KEYS)
+    if ok:
+        d = definition
+        scale = d.get("scale", 1.0)
+        ok = (isinstance(d["urdf"], str) and os.path.isabs(d["urdf"]) and "\0" not in d["urdf"]
+              and is_class_name(d["class_name"])
+              and isinstance(d["joints"], list) and all(isinstance(j, str) for j in d["joints"])
+              and isinstance(d["skip_missing_meshes"], bool) and isinstance(d["camera"], dict)
+              and (d["sha256"] is None or (isinstance(d["sha256"], str) and re.fullmatch(r"[0-9a-f]{64}", d["sha256"])))
+              and isinstance(scale, (int, float)) and not isinstance(scale, bool) and math.isfinite(scale) and scale > 0
+              and (d.get("mesh_root") is None or (isinstance(d["mesh_root"], str) and os.path.isabs(d["mesh_root"])
+                                                  and "\0" not in d["mesh_root"])))
+    if not ok:
+        raise UserError("corrupt third-party URDF definition (the 'third_party' entry of the generation config): "
+                        "expected the keys and types that 'artdata generate --urdf' writes")
+    return definition
 
 
 @functools.lru_cache(maxsize=16)
@@ -645,6 +886,8 @@ def import_urdf(
     class_name: str | None = None,
     skip_missing_meshes: bool = False,
     camera: CameraConfig | None = None,
+    scale: float = 1.0,
+    mesh_root: str | Path | None = None,
 ) -> UrdfObject:
     """Check a URDF and prepare it for generation.
 
@@ -652,10 +895,23 @@ def import_urdf(
     :func:`_infer_joints`).  ``class_name``: the dataset class name (default
     :func:`default_class_name`).  ``skip_missing_meshes``: drop mesh references whose file
     does not exist instead of stopping.  ``camera``: the camera the default pose table is
-    computed for.  Raises :class:`UserError` with one line naming the file on any problem.
+    computed for.  ``scale``: multiplies every length of the file (mesh vertices, primitive
+    sizes, origins, prismatic limits; e.g. 0.001 for a file in millimetres).  ``mesh_root``:
+    the folder meshes may be read from (default: the URDF's folder).  Raises
+    :class:`UserError` with one line naming the file on any problem.
     """
     path = Path(urdf_path).expanduser().resolve()
-    parsed = _load_structure(path)
+    try:
+        scale = float(scale)
+    except (TypeError, ValueError):
+        raise UserError(f"--scale must be a number, got {scale!r}") from None
+    if not (math.isfinite(scale) and scale > 0):
+        raise UserError(f"--scale must be a positive finite number, got {scale:g}")
+    if mesh_root is not None:
+        mesh_root = Path(mesh_root).expanduser().resolve()
+        if not mesh_root.is_dir():
+            raise UserError(f"--mesh-root {mesh_root} is not a folder")
+    parsed = _load_structure(path, mesh_root, scale)
     camera = camera or CameraConfig()
     inferred = joints is None
     if inferred:
@@ -670,6 +926,10 @@ def import_urdf(
         "sha256": None,
         "import_version": IMPORT_VERSION,
     }))
+    if scale != 1.0:  # only when given: a default import's definition (and bytes) stay as they were
+        definition["scale"] = scale
+    if mesh_root is not None:
+        definition["mesh_root"] = str(mesh_root)
     if not parsed.missing or skip_missing_meshes:
         definition["sha256"] = _source_digest(parsed)
     obj_class, notes = _class_for_key(json.dumps(definition, sort_keys=True))

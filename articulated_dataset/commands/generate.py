@@ -79,10 +79,14 @@ class _ClassChoice(click.ParamType):
 @click.option("--urdf", "urdf_path", type=click.Path(dir_okay=False), default=None,
               help="Generate a third-party articulated object from this URDF file instead of a --class (docs/third_party_urdf.md).")
 @click.option("--joints", "joint_names", default=None, metavar="NAME,...",
-              help="With --urdf: joints to articulate, in label order (default: every revolute/continuous/prismatic joint).")
+              help="With --urdf: joints to articulate, in label order (default: every revolute/prismatic joint with a range; continuous ones only when named).")
 @click.option("--class-name", "urdf_class_name", default=None,
               help="With --urdf: class name stored in the shards and used for OUT/<class>/ (default: <folder>-<file stem>).")
 @click.option("--skip-missing-meshes", is_flag=True, help="With --urdf: drop mesh references whose file does not exist.")
+@click.option("--scale", "urdf_scale", type=float, default=None,
+              help="With --urdf: multiply every length of the file (meshes, origins, prismatic limits) by this  [default: 1].")
+@click.option("--mesh-root", "urdf_mesh_root", type=click.Path(file_okay=False), default=None,
+              help="With --urdf: folder meshes may be read from  [default: the URDF's folder].")
 @click.option("--n", "n_objects", type=int, default=None,
               help=f"Number of objects (each gives --images images)  [default: {DEFAULT_N_OBJECTS}; 1 with --mean]")
 @click.option("--split", default="train", show_default=True, help="Split name (train, val, test...); splits never share objects.")
@@ -105,9 +109,9 @@ class _ClassChoice(click.ParamType):
 @click.option("--overwrite", is_flag=True, help="Replace existing data of this class and split.")
 @click.option("--mean", "mean_object", is_flag=True, help="Render the class's mean object (centre of every range) into OUT/<class>/mean/.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
-def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missing_meshes, n_objects, split, out_root,
-                 seed, images_per_object, objects_per_shard, width, height, vfov, table_file, workers, executor, address,
-                 noise, resume, overwrite, mean_object, quiet):
+def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missing_meshes, urdf_scale, urdf_mesh_root,
+                 n_objects, split, out_root, seed, images_per_object, objects_per_shard, width, height, vfov, table_file,
+                 workers, executor, address, noise, resume, overwrite, mean_object, quiet):
     """Generate labelled depth images of one object class (or one URDF object) into HDF5 shards."""
     for name, px in (("--width", width), ("--height", height)):
         if px > MAX_IMAGE_SIDE_PX:
@@ -123,7 +127,8 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
         from ..urdf_import import import_urdf
 
         imported = import_urdf(urdf_path, joints=_split_names(joint_names), class_name=urdf_class_name,
-                               skip_missing_meshes=skip_missing_meshes, camera=camera)
+                               skip_missing_meshes=skip_missing_meshes, camera=camera,
+                               scale=1.0 if urdf_scale is None else urdf_scale, mesh_root=urdf_mesh_root)
         obj_class, third_party = imported.obj_class, imported.definition
         if not quiet:
             for line in imported.summary():
@@ -132,7 +137,8 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
         raise UserError("missing --class NAME (or --urdf FILE)")
     else:
         unused = [opt for opt, v in (("--joints", joint_names), ("--class-name", urdf_class_name),
-                                     ("--skip-missing-meshes", skip_missing_meshes)) if v]
+                                     ("--skip-missing-meshes", skip_missing_meshes), ("--scale", urdf_scale is not None),
+                                     ("--mesh-root", urdf_mesh_root)) if v]
         if unused:
             raise UserError(f"{unused[0]} is for --urdf objects")
         obj_class = get_class(class_name)
