@@ -267,6 +267,28 @@ def check_writable_dir(path: str | Path) -> None:
     _remove_quietly(probe)
 
 
+def check_can_create(path: str | Path) -> None:
+    """Before long work whose result goes to file ``path``: a :class:`WriteError` now if it
+    could not be written (read-only filesystem, no permission, a parent that is a file, a
+    folder at ``path``).  Creates nothing that stays (a probe file in the nearest existing
+    parent, removed at once)."""
+    path = Path(path)
+    if path.is_dir():
+        raise WriteError(f"cannot write {path}: is a directory", str(path), errno.EISDIR)
+    parent = _existing_ancestor(path.parent)
+    if not parent.is_dir():
+        raise WriteError(f"cannot write {path}: {parent} is not a directory", str(path), errno.ENOTDIR)
+    probe = parent / f".artdata-write-test-{os.getpid()}{TMP_SUFFIX}"
+    try:
+        probe.write_bytes(b"")
+    except OSError as exc:
+        err = write_error(path, exc)
+        if err is None:
+            raise
+        raise err from None
+    _remove_quietly(probe)
+
+
 def check_free_space(path: str | Path, need_bytes: float, what: str) -> None:
     """A :class:`WriteError` if the filesystem of ``path`` has less than ``need_bytes`` free."""
     free = free_bytes(path)

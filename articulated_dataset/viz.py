@@ -477,12 +477,36 @@ def _new_figure(w_in: float, h_in: float, dpi: int):
     return fig
 
 
+#: Largest figure side in pixels (matplotlib's Agg renderer refuses 2**16 and more).
+MAX_FIGURE_SIDE_PX = 2**16 - 1
+#: Bytes per pixel of the RGBA canvas matplotlib draws into.
+CANVAS_BYTES_PER_PIXEL = 4
+#: Fraction of the available memory one figure's canvas may take.
+FIGURE_MEMORY_FRACTION = 0.5
+
+
+def check_figure_size(w_in: float, h_in: float, dpi: int, path: Path) -> None:
+    """Refuse (one line) a figure too large to draw, before matplotlib allocates it."""
+    from .safeio import available_memory_bytes, format_bytes
+
+    w_px, h_px = w_in * dpi, h_in * dpi
+    if max(w_px, h_px) > MAX_FIGURE_SIDE_PX:
+        raise UserError(f"{path}: a {w_px:.0f}x{h_px:.0f} px figure is larger than {MAX_FIGURE_SIDE_PX} px a side; "
+                        "lower --dpi, --n or --cols")
+    need = w_px * h_px * CANVAS_BYTES_PER_PIXEL
+    avail = available_memory_bytes()
+    if avail is not None and need > FIGURE_MEMORY_FRACTION * avail:
+        raise UserError(f"{path}: a {w_px:.0f}x{h_px:.0f} px figure needs {format_bytes(need)} of memory, more than "
+                        f"half of the {format_bytes(avail)} available; lower --dpi, --n or --cols")
+
+
 def _save(fig, path: Path, dpi: int) -> None:
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=dpi, facecolor="white")
-    except OSError as exc:
-        raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None
+    """Write the figure atomically (a failure leaves no partial file and ``path`` as it was)."""
+    from .safeio import atomic_path, ensure_dir
+
+    ensure_dir(path.parent)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format=path.suffix.lower().lstrip("."), dpi=dpi, facecolor="white")
 
 
 def _panel_record(fig, ax, kind, file, view, s, dpi) -> Panel:
@@ -585,6 +609,7 @@ def _gallery_figure(views, samples, rgbs, path: Path, cols: int, dpi: int, outli
     if not header:
         fig_h -= HEADER_IN + FOOTER_IN
         fig_h += GAP_IN
+    check_figure_size(fig_w, fig_h, dpi, path)
     fig = _new_figure(fig_w, fig_h, dpi)
     placed = []
     top = fig_h

@@ -35,9 +35,12 @@ def _workers_option(fn):
 def _run(name: str, train_dir, test_dir, out, overwrite: bool, quiet: bool, workers=None, **options) -> None:
     from ..baselines import run_baseline
 
+    from ..safeio import check_can_create
+
     out = Path(out)
     if out.exists() and not overwrite:
         raise UserError(f"{out} exists; pass --overwrite to replace it")
+    check_can_create(out)  # before the baseline runs: a read-only or full target is one line now
     if workers is None:
         workers = os.cpu_count() or 1
     if workers <= 0:

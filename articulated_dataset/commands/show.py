@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
 from ..errors import UserError
@@ -58,7 +60,13 @@ def show_cmd(path, out, per_sample_dir, n_samples, objects, images, cols, rgb, n
     from ..shards import find_split_dirs
     from ..viz import DEFAULT_COLUMNS, DEFAULT_COLUMNS_RGB, make_gallery
 
+    from ..safeio import check_can_create
+
     split_dirs = find_split_dirs(path)
+    if out is not None:
+        check_can_create(out)  # before drawing: a read-only or missing target is one line now
+    if per_sample_dir is not None:
+        check_can_create(Path(per_sample_dir) / "probe.png")
     if cols is None:
         cols = DEFAULT_COLUMNS_RGB if rgb else DEFAULT_COLUMNS
     panels = make_gallery(split_dirs, out=out, per_sample_dir=per_sample_dir, n=n_samples,
