@@ -11,14 +11,21 @@ Conventions (see docs/format.md and docs/scoring.md):
 * configurations ``q`` in radians (revolute) or metres (prismatic);
 * returned errors are in the units named by the function (``_cm``, ``_deg``).
 
-The camera z axis (``up``) is the axis of the paper's "axis rotation error".
+The camera z axis (``up``) is the axis of the paper's "axis rotation error": headings are
+angles about it (see :func:`axis_rotation_error_deg`, metric version :data:`METRIC_VERSION`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .rotations import quat_conjugate, quat_multiply
+from .rotations import quat_multiply, quat_to_matrix
+
+#: Version of the metric definitions, reported with every score (JSON ``metric_version``, CSV,
+#: table).  2: axis rotation error by headings (v1: twist of ``R_pred R_true^T``, which scored a
+#: mirrored door 0), mechanism side accuracy, OPD success requires the mechanism side, chirality
+#: accuracy excludes undefined truth, infinite NLL counted (issue 19).
+METRIC_VERSION = 2
 #: Centimetres per metre (errors are reported in cm).
 CM_PER_M = 100.0
 #: Degrees per radian.
@@ -32,6 +39,14 @@ OPD_MAX_ORIGIN_ERROR_DIAGONALS = 0.25
 PARALLEL_SIN_TOL = 1e-9
 #: Chirality predictions are thresholded at 0.5 (a probability or a 0/1 label).
 CHIRALITY_THRESHOLD = 0.5
+#: A vector whose horizontal projection is shorter than this (unit vectors) has no heading.
+HEADING_MIN_HORIZONTAL = 1e-9
+#: Rotation error of a predicted axis-frame column with no heading (vertical): the worst case.
+UNDEFINED_HEADING_ERROR_DEG = 180.0
+#: Half a turn about the axis frame's own x axis, (w, x, y, z): reverses the joint axis and y.
+HALF_TURN_X_QUAT = np.array([0.0, 1.0, 0.0, 0.0])
+#: A part centre closer than this (m) to its axis line has no side (part offset along the axis).
+MIN_PART_SIDE_M = 1e-6
 #: Bisection steps of :func:`mixture_marginal_interval`; each halves the bracket (2**-60 of it left).
 BISECTION_STEPS = 60
 
@@ -68,31 +83,69 @@ def axis_position_error_cm(origin_pred_m: np.ndarray, origin_true_m: np.ndarray)
     return CM_PER_M * np.sqrt(np.einsum("...i,...i->...", diff, diff))
 
 
-def twist_about_z_deg(q: np.ndarray) -> np.ndarray:
-    """Signed twist angle (degrees, in ``(-180, 180]``) about the z axis of the rotation ``q``.
+def heading_error_deg(v_pred: np.ndarray, v_true: np.ndarray) -> np.ndarray:
+    """Heading difference (degrees, in ``[0, 180]``) about the camera z axis of two vectors ``(..., 3)``.
 
-    Swing-twist decomposition ``q = q_twist * q_swing`` with ``q_twist`` a rotation about z and
-    ``q_swing`` a rotation about an axis perpendicular to z: ``q_twist`` is the normalised
-    projection ``(w, 0, 0, z)`` of ``q``, so ``twist = 2 atan2(q_z, q_w)`` wrapped to
-    ``(-180, 180]``.  Equivalently, the twist is the angle ``theta`` maximising
-    ``trace(R_z(theta)^T R(q))`` (the rotation about z closest to ``R(q)``).  The sign of ``q``
-    does not matter.  When ``q_w = q_z = 0`` (a half-turn about a horizontal axis) the twist
-    is undefined and 0 is returned.
+    The heading of ``v`` is the angle of its horizontal projection ``(v_x, v_y)``; the
+    difference is ``|atan2(t_x p_y - t_y p_x, t_x p_x + t_y p_y)|`` (already wrapped, accurate
+    at 0 and 180 degrees; lengths do not matter).  Where either projection is shorter than
+    :data:`HEADING_MIN_HORIZONTAL` (a vertical vector: no heading) the error is
+    :data:`UNDEFINED_HEADING_ERROR_DEG`, the worst case.  NaN input gives NaN.
     """
-    q = np.asarray(q, np.float64)
-    twist = 2.0 * np.arctan2(q[..., 3], q[..., 0]) * DEG_PER_RAD
-    return 180.0 - np.mod(180.0 - twist, 360.0)
+    p = np.asarray(v_pred, np.float64)
+    t = np.asarray(v_true, np.float64)
+    cross = t[..., 0] * p[..., 1] - t[..., 1] * p[..., 0]
+    dot = t[..., 0] * p[..., 0] + t[..., 1] * p[..., 1]
+    err = np.abs(np.arctan2(cross, dot)) * DEG_PER_RAD
+    undefined = (np.hypot(p[..., 0], p[..., 1]) < HEADING_MIN_HORIZONTAL) | (np.hypot(t[..., 0], t[..., 1]) < HEADING_MIN_HORIZONTAL)
+    return np.where(undefined, UNDEFINED_HEADING_ERROR_DEG, err)
 
 
 def axis_rotation_error_deg(quat_pred: np.ndarray, quat_true: np.ndarray) -> np.ndarray:
-    """Axis rotation error (paper): ``|twist_z(R_pred R_true^T)|`` in degrees, in ``[0, 180]``.
+    """Axis rotation error (paper's Table 1 column, metric version 2), degrees in ``[0, 180]``.
 
-    ``R_pred R_true^T`` is the relative rotation of the predicted axis frame with respect to
-    the true one, expressed in the camera frame; its twist about the camera z axis (up) is
-    taken by :func:`twist_about_z_deg`.  Quaternions ``(..., 4)`` (w, x, y, z), unit length.
+    ``e = max_{k in H} heading_error(R_pred e_k, R_true e_k)``: the largest heading difference
+    about the camera z (up) axis of the axis-frame columns ``k`` in ``H``, the two columns of
+    ``R_true`` that are most horizontal (all but the column with the largest ``|R_true[2, k]|``).
+    For a side-hinged door (vertical joint axis) ``H = {x, y}``: x is the door's direction from
+    the hinge, y its opening direction; for drawers and bottom-hinged doors (x vertical)
+    ``H = {y, z}``.  Every truth column in ``H`` is at least 45 deg from vertical, so its
+    heading is defined; a predicted column with no horizontal part scores 180
+    (:func:`heading_error_deg`).  Quaternions ``(..., 4)`` (w, x, y, z).
+
+    Properties: a prediction turned about the vertical by ``d`` scores ``|d|`` (the object's
+    yaw error, as in the paper); a mirrored mechanism -- the truth turned half a turn about its
+    own x or y axis (door on the other side of the hinge line, or opening the other way) --
+    scores 180; any half-turn about a horizontal axis scores at least 90 when the truth has a
+    vertical column (the heading errors of two perpendicular horizontal columns under such a
+    half-turn are ``2a`` and ``180 - 2a``, so their maximum is at least 90).  Version 1
+    (``|twist_z(R_pred R_true^T)|``) scored such half-turns 0, where the twist is undefined.
+    Compare predictions in the truth's axis sign first (:func:`canonical_axis_sign`).
     """
-    rel = quat_multiply(quat_pred, quat_conjugate(quat_true))
-    return np.abs(twist_about_z_deg(rel))
+    Rp, Rt = quat_to_matrix(quat_pred), quat_to_matrix(quat_true)
+    err = heading_error_deg(np.swapaxes(Rp, -1, -2), np.swapaxes(Rt, -1, -2))  # (..., 3): one per column
+    vertical = np.argmax(np.abs(Rt[..., 2, :]), axis=-1)
+    dropped = np.arange(3) == vertical[..., None]
+    return np.max(np.where(dropped, -np.inf, err), axis=-1)
+
+
+def canonical_axis_sign(quat_pred: np.ndarray, q_pred: np.ndarray, quat_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A predicted joint re-expressed with the truth's axis sign where it is the same joint.
+
+    A joint frame ``R`` at configuration ``q`` and ``(R R_x(pi), -q)`` (axis and y reversed,
+    x kept) move the part identically: the same joint written with the other axis sign.  The
+    label convention picks ``q >= 0`` opening; a prediction whose axis points against the
+    truth's (``z_p . z_t < 0``) while its x keeps the truth's side (``x_p . x_t > 0``) and whose
+    ``q < 0`` is that other writing, and is returned as ``(quat_pred * (0, 1, 0, 0), -q_pred)``;
+    every other joint is returned unchanged.  Quaternions ``(..., 4)``, ``q`` ``(...)``.
+    """
+    qp = np.asarray(quat_pred, np.float64)
+    q = np.asarray(q_pred, np.float64)
+    zp, zt = quat_axis_z(qp), quat_axis_z(quat_true)
+    xp, xt = quat_axis_x(qp), quat_axis_x(quat_true)
+    flip = (np.einsum("...i,...i->...", zp, zt) < 0) & (np.einsum("...i,...i->...", xp, xt) > 0) & (q < 0)
+    turned = quat_multiply(qp, np.broadcast_to(HALF_TURN_X_QUAT, qp.shape))
+    return np.where(flip[..., None], turned, qp), np.where(flip, -q, q)
 
 
 def configuration_error(q_pred: np.ndarray, q_true: np.ndarray, prismatic: np.ndarray) -> np.ndarray:
@@ -160,17 +213,50 @@ def object_diagonal_m(geometry: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("...i,...i->...", g, g))
 
 
-def opd_success(direction_error_deg: np.ndarray, origin_error_cm: np.ndarray, diagonal_m: np.ndarray,
-                check_origin: np.ndarray) -> np.ndarray:
-    """OPD-style success (float 0/1): direction error < 10 deg AND origin error < 0.25 diagonals.
+def part_side(quat: np.ndarray, part_offset: np.ndarray | None = None) -> np.ndarray:
+    """Unit direction ``(..., 3)``, perpendicular to the joint axis, from the axis line to the part centre.
 
-    ``success = [e_dir < 10] * ([e_origin < 0.25 * 100 * diag] or not check_origin)``, with the
-    origin error in cm and the diagonal in m.  As in OPD, the origin is checked only where
-    ``check_origin`` is true (revolute joints); a prismatic axis has no meaningful position.
+    ``s = R (p_x, p_y, 0) / ||(p_x, p_y)||`` with ``p`` the part offset (axis frame, m), i.e. the
+    part centre ``o + R p`` with its component along the axis removed, seen from the axis;
+    without a part offset, the frame's x axis ``R e_x`` (which the label convention points at
+    the part).  NaN where the part centre is within :data:`MIN_PART_SIDE_M` of the axis line
+    (e.g. a drawer, whose offset lies along its axis) or the offset is NaN.
+    """
+    R = quat_to_matrix(quat)
+    if part_offset is None:
+        return R[..., :, 0]
+    p = np.asarray(part_offset, np.float64)
+    perp = np.stack([p[..., 0], p[..., 1], np.zeros_like(p[..., 0])], axis=-1)
+    length = np.hypot(p[..., 0], p[..., 1])
+    side = np.einsum("...ij,...j->...i", R, perp) / np.where(length > 0, length, 1.0)[..., None]
+    return np.where((length >= MIN_PART_SIDE_M)[..., None], side, np.nan)
+
+
+def mechanism_side_correct(side_pred: np.ndarray, side_true: np.ndarray) -> np.ndarray:
+    """1.0 where the predicted part lies on the truth's side of the axis (``s_pred . s_true > 0``), else 0.0.
+
+    Sides from :func:`part_side`; NaN where either is undefined.  Unlike the folded direction
+    error this is not invariant to a mirror: a door predicted on the other side of the true
+    hinge line (the truth turned half a turn about its y axis) scores 0.
+    """
+    dot = np.einsum("...i,...i->...", np.asarray(side_pred, np.float64), np.asarray(side_true, np.float64))
+    return np.where(np.isnan(dot), np.nan, (dot > 0).astype(np.float64))
+
+
+def opd_success(direction_error_deg: np.ndarray, origin_error_cm: np.ndarray, diagonal_m: np.ndarray,
+                check_origin: np.ndarray, side_correct: np.ndarray | None = None) -> np.ndarray:
+    """OPD-style success (float 0/1): direction error < 10 deg AND origin error < 0.25 diagonals AND right side.
+
+    ``success = [e_dir < 10] * ([e_origin < 0.25 * 100 * diag] or not check_origin) * [side != 0]``,
+    with the origin error in cm and the diagonal in m.  As in OPD, the origin is checked only
+    where ``check_origin`` is true (revolute joints); a prismatic axis has no meaningful
+    position.  ``side_correct`` (:func:`mechanism_side_correct`; NaN = undefined, not checked)
+    fails a mirrored door, which the folded direction and the origin-to-line test cannot see.
     """
     ok_dir = np.asarray(direction_error_deg) < OPD_MAX_DIRECTION_ERROR_DEG
     ok_origin = np.asarray(origin_error_cm) < OPD_MAX_ORIGIN_ERROR_DIAGONALS * CM_PER_M * np.asarray(diagonal_m)
-    return (ok_dir & (ok_origin | ~np.asarray(check_origin, bool))).astype(np.float64)
+    ok_side = True if side_correct is None else np.asarray(side_correct) != 0.0  # NaN != 0: not checked
+    return (ok_dir & (ok_origin | ~np.asarray(check_origin, bool)) & ok_side).astype(np.float64)
 
 
 # --------------------------------------------------------------------------------------
@@ -183,13 +269,15 @@ def geometry_error_cm(geometry_pred: np.ndarray, geometry_true: np.ndarray) -> n
 
 
 def chirality_correct(geometry_pred: np.ndarray, geometry_true: np.ndarray) -> np.ndarray:
-    """1.0 where ``[c_pred >= 0.5] == [c_true >= 0.5]`` (chirality = geometry[..., 3]), else 0.0.
+    """1.0 where ``[c_pred >= 0.5] == [c_true >= 0.5]`` (chirality = geometry[..., 3]), else 0.0; NaN where ``c_true`` is NaN.
 
-    A predicted chirality may be a probability of "hinge on the right" or a 0/1 label.
+    A predicted chirality may be a probability of "hinge on the right" or a 0/1 label.  An
+    undefined true chirality (NaN, real captures without it) is excluded by the scorer like
+    any other undefined truth, instead of counting as "left" (``NaN >= 0.5`` is False).
     """
+    c_true = np.asarray(geometry_true, np.float64)[..., 3]
     p = np.asarray(geometry_pred, np.float64)[..., 3] >= CHIRALITY_THRESHOLD
-    t = np.asarray(geometry_true, np.float64)[..., 3] >= CHIRALITY_THRESHOLD
-    return (p == t).astype(np.float64)
+    return np.where(np.isnan(c_true), np.nan, (p == (c_true >= CHIRALITY_THRESHOLD)).astype(np.float64))
 
 
 # --------------------------------------------------------------------------------------

@@ -30,12 +30,15 @@ from __future__ import annotations
 
 import json
 import logging
+import re
+import stat
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from .errors import DataFormatError, UserError
+from .safeio import atomic_write_h5, available_memory_bytes, format_bytes
 from .shards import attr_value, open_h5
 
 log = logging.getLogger(__name__)
@@ -56,6 +59,18 @@ MIN_QUATERNION_NORM = 1e-6
 QUATERNION_NORM_TOL = 1e-4
 #: |sum(weights) - 1| above this is reported before renormalising.
 WEIGHT_SUM_TOL = 1e-3
+#: Largest magnitude accepted in any float dataset (label units: m, rad; weights; scales).
+#: Objects are metres from the camera: a value past this is not an estimate but a bug, and
+#: it keeps every metric (squares of differences, sums over 10^6 images) far from overflow.
+MAX_ABS_VALUE = 1e6
+#: Longest method name (it is a table label and appears in messages).
+MAX_METHOD_CHARS = 100
+#: A class group's name: a registry-style name (letters, digits, ``_ . -``; 1-32 characters).
+_CLASS_GROUP_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,31}")
+#: Largest sample id (ids are 63-bit: int64 >= 0).
+MAX_SAMPLE_ID = np.iinfo(np.int64).max
+#: Fraction of the available memory the datasets of one predictions file may take once read.
+MAX_MEMORY_FRACTION = 0.5
 
 
 def _shape_str(shape) -> str:
@@ -70,6 +85,11 @@ def _check_float(where: str, name: str, a: np.ndarray) -> np.ndarray:
     if bad.any():
         first = np.argwhere(bad)[0]
         raise DataFormatError(f"{where}/{name}: {int(bad.sum())} NaN/inf values (first at index {tuple(int(i) for i in first)})")
+    huge = np.abs(a) > MAX_ABS_VALUE
+    if huge.any():
+        first = np.argwhere(huge)[0]
+        raise DataFormatError(f"{where}/{name}: {int(huge.sum())} values beyond +/-{MAX_ABS_VALUE:g} (label units: m, rad; "
+                              f"first {a[tuple(first)]:.3g} at index {tuple(int(i) for i in first)})")
     return a
 
 
@@ -121,6 +141,8 @@ def validate_class(where: str, arrays: dict, *, normalise: bool = True) -> dict:
     N = ids.shape[0]
     if N == 0:
         raise DataFormatError(f"{where}/sample_id: no predictions (0 rows)")
+    if ids.dtype.kind == "u" and (ids > MAX_SAMPLE_ID).any():
+        raise DataFormatError(f"{where}/sample_id: ids above {MAX_SAMPLE_ID} (sample ids are 63-bit)")
     ids = ids.astype(np.int64)
     uniq, counts = np.unique(ids, return_counts=True)
     if len(uniq) != N:
@@ -202,6 +224,24 @@ def validate_class(where: str, arrays: dict, *, normalise: bool = True) -> dict:
     return out
 
 
+def _check_method(method, where: str) -> str:
+    """The method name: a non-empty printable line of at most :data:`MAX_METHOD_CHARS` characters."""
+    if not isinstance(method, str) or not method.strip():
+        raise DataFormatError(f"{where}: missing or empty root attribute 'method'")
+    if len(method) > MAX_METHOD_CHARS or not method.isprintable():
+        raise DataFormatError(f"{where}: method name {method[:40]!r} must be one printable line of at most "
+                              f"{MAX_METHOD_CHARS} characters")
+    return method
+
+
+def _check_class_group(name, where: str) -> str:
+    """A class group name: 1-32 characters from ``A-Z a-z 0-9 _ . -``, not starting with ``.`` or ``-``."""
+    if not isinstance(name, str) or _CLASS_GROUP_RE.fullmatch(name) is None:
+        raise DataFormatError(f"{where}: invalid class group name {str(name)[:40]!r} (expected 1-32 characters "
+                              "from A-Z a-z 0-9 _ . -, not starting with . or -)")
+    return name
+
+
 def write_predictions(path: str | Path, method: str, per_class: dict[str, dict[str, np.ndarray]],
                       attrs: dict | None = None) -> None:
     """Validate ``per_class`` and write it to ``path`` (replacing an existing file).
@@ -210,25 +250,28 @@ def write_predictions(path: str | Path, method: str, per_class: dict[str, dict[s
     with mixtures, ``"mixture_layout"`` to the list of the D column names.  Float datasets
     keep float32 or float64 as given (other numeric dtypes are stored as float64);
     ``sample_id`` is stored as int64.  ``attrs`` are extra root attributes (str/number; other
-    values are stored as JSON).  Invalid input raises :class:`UserError`.
+    values are stored as JSON).  Invalid input raises :class:`UserError`.  The file is built
+    beside ``path`` and renamed into place when complete (:func:`safeio.atomic_write_h5`).
     """
-    if not isinstance(method, str) or not method.strip():
-        raise UserError("write_predictions: method must be a non-empty string")
+    path = Path(path)
+    try:
+        _check_method(method, "write_predictions")
+    except DataFormatError as exc:
+        raise UserError(str(exc)) from None
     if not per_class:
         raise UserError("write_predictions: no classes to write")
-    path = Path(path)
     checked = {}
     for cls, arrays in per_class.items():
-        if not isinstance(cls, str) or not cls or "/" in cls:
-            raise UserError(f"write_predictions: invalid class name {cls!r}")
+        _check_class_group(cls, "write_predictions")
         checked[cls] = validate_class(f"{path}:/{cls}", arrays, normalise=False)
-    tmp = path.with_name(path.name + ".partial")
-    with h5py.File(tmp, "w") as f:
+    for k in attrs or {}:
+        if k in ("format_version", "method"):
+            raise UserError(f"write_predictions: attribute {k!r} is set by the writer")
+
+    def build(f: h5py.File) -> None:
         f.attrs["format_version"] = PREDICTIONS_FORMAT_VERSION
         f.attrs["method"] = method
         for k, v in (attrs or {}).items():
-            if k in ("format_version", "method"):
-                raise UserError(f"write_predictions: attribute {k!r} is set by the writer")
             f.attrs[k] = v if isinstance(v, (str, int, float, np.integer, np.floating)) else json.dumps(v)
         for cls, arrays in per_class.items():
             grp = f.create_group(cls)
@@ -243,7 +286,40 @@ def write_predictions(path: str | Path, method: str, per_class: dict[str, dict[s
                 grp.create_dataset(name, data=a)
             if MIXTURE_LAYOUT_ATTR in checked[cls]:
                 grp.attrs[MIXTURE_LAYOUT_ATTR] = json.dumps(checked[cls][MIXTURE_LAYOUT_ATTR])
-    tmp.replace(path)
+
+    atomic_write_h5(path, build)
+
+
+def _read_attr(attrs, name: str, where: str):
+    """One HDF5 attribute as a plain value; an unreadable or undecodable one is a DataFormatError."""
+    try:
+        return attr_value(attrs[name])
+    except (OSError, RuntimeError, TypeError, ValueError) as exc:  # UnicodeDecodeError is a ValueError
+        raise DataFormatError(f"{where}: attribute {name!r} cannot be read ({type(exc).__name__})") from None
+
+
+def _read_dataset(ds: h5py.Dataset, where: str) -> np.ndarray:
+    """A dataset's values; a damaged chunk is a DataFormatError naming it."""
+    try:
+        return ds[()]
+    except (OSError, RuntimeError, TypeError, ValueError) as exc:
+        reason = str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
+        raise DataFormatError(f"{where}: cannot read ({reason}); the file is damaged") from None
+
+
+def _check_memory(path: Path, f: h5py.File) -> None:
+    """Refuse a file whose datasets, read as float64, would take more than
+    :data:`MAX_MEMORY_FRACTION` of the available memory (shapes are read, no data)."""
+    need = 0
+    for grp in f.values():
+        if isinstance(grp, h5py.Group):
+            for ds in grp.values():
+                if isinstance(ds, h5py.Dataset):
+                    need += 8 * (int(np.prod(ds.shape, dtype=object)) if ds.shape else 1)
+    available = available_memory_bytes()
+    if available is not None and need > MAX_MEMORY_FRACTION * available:
+        raise DataFormatError(f"{path}: its datasets need {format_bytes(need)} of memory to score; "
+                              f"this machine has {format_bytes(available)} available")
 
 
 def read_predictions(path: str | Path) -> tuple[dict, dict[str, dict[str, np.ndarray]]]:
@@ -251,34 +327,45 @@ def read_predictions(path: str | Path) -> tuple[dict, dict[str, dict[str, np.nda
 
     Arrays come back as float64 (``sample_id`` int64) with unit quaternions and weights that
     sum to 1; ``"mixture_layout"`` (a list of str) is present with mixtures.  Any problem is a
-    :class:`DataFormatError` (a :class:`UserError`) naming the file and dataset.
+    :class:`DataFormatError` (a :class:`UserError`) naming the file and dataset: besides the
+    format (module docstring), values beyond :data:`MAX_ABS_VALUE`, a method name that is not
+    one printable line, class group names that are not class names, files that are not
+    regular files, files whose data would not fit in memory and damaged files.
     """
     path = Path(path)
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        mode = None  # missing or unreadable: open_h5 names the problem
+    if mode is not None and not stat.S_ISREG(mode) and not stat.S_ISDIR(mode):
+        raise DataFormatError(f"{path}: not a regular file (a device, pipe or socket; refused)")
     with open_h5(path) as f:
-        attrs = {k: attr_value(v) for k, v in f.attrs.items()}
+        attrs = {k: _read_attr(f.attrs, k, str(path)) for k in f.attrs}
         if "format_version" not in attrs:
             raise DataFormatError(f"{path}: not a predictions file (no format_version attribute)")
         major = str(attrs["format_version"]).split(".")[0]
         if major != PREDICTIONS_FORMAT_VERSION.split(".")[0]:
-            raise DataFormatError(f"{path}: predictions format version {attrs['format_version']} is not readable "
+            raise DataFormatError(f"{path}: predictions format version {str(attrs['format_version'])[:40]!r} is not readable "
                                   f"(this package reads {PREDICTIONS_FORMAT_VERSION.split('.')[0]}.x)")
-        method = attrs.get("method")
-        if not isinstance(method, str) or not method.strip():
-            raise DataFormatError(f"{path}: missing or empty root attribute 'method'")
+        _check_method(attrs.get("method"), str(path))
+        _check_memory(path, f)
         per_class = {}
         for cls, grp in f.items():
+            _check_class_group(cls, str(path))
             where = f"{path}:/{cls}"
             if not isinstance(grp, h5py.Group):
                 raise DataFormatError(f"{where}: expected a class group, found a dataset")
             arrays: dict = {}
             for name, ds in grp.items():
                 if not isinstance(ds, h5py.Dataset):
-                    raise DataFormatError(f"{where}/{name}: expected a dataset, found a group")
+                    raise DataFormatError(f"{where}: {name[:40]!r} is a group, expected a dataset")
+                if name not in ALL_DATASETS:
+                    raise DataFormatError(f"{where}: unknown dataset {name[:40]!r} (expected {', '.join(ALL_DATASETS)})")
                 if ds.dtype.kind not in "fiub":
                     raise DataFormatError(f"{where}/{name}: dtype {ds.dtype} is not numeric")
-                arrays[name] = ds[()]
+                arrays[name] = _read_dataset(ds, f"{where}/{name}")
             if MIXTURE_LAYOUT_ATTR in grp.attrs:
-                arrays[MIXTURE_LAYOUT_ATTR] = attr_value(grp.attrs[MIXTURE_LAYOUT_ATTR])
+                arrays[MIXTURE_LAYOUT_ATTR] = _read_attr(grp.attrs, MIXTURE_LAYOUT_ATTR, where)
             per_class[cls] = validate_class(where, arrays)
     if not per_class:
         raise DataFormatError(f"{path}: no class groups (nothing predicted)")

@@ -69,6 +69,7 @@ METRICS: tuple[MetricSpec, ...] = (
     MetricSpec("geometry_width_error_cm", "Width (cm)", "cm"),
     MetricSpec("geometry_height_error_cm", "Height (cm)", "cm"),
     MetricSpec("chirality_accuracy", "Chirality acc.", "fraction"),
+    MetricSpec("mechanism_side_accuracy", "Side acc.", "fraction"),
     MetricSpec("nll", "NLL (nats)", "nats"),
     MetricSpec("coverage_50", "Cov. 50%", "fraction"),
     MetricSpec("coverage_90", "Cov. 90%", "fraction"),
@@ -99,12 +100,29 @@ class TruthSet:
         return int(self.arrays["sample_id"].shape[0])
 
 
+def _check_inside(split_dir: Path, path: Path) -> None:
+    """Refuse a shard path (built from a name in the manifest) that leads outside ``split_dir``.
+
+    :func:`shards.open_split` checks the names; this is the scorer's own check on the
+    resolved path (symbolic links followed), done before any shard is opened.
+    """
+    try:
+        base, real = split_dir.resolve(), path.resolve()
+    except (OSError, RuntimeError):  # a symbolic-link loop
+        raise DataFormatError(f"{split_dir}: cannot resolve shard path {str(path)[:200]!r} (refused)") from None
+    if real == base or not real.is_relative_to(base):
+        raise DataFormatError(f"{split_dir}: the manifest names a shard outside the split folder "
+                              f"({str(path)[:200]!r}; refused)")
+
+
 def load_truth_set(split_dir: str | Path) -> TruthSet:
     """Read the label fields the scorer needs from every shard of a split folder."""
     split_dir = Path(split_dir)
     manifest, shards = open_split(split_dir)
     if not shards:
         raise DataFormatError(f"{split_dir}: the split has no shards")
+    for sh in shards:
+        _check_inside(split_dir, Path(sh.path))
     parts: dict[str, list] = {k: [] for k in TRUTH_FIELDS}
     joint_types = None
     for sh in shards:
@@ -132,7 +150,8 @@ def load_truth_set(split_dir: str | Path) -> TruthSet:
     if dup.any():
         raise DataFormatError(f"{split_dir}: {int(dup.sum())} duplicated sample ids in the truth")
     quat = arrays["axis_pose"][..., 3:]
-    arrays["axis_pose"][..., 3:] = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
+    with np.errstate(all="ignore"):  # a NaN or zero quaternion (undefined truth) stays NaN
+        arrays["axis_pose"][..., 3:] = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
     return TruthSet(class_name=str(manifest["class_name"]), split=split_dir.name, path=split_dir,
                     joint_types=joint_types, complete=bool(manifest.get("complete", True)), arrays=arrays)
 
@@ -219,30 +238,45 @@ def image_metrics(pred: dict, truth: dict, joint_types, where: str = "") -> tupl
     """Per-image metrics of aligned predictions and truth (row i = same image in both).
 
     ``pred``/``truth`` hold ``axis_pose (N, J, 7)`` (unit quaternions), ``q (N, J)`` and
-    optionally ``geometry (N, 4)`` and the mixture datasets (``pred``), ``geometry`` and
-    ``part_offset`` (``truth``).  Returns ``(per_image, per_joint)``: ``{metric: (N,)}`` with
-    2-DoF objects averaged over joints, and ``{metric: (N, J)}`` for :data:`PER_JOINT_METRICS`.
-    Metrics that do not apply (no geometry or mixture predicted) are absent; the line distance
-    averages revolute joints only.
+    optionally ``geometry (N, 4)``, ``part_offset (N, J, 3)`` and the mixture datasets
+    (``pred``), ``geometry`` and ``part_offset`` (``truth``).  Returns ``(per_image,
+    per_joint)``: ``{metric: (N,)}`` with 2-DoF objects averaged over joints, and
+    ``{metric: (N, J)}`` for :data:`PER_JOINT_METRICS`.  NaN marks an undefined value (truth
+    missing, real captures), infinity a real one (NLL of a zero density).  Metrics that do not
+    apply (no geometry or mixture predicted) are absent; the line distance and the mechanism
+    side average revolute joints only.
+
+    A predicted joint that is the true joint written with the other axis sign
+    (:func:`metrics.canonical_axis_sign`) is re-expressed first; the rotation and
+    configuration errors are computed on it.
     """
     prismatic = np.array([t == PRISMATIC for t in joint_types], bool)
     revolute = ~prismatic
     pp, tp = pred["axis_pose"], truth["axis_pose"]
-    o_p, o_t, r_p, r_t = pp[..., :3], tp[..., :3], pp[..., 3:], tp[..., 3:]
+    o_p, o_t, r_t = pp[..., :3], tp[..., :3], tp[..., 3:]
+    r_p, q_p = M.canonical_axis_sign(pp[..., 3:], pred["q"], r_t)
     d_p, d_t = M.quat_axis_z(r_p), M.quat_axis_z(r_t)
     per_joint = {
         "axis_position_error_cm": M.axis_position_error_cm(o_p, o_t),
         "axis_rotation_error_deg": M.axis_rotation_error_deg(r_p, r_t),
-        "configuration_error": M.configuration_error(pred["q"], truth["q"], prismatic),
+        "configuration_error": M.configuration_error(q_p, truth["q"], prismatic),
         "axis_direction_error_deg": M.axis_direction_error_deg(d_p, d_t),
     }
     out = {k: v.mean(axis=1) for k, v in per_joint.items()}
+    side = np.full(o_p.shape[:2], np.nan)  # prismatic joints: no side
     if revolute.any():
         line = M.line_distance_cm(o_p[:, revolute], d_p[:, revolute], o_t[:, revolute], d_t[:, revolute])
         out["axis_line_distance_cm"] = line.mean(axis=1)
+        side_p = M.part_side(r_p[:, revolute], pred["part_offset"][:, revolute]) if "part_offset" in pred else None
+        side_x = M.part_side(r_p[:, revolute])  # the label convention: x points at the part
+        side_p = side_x if side_p is None else np.where(np.isnan(side_p), side_x, side_p)
+        side_t = M.part_side(r_t[:, revolute], truth["part_offset"][:, revolute])
+        side[:, revolute] = M.mechanism_side_correct(side_p, side_t)
+        out["mechanism_side_accuracy"] = side[:, revolute].mean(axis=1)
     origin_to_line = M.point_to_line_distance_cm(o_p, o_t, d_t)
     diag = M.object_diagonal_m(truth["geometry"])[:, None]
-    out["opd_success"] = M.opd_success(per_joint["axis_direction_error_deg"], origin_to_line, diag, revolute).mean(axis=1)
+    out["opd_success"] = M.opd_success(per_joint["axis_direction_error_deg"], origin_to_line, diag, revolute,
+                                       side).mean(axis=1)
     if "geometry" in pred:
         g_err = M.geometry_error_cm(pred["geometry"], truth["geometry"])
         out["geometry_depth_error_cm"], out["geometry_width_error_cm"], out["geometry_height_error_cm"] = g_err.T
@@ -253,7 +287,8 @@ def image_metrics(pred: dict, truth: dict, joint_types, where: str = "") -> tupl
         out["nll"] = M.mixture_nll(y, w, mu, sigma)
         u = M.mixture_marginal_cdf(y, w, mu, sigma)  # PIT values; see metrics.interval_coverage
         for mass in COVERAGE_MASSES:
-            out[f"coverage_{round(100 * mass)}"] = (np.abs(u - 0.5) <= 0.5 * mass).mean(axis=1)
+            cover = (np.abs(u - 0.5) <= 0.5 * mass).mean(axis=1)
+            out[f"coverage_{round(100 * mass)}"] = np.where(np.isnan(u).any(axis=1), np.nan, cover)
     return out, per_joint
 
 
@@ -261,8 +296,17 @@ def image_metrics(pred: dict, truth: dict, joint_types, where: str = "") -> tupl
 # Rows and report
 # --------------------------------------------------------------------------------------
 
-def _clean(x: float) -> float | None:
-    return None if x is None or not math.isfinite(x) else float(x)
+def _clean(x: float) -> float | str | None:
+    """A metric value for JSON: a float, ``"inf"``/``"-inf"`` for an infinite one (strict JSON has no
+    infinity; e.g. the NLL of a truth the mixture gives zero density), None where undefined (NaN)."""
+    if x is None or math.isnan(x):
+        return None
+    return float(x) if math.isfinite(x) else ("inf" if x > 0 else "-inf")
+
+
+def _cell(x: float | None) -> str:
+    """A metric value for CSV: ``%.6g`` (``inf`` included), empty where undefined."""
+    return "" if x is None or math.isnan(x) else f"{x:.6g}"
 
 
 @dataclass
@@ -286,6 +330,8 @@ class ScoreRow:
     #: images whose truth defines the metric, where fewer than n_scored (real captures may
     #: lack some ground truth, stored as NaN): metric name -> count.
     n_defined: dict[str, int] = field(default_factory=dict)
+    #: images whose value is infinite (counted in the mean, which is then infinite): name -> count.
+    n_infinite: dict[str, int] = field(default_factory=dict)
 
     @property
     def complete(self) -> bool:
@@ -319,26 +365,34 @@ class ScoreRow:
             },
             "per_joint": {k: [_clean(v) for v in vals] for k, vals in self.per_joint.items()},
             "n_defined": dict(self.n_defined),
+            "n_infinite": dict(self.n_infinite),
         }
 
 
-def _finite_mean_std(v: np.ndarray) -> tuple[float, float]:
-    v = v[np.isfinite(v)]
-    return (float(v.mean()), float(v.std())) if len(v) else (float("nan"), float("nan"))
+def _defined_mean_std(v: np.ndarray) -> tuple[float, float]:
+    """Mean and population std over the defined (non-NaN) values; an infinite value is a value:
+    it makes the mean infinite (and the std infinite), it is never dropped."""
+    v = v[~np.isnan(v)]
+    if not len(v):
+        return float("nan"), float("nan")
+    if not np.isfinite(v).all():
+        return float(v.mean()), float("inf")
+    return float(v.mean()), float(v.std())
 
 
-def aggregate(per_image: dict, per_joint: dict) -> tuple[dict, dict, dict]:
+def aggregate(per_image: dict, per_joint: dict) -> tuple[dict, dict, dict, dict]:
     """Mean and population std of each per-image metric over the images where it is defined
-    (finite: real truth may lack labels); per-joint means; counts of defined images for the
-    metrics undefined somewhere."""
-    metrics = {name: _finite_mean_std(np.asarray(v, dtype=np.float64)) for name, v in per_image.items()}
+    (not NaN: real truth may lack labels); per-joint means; counts of defined images for the
+    metrics undefined somewhere; counts of infinite values."""
+    metrics = {name: _defined_mean_std(np.asarray(v, dtype=np.float64)) for name, v in per_image.items()}
     joints = {}
     for name in PER_JOINT_METRICS:
         if name in per_joint:
             pj = np.asarray(per_joint[name], dtype=np.float64)
-            joints[name] = [_finite_mean_std(pj[:, j])[0] for j in range(pj.shape[1])]
-    defined = {name: int(np.isfinite(v).sum()) for name, v in per_image.items() if not np.isfinite(v).all()}
-    return metrics, joints, defined
+            joints[name] = [_defined_mean_std(pj[:, j])[0] for j in range(pj.shape[1])]
+    defined = {name: int((~np.isnan(v)).sum()) for name, v in per_image.items() if np.isnan(v).any()}
+    infinite = {name: int(np.isinf(v).sum()) for name, v in per_image.items() if np.isinf(v).any()}
+    return metrics, joints, defined, infinite
 
 
 def _pm(mean: float, std: float, digits: int = 2) -> str:
@@ -361,6 +415,7 @@ class Report:
 
     def to_dict(self) -> dict:
         return {
+            "metric_version": M.METRIC_VERSION,
             "truth_root": self.truth_root,
             "split": self.split,
             "truth_sets": self.truth_sets(),
@@ -384,14 +439,15 @@ class Report:
         """One line per row: identification, counts, then ``<metric>_mean`` / ``<metric>_std``."""
         buf = io.StringIO()
         writer = csv.writer(buf, lineterminator="\n")
-        head = ["class", "method", "split", "truth", "n_scored", "n_truth", "configuration_units"]
+        head = ["class", "method", "split", "truth", "n_scored", "n_truth", "configuration_units", "metric_version"]
         writer.writerow(head + [f"{m.name}_{s}" for m in METRICS for s in ("mean", "std")])
         for r in self.rows:
             vals = []
             for m in METRICS:
                 mean, std = r.metrics.get(m.name, (None, None))
-                vals += ["" if _clean(mean) is None else f"{mean:.6g}", "" if _clean(std) is None else f"{std:.6g}"]
-            writer.writerow([r.class_name, r.method, r.split, r.truth_path, r.n_scored, r.n_truth, r.configuration_units] + vals)
+                vals += [_cell(mean), _cell(std)]
+            writer.writerow([r.class_name, r.method, r.split, r.truth_path, r.n_scored, r.n_truth, r.configuration_units,
+                             M.METRIC_VERSION] + vals)
         return buf.getvalue()
 
     def format_table(self, standard: bool = True) -> str:
@@ -430,7 +486,7 @@ class Report:
                     cells = []
                     for m in std_metrics:
                         mean, std = r.metrics.get(m.name, (None, None))
-                        if _clean(mean) is None:
+                        if mean is None or math.isnan(mean):
                             cells.append("-")
                         elif m.units == "fraction":
                             cells.append(f"{mean:.3f}")
@@ -440,6 +496,7 @@ class Report:
         if self.unscored_classes:
             lines.append(f"Truth classes without predictions (not scored): {', '.join(self.unscored_classes)}")
         lines += [f"Note: {n}" for n in self.notes]
+        lines.append(f"Metric version {M.METRIC_VERSION} (docs/scoring.md); numbers of other versions are not comparable.")
         return "\n".join(lines)
 
 
@@ -462,12 +519,13 @@ def score_class(pred: dict, truth: TruthSet, method: str, predictions_path: str)
     if J_pred != J_true:
         raise DataFormatError(f"{where}/axis_pose: {J_pred} joints predicted, the truth ({truth.path}) has {J_true}")
     t = {k: v[idx] for k, v in truth.arrays.items()}
-    with np.errstate(invalid="ignore"):
+    with np.errstate(all="ignore"):  # NaN truth and zero mixture densities are handled as values
         per_image, per_joint = image_metrics(pred, t, truth.joint_types, where)
-    metrics, joints, defined = aggregate(per_image, per_joint)
+        metrics, joints, defined, infinite = aggregate(per_image, per_joint)
     return ScoreRow(class_name=truth.class_name, method=method, split=truth.split, truth_path=str(truth.path),
                     predictions_path=str(predictions_path), n_scored=len(idx), n_truth=truth.n_images,
-                    joint_types=truth.joint_types, metrics=metrics, per_joint=joints, n_defined=defined)
+                    joint_types=truth.joint_types, metrics=metrics, per_joint=joints, n_defined=defined,
+                    n_infinite=infinite)
 
 
 def _class_order(name: str) -> tuple:
@@ -512,6 +570,9 @@ def score(predictions, truth_path: str | Path, split: str | None = None) -> Repo
                 notes.append(msg)
             for name, k in row.n_defined.items():
                 notes.append(f"{cls} - {method}: {name} averaged over the {k} of {row.n_scored} images whose truth defines it")
+            for name, k in row.n_infinite.items():
+                notes.append(f"{cls} - {method}: {name} is infinite for {k} of {row.n_scored} images "
+                             f"(the prediction gives the truth zero density in float64), so its mean is infinite")
             incomplete = f"{cls}: truth split {truth[cls].path} is incomplete (generation was interrupted)"
             if not truth[cls].complete and incomplete not in notes:
                 notes.append(incomplete)

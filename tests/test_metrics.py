@@ -43,11 +43,81 @@ def test_rotation_error_about_z(angle, expected):
     assert M.axis_rotation_error_deg(-pred, true) == pytest.approx(expected, abs=1e-9)
 
 
-def test_rotation_error_ignores_swing():
-    true = quat_about([0, 1, 0], 90.0)
-    for axis in ([1, 0, 0], [0, 1, 0], [1, -1, 0]):  # horizontal axes: pure swing, no twist about z
-        pred = rotations.quat_multiply(quat_about(axis, 30.0), true)
-        assert M.axis_rotation_error_deg(pred, true) == pytest.approx(0.0, abs=1e-9)
+# Axis frames of the generator's classes at yaw 0 (docs/format.md): columns x, y, z in the camera frame.
+#: side-hinged door, hinge on the object's right: x (to the door) = +y_obj, y (opening) = -x_obj, z up
+DOOR_RIGHT = rotations.matrix_to_quat(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))
+#: bottom-hinged door (toaster): x up (to the door), y = -x_obj (opening), z = -y_obj
+TOASTER = rotations.matrix_to_quat(np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]))
+#: drawer: x up, y = +y_obj, z = -x_obj (pulled towards the camera)
+DRAWER = rotations.matrix_to_quat(np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]))
+FRAMES = {"door": DOOR_RIGHT, "toaster": TOASTER, "drawer": DRAWER}
+HALF_TURN = {"x": quat_about([1, 0, 0], 180.0), "y": quat_about([0, 1, 0], 180.0), "z": quat_about(Z, 180.0)}
+
+
+def _yawed(quat, yaw_deg):
+    return rotations.quat_multiply(quat_about(Z, yaw_deg), quat)
+
+
+@pytest.mark.parametrize("frame", sorted(FRAMES))
+def test_exact_mirror_scores_180(frame):
+    """The truth turned half a turn about its own y axis (door on the other side of the same
+    hinge line): version 1 scored 0 (undefined twist); now 180."""
+    true = _yawed(FRAMES[frame], 23.0)
+    mirror = rotations.quat_multiply(true, HALF_TURN["y"])
+    assert M.axis_rotation_error_deg(mirror, true) == pytest.approx(180.0, abs=1e-9)
+    assert M.axis_direction_error_deg(M.quat_axis_z(mirror), M.quat_axis_z(true)) == pytest.approx(0.0, abs=1e-9)  # folded
+
+
+@pytest.mark.parametrize("frame", sorted(FRAMES))
+def test_mirror_plus_small_noise_stays_near_180(frame):
+    rng = np.random.default_rng(7)
+    true = _yawed(FRAMES[frame], -31.0)
+    for _ in range(20):
+        noise = quat_about(rng.normal(size=3), 2.0)  # 2 deg about a random axis
+        pred = rotations.quat_multiply(noise, rotations.quat_multiply(true, HALF_TURN["y"]))
+        err = M.axis_rotation_error_deg(pred, true)
+        assert 175.0 < err <= 180.0  # a 2 deg tilt moves a heading by at most ~2.9 deg at 45 deg from vertical
+
+
+@pytest.mark.parametrize("frame", sorted(FRAMES))
+def test_true_180_yaw_error(frame):
+    true = _yawed(FRAMES[frame], 10.0)
+    assert M.axis_rotation_error_deg(_yawed(true, 180.0), true) == pytest.approx(180.0, abs=1e-9)
+    assert M.axis_rotation_error_deg(_yawed(true, 179.0), true) == pytest.approx(179.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("frame", sorted(FRAMES))
+def test_reversed_axis_with_negated_q_is_the_same_joint(frame):
+    true = _yawed(FRAMES[frame], 5.0)
+    reversed_ = rotations.quat_multiply(true, HALF_TURN["x"])  # axis and y reversed, x kept
+    quat, q = M.canonical_axis_sign(reversed_, np.array(-0.4), true)
+    assert q == pytest.approx(0.4)
+    assert M.axis_rotation_error_deg(quat, true) == pytest.approx(0.0, abs=1e-6)
+    # with q >= 0 it is a different mechanism (the part opens the other way): not re-expressed, 180
+    quat, q = M.canonical_axis_sign(reversed_, np.array(0.4), true)
+    assert q == 0.4 and M.axis_rotation_error_deg(quat, true) == pytest.approx(180.0, abs=1e-9)
+    # a mirror with negative q is not the same joint either (x changes side): not re-expressed
+    mirror = rotations.quat_multiply(true, HALF_TURN["y"])
+    quat, q = M.canonical_axis_sign(mirror, np.array(-0.4), true)
+    assert q == -0.4 and np.allclose(quat, mirror)
+
+
+def test_every_half_turn_about_a_horizontal_axis_scores_at_least_90():
+    rng = np.random.default_rng(8)
+    for frame in FRAMES.values():
+        true = _yawed(frame, rng.uniform(-180, 180))
+        for a in rng.uniform(0, 360, size=20):
+            flip = quat_about([np.cos(np.radians(a)), np.sin(np.radians(a)), 0.0], 180.0)
+            assert M.axis_rotation_error_deg(rotations.quat_multiply(flip, true), true) >= 90.0 - 1e-9
+
+
+def test_undefined_heading_scores_180():
+    true = DOOR_RIGHT  # x horizontal
+    pred = rotations.quat_multiply(DOOR_RIGHT, quat_about([0, 1, 0], -90.0))  # x turned up: vertical
+    assert M.quat_axis_x(pred)[2] == pytest.approx(1.0)
+    assert M.axis_rotation_error_deg(pred, true) == 180.0
+    assert M.heading_error_deg(np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])) == 180.0
+    assert np.isnan(M.axis_rotation_error_deg(pred, np.full(4, np.nan)))  # undefined truth stays undefined
 
 
 def test_configuration_error_units():
@@ -91,6 +161,9 @@ def test_opd_success_thresholds():
     assert M.opd_success(10.1, 0.0, diag, True) == 0.0
     assert M.opd_success(0.0, 25.1, diag, True) == 0.0
     assert M.opd_success(0.0, 300.0, diag, False) == 1.0  # prismatic: origin not checked
+    assert M.opd_success(0.0, 0.0, diag, True, 0.0) == 0.0  # a mirrored door fails
+    assert M.opd_success(0.0, 0.0, diag, True, 1.0) == 1.0
+    assert M.opd_success(0.0, 0.0, diag, False, np.nan) == 1.0  # no side (prismatic): not checked
     assert M.object_diagonal_m([0.3, 0.4, 1.2, 1.0]) == pytest.approx(1.3)
 
 
@@ -100,6 +173,24 @@ def test_geometry_and_chirality():
     assert M.chirality_correct([0, 0, 0, 0.9], [0, 0, 0, 1.0]) == 1.0
     assert M.chirality_correct([0, 0, 0, 0.2], [0, 0, 0, 1.0]) == 0.0
     assert M.chirality_correct([0, 0, 0, 0.0], [0, 0, 0, 0.0]) == 1.0
+    assert np.isnan(M.chirality_correct([0, 0, 0, 0.0], [0, 0, 0, np.nan]))  # undefined truth: excluded, not "left"
+
+
+def test_part_side_and_mechanism_side():
+    true = _yawed(DOOR_RIGHT, 12.0)
+    offset = np.array([0.3, 0.0, 0.1])  # 30 cm from the hinge, 10 cm along it
+    side_t = M.part_side(true, offset)
+    np.testing.assert_allclose(side_t, M.quat_axis_x(true), atol=1e-12)
+    mirror = rotations.quat_multiply(true, HALF_TURN["y"])
+    assert M.mechanism_side_correct(M.part_side(mirror, offset), side_t) == 0.0
+    assert M.mechanism_side_correct(M.part_side(mirror), side_t) == 0.0  # no offset: the frame's x
+    # the mirrored frame with the part placed at negative x: the same physical side
+    assert M.mechanism_side_correct(M.part_side(mirror, offset * [-1, 1, 1]), side_t) == 1.0
+    reversed_ = rotations.quat_multiply(true, HALF_TURN["x"])
+    assert M.mechanism_side_correct(M.part_side(reversed_, offset * [1, 1, -1]), side_t) == 1.0
+    # an offset along the axis (a drawer) has no side
+    assert np.isnan(M.part_side(DRAWER, np.array([0.0, 0.0, -0.25]))).all()
+    assert np.isnan(M.mechanism_side_correct(M.part_side(mirror), np.full(3, np.nan)))
 
 
 def _pose(origin, quat):
@@ -153,29 +244,24 @@ def test_quaternion_helpers_match_scipy():
     np.testing.assert_allclose(rotations.quat_to_matrix(rotations.quat_multiply(a, b)), rotations.quat_to_matrix(a) @ rotations.quat_to_matrix(b), atol=1e-12)
 
 
-def _rz(theta):
-    c, s = np.cos(theta), np.sin(theta)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def test_rotation_error_matches_brute_force_twist_search():
-    """Twist = the rotation about z closest to R_pred R_true^T: found by a dense angle search."""
-    Rotation = pytest.importorskip("scipy.spatial.transform").Rotation
-    from scipy.optimize import minimize_scalar
-
+def test_rotation_error_matches_column_heading_angles():
+    """Reference: headings as angles (degrees), differences wrapped by modulo, on yawed class frames
+    (one vertical column, as generated) against random predictions."""
     rng = np.random.default_rng(1)
-    qp, qt = random_quats(rng, 40), random_quats(rng, 40)
-    got = M.axis_rotation_error_deg(qp, qt)
-    grid = np.radians(np.arange(-180.0, 180.0, 0.25))
-    rz = np.stack([_rz(t) for t in grid])
-    for i in range(len(qp)):
-        R_rel = Rotation.from_quat(qp[i, [1, 2, 3, 0]]).as_matrix() @ Rotation.from_quat(qt[i, [1, 2, 3, 0]]).as_matrix().T
-        score = np.einsum("kij,ij->k", rz, R_rel)  # trace(Rz^T R_rel)
-        t0 = grid[np.argmax(score)]
-        res = minimize_scalar(lambda t: -np.trace(_rz(t).T @ R_rel), bounds=(t0 - 0.01, t0 + 0.01), method="bounded",
-                              options={"xatol": 1e-10})
-        expected = abs((np.degrees(res.x) + 180.0) % 360.0 - 180.0)
-        assert got[i] == pytest.approx(expected, abs=1e-4)
+    for frame in FRAMES.values():
+        qt = np.stack([_yawed(frame, y) for y in rng.uniform(-180, 180, 40)])
+        qp = random_quats(rng, 40)
+        got = M.axis_rotation_error_deg(qp, qt)
+        Rp, Rt = rotations.quat_to_matrix(qp), rotations.quat_to_matrix(qt)
+        for i in range(40):
+            errs = []
+            for k in range(3):
+                if abs(Rt[i, 2, k]) > 0.99:  # the vertical column
+                    continue
+                hp = np.degrees(np.arctan2(Rp[i, 1, k], Rp[i, 0, k]))
+                ht = np.degrees(np.arctan2(Rt[i, 1, k], Rt[i, 0, k]))
+                errs.append(abs((hp - ht + 180.0) % 360.0 - 180.0))
+            assert len(errs) == 2 and got[i] == pytest.approx(max(errs), abs=1e-9)
 
 
 def test_direction_error_matches_arccos():
@@ -268,3 +354,43 @@ def test_coverage_of_samples_from_the_mixture_is_calibrated():
     y = mu[np.arange(n), comp] + sigma[np.arange(n), comp] * rng.normal(size=(n, 2))
     for mass in (0.5, 0.9):
         assert M.interval_coverage(y, w, mu, sigma, mass).mean() == pytest.approx(mass, abs=0.015)
+
+
+def _door_case(pred_quat, pred_q, pred_offset=None):
+    """One image of a right-hinged door yawed by 20 deg, 0.6 m wide, opened 0.5 rad."""
+    true_quat = _yawed(DOOR_RIGHT, 20.0)
+    origin = np.array([1.5, 0.2, 0.1])
+    truth = {"axis_pose": np.array([[_pose(origin, true_quat)]]), "q": np.array([[0.5]]),
+             "geometry": np.array([[0.6, 0.6, 0.9, 1.0]]), "part_offset": np.array([[[0.3, 0.0, 0.0]]])}
+    pred = {"axis_pose": np.array([[_pose(origin, pred_quat(true_quat))]]), "q": np.array([[pred_q]])}
+    if pred_offset is not None:
+        pred["part_offset"] = np.array([[pred_offset]])
+    return image_metrics(pred, truth, (REVOLUTE,))[0]
+
+
+def test_image_metrics_reversed_axis_with_negated_q_is_perfect():
+    out = _door_case(lambda t: rotations.quat_multiply(t, HALF_TURN["x"]), -0.5, [0.3, 0.0, 0.0])
+    for name in ("axis_position_error_cm", "axis_rotation_error_deg", "configuration_error",
+                 "axis_direction_error_deg", "axis_line_distance_cm"):
+        assert out[name][0] == pytest.approx(0.0, abs=1e-6), name
+    assert out["opd_success"][0] == 1.0 and out["mechanism_side_accuracy"][0] == 1.0
+
+
+def test_image_metrics_mirror_is_not_perfect():
+    out = _door_case(lambda t: rotations.quat_multiply(t, HALF_TURN["y"]), 0.5)
+    assert out["axis_rotation_error_deg"][0] == pytest.approx(180.0)
+    assert out["axis_direction_error_deg"][0] == pytest.approx(0.0, abs=1e-9)  # folded: same line
+    assert out["axis_line_distance_cm"][0] == pytest.approx(0.0, abs=1e-9)
+    assert out["mechanism_side_accuracy"][0] == 0.0 and out["opd_success"][0] == 0.0
+    assert out["configuration_error"][0] == pytest.approx(0.0, abs=1e-9)  # q compared as labelled
+
+
+def test_prismatic_joint_has_no_mechanism_side():
+    truth = {"axis_pose": np.array([[_pose([1, 0, 0], DRAWER)]]), "q": np.array([[0.1]]),
+             "geometry": np.array([[0.5, 0.5, 0.5, 0.0]]), "part_offset": np.array([[[0.0, 0.0, -0.25]]])}
+    pred = {"axis_pose": np.array([[_pose([1, 0, 0], rotations.quat_multiply(DRAWER, HALF_TURN["x"]))]]),
+            "q": np.array([[-0.1]])}
+    out, _ = image_metrics(pred, truth, (PRISMATIC,))
+    assert "mechanism_side_accuracy" not in out
+    assert out["axis_rotation_error_deg"][0] == pytest.approx(0.0, abs=1e-6)  # reversed pull axis, negated q
+    assert out["configuration_error"][0] == pytest.approx(0.0, abs=1e-9)

@@ -78,7 +78,9 @@ def test_perfect_predictions_score_zero(tiny_root, tmp_path):
                      "axis_direction_error_deg", "geometry_width_error_cm"):
             assert r.metrics[name][0] == pytest.approx(0.0, abs=1e-4), name
         assert r.metrics["opd_success"][0] == 1.0 and r.metrics["chirality_accuracy"][0] == 1.0
+        assert r.metrics.get("mechanism_side_accuracy", (1.0,))[0] == 1.0
     assert "axis_line_distance_cm" not in report.rows[1].metrics  # drawer: prismatic only
+    assert "mechanism_side_accuracy" not in report.rows[1].metrics
     assert set(report.unscored_classes) == {"microwave", "toaster", "refrigerator"}
 
 
@@ -123,8 +125,11 @@ def test_cli_table_json_csv(tiny_root, tmp_path):
     row = rep["rows"][0]
     assert row["n_scored"] == row["n_truth"] == 48 and row["metrics"]["configuration_error"]["units"] == "deg"
     assert rep["truth_sets"]["toaster"]["split"] == "test"
+    assert rep["metric_version"] == M.METRIC_VERSION == 2
+    assert f"Metric version {M.METRIC_VERSION}" in lines[-1]
     rows = list(csv.DictReader(io.StringIO((tmp_path / "r.csv").read_text())))
     assert rows[0]["class"] == "toaster" and float(rows[0]["axis_position_error_cm_mean"]) == 0.0
+    assert rows[0]["metric_version"] == "2"
     assert rows[0]["nll_mean"] == ""  # no mixture given
     out = run("score", tmp_path / "p.h5", "--truth", tiny_root, "--json", "-")
     assert json.loads(out.output)["rows"][0]["method"] == "Oracle"
@@ -307,7 +312,7 @@ def test_bad_files_and_options_exit_2(good, tiny_root, tmp_path):
     p = raw_write(tmp_path / "nov.h5", _with(good), version=None)
     assert_user_error(run("score", p, "--truth", tiny_root), "no format_version")
     p = raw_write(tmp_path / "v9.h5", _with(good), version="9.0")
-    assert_user_error(run("score", p, "--truth", tiny_root), "version 9.0")
+    assert_user_error(run("score", p, "--truth", tiny_root), "version '9.0'")
     p = raw_write(tmp_path / "nom.h5", _with(good), method=None)
     assert_user_error(run("score", p, "--truth", tiny_root), "'method'")
     p = raw_write(tmp_path / "ok.h5", _with(good))
@@ -362,3 +367,70 @@ def test_truth_without_some_labels_is_averaged_where_defined(tiny_root, tmp_path
     assert row.n_defined["axis_position_error_cm"] == n - missing
     assert "configuration_error" not in row.n_defined
     assert any(f"{n - missing} of {n}" in note for note in report.notes)
+
+
+# ---------------------------------------------------------------- issue 19 / issue 13 scorer cases
+
+def test_mirrored_cabinet_is_not_perfect(tiny_root, tmp_path):
+    """The issue's reproduction: true origin and q, axis_pose quaternion times (0, 0, 1, 0) on the right."""
+    pred = perfect(tiny_root, ["cabinet"])
+    pose = pred["cabinet"]["axis_pose"].astype(np.float64)
+    pose[..., 3:] = M.quat_multiply(pose[..., 3:], np.array([0.0, 0.0, 1.0, 0.0]))
+    pred["cabinet"]["axis_pose"] = pose
+    write_predictions(tmp_path / "m.h5", "Mirror", pred)
+    r = score(tmp_path / "m.h5", tiny_root).rows[0]
+    assert r.metrics["axis_rotation_error_deg"][0] == pytest.approx(180.0, abs=1e-3)
+    assert r.metrics["axis_direction_error_deg"][0] == pytest.approx(0.0, abs=1e-3)  # folded: the same line
+    assert r.metrics["opd_success"][0] == 0.0 and r.metrics["mechanism_side_accuracy"][0] == 0.0
+    assert r.metrics["chirality_accuracy"][0] == 1.0  # the geometry prediction was left true
+    # the same joint written with the other axis sign (axis reversed, x kept, q negated): perfect
+    pred = perfect(tiny_root, ["cabinet"])
+    pose = pred["cabinet"]["axis_pose"].astype(np.float64)
+    pose[..., 3:] = M.quat_multiply(pose[..., 3:], np.array([0.0, 1.0, 0.0, 0.0]))
+    pred["cabinet"].update(axis_pose=pose, q=-pred["cabinet"]["q"],
+                           part_offset=pred["cabinet"]["part_offset"] * np.array([1.0, 1.0, -1.0], np.float32))
+    write_predictions(tmp_path / "r.h5", "Reversed", pred)
+    r = score(tmp_path / "r.h5", tiny_root).rows[0]
+    for name in ("axis_position_error_cm", "axis_rotation_error_deg", "configuration_error", "axis_direction_error_deg"):
+        assert r.metrics[name][0] == pytest.approx(0.0, abs=1e-3), name
+    assert r.metrics["opd_success"][0] == 1.0 and r.metrics["mechanism_side_accuracy"][0] == 1.0
+
+
+def test_undefined_true_chirality_is_excluded(tiny_root, tmp_path):
+    split = tmp_path / "cabinet" / "test"
+    shutil.copytree(tiny_root / "cabinet" / "test", split)
+    pred = truth_labels(split)
+    _, shards = open_split(split)
+    paths = [s.path for s in shards]
+    for s in shards:
+        s.close()
+    n_nan = 16
+    with h5py.File(paths[0], "r+") as f:  # the first object's truth has no chirality (like a real capture)
+        g = f["geometry"][()]
+        g[:n_nan, 3] = np.nan
+        f["geometry"][...] = g
+    pred["geometry"][:, 3] = 1.0 - pred["geometry"][:, 3]  # every predicted chirality wrong
+    write_predictions(tmp_path / "p.h5", "Wrong side", {"cabinet": pred})
+    report = score(tmp_path / "p.h5", split)
+    row = report.rows[0]
+    assert row.metrics["chirality_accuracy"][0] == 0.0  # v1 counted NaN truth as correct for c_pred < 0.5
+    assert row.n_defined["chirality_accuracy"] == row.n_scored - n_nan
+    assert any("chirality_accuracy averaged over" in n for n in report.notes)
+
+
+def test_tiny_mixture_scales_give_infinite_nll_never_dropped(good, tiny_root, tmp_path):
+    n = len(good["q"])
+    groups, attrs = _mixture(good, D=1, layout=("j0.q",), mixture_means=np.full((n, 2, 1), 0.123),
+                             mixture_scales=np.full((n, 2, 1), 1e-200))
+    path = raw_write(tmp_path / "tiny.h5", groups, group_attrs=attrs)
+    result = run("score", path, "--truth", tiny_root, "--json", tmp_path / "r.json", "--csv", tmp_path / "r.csv")
+    assert result.exit_code == 0, result.output
+    assert "Traceback" not in result.output and "Warning" not in result.output
+    assert "inf +/- inf" in result.output and "nll is infinite for 48 of 48 images" in result.output
+    rep = json.loads((tmp_path / "r.json").read_text())  # strict JSON: infinity as the string "inf"
+    assert rep["rows"][0]["metrics"]["nll"]["mean"] == "inf" and rep["rows"][0]["n_infinite"] == {"nll": 48}
+    rows = list(csv.DictReader(io.StringIO((tmp_path / "r.csv").read_text())))
+    assert rows[0]["nll_mean"] == "inf"
+    # one image with a finite density and the rest infinite: still infinite, and all 48 counted
+    row = score(path, tiny_root).rows[0]
+    assert row.metrics["nll"][0] == float("inf") and "nll" not in row.n_defined

@@ -10,13 +10,34 @@ from ..errors import UserError
 
 
 def _write(path: str, text: str) -> None:
+    """Print ``text`` (``-``) or write it atomically: a failure leaves no partial file and
+    whatever was at ``path`` intact (one line naming the file and the free space)."""
     if path == "-":
         click.echo(text, nl=not text.endswith("\n"))
         return
-    try:
-        Path(path).write_text(text)
-    except OSError as exc:
-        raise UserError(f"cannot write {path}: {exc.strerror}") from None
+    from ..safeio import atomic_write_text
+
+    if Path(path).is_dir():
+        raise UserError(f"cannot write {path}: is a directory")
+    atomic_write_text(path, text)
+
+
+def _check_outputs(inputs: list[str], outputs: list[str]) -> None:
+    """Refuse an output that is one of the inputs (it would replace a predictions file) or
+    named twice (the second would replace the first)."""
+    def same(a: str, b: str) -> bool:
+        try:
+            return Path(a).resolve() == Path(b).resolve()
+        except (OSError, RuntimeError):
+            return False
+
+    files = [o for o in outputs if o and o != "-"]
+    for i, out in enumerate(files):
+        for inp in inputs:
+            if same(out, inp):
+                raise UserError(f"output {out} is also an input (predictions file {inp}); choose another name")
+        if any(same(out, other) for other in files[:i]):
+            raise UserError(f"--json and --csv name the same file {out}; choose two names")
 
 
 @click.command("score")
@@ -40,6 +61,7 @@ def score_cmd(predictions, truth_path, split, json_path, csv_path, require_compl
     """
     from ..scoring import score
 
+    _check_outputs(list(predictions), [json_path, csv_path])
     report = score(list(predictions), truth_path, split=split)
     if require_complete:
         partial = [f"{r.class_name} - {r.method} ({r.n_scored}/{r.n_truth})" for r in report.rows if not r.complete]
