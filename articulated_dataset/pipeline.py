@@ -563,7 +563,6 @@ def _abandon(run: _Run) -> None:
         for p in run.target.iterdir():
             if p.name.endswith(TMP_SUFFIX) and _OWN_FILE.fullmatch(p.name):
                 p.unlink(missing_ok=True)
-    remove_created_dirs(run.created)  # only folders still empty: a run that wrote nothing leaves nothing
 
 
 def check_resources(config: GenerationConfig, split_dir: Path, *, workers: int, remote: bool = False,
@@ -647,10 +646,11 @@ def generate_split(
             _finish_overwrite(run)
     except BaseException as exc:
         _abandon(run)
+        run.lock.release()
+        remove_created_dirs(run.created)  # only folders still empty: a run that wrote nothing leaves nothing
         if isinstance(exc, WriteError) and run.target == split_dir and records:
             raise WriteError(f"{exc}; the {len(records)} complete shard(s) are kept: run the same command with "
                              "--resume once there is space", exc.path, exc.errno) from None
         raise
-    finally:
-        run.lock.release()
+    run.lock.release()
     return split_dir

@@ -95,6 +95,8 @@ def free_bytes(path: str | Path) -> int | None:
         st = os.statvfs(_existing_ancestor(Path(path)))
     except OSError:
         return None
+    if st.f_blocks == 0:  # a pseudo filesystem (/proc, /sys): no size to speak of
+        return None
     return st.f_bavail * st.f_frsize
 
 

@@ -116,3 +116,29 @@ def test_existing_output_needs_resume_or_overwrite(tmp_path):
     # resuming with different settings is refused
     changed = runner.invoke(main, [*base, "--resume", "--seed", "7"])
     assert changed.exit_code == 2 and "different settings" in changed.output
+
+
+def test_killing_only_the_parent_ends_its_workers_and_resume_is_identical(tmp_path, reference):
+    """SIGKILL of the generate process alone (not its group): its workers end with it
+    instead of writing on and hanging, and --resume still gives the reference bytes."""
+    psutil = pytest.importorskip("psutil")
+    out = tmp_path / "orphans"
+    split = out / "toaster" / "train"
+    proc = generate(out, workers=2)
+    workers = []
+    while proc.poll() is None and not (workers and list(split.glob("shard-*.h5"))):
+        workers = [c for c in psutil.Process(proc.pid).children(recursive=True) if c.is_running()]
+        time.sleep(POLL_S)
+    assert proc.poll() is None, "the run ended before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    _, alive = psutil.wait_procs(workers, timeout=10)
+    assert not alive, f"workers outlived their parent: {alive}"
+    written = files_of(split)
+    time.sleep(0.5)
+    assert files_of(split) == written  # nobody writes any more
+    resumed = generate(out, "--resume", workers=2)
+    _, err = resumed.communicate(timeout=120)
+    assert resumed.returncode == 0, err.decode()
+    assert files_of(split) == reference["files"]
+    assert (split / MANIFEST_NAME).read_bytes() == reference["manifest"]
