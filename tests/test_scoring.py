@@ -434,3 +434,19 @@ def test_tiny_mixture_scales_give_infinite_nll_never_dropped(good, tiny_root, tm
     # one image with a finite density and the rest infinite: still infinite, and all 48 counted
     row = score(path, tiny_root).rows[0]
     assert row.metrics["nll"][0] == float("inf") and "nll" not in row.n_defined
+
+
+def test_truth_reader_refuses_shards_outside_the_split(tiny_root, tmp_path, monkeypatch):
+    """The scorer's own check on resolved shard paths, independent of the manifest-name checks in shards."""
+    from articulated_dataset import scoring
+    from articulated_dataset.errors import DataFormatError
+    from articulated_dataset.shards import Shard
+
+    split = tmp_path / "cabinet" / "test"
+    shutil.copytree(tiny_root / "cabinet" / "test", split)
+    outside = shutil.copy(next(split.glob("shard-*.h5")), tmp_path / "elsewhere.h5")
+    manifest, _ = open_split(split)
+    for path in (outside, split / ".." / "test" / ".." / ".." / "elsewhere.h5", split):
+        monkeypatch.setattr(scoring, "open_split", lambda d, p=path: (manifest, [Shard(p)]))
+        with pytest.raises(DataFormatError, match="outside the split folder"):
+            scoring.load_truth_set(split)
