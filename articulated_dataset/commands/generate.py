@@ -172,6 +172,8 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
         split_dir = generate_split(config, out_root, workers=workers or 1, resume=resume, overwrite=overwrite,
                                    progress=not quiet, executor=runner)
     except KeyboardInterrupt:
+        if overwrite:
+            raise click.ClickException("interrupted; the previous split is unchanged") from None
         raise click.ClickException(
             "interrupted; completed shards are kept. Continue with the same command plus --resume"
         ) from None
