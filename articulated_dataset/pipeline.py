@@ -342,6 +342,9 @@ RETIRED_SUFFIX = ".old"
 #: mask), and the renderer's own buffers (RGB, depth, GL colour/depth/stencil), per pixel.
 SHARD_BUFFER_BYTES_PER_PIXEL = 5
 RENDERER_BYTES_PER_PIXEL = 24
+#: Memory of one worker process before its first shard (Python, NumPy, MuJoCo, the GL
+#: driver; ~200-250 MB measured), counted for each worker process a run would start.
+WORKER_PROCESS_BYTES = 250e6
 #: Fraction of the available memory generation may plan to use (the rest: Python, MuJoCo,
 #: the GL driver, other programs).
 MEMORY_BUDGET_FRACTION = 0.5
@@ -573,11 +576,12 @@ def check_resources(config: GenerationConfig, split_dir: Path, *, workers: int, 
     per_shard = min(config.objects_per_shard, config.n_objects) * config.images_per_object
     if not remote:
         in_flight = max(1, min(workers, config.n_shards))
-        need = in_flight * (per_shard * pixels * SHARD_BUFFER_BYTES_PER_PIXEL + pixels * RENDERER_BYTES_PER_PIXEL)
+        process = WORKER_PROCESS_BYTES if in_flight > 1 else 0.0  # one worker runs in this process
+        need = in_flight * (per_shard * pixels * SHARD_BUFFER_BYTES_PER_PIXEL + pixels * RENDERER_BYTES_PER_PIXEL + process)
         avail = available_memory_bytes()
         if avail is not None and need > MEMORY_BUDGET_FRACTION * avail:
             raise UserError(
-                f"{in_flight} shard(s) of {per_shard} images of {config.camera.width_px}x{config.camera.height_px} px "
+                f"{in_flight} worker(s) with shards of {per_shard} images of {config.camera.width_px}x{config.camera.height_px} px "
                 f"need {format_bytes(need)} of memory, more than half of the {format_bytes(avail)} available; "
                 "lower --objects-per-shard, --images, --width/--height or --workers")
     remaining = config.n_objects * config.images_per_object - done_images

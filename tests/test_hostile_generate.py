@@ -118,6 +118,7 @@ ABSURD = {
     "seed-not-int": (["--n", "1", "--seed", "1.5"], "--seed"),
     "workers-zero": (["--n", "1", "--workers", "0"], "--workers"),
     "workers-negative": (["--n", "1", "--workers", "-3"], "--workers"),
+    "workers-huge": (["--n", "100000", "--objects-per-shard", "1", "--workers", "100000"], "memory"),
     "mean-with-n": (["--mean", "--n", "2"], "--mean"),
     "mean-with-n-zero": (["--mean", "--n", "0"], "--mean"),
     "split-empty": (["--n", "1", "--split", ""], "split"),

@@ -1,5 +1,6 @@
 """Sampling tables and the sampling stage, for every registered class (no rendering)."""
 
+import json
 import math
 
 import numpy as np
@@ -141,3 +142,31 @@ def test_table_override_from_file(tmp_path):
 def test_bad_table_overrides_are_user_errors(bad):
     with pytest.raises(UserError):
         get_class("cabinet").table.override(bad)
+
+
+def test_table_bounds_accept_the_edges_and_refuse_beyond():
+    """Sizes in [MIN_SIZE_M, MAX_SIZE_M]: the edges are tables, a hair beyond is an error."""
+    from articulated_dataset.tables import MAX_SIZE_M, MIN_SIZE_M
+
+    table = get_class("drawer").table
+    assert table.override({"geometry": {"height_m": [MIN_SIZE_M, MAX_SIZE_M]}}).geometry["height_m"] == (MIN_SIZE_M, MAX_SIZE_M)
+    for bad in ([MIN_SIZE_M / 2, 0.2], [0.2, MAX_SIZE_M * 2]):
+        with pytest.raises(UserError, match="geometry.height_m"):
+            table.override({"geometry": {"height_m": bad}})
+
+
+def test_extra_keys_are_only_those_the_class_defines():
+    table = SamplingTable(geometry=get_class("drawer").table.geometry, pose=get_class("drawer").table.pose,
+                          q=((0.0, 0.4),), extra={"handle_m": 0.1})
+    assert table.override({"extra": {"handle_m": 0.2}}).extra == {"handle_m": 0.2}
+    with pytest.raises(UserError, match="extra.knob_m"):
+        table.override({"extra": {"knob_m": 0.2}})
+    with pytest.raises(UserError, match="extra.handle_m"):
+        table.override({"extra": {"handle_m": "long"}})
+
+
+def test_stored_tables_read_back_identically_for_every_class():
+    """Stricter validation must not change what a stored table means (nor its JSON bytes)."""
+    for obj_class in all_classes():
+        t = obj_class.table
+        assert SamplingTable.from_dict(json.loads(t.to_json())).to_json() == t.to_json()
