@@ -148,7 +148,12 @@ def check_source_size(size: tuple[int, int], where: str) -> None:
 def _read_mapping(path: Path) -> dict:
     if not path.is_file():
         raise UserError(f"file not found: {path}")
-    text = path.read_text()
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{path}: not UTF-8 text (byte {exc.start}); save it as UTF-8 JSON or YAML") from None
+    except OSError as exc:
+        raise UserError(f"cannot read {path}: {exc.strerror or exc}") from None
     try:
         if path.suffix.lower() in (".yaml", ".yml"):
             try:

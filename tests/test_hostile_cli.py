@@ -1,0 +1,453 @@
+"""Hostile input across the commands: every case ends in exactly one stderr line
+``artdata: error: ...`` with exit code 2, prints nothing on stdout, and changes nothing on
+disk (neither the test's working folder, where every output is named, nor the shared input
+data).
+
+Case groups: click usage errors of every command (unknown options, bad values of every
+typed option, bad choices, missing arguments); absurd numbers; real (ingested) splits used
+where they cannot be; damaged or foreign model checkpoints; malformed real captures.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import click
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from PIL import Image
+
+from articulated_dataset.cli import EXIT_ENVIRONMENT_ERROR, EXIT_USER_ERROR, main
+from articulated_dataset.shards import open_split
+
+ERROR_PREFIX = "artdata: error: "
+#: Small checkpoint settings (seconds to train on the tiny split).
+TINY_MDN = dict(preset="small", width=4, blocks=(1, 1), height_px=27, width_px=48, n_components=3, batch_size=16)
+
+
+# --------------------------------------------------------------------------------------
+# Shared inputs (built once per module; never modified by a case)
+# --------------------------------------------------------------------------------------
+
+def _capture(folder: Path, name: str, s: dict, K: np.ndarray, labels: dict | None) -> None:
+    """A real capture at the training resolution: 16-bit PNG (mm), binary mask, camera, labels."""
+    folder.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.rint(s["depth"].astype(np.float64) * 1000).astype(np.uint16)).save(folder / f"{name}.png")
+    Image.fromarray((s["mask"] > 0).astype(np.uint8) * 255).save(folder / f"{name}.mask.png")
+    H, W = s["depth"].shape
+    (folder / "camera.json").write_text(json.dumps({"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2],
+                                                    "width": W, "height": H}))
+    if labels is not None:
+        (folder / f"{name}.labels.json").write_text(json.dumps(labels))
+
+
+@dataclass
+class Inputs:
+    tiny: Path  # tiny_root: <class>/{train,test}
+    captures: Path  # one valid cabinet capture (with labels)
+    real: Path  # an ingested cabinet real split: image 0 labelled, image 1 without labels
+    model: Path  # a tiny cabinet MDN checkpoint
+    label: dict  # the valid capture's labels
+
+
+@pytest.fixture(scope="module")
+def inputs(tiny_root, tmp_path_factory) -> Inputs:
+    from articulated_dataset.mdn.train import TrainConfig, train
+
+    root = tmp_path_factory.mktemp("hostile")
+    _, shards = open_split(tiny_root / "cabinet" / "test")
+    sh = shards[0]
+    s0, s1 = sh.sample(0), sh.sample(3)
+    label = {"q": s0["q"].tolist(), "axis_pose": s0["axis_pose"].tolist(), "geometry": s0["geometry"].tolist(),
+             "object": "kitchen"}
+    _capture(root / "caps", "a", s0, sh.K, label)
+    _capture(root / "nolabels", "b", s1, sh.K, None)
+    for folder, extra in (("caps", []), ("nolabels", ["--append"])):
+        res = CliRunner().invoke(main, ["ingest", str(root / folder), "--class", "cabinet", "--out", str(root / "out"),
+                                        "-q", *extra])
+        assert res.exit_code == 0, res.output
+    model = root / "cabinet.pt"
+    train(tiny_root / "cabinet" / "train", model, TrainConfig(class_name="cabinet", epochs=1, **TINY_MDN), progress=False)
+    return Inputs(tiny_root, root / "caps", root / "out" / "cabinet" / "real", model, label)
+
+
+def _tree(root: Path) -> dict:
+    """``{relative path: (size, mtime_ns)}`` of every file and folder under ``root``."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            p = Path(dirpath) / name
+            st = p.lstat()
+            out[str(p.relative_to(root))] = (st.st_size if p.is_file() else 0, st.st_mtime_ns)
+    return out
+
+
+@dataclass
+class Env:
+    """What a case builds its arguments from: the shared inputs and its own empty folder."""
+
+    inputs: Inputs
+    tmp: Path
+
+    @property
+    def tiny(self) -> Path:
+        return self.inputs.tiny
+
+    def split(self, class_name: str = "cabinet", split: str = "test") -> str:
+        return str(self.tiny / class_name / split)
+
+    def capture(self, *, labels=None, camera=None, depth=None, mask=None) -> str:
+        """A private copy of the valid capture folder with some files replaced."""
+        dst = self.tmp / "caps"
+        shutil.copytree(self.inputs.captures, dst)
+        if labels is not None:
+            data = labels if isinstance(labels, (str, bytes)) else json.dumps(labels)
+            (dst / "a.labels.json").write_bytes(data if isinstance(data, bytes) else data.encode())
+        if camera is not None:
+            (dst / "camera.json").write_text(camera if isinstance(camera, str) else json.dumps(camera))
+        if depth is not None:
+            depth(dst / "a.png")
+        if mask is not None:
+            mask(dst / "a.mask.png")
+        return str(dst)
+
+    def checkpoint(self, change: Callable[[dict], object]) -> str:
+        """A private copy of the tiny checkpoint with ``change(ckpt)`` applied (its return value,
+        if not None, is saved instead)."""
+        import torch
+
+        ckpt = torch.load(self.inputs.model, weights_only=True)
+        replaced = change(ckpt)
+        path = self.tmp / "bad.pt"
+        torch.save(ckpt if replaced is None else replaced, path)
+        return str(path)
+
+
+@pytest.fixture()
+def env(inputs, tmp_path, monkeypatch) -> Env:
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)  # default outputs (e.g. --out data) would land here
+    return Env(inputs, work)
+
+
+def assert_one_line_error(result, needle: str | None = None, code: int = EXIT_USER_ERROR) -> str:
+    assert result.exit_code == code, (result.exit_code, result.output, result.exception)
+    assert result.stdout == "", result.output
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(ERROR_PREFIX), result.stderr
+    if needle is not None:
+        assert needle in lines[0], (needle, lines[0])
+    return lines[0]
+
+
+def run_case(env: Env, args: list, needle: str | None) -> None:
+    watched = [env.tmp, env.tiny, env.inputs.real.parent.parent.parent]
+    before = [_tree(p) for p in watched]
+    result = CliRunner().invoke(main, [str(a) for a in args])
+    assert_one_line_error(result, needle)
+    after = [_tree(p) for p in watched]
+    for root, b, a in zip(watched, before, after):
+        assert a == b, f"{root}: changed by a refused command: {sorted(set(a) ^ set(b)) or 'modified files'}"
+
+
+# --------------------------------------------------------------------------------------
+# 1. Click usage errors of every command
+# --------------------------------------------------------------------------------------
+
+def _commands(group: click.Group = main, path: tuple = ()):
+    for name, cmd in sorted(group.commands.items()):
+        if isinstance(cmd, click.Group):
+            yield from _commands(cmd, path + (name,))
+        else:
+            yield path + (name,), cmd
+
+
+#: A value click's conversion refuses, per option type.
+_BAD_VALUES = {click.INT: "abc", click.FLOAT: "1.5.2"}
+
+
+def _usage_cases():
+    cases = []
+    for path, cmd in _commands():
+        name = " ".join(path)
+        cases.append(pytest.param([*path, "--no-such-option"], "No such option", id=f"{name}:unknown-option"))
+        if any(p.required for p in cmd.params):
+            cases.append(pytest.param(list(path), "(see artdata " + name + " --help)", id=f"{name}:no-arguments"))
+        for p in cmd.params:
+            if not isinstance(p, click.Option) or p.is_flag or p.name == "help":
+                continue
+            opt = p.opts[0]
+            if isinstance(p.type, click.Choice):
+                cases.append(pytest.param([*path, opt, "not-a-choice"], f"'{opt}'", id=f"{name}:{opt}-choice"))
+            elif p.type in _BAD_VALUES:
+                cases.append(pytest.param([*path, opt, _BAD_VALUES[p.type]], f"'{opt}'", id=f"{name}:{opt}-type"))
+            elif p.type.name == "class":
+                cases.append(pytest.param([*path, opt, "sofa"], "sofa", id=f"{name}:{opt}-class"))
+            if opt in ("--out", "--n", "--workers", "--class"):
+                cases.append(pytest.param([*path, opt], opt, id=f"{name}:{opt}-without-value"))
+    cases.append(pytest.param(["no-such-command"], "No such command", id="unknown-command"))
+    cases.append(pytest.param(["baseline"], "missing command", id="baseline:no-subcommand"))
+    return cases
+
+
+@pytest.mark.parametrize("args, needle", _usage_cases())
+def test_usage_errors_are_one_line(env, args, needle):
+    run_case(env, args, needle)
+
+
+# --------------------------------------------------------------------------------------
+# 2. Absurd numbers, real splits where they cannot be used, bad checkpoints, bad captures
+# --------------------------------------------------------------------------------------
+
+def _set(d: dict, key: str, value):
+    d[key] = value
+
+
+def _nested(key: str, sub: str, value):
+    def change(ckpt):
+        ckpt[key][sub] = value
+    return change
+
+
+def _save_png(values):
+    return lambda path: Image.fromarray(np.asarray(values(np.array(Image.open(path))))).save(path)
+
+
+CASES: dict[str, tuple[Callable[[Env], list], str]] = {
+    # plan
+    "plan:step-1e-12": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--step", "1e-12deg", "-q"], "waypoints"),
+    "plan:step-zero": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--step", "0deg", "-q"], "--step"),
+    "plan:step-negative": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--step", "-1deg", "-q"], "--step must be positive"),
+    "plan:step-wrong-unit": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--step", "1cm", "-q"], "prismatic"),
+    "plan:target-overflow": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--target", "1e999deg", "-q"], "too large"),
+    "plan:target-text": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--target", "wide", "-q"], "cannot parse"),
+    "plan:index-negative": (lambda e: ["plan", "--data", e.split(), "--index", -1, "-q"], "--index"),
+    "plan:index-huge": (lambda e: ["plan", "--data", e.split(), "--index", 10**12, "-q"], "out of range"),
+    "plan:joint-huge": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--joint", 7, "-q"], "--joint 7"),
+    "plan:joint-negative": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--joint", -1, "-q"], "--joint -1"),
+    "plan:class-folder": (lambda e: ["plan", "--data", e.tiny / "cabinet", "--index", 0, "-q"], "splits"),
+    "plan:missing-data": (lambda e: ["plan", "--data", e.tmp / "nope", "--index", 0, "-q"], None),
+    # show
+    "show:dpi-100000": (lambda e: ["show", e.split(), "--out", "g.png", "--dpi", 100000, "-q"], "figure"),
+    "show:dpi-zero": (lambda e: ["show", e.split(), "--out", "g.png", "--dpi", 0, "-q"], "dpi"),
+    "show:n-zero": (lambda e: ["show", e.split(), "--out", "g.png", "--n", 0, "-q"], "positive"),
+    "show:cols-zero": (lambda e: ["show", e.split(), "--out", "g.png", "--cols", 0, "-q"], "positive"),
+    "show:objects-reversed": (lambda e: ["show", e.split(), "--out", "g.png", "--objects", "5-3", "-q"], "--objects"),
+    "show:images-text": (lambda e: ["show", e.split(), "--out", "g.png", "--images", "a,b", "-q"], "--images"),
+    "show:object-missing": (lambda e: ["show", e.split(), "--out", "g.png", "--objects", "99", "-q"], "object 99"),
+    "show:unknown-format": (lambda e: ["show", e.split(), "--out", "g.xyz", "-q"], "format"),
+    # baselines
+    "nn:block-1000": (lambda e: ["baseline", "nn", "--train", e.split(split="train"), "--test", e.split(), "--out", "p.h5",
+                                 "--block", 1000, "-q"], "--block 1000"),
+    "nn:block-zero": (lambda e: ["baseline", "nn", "--train", e.split(split="train"), "--test", e.split(), "--out", "p.h5",
+                                 "--block", 0, "-q"], "--block"),
+    "nn:workers-zero": (lambda e: ["baseline", "nn", "--train", e.split(split="train"), "--test", e.split(), "--out", "p.h5",
+                                   "--workers", 0, "-q"], "--workers"),
+    "nn:class-mismatch": (lambda e: ["baseline", "nn", "--train", e.split(split="train"), "--test", e.split("drawer"),
+                                     "--out", "p.h5", "-q"], "class mismatch"),
+    "icp:limit-zero": (lambda e: ["baseline", "icp", "--train", e.split(split="train"), "--test", e.split(), "--out", "p.h5",
+                                  "--limit", 0, "-q"], "--limit"),
+    "icp:mean-object-is-test": (lambda e: ["baseline", "icp", "--train", e.split(split="train"), "--test", e.split(),
+                                           "--out", "p.h5", "--mean-object", e.split(), "-q"], "not a mean object"),
+    "mean:missing-train": (lambda e: ["baseline", "mean", "--train", e.tmp / "nope", "--test", e.split(), "--out", "p.h5"],
+                           "not found"),
+    # train
+    **{f"train:{name}": (lambda e, extra=extra: ["train", "--class", "cabinet", "--data", e.split(split="train"),
+                                                 "--out", "m.pt", "-q", *extra], needle)
+       for name, extra, needle in [
+           ("lr-nan", ["--lr", "nan"], "--lr"), ("lr-inf", ["--lr", "inf"], "--lr"), ("lr-negative", ["--lr", "-1e-3"], "--lr"),
+           ("lr-10", ["--lr", "10"], "--lr"), ("epochs-zero", ["--epochs", "0"], "--epochs"),
+           ("epochs-negative", ["--epochs", "-3"], "--epochs"), ("batch-zero", ["--batch-size", "0"], "--batch-size"),
+           ("components-zero", ["--components", "0"], "--components"),
+           ("seed-negative", ["--seed", "-1"], "--seed"), ("seed-huge", ["--seed", str(2**40)], "--seed"),
+           ("val-fraction-nan", ["--val-fraction", "nan"], "--val-fraction"),
+           ("val-fraction-one", ["--val-fraction", "1"], "--val-fraction"),
+           ("max-objects-zero", ["--max-objects", "0"], "--max-objects"), ("threads-zero", ["--threads", "0"], "--threads"),
+           ("device-tpu", ["--device", "tpu"], "--device"), ("components-huge", ["--components", str(10**12)], "memory"),
+       ]},
+    "train:class-mismatch": (lambda e: ["train", "--class", "drawer", "--data", e.split(split="train"), "--out", "m.pt", "-q"],
+                             "not 'drawer'"),
+    "train:resume-nothing": (lambda e: ["train", "--class", "cabinet", "--data", e.split(split="train"), "--out", "m.pt",
+                                        "--resume", "-q"], "--resume"),
+    # predict: options and checkpoints
+    "predict:other-class": (lambda e: ["predict", "--model", e.inputs.model, "--data", e.split("drawer"), "--out", "p.h5",
+                                       "-q"], "'cabinet'"),
+    **{f"checkpoint:{name}": (lambda e, change=change: ["predict", "--model", e.checkpoint(change), "--data", e.split(),
+                                                        "--out", "p.h5", "-q"], needle)
+       for name, change, needle in [
+           ("not-a-dict", lambda c: [1, 2, 3], None),
+           ("no-format", lambda c: c.pop("format"), None),
+           ("version-text", lambda c: _set(c, "version", "abc"), "version"),
+           ("version-2", lambda c: _set(c, "version", 2), "version"),
+           ("missing-stats", lambda c: c.pop("norm_stats"), None),
+           ("class-number", lambda c: _set(c, "class_name", 5), None),
+           ("class-unknown", lambda c: _set(c, "class_name", "sofa"), "sofa"),
+           ("layout", lambda c: _set(c, "layout_names", ["x"]), "target layout"),
+           ("train-config-key", _nested("train_config", "bogus", 1), "train_config"),
+           ("train-config-lr", _nested("train_config", "lr", float("nan")), "--lr"),
+           ("train-config-epochs-text", _nested("train_config", "epochs", "30"), "--epochs"),
+           ("model-width-huge", _nested("model_config", "width", 10**9), "model_config"),
+           ("model-config-missing", lambda c: c["model_config"].pop("blocks"), None),
+           ("input-config", _nested("input_config", "height_px", 10**6), "input_config"),
+           ("stats-std-zero", lambda c: _set(c["norm_stats"], "std", [0.0] * len(c["norm_stats"]["std"])), None),
+           ("stats-mean-nan", lambda c: _set(c["norm_stats"], "mean", [float("nan")] * len(c["norm_stats"]["mean"])),
+            None),
+           ("stats-short", lambda c: _set(c["norm_stats"], "mean", [0.0]), None),
+           ("weights-nan", lambda c: next(v for v in c["model_state"].values() if v.is_floating_point()).fill_(float("nan")),
+            None),
+           ("weights-text", lambda c: _set(c, "model_state", {"w": "abc"}), "model_state"),
+           ("active-columns", lambda c: _set(c, "active_columns", [10**6]), "active_columns"),
+           ("epoch-negative", lambda c: _set(c, "epoch", -1), "epoch"),
+       ]},
+    "checkpoint:not-torch": (lambda e: ["predict", "--model", _write(e.tmp / "x.pt", b"not a checkpoint"), "--data",
+                                        e.split(), "--out", "p.h5", "-q"], "not a readable model checkpoint"),
+    "checkpoint:empty": (lambda e: ["predict", "--model", _write(e.tmp / "x.pt", b""), "--data", e.split(), "--out", "p.h5",
+                                    "-q"], "not a readable model checkpoint"),
+    "checkpoint:truncated": (lambda e: ["predict", "--model", _write(e.tmp / "x.pt", e.inputs.model.read_bytes()[:5000]),
+                                        "--data", e.split(), "--out", "p.h5", "-q"], "not a readable model checkpoint"),
+    "checkpoint:pickled-object": (lambda e: ["predict", "--model", _pickled(e.tmp / "x.pt"), "--data", e.split(),
+                                             "--out", "p.h5", "-q"], "not a readable model checkpoint"),
+    "checkpoint:missing": (lambda e: ["predict", "--model", e.tmp / "none.pt", "--data", e.split(), "--out", "p.h5", "-q"],
+                           "none.pt"),
+    # verify
+    "verify:workers-zero": (lambda e: ["verify", e.split(), "--workers", 0], "--workers"),
+    "verify:workers-negative": (lambda e: ["verify", e.split(), "--workers", -4], "--workers"),
+    "verify:missing": (lambda e: ["verify", e.tmp / "nope"], "no such directory"),
+    # real splits where they cannot be used
+    "real:plan-simulate": (lambda e: ["plan", "--data", e.inputs.real, "--index", 0, "--simulate", "-q"], "real capture"),
+    "real:plan-no-labels": (lambda e: ["plan", "--data", e.inputs.real, "--index", 1, "-q"], "lack axis_pose, q"),
+    "real:mean-train": (lambda e: ["baseline", "mean", "--train", e.inputs.real, "--test", e.split(), "--out", "p.h5"],
+                        "real captures"),
+    "real:nn-train": (lambda e: ["baseline", "nn", "--train", e.inputs.real, "--test", e.split(), "--out", "p.h5", "-q"],
+                      "real captures"),
+    "real:icp-mean-object": (lambda e: ["baseline", "icp", "--train", e.split(split="train"), "--test", e.split(),
+                                        "--out", "p.h5", "--mean-object", e.inputs.real, "-q"], "real captures"),
+    "real:train": (lambda e: ["train", "--class", "cabinet", "--data", e.inputs.real, "--out", "m.pt", "-q"],
+                   "real captures"),
+}
+
+
+def _write(path: Path, data: bytes) -> str:
+    path.write_bytes(data)
+    return str(path)
+
+
+class _Payload:
+    """An object whose unpickling would run code: weights_only loading must refuse it."""
+
+    def __reduce__(self):
+        return (os.system, ("touch pwned",))
+
+
+def _pickled(path: Path) -> str:
+    import torch
+
+    torch.save({"format": "artdata-mdn", "payload": _Payload()}, path)
+    return str(path)
+
+
+def _ingest(e: Env, folder: str, *extra) -> list:
+    return ["ingest", folder, "--class", "cabinet", "--out", e.tmp / "out", "-q", *extra]
+
+
+def _label(e: Env, **changes) -> dict:
+    return {**e.inputs.label, **changes}
+
+
+_CAMERA = {"fx": 100.0, "fy": 100.0, "cx": 95.5, "cy": 53.5, "width": 192, "height": 108}
+INGEST_CASES: dict[str, tuple[Callable[[Env], list], str]] = {
+    **{f"ingest:fx-{fx}": (lambda e, fx=fx: _ingest(e, e.capture(), "--fx", fx, "--fy", fx, "--cx", 95.5, "--cy", 53.5),
+                           needle)
+       for fx, needle in [("1e308", "field of view"), ("1e6", "field of view"), ("0.001", "field of view"),
+                          ("0", "positive"), ("-100", "positive"), ("nan", "finite"), ("inf", "finite")]},
+    "ingest:cx-outside": (lambda e: _ingest(e, e.capture(), "--fx", 100, "--fy", 100, "--cx", 5000, "--cy", 53.5),
+                          "principal point"),
+    "ingest:partial-intrinsics": (lambda e: _ingest(e, e.capture(), "--fx", 100), "go together"),
+    **{f"ingest:camera-{name}": (lambda e, cam=cam: _ingest(e, e.capture(camera=cam)), needle)
+       for name, cam, needle in [
+           ("fx-1e308", {**_CAMERA, "fx": 1e308}, "field of view"), ("fx-text", {**_CAMERA, "fx": "100"}, "numbers"),
+           ("fx-bool", {**_CAMERA, "fx": True}, "numbers"), ("fx-list", {**_CAMERA, "fx": [100, 1]}, "one number"),
+           ("width-text", {**_CAMERA, "width": "192"}, "whole numbers"),
+           ("width-float", {**_CAMERA, "width": 192.5}, "whole numbers"),
+           ("width-zero", {**_CAMERA, "width": 0}, "frame"), ("size-huge", {**_CAMERA, "width": 10**6, "height": 10**6},
+                                                             "frame"),
+           ("size-mismatch", {**_CAMERA, "width": 512, "height": 424}, "camera file"),
+           ("K-eight", {"K": [1] * 8}, "9 numbers"), ("K-text", {"K": ["a"] * 9}, "numbers"),
+           ("K-skew", {"K": [100, 5, 95.5, 0, 100, 53.5, 0, 0, 1]}, "no skew"),
+           ("none", {"width": 192}, "no intrinsics"), ("list", "[1, 2]", "mapping"), ("not-json", "{fx: 1", "cannot parse"),
+       ]},
+    "ingest:png-in-metres": (lambda e: _ingest(e, e.capture(depth=_save_png(
+        lambda a: np.rint(a / 1000.0).astype(np.uint16)))), "--depth-units m"),
+    "ingest:png-8-bit": (lambda e: _ingest(e, e.capture(depth=_save_png(lambda a: (a > 0).astype(np.uint8)))), "16-bit"),
+    "ingest:mask-size": (lambda e: _ingest(e, e.capture(mask=_save_png(lambda a: a[:10, :10]))), "mask is 10x10"),
+    "ingest:mask-values": (lambda e: _ingest(e, e.capture(mask=_save_png(lambda a: np.full_like(a, 9)))), "neither binary"),
+    "ingest:mask-empty": (lambda e: _ingest(e, e.capture(mask=_save_png(lambda a: np.zeros_like(a)))), "no object pixel"),
+    **{f"ingest:labels-{name}": (lambda e, change=change: _ingest(e, e.capture(labels=change(e))), needle)
+       for name, change, needle in [
+           ("q-minus-5", lambda e: _label(e, q=[-5.0]), "joint range"), ("q-100", lambda e: _label(e, q=[100.0]), "joint range"),
+           ("q-nan", lambda e: '{"q": [NaN]}', "NaN"),
+           ("q-infinity", lambda e: '{"q": [Infinity]}', "NaN or infinite"),
+           ("q-null-element", lambda e: {"q": [None]}, "numbers"), ("q-text", lambda e: {"q": ["0.1"]}, "numbers"),
+           ("q-bool", lambda e: {"q": [True]}, "numbers"), ("q-scalar", lambda e: {"q": 0.1}, "shape"),
+           ("q-two-joints", lambda e: {"q": [0.1, 0.2]}, "shape"),
+           ("geometry-negative", lambda e: {"geometry": [-0.5, 0.6, 0.7, 0]}, "body dimensions"),
+           ("geometry-huge", lambda e: {"geometry": [0.5, 60.0, 0.7, 0]}, "body dimensions"),
+           ("chirality", lambda e: {"geometry": [0.5, 0.6, 0.7, 0.5]}, "chirality"),
+           ("object-far", lambda e: {"object_pose": [500.0, 0, 0, 1, 0, 0, 0]}, "20 m"),
+           ("quaternion-norm", lambda e: {"object_pose": [1.5, 0, 0, 5, 0, 0, 0]}, "unit quaternion"),
+           ("quaternion-zero", lambda e: {"axis_pose": [[1.5, 0, 0, 0, 0, 0, 0]]}, "zero-length"),
+           ("yaw-text", lambda e: {"object_yaw": "abc"}, "numbers"),
+           ("yaw-disagrees", lambda e: {"object_pose": [1.5, 0, 0, 1, 0, 0, 0], "object_yaw": 1.0}, "disagrees"),
+           ("origin-far", lambda e: {"axis_origin": [[0, 0, 1e6]]}, "20 m"),
+           ("unknown-key", lambda e: {"q": [0.1], "qq": 1}, "unknown key"),
+           ("frame", lambda e: {"frame": "world"}, "unknown frame"), ("frame-list", lambda e: {"frame": ["camera"]}, "frame"),
+           ("class", lambda e: {"class": "drawer"}, "not 'cabinet'"),
+           ("object-number", lambda e: {"object": 5}, "'object'"),
+           ("top-level-list", lambda e: "[1, 2]", "mapping"), ("not-json", lambda e: "{q: [0", "cannot parse"),
+           ("not-utf8", lambda e: b'{"q": [0.1], "object": "\xff"}', "UTF-8"),
+       ]},
+    "ingest:source-size-zero": (lambda e: _ingest(e, e.capture(), "--source-size", "0x0"), "--source-size"),
+    "ingest:source-size-huge": (lambda e: _ingest(e, e.capture(), "--source-size", "100000x100000"), "--source-size"),
+    "ingest:source-size-text": (lambda e: _ingest(e, e.capture(), "--source-size", "wide"), "--source-size"),
+    "ingest:training-size-huge": (lambda e: _ingest(e, e.capture(), "--width", 10**6, "--height", 10**6), "memory"),
+    "ingest:training-vfov-tiny": (lambda e: _ingest(e, e.capture(), "--vfov", "1e-9"), "field of view"),
+    "ingest:training-vfov-180": (lambda e: _ingest(e, e.capture(), "--vfov", "180"), None),
+    "ingest:crop-margin-nan": (lambda e: _ingest(e, e.capture(), "--crop-margin", "nan"), "crop margin"),
+    "ingest:unknown-class": (lambda e: ["ingest", e.capture(), "--class", "sofa", "--out", e.tmp / "out", "-q"], "sofa"),
+    "ingest:missing-capture": (lambda e: _ingest(e, str(e.tmp / "nope.png")), "no such file"),
+    "ingest:existing-split": (lambda e: ["ingest", e.capture(), "--class", "cabinet", "--out",
+                                         e.inputs.real.parent.parent, "-q"], "already holds data"),
+}
+
+
+@pytest.mark.parametrize("name", list(CASES) + list(INGEST_CASES))
+def test_hostile_case_is_one_line(env, name):
+    build, needle = CASES.get(name) or INGEST_CASES[name]
+    run_case(env, build(env), needle)
+    assert not (env.tmp / "pwned").exists()
+
+
+# --------------------------------------------------------------------------------------
+# 3. A machine without a GL backend: commands that do not render still work
+# --------------------------------------------------------------------------------------
+
+def test_without_gl_only_rendering_commands_stop(tmp_path):
+    env = {**os.environ, "MUJOCO_GL": "no-such-backend"}
+    code = "from articulated_dataset.cli import main; main()"
+    ok = subprocess.run([sys.executable, "-c", code, "score", "--help"], env=env, capture_output=True, text=True)
+    assert ok.returncode == 0 and "Score PREDICTIONS" in ok.stdout, ok.stderr
+    bad = subprocess.run([sys.executable, "-c", code, "generate", "--class", "drawer", "--n", "1", "--out", str(tmp_path)],
+                         env=env, capture_output=True, text=True)
+    assert bad.returncode == EXIT_ENVIRONMENT_ERROR, bad.stderr
+    lines = bad.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(ERROR_PREFIX) and "MUJOCO_GL='no-such-backend'" in lines[0]
+    assert list(tmp_path.iterdir()) == []
