@@ -507,3 +507,55 @@ def test_disk_full_show_leaves_no_partial_file(small_disk, tiny_split):
     result = CliRunner().invoke(main, ["show", str(tiny_split), "--out", str(small_disk / "gallery.png"), "--quiet"])
     assert_one_line_error(result, "gallery.png")
     assert snapshot(small_disk) == before
+
+
+# --------------------------------------------------------------------------------------
+# Outputs of show and baseline: refused before any work, nothing left behind
+# --------------------------------------------------------------------------------------
+
+def _show(split, *args):
+    return CliRunner().invoke(main, ["show", str(split), "--quiet", *map(str, args)])
+
+
+def _baseline(split, out):
+    return CliRunner().invoke(main, ["baseline", "mean", "--train", str(split), "--test", str(split), "--out", str(out),
+                                     "--quiet"])
+
+
+@pytest.mark.parametrize("out, needle", [
+    ("/proc/artdata-gallery.png", "cannot write"),
+    ("/proc/self/status", "cannot write"),
+    ("canary.txt/sub.png", "not a directory"),
+    ("canaries", "directory"),
+])
+def test_show_output_refused(sandbox, tiny_split, out, needle):
+    before = snapshot(sandbox)
+    target = out if out.startswith("/") else sandbox / out
+    assert_one_line_error(_show(tiny_split, "--out", target), needle)
+    assert snapshot(sandbox) == before
+
+
+@pytest.mark.parametrize("dpi", ["100000", "0", "-1"])
+def test_show_absurd_dpi(sandbox, tiny_split, dpi):
+    before = snapshot(sandbox)
+    assert_one_line_error(_show(tiny_split, "--out", sandbox / "g.png", "--dpi", dpi), "dpi" if dpi != "100000" else "px")
+    assert snapshot(sandbox) == before
+
+
+@pytest.mark.parametrize("out, needle", [
+    ("/proc/artdata-predictions.h5", "cannot write"),
+    ("canary.txt/predictions.h5", "not a directory"),
+    ("canaries", "directory"),
+])
+def test_baseline_output_refused(sandbox, tiny_split, out, needle):
+    before = snapshot(sandbox)
+    target = out if out.startswith("/") else sandbox / out
+    assert_one_line_error(_baseline(tiny_split, target), needle)
+    assert snapshot(sandbox) == before
+
+
+def test_show_and_baseline_on_a_read_only_filesystem(readonly_disk, tiny_split):
+    before = snapshot(readonly_disk)
+    assert_one_line_error(_show(tiny_split, "--out", readonly_disk / "g.png"), "read-only")
+    assert_one_line_error(_baseline(tiny_split, readonly_disk / "p.h5"), "read-only")
+    assert snapshot(readonly_disk) == before
