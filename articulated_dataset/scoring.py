@@ -468,7 +468,7 @@ class Report:
             for m in paper:
                 mean, std = r.metrics[m.name]
                 unit = {"deg": " deg", "cm": " cm"}.get(r.configuration_units, "") if m.name == "configuration_error" else ""
-                cells.append(_pm(mean, std) + unit)
+                cells.append("-" if math.isnan(mean) else _pm(mean, std) + unit)  # "-": no image defines it
             mark = "" if r.complete else "*"
             partial |= not r.complete
             cells.append(f"{r.n_scored}/{r.n_truth}{mark}")

@@ -21,6 +21,7 @@ from click.testing import CliRunner
 from articulated_dataset.cli import main
 from articulated_dataset.predictions import PREDICTIONS_FORMAT_VERSION
 from articulated_dataset.shards import open_split
+from test_scoring import raw_write
 
 FIELDS = ("sample_id", "axis_pose", "q", "geometry", "part_offset")
 CLASS = "cabinet"
@@ -36,24 +37,6 @@ def good(tiny_root):
     for s in shards:
         s.close()
     return arrays
-
-
-def write_raw(path: Path, groups: dict, attrs: dict | None = None, group_attrs: dict | None = None) -> Path:
-    """A predictions file written with h5py directly (no validation): root ``attrs`` default to a valid
-    version and method; ``None`` values leave an attribute out."""
-    root = {"format_version": PREDICTIONS_FORMAT_VERSION, "method": "hostile"}
-    root.update(attrs or {})
-    with h5py.File(path, "w") as f:
-        for k, v in root.items():
-            if v is not None:
-                f.attrs[k] = v
-        for cls, arrays in groups.items():
-            g = f.create_group(cls)
-            for k, v in arrays.items():
-                g.create_dataset(k, data=v)
-            for k, v in (group_attrs or {}).get(cls, {}).items():
-                g.attrs[k] = v
-    return path
 
 
 def changed(good, **changes) -> dict:
@@ -115,8 +98,12 @@ class Case:
         self.split = self.truth / CLASS / "test"
         self.good = good
 
-    def preds(self, groups=None, **kw) -> Path:
-        return write_raw(self.work / "p.h5", changed(self.good) if groups is None else groups, **kw)
+    def preds(self, groups=None, attrs=None, group_attrs=None) -> Path:
+        """Write ``work/p.h5``; ``attrs`` may replace the root ``method``/``format_version`` (None: absent)."""
+        attrs = attrs or {}
+        return raw_write(self.work / "p.h5", changed(self.good) if groups is None else groups,
+                         method=attrs.get("method", "hostile"), version=attrs.get("format_version", PREDICTIONS_FORMAT_VERSION),
+                         group_attrs=group_attrs)
 
     def manifest(self) -> dict:
         return json.loads((self.split / "manifest.json").read_text())
@@ -173,7 +160,7 @@ def _soft_link(c: Case):
 
 
 def _external_link(c: Case):
-    other = write_raw(c.work / "other.h5", changed(c.good))
+    other = raw_write(c.work / "other.h5", changed(c.good))
     p = c.preds(groups={})
     with h5py.File(p, "a") as f:
         f[CLASS] = h5py.ExternalLink(str(other), f"/{CLASS}")
@@ -487,7 +474,7 @@ def test_a_failed_write_keeps_the_previous_report(tiny_root, good, tmp_path):
     assert ok.exit_code == 0, ok.output
     first = out.read_bytes()
     assert json.loads(first)["metric_version"] == 2
-    bad = write_raw(c.work / "bad.h5", with_value(good, "q", (0, 0), 1e300))
+    bad = raw_write(c.work / "bad.h5", with_value(good, "q", (0, 0), 1e300))
     result = CliRunner().invoke(main, [str(a) for a in score_args(c, bad, "--json", out)])
     assert result.exit_code == 2 and out.read_bytes() == first
     assert not list(c.work.glob("*.partial"))
