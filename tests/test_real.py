@@ -334,3 +334,47 @@ def test_load_depth_units(tmp_path):
     np.testing.assert_allclose(load_depth(tmp_path / "mm.npy", "mm"), 1.5)
     with pytest.raises(UserError, match="unknown units"):
         load_depth(tmp_path / "mm.npy")
+
+
+def test_intrinsics_plausibility_hand_worked():
+    from articulated_dataset.real import check_intrinsics, intrinsics_matrix
+
+    # Kinect v2 depth camera: 2 atan(256 / 365.456) = 70.02 deg wide, 2 atan(212 / 365.456) = 60.24 deg high
+    kinect = intrinsics_matrix(365.456, 365.456, 254.878, 205.395)
+    check_intrinsics(kinect, (512, 424), "kinect")
+    # fx = 2 * 256 / tan(0.45 deg) = 0.9 deg wide: below the 1 deg floor; fx = 256 / tan(86 deg) = 172 deg
+    for fx in (256 / math.tan(math.radians(0.45)), 256 / math.tan(math.radians(86.0)), 1e308):
+        with pytest.raises(UserError, match="field of view"):
+            check_intrinsics(intrinsics_matrix(fx, 365.0, 255.5, 211.5), (512, 424), "x")
+    with pytest.raises(UserError, match="principal point"):
+        check_intrinsics(intrinsics_matrix(365.0, 365.0, 512.0, 211.5), (512, 424), "x")
+    check_intrinsics(intrinsics_matrix(365.0, 365.0, 511.5, -0.5), (512, 424), "x")  # the image's outer edges
+
+
+def test_depth_units_are_checked_both_ways(tmp_path):
+    png = tmp_path / "d.png"
+    Image.fromarray(np.full((4, 4), 2, np.uint16)).save(png)  # 2 "mm": a frame in metres
+    with pytest.raises(UserError, match="--depth-units m"):
+        load_depth(png)
+    np.testing.assert_allclose(load_depth(png, "m"), 2.0)
+    Image.fromarray(np.full((4, 4), 150, np.uint16)).save(png)  # 15 cm: a close but real return
+    np.testing.assert_allclose(load_depth(png), 0.15)
+    np.save(tmp_path / "d.npy", np.full((4, 4), 1500.0, np.float32))
+    with pytest.raises(UserError, match="--depth-units mm"):
+        load_depth(tmp_path / "d.npy")
+
+
+def test_label_rules_accept_real_labels_and_wrap_yaw(tmp_path):
+    from articulated_dataset.real import load_ground_truth, real_label_problems
+
+    path = tmp_path / "x.labels.json"
+    # a cabinet opened 2 deg past its 90 deg range (labelling error), yaw given as 7 rad
+    path.write_text(json.dumps({"q": [math.radians(92.0)], "object_yaw": 7.0, "geometry": [0.6, 0.8, 0.9, 1]}))
+    labels = load_ground_truth(path, 1, "cabinet")
+    assert math.isclose(float(labels["object_yaw"]), 7.0 - 2 * math.pi)
+    assert np.isnan(labels["part_offset"]).all() and np.isnan(labels["axis_pose"]).all()
+    fields = {k: np.asarray(v)[None] for k, v in labels.items() if k != "object"}
+    assert real_label_problems(fields, ("revolute",), ((0.0, math.pi / 2),)) == []
+    fields["q"] = np.array([[math.radians(96.0)]])  # 6 deg past: beyond the 5 deg tolerance
+    [(message, bad)] = real_label_problems(fields, ("revolute",), ((0.0, math.pi / 2),))
+    assert message.startswith("q[0]: outside the class's joint range") and bad.tolist() == [True]
