@@ -451,3 +451,33 @@ def test_without_gl_only_rendering_commands_stop(tmp_path):
     lines = bad.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith(ERROR_PREFIX) and "MUJOCO_GL='no-such-backend'" in lines[0]
     assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------------------
+# 4. The legitimate uses of a real split next to the refused ones above
+# --------------------------------------------------------------------------------------
+
+def test_real_split_plans_from_its_labels(env):
+    """Image 0 has q, axis_pose and geometry but no part_offset: the handle is placed from the
+    geometry, exactly as manipulation.grasp_pose_from_estimate does with part_offset None."""
+    from articulated_dataset import manipulation as M
+
+    res = CliRunner().invoke(main, ["plan", "--data", str(env.inputs.real), "--index", "0", "-q", "--out", "plan.json"])
+    assert res.exit_code == 0, res.output
+    plan = json.loads((env.tmp / "plan.json").read_text())
+    label = env.inputs.label
+    want = M.grasp_pose_from_estimate(label["axis_pose"][0], None, label["geometry"], M.REVOLUTE, label["q"][0])
+    np.testing.assert_allclose(plan["grasp_pose"], want, atol=1e-5)  # float32 storage of the labels
+    assert plan["q_true"] == pytest.approx(label["q"][0], abs=1e-6) and plan["source"] == "truth"
+
+
+def test_real_split_is_test_data_for_the_baselines(env):
+    res = CliRunner().invoke(main, ["baseline", "mean", "--train", env.split(split="train"), "--test", str(env.inputs.real),
+                                    "--out", "p.h5", "-q"])
+    assert res.exit_code == 0, res.output
+    from articulated_dataset.predictions import read_predictions
+    from articulated_dataset.real import real_sample_id
+
+    _, per_class = read_predictions(env.tmp / "p.h5")
+    ids = per_class["cabinet"]["sample_id"].tolist()
+    assert ids == [real_sample_id("cabinet", "real", "a"), real_sample_id("cabinet", "real", "b")]
