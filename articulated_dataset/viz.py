@@ -64,6 +64,9 @@ GAP_IN = 0.12
 HEADER_IN = 0.42
 FOOTER_IN = 0.34
 DEFAULT_DPI = 100
+#: Smallest dpi: the captions' smallest font (6.5 pt) is 6.5 dpi / 72 pixels high, and FreeType
+#: refuses fonts under one pixel (dpi < 11).
+MIN_DPI = 12
 DEFAULT_N_SAMPLES = 12
 DEFAULT_COLUMNS = 4
 #: With --rgb each sample takes two panels (depth | colour).
@@ -547,8 +550,8 @@ def make_gallery(split_dirs, *, out: str | Path | None = None, per_sample_dir: s
         raise UserError(f"number of samples must be positive, got {n}")
     if cols <= 0:
         raise UserError(f"number of columns must be positive, got {cols}")
-    if dpi <= 0:
-        raise UserError(f"dpi must be positive, got {dpi}")
+    if dpi < MIN_DPI:
+        raise UserError(f"--dpi must be at least {MIN_DPI} (the captions' smallest font needs one pixel), got {dpi}")
     if out is not None:
         out = check_output_format(out)
     views = [SplitView.open(d) for d in split_dirs]
