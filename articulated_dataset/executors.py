@@ -109,8 +109,8 @@ class ProcessExecutor:
                 for future in done:
                     try:
                         result = future.result()
-                    except BrokenProcessPool:
-                        raise RuntimeError(
+                    except BrokenProcessPool:  # not the input's fault, but one line is all there is to say
+                        raise UserError(
                             "a generation worker process died (killed or out of memory?); completed shards are kept, "
                             "continue with --resume"
                         ) from None

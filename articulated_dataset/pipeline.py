@@ -25,7 +25,7 @@ from .errors import DataFormatError, UserError
 from .labels import model_info, read_configuration, read_object_labels, visible_pixels
 from .registry import JOINT_TYPES, REVOLUTE, ObjectClass, get_class
 from .render import DepthRenderer, process_renderer
-from .safeio import (TMP_SUFFIX, WriteError, available_memory_bytes, check_free_space, ensure_dir, format_bytes,
+from .safeio import (FULL_HINT, TMP_SUFFIX, WriteError, available_memory_bytes, check_free_space, ensure_dir, format_bytes,
                      fsync_dir, remove_created_dirs, translated)
 from .sampling import ObjectSample, mean_object, object_rng, sample_id, sample_object, sample_pose
 from .scene import build_model, set_configuration
@@ -653,8 +653,8 @@ def generate_split(
         run.lock.release()
         remove_created_dirs(run.created)  # only folders still empty: a run that wrote nothing leaves nothing
         if isinstance(exc, WriteError) and run.target == split_dir and records:
-            raise WriteError(f"{exc}; the {len(records)} complete shard(s) are kept: run the same command with "
-                             "--resume once there is space", exc.path, exc.errno) from None
+            raise WriteError(f"{str(exc).removesuffix(FULL_HINT)}; the {len(records)} complete shard(s) are kept: "
+                             "run the same command with --resume once there is space", exc.path, exc.errno) from None
         raise
     run.lock.release()
     return split_dir

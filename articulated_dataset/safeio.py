@@ -50,6 +50,8 @@ _REASONS = {
 }
 #: errno values of a full filesystem (the message suggests freeing space).
 _FULL = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
+#: Appended to the message of a full filesystem.
+FULL_HINT = "; free some space and run again"
 #: Units of :func:`format_bytes` (powers of 1000).
 _UNITS = ("B", "kB", "MB", "GB", "TB", "PB", "EB")
 _KILO = 1000.0
@@ -114,7 +116,7 @@ def write_error(path: str | Path, exc: OSError, action: str = "write") -> WriteE
     reason = _REASONS[code]
     message = f"cannot {action} {path}: {reason} ({free_space_text(path)} on its filesystem)"
     if code in _FULL:
-        message += "; free some space and run again"
+        message += FULL_HINT
     return WriteError(message, str(path), code)
 
 

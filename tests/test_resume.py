@@ -142,3 +142,24 @@ def test_killing_only_the_parent_ends_its_workers_and_resume_is_identical(tmp_pa
     assert resumed.returncode == 0, err.decode()
     assert files_of(split) == reference["files"]
     assert (split / MANIFEST_NAME).read_bytes() == reference["manifest"]
+
+
+@pytest.mark.parametrize("mode", ["", "--resume", "--overwrite"])
+def test_a_second_run_on_a_split_being_written_is_refused_and_harms_nothing(tmp_path, reference, mode):
+    """While one generate writes a split, the same command (with or without --resume or
+    --overwrite) is refused in one line, deletes nothing (no .partial file of the first
+    run), and the first run completes with the reference bytes."""
+    out = tmp_path / "busy"
+    split = out / "toaster" / "train"
+    first = generate(out)
+    while first.poll() is None and not list(split.glob("shard-*.h5")):
+        time.sleep(POLL_S)
+    assert first.poll() is None, "the first run ended before the second could start"
+    second = generate(out, *([mode] if mode else []))
+    _, err = second.communicate(timeout=120)
+    lines = err.decode().strip().splitlines()
+    assert second.returncode == 2 and len(lines) == 1 and "another artdata generate" in lines[0], err.decode()
+    _, err = first.communicate(timeout=120)
+    assert first.returncode == 0, err.decode()
+    assert files_of(split) == reference["files"]
+    assert (split / MANIFEST_NAME).read_bytes() == reference["manifest"]
