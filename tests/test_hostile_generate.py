@@ -335,6 +335,13 @@ def test_failed_run_leaves_nothing(sandbox):
     assert generate(*TINY, "--n", "1", "--out", sandbox / "out").exit_code == 0
 
 
+def test_missing_ray_leaves_nothing(sandbox, monkeypatch):
+    monkeypatch.setitem(__import__("sys").modules, "ray", None)  # "import ray" fails as if not installed
+    before = snapshot(sandbox)
+    assert_one_line_error(generate(*TINY, "--n", "1", "--executor", "ray", "--out", sandbox / "out"), "pip install")
+    assert snapshot(sandbox) == before
+
+
 def test_failed_overwrite_keeps_the_previous_split(sandbox, tiny_split):
     copy_split(tiny_split, sandbox / "out")
     table = sandbox / "canaries" / "invisible.json"

@@ -106,7 +106,7 @@ class _ClassChoice(click.ParamType):
               help="With --executor ray: the cluster to join (default: RAY_ADDRESS, else a local Ray instance).")
 @click.option("--noise", type=_NoiseChoice(), default="none", show_default=True, help="Depth sensor-noise model.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run of the same command.")
-@click.option("--overwrite", is_flag=True, help="Replace existing data of this class and split.")
+@click.option("--overwrite", is_flag=True, help="Replace existing data of this class and split (the new split is built beside it and swapped in when complete).")
 @click.option("--mean", "mean_object", is_flag=True, help="Render the class's mean object (centre of every range) into OUT/<class>/mean/.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missing_meshes, urdf_scale, urdf_mesh_root,
