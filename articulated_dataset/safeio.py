@@ -301,8 +301,9 @@ def check_free_space(path: str | Path, need_bytes: float, what: str) -> None:
                          f"{format_bytes(free)} free", str(path), errno.ENOSPC)
 
 
-#: Linux cgroup v2 / v1 memory limits of this process's container, if any.
-_CGROUP_LIMITS = ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes")
+#: Linux cgroup v2 / v1 memory limit and usage of this process's container, if any.
+_CGROUP_LIMITS = (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                  ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes"))
 
 
 def available_memory_bytes() -> int | None:
@@ -320,13 +321,17 @@ def available_memory_bytes() -> int | None:
             avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
         except (ValueError, OSError, AttributeError):
             avail = None
-    for name in _CGROUP_LIMITS:
+    for limit_file, usage_file in _CGROUP_LIMITS:
         try:
-            text = Path(name).read_text().strip()
+            text = Path(limit_file).read_text().strip()
         except OSError:
             continue
-        if text.isdigit():
-            limit = int(text)
-            avail = limit if avail is None else min(avail, limit)
+        if text.isdigit():  # "max": no limit
+            try:
+                used = int(Path(usage_file).read_text().strip())
+            except (OSError, ValueError):
+                used = 0
+            left = max(int(text) - used, 0)
+            avail = left if avail is None else min(avail, left)
         break
     return avail
