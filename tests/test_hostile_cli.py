@@ -238,7 +238,8 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
     "plan:missing-data": (lambda e: ["plan", "--data", e.tmp / "nope", "--index", 0, "-q"], None),
     # show
     "show:dpi-100000": (lambda e: ["show", e.split(), "--out", "g.png", "--dpi", 100000, "-q"], "figure"),
-    "show:dpi-zero": (lambda e: ["show", e.split(), "--out", "g.png", "--dpi", 0, "-q"], "dpi"),
+    "show:dpi-zero": (lambda e: ["show", e.split(), "--out", "g.png", "--dpi", 0, "-q"], "--dpi"),
+    "show:dpi-1": (lambda e: ["show", e.split(), "--out", "g.png", "--dpi", 1, "-q"], "--dpi must be at least"),
     "show:n-zero": (lambda e: ["show", e.split(), "--out", "g.png", "--n", 0, "-q"], "positive"),
     "show:cols-zero": (lambda e: ["show", e.split(), "--out", "g.png", "--cols", 0, "-q"], "positive"),
     "show:objects-reversed": (lambda e: ["show", e.split(), "--out", "g.png", "--objects", "5-3", "-q"], "--objects"),

@@ -104,6 +104,8 @@ def test_waypoints_degenerate_and_closing():
     ({"q_target": float("nan")}, "finite"),
     ({"step_rad": 0.0}, "positive"),
     ({"grasp_pose": [0, 0, 0, 0, 0, 0, 0]}, "quaternion"),
+    ({"step_rad": 1.0 / (M.MAX_WAYPOINTS + 1)}, "waypoints"),  # one step too many
+    ({"step_rad": 1e-300}, "waypoints"),
 ])
 def test_plan_waypoints_bad_inputs(kwargs, match):
     args = dict(joint_type=REVOLUTE, axis_origin=[0, 0, 0], axis_direction=[0, 0, 1], q_current=0.0, q_target=1.0,
@@ -316,3 +318,8 @@ def test_benchmark_script_truth_and_predictions(tiny_root, tmp_path, capsys):
     assert summary[("drawer", "truth")]["success"] == 1.0
     assert summary[("cabinet", "shifted")]["success"] == 0.0
     assert "shifted" in capsys.readouterr().out
+
+
+def test_waypoint_count_limit_is_inclusive():
+    qs = M.waypoint_configurations(0.0, 1.0, 1.0 / M.MAX_WAYPOINTS)
+    assert len(qs) == M.MAX_WAYPOINTS + 1 and qs[-1] == 1.0

@@ -274,6 +274,7 @@ def test_cli_train_predict_score_round_trip(tiny_root, tmp_path):
 
 
 def test_predict_two_joint_class_mode_and_snap_to_cloud(tiny_root, tmp_path):
+    from articulated_dataset.errors import UserError
     from articulated_dataset.mdn.predict import predict_split
     from articulated_dataset.pointlik import object_cloud
 
@@ -322,3 +323,14 @@ def test_cli_errors_are_one_line(tiny_root, tmp_path):
                                           "--out", str(tmp_path / "p.h5"), "-q"])
     assert "checkpoint not found" in run(["predict", "--model", str(tmp_path / "missing.pt"), "--data", train_dir,
                                           "--out", str(tmp_path / "p.h5"), "-q"])
+
+
+def test_predict_split_refuses_bad_batch_sizes_and_estimates(tiny_root, tmp_path):
+    from articulated_dataset.errors import UserError
+    from articulated_dataset.mdn.predict import predict_split
+
+    model = tmp_path / "never-read.pt"  # the options are checked before the checkpoint is opened
+    for kwargs, match in (({"batch_size": 0}, "--batch-size"), ({"batch_size": -5}, "--batch-size"),
+                          ({"estimate": "median"}, "unknown estimate")):
+        with pytest.raises(UserError, match=match):
+            predict_split(model, tiny_root / "cabinet" / "test", progress=False, **kwargs)
