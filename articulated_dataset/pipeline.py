@@ -441,15 +441,19 @@ class _Run:
     lock: SplitLock
 
 
-def _recover_interrupted_swap(split_dir: Path) -> None:
-    """Clean up after an ``--overwrite`` killed while building or swapping (lock held)."""
-    retired, staging = _sibling(split_dir, RETIRED_SUFFIX), _sibling(split_dir, STAGING_SUFFIX)
-    if retired.is_dir() and not retired.is_symlink():
-        if not split_dir.exists() and not split_dir.is_symlink():
-            os.rename(retired, split_dir)  # killed between the two renames: the old split is back
-        else:
-            _remove_own_folder(retired)
-    _remove_own_folder(staging)
+def _restore_interrupted_swap(split_dir: Path) -> None:
+    """An ``--overwrite`` killed between its two renames left the old split as
+    ``.<split>.old`` and no split: put the old split back (lock held)."""
+    retired = _sibling(split_dir, RETIRED_SUFFIX)
+    if retired.is_dir() and not retired.is_symlink() and not split_dir.exists() and not split_dir.is_symlink():
+        os.rename(retired, split_dir)
+
+
+def _remove_interrupted_siblings(split_dir: Path) -> None:
+    """Remove the ``.new``/``.old`` siblings a killed ``--overwrite`` left (lock held, and
+    only once this run proceeds)."""
+    for suffix in (STAGING_SUFFIX, RETIRED_SUFFIX):
+        _remove_own_folder(_sibling(split_dir, suffix))
 
 
 def _begin(split_dir: Path, config: GenerationConfig, *, resume: bool, overwrite: bool) -> _Run:
@@ -464,7 +468,7 @@ def _begin(split_dir: Path, config: GenerationConfig, *, resume: bool, overwrite
     lock = SplitLock(split_dir)
     try:
         lock.acquire()
-        _recover_interrupted_swap(split_dir)
+        _restore_interrupted_swap(split_dir)  # a restore, never a deletion
         ours, foreign = _own_entries(split_dir) if split_dir.is_dir() else ([], [])
         data = [p for p in ours if not p.name.endswith(TMP_SUFFIX)]
         stale = [p for p in ours if p.name.endswith(TMP_SUFFIX)]  # a killed run's; no run holds the lock
@@ -484,6 +488,8 @@ def _begin(split_dir: Path, config: GenerationConfig, *, resume: bool, overwrite
             target = _sibling(split_dir, STAGING_SUFFIX)
         else:
             records = _resume_records(split_dir, config)
+        # Proceeding: now (and only now) remove what killed runs left.
+        _remove_interrupted_siblings(split_dir)
         for p in stale:
             p.unlink()
         created += ensure_dir(target)

@@ -566,3 +566,40 @@ def test_show_and_baseline_on_a_read_only_filesystem(readonly_disk, tiny_split):
     assert_one_line_error(_show(tiny_split, "--out", readonly_disk / "g.png"), "read-only")
     assert_one_line_error(_baseline(tiny_split, readonly_disk / "p.h5"), "read-only")
     assert snapshot(readonly_disk) == before
+
+
+# --------------------------------------------------------------------------------------
+# What a killed --overwrite leaves behind
+# --------------------------------------------------------------------------------------
+
+def test_killed_between_the_swap_renames_the_old_split_comes_back(sandbox, tiny_split):
+    split = copy_split(tiny_split, sandbox / "out")
+    split.rename(split.parent / ".train.old")
+    assert_one_line_error(generate(*TINY, "--n", "2", "--objects-per-shard", "1", "--out", sandbox / "out"),
+                          "already holds generated data")
+    assert snapshot(split) == snapshot(tiny_split)
+    assert sorted(p.name for p in split.parent.iterdir()) == ["train"]
+
+
+def test_a_killed_overwrites_staging_folder_is_kept_by_refused_runs_and_removed_by_the_next(sandbox, tiny_split):
+    split = copy_split(tiny_split, sandbox / "out")
+    staging = split.parent / ".train.new"
+    shutil.copytree(tiny_split, staging)
+    (staging / "shard-00001.h5.partial").write_bytes(b"killed mid-write")
+    before = snapshot(sandbox)
+    assert_one_line_error(generate(*TINY, "--n", "2", "--objects-per-shard", "1", "--out", sandbox / "out"))
+    assert snapshot(sandbox) == before
+    assert generate(*TINY, "--n", "2", "--objects-per-shard", "1", "--overwrite", "--out", sandbox / "out").exit_code == 0
+    assert sorted(p.name for p in split.parent.iterdir()) == ["train"]
+    assert snapshot(split) == snapshot(tiny_split)
+
+
+def test_a_staging_folder_with_foreign_files_is_never_deleted(sandbox, tiny_split):
+    split = copy_split(tiny_split, sandbox / "out")
+    staging = split.parent / ".train.new"
+    staging.mkdir()
+    (staging / "mine.txt").write_text("not artdata's")
+    before = snapshot(sandbox)
+    assert_one_line_error(generate(*TINY, "--n", "2", "--objects-per-shard", "1", "--overwrite", "--out", sandbox / "out"),
+                          "mine.txt")
+    assert snapshot(sandbox) == before
