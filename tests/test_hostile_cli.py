@@ -356,6 +356,12 @@ def _pickled(path: Path) -> str:
     return str(path)
 
 
+def _manifest(folder: Path, manifest: dict) -> str:
+    folder.mkdir(parents=True)
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    return str(folder)
+
+
 def _ingest(e: Env, folder: str, *extra) -> list:
     return ["ingest", folder, "--class", "cabinet", "--out", e.tmp / "out", "-q", *extra]
 
@@ -423,6 +429,10 @@ INGEST_CASES: dict[str, tuple[Callable[[Env], list], str]] = {
     "ingest:training-vfov-tiny": (lambda e: _ingest(e, e.capture(), "--vfov", "1e-9"), "field of view"),
     "ingest:training-vfov-180": (lambda e: _ingest(e, e.capture(), "--vfov", "180"), None),
     "ingest:crop-margin-nan": (lambda e: _ingest(e, e.capture(), "--crop-margin", "nan"), "crop margin"),
+    "ingest:like-missing": (lambda e: _ingest(e, e.capture(), "--like", e.tmp / "nope"), "no such directory"),
+    "ingest:like-no-camera": (lambda e: _ingest(e, e.capture(), "--like", _manifest(e.tmp / "x" / "cabinet" / "test", {
+        "format_version": "1.0", "class_name": "cabinet", "split": "test", "shards": [],
+        "config": {"camera": {"width_px": "192"}}})), "no readable camera"),
     "ingest:unknown-class": (lambda e: ["ingest", e.capture(), "--class", "sofa", "--out", e.tmp / "out", "-q"], "sofa"),
     "ingest:missing-capture": (lambda e: _ingest(e, str(e.tmp / "nope.png")), "no such file"),
     "ingest:existing-split": (lambda e: ["ingest", e.capture(), "--class", "cabinet", "--out",

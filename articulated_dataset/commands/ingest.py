@@ -32,8 +32,16 @@ def _camera_like(path: str) -> CameraConfig:
     from ..shards import find_split_dirs, read_manifest
 
     dirs = find_split_dirs(path)
-    cam = read_manifest(dirs[0])["config"]["camera"]
-    return CameraConfig(int(cam["width_px"]), int(cam["height_px"]), float(cam["vfov_deg"]))
+    try:
+        cam = read_manifest(dirs[0])["config"]["camera"]
+        w, h, vfov = cam["width_px"], cam["height_px"], cam["vfov_deg"]
+        if not (all(isinstance(v, int) and not isinstance(v, bool) for v in (w, h))
+                and isinstance(vfov, (int, float)) and not isinstance(vfov, bool)):
+            raise TypeError("camera values are not numbers")
+        return CameraConfig(w, h, float(vfov))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"--like {path}: {dirs[0]}/manifest.json has no readable camera "
+                        f"({type(exc).__name__}: {str(exc)[:80]})") from None
 
 
 @click.command("ingest")
