@@ -321,7 +321,7 @@ def test_cli_errors_are_one_line(tiny_root, tmp_path):
     train(train_dir, model, TrainConfig(class_name="cabinet", epochs=1, **TINY), progress=False)
     assert "'cabinet'" in run(["predict", "--model", str(model), "--data", str(tiny_root / "drawer" / "test"),
                                           "--out", str(tmp_path / "p.h5"), "-q"])
-    assert "checkpoint not found" in run(["predict", "--model", str(tmp_path / "missing.pt"), "--data", train_dir,
+    assert "missing.pt" in run(["predict", "--model", str(tmp_path / "missing.pt"), "--data", train_dir,
                                           "--out", str(tmp_path / "p.h5"), "-q"])
 
 
