@@ -348,7 +348,9 @@ def read_manifest(split_dir: str | Path) -> dict:
         raise DataFormatError(f"{split_dir}: no {MANIFEST_NAME} (not a generated split folder)")
     manifest = read_json_object(path, "manifest")
     check_version(manifest.get("format_version", "?"), str(path))
-    return check_manifest_names(manifest, str(path))
+    check_manifest_names(manifest, str(path))
+    shard_paths(split_dir, manifest)  # every shard path stays inside the folder (no links leading out)
+    return manifest
 
 
 def write_manifest(split_dir: str | Path, manifest: dict) -> None:
