@@ -339,23 +339,25 @@ def _external_storage(world):
     return make
 
 
+def _outside_h5(world, name, data) -> Path:
+    """An HDF5 file outside the split holding the right data: following a reference to it would "work"."""
+    src = world.victim / "src.h5"
+    with h5py.File(src, "w") as g:
+        g[name] = data
+    return src
+
+
 def _virtual(world):
     def make(f, name, data):
-        src = world.victim / "src.h5"
-        with h5py.File(src, "w") as g:
-            g[name] = data
         layout = h5py.VirtualLayout(shape=data.shape, dtype=data.dtype)
-        layout[...] = h5py.VirtualSource(str(src), name, shape=data.shape)
+        layout[...] = h5py.VirtualSource(str(_outside_h5(world, name, data)), name, shape=data.shape)
         f.create_virtual_dataset(name, layout)
     return make
 
 
 def _external_link(world):
     def make(f, name, data):
-        src = world.victim / "src.h5"
-        with h5py.File(src, "w") as g:
-            g[name] = data
-        f[name] = h5py.ExternalLink(str(src), "/" + name)
+        f[name] = h5py.ExternalLink(str(_outside_h5(world, name, data)), "/" + name)
     return make
 
 
