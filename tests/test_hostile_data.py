@@ -108,7 +108,9 @@ def base(tmp_path_factory):
     root = tmp_path_factory.mktemp("hostile-base")
     split = generate_split(GenerationConfig("drawer", n_objects=2, images_per_object=2, objects_per_shard=1), root / "gen")
     export = export_split(split, root / "exp" / "drawer" / "train")
-    return {"split": split, "export": export}
+    predictions = root / "mean.h5"
+    assert run("baseline", "mean", "--train", split, "--test", split, "--out", predictions, "-q").exit_code == 0
+    return {"split": split, "export": export, "predictions": predictions}
 
 
 @pytest.fixture
@@ -419,6 +421,26 @@ def test_corrupt_chunk_is_one_line_pointing_to_verify(base, world, cmd, name):
         return
     line = assert_refused(result, "artdata verify")
     assert "shard-00000.h5" in line
+    world.assert_untouched()
+
+
+@pytest.mark.parametrize("cmd", ["score", "baseline-mean", "baseline-nn", "verify"])
+def test_corrupt_chunk_in_other_readers(base, world, cmd):
+    split = _copy_split(base, world)
+    for name in ("q", "depth"):
+        _corrupt_chunk(split / "shard-00001.h5", name)
+    world.freeze()
+    if cmd == "score":
+        result = run("score", base["predictions"], "--truth", split)
+    elif cmd == "verify":  # verify reports the damage as a problem (exit 1), never a traceback
+        result = run("verify", split, "-q")
+        assert result.exit_code == 1 and "shard-00001.h5" in result.output and "Traceback" not in result.output
+        return
+    else:
+        method = cmd.split("-")[1]
+        result = run("baseline", method, "--train", split, "--test", split, "--out", world.root / "p.h5", "-q")
+    line = assert_refused(result, "artdata verify")
+    assert "shard-00001.h5" in line
     world.assert_untouched()
 
 
