@@ -222,9 +222,9 @@ def part_side(quat: np.ndarray, part_offset: np.ndarray | None = None) -> np.nda
     the part).  NaN where the part centre is within :data:`MIN_PART_SIDE_M` of the axis line
     (e.g. a drawer, whose offset lies along its axis) or the offset is NaN.
     """
-    R = quat_to_matrix(quat)
     if part_offset is None:
-        return R[..., :, 0]
+        return quat_axis_x(quat)
+    R = quat_to_matrix(quat)
     p = np.asarray(part_offset, np.float64)
     perp = np.stack([p[..., 0], p[..., 1], np.zeros_like(p[..., 0])], axis=-1)
     length = np.hypot(p[..., 0], p[..., 1])
