@@ -365,15 +365,25 @@ def _read_pcd(path: Path) -> np.ndarray:
         raise UserError(f"{path}: malformed PCD header") from None
     if not {"x", "y", "z"} <= set(fields):
         raise UserError(f"{path}: PCD has no x, y, z fields (has {', '.join(fields)})")
+    codes = {"F": "f", "I": "i", "U": "u"}
+    sizes_ok = {"F": (4, 8), "I": (1, 2, 4, 8), "U": (1, 2, 4, 8)}
+    if (not len(fields) == len(sizes) == len(types) == len(counts) or n < 0 or min(counts) < 1
+            or not all(t in codes and z in sizes_ok[t] for t, z in zip(types, sizes))):
+        raise UserError(f"{path}: malformed PCD header (FIELDS, SIZE, TYPE and COUNT must describe each field: "
+                        f"TYPE F with SIZE 4 or 8, I/U with 1, 2, 4 or 8, COUNT >= 1, POINTS >= 0)")
     if kind == "ascii":
         try:
-            table = np.loadtxt(data[offset:].decode("ascii").splitlines(), ndmin=2)
-        except ValueError as exc:
-            raise UserError(f"{path}: malformed PCD data ({exc})") from None
+            rows = [r for r in data[offset:].decode("ascii").splitlines() if r.strip()]
+            if not rows:
+                return np.empty((0, 3))
+            table = np.loadtxt(rows, ndmin=2)
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise UserError(f"{path}: malformed PCD data ({str(exc).splitlines()[0][:120]})") from None
+        if table.shape[1] != sum(counts):
+            raise UserError(f"{path}: PCD rows have {table.shape[1]} values, the header describes {sum(counts)}")
         cols = np.cumsum([0] + counts)
-        return np.stack([table[:, cols[fields.index(a)]] for a in "xyz"], axis=1)[:n]
+        return np.stack([table[:, cols[fields.index(a)]] for a in "xyz"], axis=1)[:n].reshape(-1, 3)
     if kind == "binary":
-        codes = {"F": "f", "I": "i", "U": "u"}
         dtype = np.dtype([(f"f{i}", f"<{codes[t]}{s}", (c,)) for i, (t, s, c) in enumerate(zip(types, sizes, counts))])
         if len(data) - offset < n * dtype.itemsize:
             raise UserError(f"{path}: PCD data is shorter than its header says ({n} points)")
@@ -934,6 +944,27 @@ def vfov_deg_of(K: np.ndarray, height_px: int) -> float:
     return math.degrees(2.0 * math.atan(0.5 * height_px / K[1, 1]))
 
 
+def _appendable(manifest: dict, split_dir: Path) -> tuple[list, list, list, tuple[int, int]]:
+    """``(shard records, object names, capture names, (W, H))`` of a real split's manifest,
+    checked to be what :func:`write_real_split` writes (a :class:`UserError` otherwise)."""
+    def names(v) -> bool:
+        return isinstance(v, list) and all(isinstance(x, str) and x for x in v)
+
+    try:
+        real, cam, shards = manifest["real"], manifest["config"]["camera"], manifest["shards"]
+        size = (cam["width_px"], cam["height_px"])
+        ok = (isinstance(real, dict) and names(real.get("objects")) and names(real.get("captures"))
+              and all(isinstance(v, int) and not isinstance(v, bool) for v in size) and isinstance(shards, list)
+              and all(isinstance(r, dict) and isinstance(r.get("object_images", {}), dict)
+                      and all(str(k).isdigit() and isinstance(c, int) and not isinstance(c, bool) and c > 0
+                              for k, c in r.get("object_images", {}).items()) for r in shards))
+    except (KeyError, TypeError):
+        ok = False
+    if not ok:
+        raise UserError(f"{split_dir}/manifest.json: corrupt real-split record; cannot --append (run 'artdata verify')")
+    return list(shards), list(real["objects"]), list(real["captures"]), size
+
+
 def write_real_split(captures: list[Capture], class_name: str, out_root: str | Path, *, split: str = REAL_SPLIT,
                      camera: CameraConfig | None = None, options: IngestOptions | None = None,
                      append: bool = False, overwrite: bool = False) -> Path:
@@ -974,13 +1005,10 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
             old = read_manifest(split_dir)
             if old.get("class_name") != class_name or "real" not in old:
                 raise UserError(f"{split_dir} does not hold ingested real data of class {class_name}; cannot --append")
-            old_cam = old["config"]["camera"]
-            if (old_cam["width_px"], old_cam["height_px"]) != (camera.width_px, camera.height_px):
-                raise UserError(f"{split_dir} holds {old_cam['width_px']}x{old_cam['height_px']} images; "
+            old_shards, objects, names, old_size = _appendable(old, split_dir)
+            if old_size != (camera.width_px, camera.height_px):
+                raise UserError(f"{split_dir} holds {old_size[0]}x{old_size[1]} images; "
                                 f"cannot --append {camera.width_px}x{camera.height_px}")
-            old_shards = list(old["shards"])
-            objects = list(old["real"]["objects"])
-            names = list(old["real"]["captures"])
         else:
             raise UserError(f"{split_dir} already holds data; pass --append to add captures or --overwrite to replace them")
     clash = sorted(set(names) & {c.name for c in captures})

@@ -362,6 +362,26 @@ def _manifest(folder: Path, manifest: dict) -> str:
     return str(folder)
 
 
+def _cloud(e: Env, body: bytes) -> list:
+    """A point-cloud capture ``c.pcd`` (x, y, z fields, then ``body``) with the training camera."""
+    folder = e.tmp / "cloud"
+    folder.mkdir()
+    (folder / "c.pcd").write_bytes(b"FIELDS x y z\n" + body)
+    (folder / "camera.json").write_text(json.dumps(_CAMERA))
+    return _ingest(e, str(folder / "c.pcd"))
+
+
+def _corrupt_real(e: Env) -> Path:
+    """A copy of the real split whose manifest's real record lists objects as a string."""
+    root = e.tmp / "realcopy"
+    shutil.copytree(e.inputs.real, root / "cabinet" / "real")
+    path = root / "cabinet" / "real" / "manifest.json"
+    m = json.loads(path.read_text())
+    m["real"]["objects"] = "kitchen"
+    path.write_text(json.dumps(m))
+    return root
+
+
 def _ingest(e: Env, folder: str, *extra) -> list:
     return ["ingest", folder, "--class", "cabinet", "--out", e.tmp / "out", "-q", *extra]
 
@@ -433,6 +453,23 @@ INGEST_CASES: dict[str, tuple[Callable[[Env], list], str]] = {
     "ingest:like-no-camera": (lambda e: _ingest(e, e.capture(), "--like", _manifest(e.tmp / "x" / "cabinet" / "test", {
         "format_version": "1.0", "class_name": "cabinet", "split": "test", "shards": [],
         "config": {"camera": {"width_px": "192"}}})), "no readable camera"),
+    **{f"ingest:pcd-{name}": (lambda e, body=body: _cloud(e, body), needle)
+       for name, body, needle in [
+           ("type", b"SIZE 4 4 4\nTYPE X F F\nCOUNT 1 1 1\nPOINTS 1\nDATA binary\n123456789012", "malformed PCD header"),
+           ("size", b"SIZE 3 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 1\nDATA binary\n123456789012", "malformed PCD header"),
+           ("count-zero", b"SIZE 4 4 4\nTYPE F F F\nCOUNT 0 1 1\nPOINTS 1\nDATA binary\n123456789012",
+            "malformed PCD header"),
+           ("short-size", b"SIZE 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 1\nDATA binary\n123456789012", "malformed PCD header"),
+           ("points-negative", b"SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS -1\nDATA binary\n1234", "malformed PCD header"),
+           ("points-huge", b"SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 1000000000000\nDATA binary\n1234", "shorter"),
+           ("ascii-columns", b"SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 1\nDATA ascii\n1 2\n", "2 values"),
+           ("ascii-bytes", b"SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 1\nDATA ascii\n\xff\n", "malformed PCD data"),
+           ("ascii-empty", b"SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 3\nDATA ascii\n", "no finite points"),
+           ("compressed", b"SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 1\nDATA binary_compressed\n1234", "not supported"),
+           ("no-header-end", b"SIZE 4 4 4\nTYPE F F F", "truncated"),
+       ]},
+    "ingest:append-corrupt-record": (lambda e: _ingest(e, e.capture(), "--append", "--out", _corrupt_real(e)),
+                                     "corrupt real-split record"),
     "ingest:unknown-class": (lambda e: ["ingest", e.capture(), "--class", "sofa", "--out", e.tmp / "out", "-q"], "sofa"),
     "ingest:missing-capture": (lambda e: _ingest(e, str(e.tmp / "nope.png")), "no such file"),
     "ingest:existing-split": (lambda e: ["ingest", e.capture(), "--class", "cabinet", "--out",
