@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import DataFormatError, UserError
+from .safeio import ensure_dir, remove_created_dirs, translated
 from .schema import FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, R_DATASET, resolve_shape
 from .shards import (
     MANIFEST_NAME,
@@ -176,39 +177,27 @@ def _staged_dir(final: Path, overwrite: bool, what: str, marker: str):
     ``final`` (renamed into place; the old folder is removed only then), on failure it is
     removed and ``final`` is untouched."""
     _check_target(final, overwrite, what, marker)
-    created = [d for d in (final.parent, *final.parent.parents) if not d.exists()]  # deepest first
+    created = ensure_dir(final.parent)
     done = False
+    tmp = None
     try:
-        final.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=TMP_SUFFIX, dir=final.parent))
-    except OSError as exc:
-        _remove_empty(created)
-        raise UserError(f"cannot create {final}: {exc.strerror or exc}") from None
-    try:
-        yield tmp
-        _check_target(final, overwrite, what, marker)  # unchanged meanwhile
-        old = None
-        if final.is_dir() and any(final.iterdir()):
-            old = final.with_name(f".{final.name}.old{TMP_SUFFIX}")
-            os.rename(final, old)
-        os.replace(tmp, final)  # onto a missing or empty folder
-        done = True
-        if old is not None:
-            shutil.rmtree(old)
+        with translated(final):
+            tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=TMP_SUFFIX, dir=final.parent))
+            yield tmp
+            _check_target(final, overwrite, what, marker)  # unchanged meanwhile
+            old = None
+            if final.is_dir() and any(final.iterdir()):
+                old = final.with_name(f".{final.name}.old{TMP_SUFFIX}")
+                os.rename(final, old)
+            os.replace(tmp, final)  # onto a missing or empty folder
+            done = True
+            if old is not None:
+                shutil.rmtree(old)
     finally:
-        if tmp.exists():
+        if tmp is not None and tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
         if not done:  # a run that wrote nothing leaves nothing
-            _remove_empty(created)
-
-
-def _remove_empty(folders: list[Path]) -> None:
-    """Remove the folders this run created (deepest first) where they are still empty."""
-    for d in folders:
-        try:
-            d.rmdir()
-        except OSError:
-            return
+            remove_created_dirs(created)
 
 
 def export_split(split_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False, progress=None) -> Path:
