@@ -273,6 +273,7 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
            ("val-fraction-nan", ["--val-fraction", "nan"], "--val-fraction"),
            ("val-fraction-one", ["--val-fraction", "1"], "--val-fraction"),
            ("max-objects-zero", ["--max-objects", "0"], "--max-objects"), ("threads-zero", ["--threads", "0"], "--threads"),
+           ("threads-huge", ["--threads", str(10**9)], "--threads"),
            ("device-tpu", ["--device", "tpu"], "--device"), ("components-huge", ["--components", str(10**12)], "memory"),
        ]},
     "train:class-mismatch": (lambda e: ["train", "--class", "drawer", "--data", e.split(split="train"), "--out", "m.pt", "-q"],
@@ -280,6 +281,8 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
     "train:resume-nothing": (lambda e: ["train", "--class", "cabinet", "--data", e.split(split="train"), "--out", "m.pt",
                                         "--resume", "-q"], "--resume"),
     # predict: options and checkpoints
+    "predict:threads-huge": (lambda e: ["predict", "--model", e.inputs.model, "--data", e.split(), "--out", "p.h5",
+                                        "--threads", 10**9, "-q"], "--threads"),
     "predict:other-class": (lambda e: ["predict", "--model", e.inputs.model, "--data", e.split("drawer"), "--out", "p.h5",
                                        "-q"], "'cabinet'"),
     **{f"checkpoint:{name}": (lambda e, change=change: ["predict", "--model", e.checkpoint(change), "--data", e.split(),

@@ -62,6 +62,9 @@ EPOCH_SEED_STRIDE = 1_000_003
 #: Seeds are below 2**32: the per-epoch generator seed ``seed * EPOCH_SEED_STRIDE + epoch``
 #: must stay inside torch's 64-bit seed range.
 MAX_SEED = 2**32 - 1
+#: Most torch threads per logical CPU: more only adds context switches (and a huge count would
+#: make OpenMP try to start that many threads).
+MAX_THREADS_PER_CPU = 4
 #: Largest peak learning rate: AdamW's step is about lr per weight, so beyond 1 every step
 #: moves the weights by more than their own scale and training diverges (NaN losses).
 MAX_LR = 1.0
@@ -433,6 +436,10 @@ def configure_threads(n_threads: int | None = None) -> int:
             n_threads = len(os.sched_getaffinity(0))
         except AttributeError:  # pragma: no cover - non-Linux
             n_threads = os.cpu_count() or 1
+    most = MAX_THREADS_PER_CPU * (os.cpu_count() or 1)
+    if n_threads > most:
+        raise UserError(f"--threads {n_threads} is more than {MAX_THREADS_PER_CPU} per logical CPU of this machine "
+                        f"(at most {most})")
     torch.set_num_threads(max(1, int(n_threads)))
     return torch.get_num_threads()
 
