@@ -223,6 +223,40 @@ def test_chest_two_joints_with_moved_zero(objects, tmp_path):
             np.testing.assert_allclose(L["geometry"][i], [CH_D, CH_W, CH_H, 0], atol=POS_TOL_M)
 
 
+#: Factor of the --scale test (a power of two: scaled coordinates are exact in binary).
+SCALE = 2.0
+
+
+def test_scale_scales_the_whole_scene_about_the_camera(objects, tmp_path):
+    """--scale s multiplies every length: with the same seed the pose table, the sampled
+    positions, prismatic q, every position label and the depth scale by s, while revolute q,
+    orientations and the mask (the same projection) stay the same."""
+    plain = import_urdf(objects["chest"], class_name="chest-s")  # one name: the same sampled draws
+    big = import_urdf(objects["chest"], class_name="chest-s", scale=SCALE)
+    assert big.definition["scale"] == SCALE and "scale" not in plain.definition
+    t1, t2 = plain.obj_class.table, big.obj_class.table
+    assert [j.name for j in big.obj_class.joints] == ["slide", "flap"]
+    np.testing.assert_allclose(t2.q, [np.multiply(t1.q[0], SCALE), t1.q[1]], rtol=1e-12)  # slide (m) scales, flap not
+    for k in ("x_m", "y_m", "z_m"):
+        np.testing.assert_allclose(t2.pose[k], np.multiply(t1.pose[k], SCALE), rtol=1e-9, atol=1e-12)
+    assert t2.pose["yaw_rad"] == t1.pose["yaw_rad"]
+    _, s1 = _generate(plain, tmp_path / "a", n=1)
+    _, s2 = _generate(big, tmp_path / "b", n=1)
+    (_, [a]), (_, [b]) = open_split(s1), open_split(s2)
+    la, lb = a.labels(), b.labels()
+    for k in ("axis_origin", "part_offset", "geometry"):
+        cols = slice(0, 3) if k == "geometry" else slice(None)  # geometry's 4th value is chirality
+        np.testing.assert_allclose(lb[k][..., cols], SCALE * la[k][..., cols], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(lb["object_pose"][:, :3], SCALE * la["object_pose"][:, :3], rtol=1e-5)
+    np.testing.assert_allclose(lb["object_pose"][:, 3:], la["object_pose"][:, 3:], atol=1e-6)
+    np.testing.assert_allclose(lb["q"], la["q"] * [SCALE, 1.0], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(lb["axis_direction"], la["axis_direction"], atol=1e-6)
+    ma, mb = a.read("mask"), b.read("mask")
+    assert np.mean(ma == mb) > 0.999  # the same projection (rasterisation may differ on a few edge pixels)
+    both = (ma == mb) & (ma > 0)
+    np.testing.assert_allclose(b.read("depth")[both], SCALE * a.read("depth")[both], rtol=0.01)
+
+
 def test_cli_with_spawned_workers_matches_serial_and_resumes(objects, tmp_path):
     obj = import_urdf(objects["chest"], class_name="chest-cli")
     cfg = GenerationConfig("chest-cli", n_objects=2, images_per_object=4, objects_per_shard=1, third_party=obj.definition)
