@@ -378,3 +378,47 @@ def test_label_rules_accept_real_labels_and_wrap_yaw(tmp_path):
     fields["q"] = np.array([[math.radians(96.0)]])  # 6 deg past: beyond the 5 deg tolerance
     [(message, bad)] = real_label_problems(fields, ("revolute",), ((0.0, math.pi / 2),))
     assert message.startswith("q[0]: outside the class's joint range") and bad.tolist() == [True]
+
+
+def _files(folder):
+    return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_failed_overwrite_or_append_leaves_the_split_as_it_was(tiny_root, tmp_path, monkeypatch):
+    import articulated_dataset.shards as shards_module
+    from articulated_dataset.errors import UserError as _UserError
+
+    s, K = _sample(tiny_root, "drawer", 0)
+    for name in ("a", "b"):
+        _write_capture(tmp_path / name, name, s, K)
+    out = tmp_path / "out"
+    assert _ingest(["--class", "drawer", "--out", out, tmp_path / "a"]).exit_code == 0
+    before = _files(out)
+    real_write = shards_module.write_shard
+
+    def failing(path, *args, **kwargs):  # the shard is written, then the disk "fills up"
+        real_write(path, *args, **kwargs)
+        raise _UserError(f"cannot write {path}: no space left on device")
+
+    monkeypatch.setattr(shards_module, "write_shard", failing)
+    for extra in (["--overwrite"], ["--append"]):
+        res = _ingest(["--class", "drawer", "--out", out, *extra, tmp_path / "b"])
+        assert res.exit_code == 2 and "no space left" in res.output, res.output
+        assert _files(out) == before  # old shards and manifest byte-identical, nothing left behind
+        assert sorted(p.name for p in (out / "drawer").iterdir()) == ["real"]
+    monkeypatch.setattr(shards_module, "write_shard", real_write)
+    assert _ingest(["--class", "drawer", "--out", out, "--overwrite", tmp_path / "b"]).exit_code == 0
+    manifest, _ = open_split(out / "drawer" / "real")
+    assert manifest["real"]["captures"] == ["b"]
+    assert sorted(p.name for p in (out / "drawer").iterdir()) == ["real"]  # no .old / .ingest folders
+
+
+def test_split_folder_with_foreign_files_is_refused(tiny_root, tmp_path):
+    s, K = _sample(tiny_root, "drawer", 0)
+    _write_capture(tmp_path / "a", "a", s, K)
+    split = tmp_path / "out" / "drawer" / "real"
+    split.mkdir(parents=True)
+    (split / "notes.txt").write_text("mine")
+    res = _ingest(["--class", "drawer", "--out", tmp_path / "out", "--overwrite", tmp_path / "a"])
+    assert res.exit_code == 2 and "did not write" in res.output and "notes.txt" in res.output
+    assert [p.name for p in split.iterdir()] == ["notes.txt"]
