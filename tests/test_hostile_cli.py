@@ -235,6 +235,10 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
     "plan:joint-huge": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--joint", 7, "-q"], "--joint 7"),
     "plan:joint-negative": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--joint", -1, "-q"], "--joint -1"),
     "plan:class-folder": (lambda e: ["plan", "--data", e.tiny / "cabinet", "--index", 0, "-q"], "splits"),
+    "plan:out-in-proc": (lambda e: ["plan", "--data", e.split(), "--index", 0, "-q", "--out", "/proc/artdata-plan.json"],
+                         "cannot write"),
+    "plan:out-under-a-file": (lambda e: ["plan", "--data", e.split(), "--index", 0, "-q", "--out",
+                                         _write(e.tmp / "f", b"x") + "/plan.json"], "not a directory"),
     "plan:missing-data": (lambda e: ["plan", "--data", e.tmp / "nope", "--index", 0, "-q"], None),
     # show
     "show:dpi-100000": (lambda e: ["show", e.split(), "--out", "g.png", "--dpi", 100000, "-q"], "figure"),

@@ -89,6 +89,10 @@ def plan_cmd(data_dir, index, joint, predictions_path, target, step, simulate, o
 
     if index < 0:
         raise UserError(f"--index must be >= 0, got {index}")
+    if out_path:
+        from ..safeio import check_can_create
+
+        check_can_create(out_path)  # before any work: a read-only or missing place is one line now
     manifest, labels = M.split_row_labels(data_dir, index)
     real = "real" in manifest
     if real and simulate:
@@ -164,10 +168,10 @@ def plan_cmd(data_dir, index, joint, predictions_path, target, step, simulate, o
                    f"max tracking error {100 * result.max_position_error_m:.2f} cm / "
                    f"{math.degrees(result.max_rotation_error_rad):.2f} deg: {verdict}")
     if out_path:
-        try:
-            Path(out_path).write_text(json.dumps(record, indent=1, default=_json_default) + "\n")
-        except OSError as exc:
-            raise UserError(f"cannot write {out_path}: {exc.strerror or exc}") from None
+        from ..safeio import atomic_write_text, ensure_dir
+
+        ensure_dir(Path(out_path).parent)
+        atomic_write_text(out_path, json.dumps(record, indent=1, default=_json_default) + "\n")  # full disk: one line
         click.echo(f"wrote {out_path}")
 
 
