@@ -516,6 +516,9 @@ def load_true_object(manifest: dict, labels: dict, camera=None) -> TrueObject:
     set_configuration(model, data, info.joint_ids, np.zeros(obj_class.n_joints))
     rebuilt = read_object_labels(model, data, info, obj_class)
     err = float(np.abs(rebuilt["axis_pose"][:, :3] - labels["axis_pose"][:, :3]).max())
+    if not math.isfinite(err):
+        raise UserError(f"object {int(labels['object_index'])} of {config.class_name}/{config.split}: its stored axis "
+                        f"labels are not finite (a damaged shard? run 'artdata verify')")
     if err > REBUILD_TOL_M:
         raise UserError(f"object {int(labels['object_index'])} of {config.class_name}/{config.split}: the rebuilt "
                         f"model's axes differ from the stored labels by {err:.4f} m (data from another version?)")
