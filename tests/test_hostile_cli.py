@@ -239,6 +239,7 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
                          "cannot write"),
     "plan:out-under-a-file": (lambda e: ["plan", "--data", e.split(), "--index", 0, "-q", "--out",
                                          _write(e.tmp / "f", b"x") + "/plan.json"], "not a directory"),
+    "plan:nan-axis-label": (lambda e: ["plan", "--data", _nan_axis_copy(e), "--index", 0, "-q"], "not finite"),
     "plan:missing-data": (lambda e: ["plan", "--data", e.tmp / "nope", "--index", 0, "-q"], None),
     # show
     "show:dpi-100000": (lambda e: ["show", e.split(), "--out", "g.png", "--dpi", 100000, "-q"], "figure"),
@@ -367,6 +368,19 @@ def _manifest(folder: Path, manifest: dict) -> str:
     folder.mkdir(parents=True)
     (folder / "manifest.json").write_text(json.dumps(manifest))
     return str(folder)
+
+
+def _nan_axis_copy(e: Env) -> Path:
+    """A copy of the cabinet test split whose first image's axis origin is NaN."""
+    import h5py
+
+    dst = e.tmp / "nan" / "cabinet" / "test"
+    shutil.copytree(e.tiny / "cabinet" / "test", dst)
+    with h5py.File(dst / "shard-00000.h5", "r+") as f:
+        pose = f["axis_pose"][()]
+        pose[0, 0, 0] = np.nan
+        f["axis_pose"][...] = pose
+    return dst
 
 
 def _cloud(e: Env, body: bytes) -> list:
