@@ -319,6 +319,57 @@ def import_tree(path: str | Path, out_root: str | Path, *, overwrite: bool = Fal
     return out
 
 
+def _attr_ok(v) -> bool:
+    """An attribute value the shard writer stores as the generator does: a string, a number,
+    or a non-empty list of numbers or of strings."""
+    if isinstance(v, (str, bool)) or (isinstance(v, (int, float)) and np.isfinite(v)):
+        return True
+    if isinstance(v, list) and v:
+        return (all(isinstance(x, str) for x in v)
+                or all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in v))
+    return False
+
+
+def _shard_spec(s: dict, records_by_file: dict, where: Path) -> tuple:
+    """``(file, attrs, K, R, stems, manifest record)`` of one ``split.json`` shard entry, checked:
+    the attributes are plain values with whole positive image sizes and joint count, K and R
+    finite 3x3, the image list non-empty and as long as the source manifest says."""
+    file = s["file"]
+    attrs, stems, rec = s.get("attrs"), s["samples"], records_by_file.get(file)
+    problem = None
+    if not isinstance(attrs, dict) or not all(isinstance(k, str) and _attr_ok(v) for k, v in attrs.items()):
+        problem = "attributes must be plain values (strings, numbers, lists of them)"
+    elif not all(isinstance(attrs.get(k), int) and not isinstance(attrs.get(k), bool) and attrs[k] >= low
+                 for k, low in (("n_joints", 0), ("image_height", 1), ("image_width", 1))):
+        problem = "attributes n_joints, image_height, image_width must be whole numbers (sizes >= 1)"
+    elif not stems:
+        problem = "no images"
+    elif rec is None or rec.get("n_images") != len(stems):
+        problem = f"{len(stems)} images, the source manifest says {None if rec is None else rec.get('n_images')}"
+    if problem is None:
+        try:
+            K, R = np.array(s["K"], np.float64), np.array(s["R"], np.float64)
+        except (KeyError, TypeError, ValueError):
+            K = R = np.zeros(0)
+        if K.shape != (3, 3) or R.shape != (3, 3) or not (np.isfinite(K).all() and np.isfinite(R).all()):
+            problem = "K and R must be finite 3x3 matrices"
+    if problem is not None:
+        raise DataFormatError(f"{where}: {file}: {problem}")
+    return file, attrs, K, R, list(stems), rec
+
+
+def _verify_rebuilt(split_dir: Path, where: Path) -> None:
+    """Run ``artdata verify``'s checks on the rebuilt (not yet visible) split: an export whose
+    content does not make a valid split is refused before it replaces anything."""
+    from .verify import verify_split
+
+    report = verify_split(split_dir)
+    if not report.ok:
+        first = report.errors[0]
+        raise DataFormatError(f"{where}: the rebuilt split fails verification ({len(report.errors)} problem(s); "
+                              f"first: {first.where}: {first.message}); nothing was written")
+
+
 def import_split(export_dir: str | Path, split_dir: str | Path, *, overwrite: bool = False, progress=None) -> Path:
     """Rebuild shards + manifest in ``split_dir`` from an exported folder (exact round trip).
 
@@ -327,23 +378,20 @@ def import_split(export_dir: str | Path, split_dir: str | Path, *, overwrite: bo
     """
     export_dir, split_dir = Path(export_dir), Path(split_dir)
     index = load_index(export_dir)
-    try:
-        manifest, shard_specs = index["manifest"], index["shards"]
-        records_by_file = {r["file"]: r for r in manifest["shards"]}
-        specs = [(s["file"], s["attrs"], np.array(s["K"], np.float64), np.array(s["R"], np.float64), list(s["samples"]),
-                  records_by_file[s["file"]]) for s in shard_specs]
-    except (KeyError, TypeError, ValueError) as exc:
-        raise DataFormatError(f"{export_dir / INDEX_NAME}: corrupt export index ({type(exc).__name__}: {exc})") from None
+    where = export_dir / INDEX_NAME
+    manifest = index["manifest"]
+    records_by_file = {r["file"]: r for r in manifest.get("shards", [])}
+    specs = [_shard_spec(s, records_by_file, where) for s in index["shards"]]
+    files = [sp[0] for sp in specs]
+    stems = [stem for sp in specs for stem in sp[4]]
+    if len(set(files)) != len(files) or len(set(stems)) != len(stems) or set(files) != set(records_by_file):
+        raise DataFormatError(f"{where}: corrupt export index (a shard or image is listed twice, or the shard list "
+                              "differs from the source manifest's)")
     # Read and validate everything before writing anything.
     shards = []
     for file, attrs, K, R, stems, rec in specs:
-        J, H, W = int(attrs.get("n_joints", -1)), int(attrs.get("image_height", -1)), int(attrs.get("image_width", -1))
-        if K.shape != (3, 3) or R.shape != (3, 3):
-            raise DataFormatError(f"{export_dir / INDEX_NAME}: {file}: K and R must be 3x3")
-        depth = np.empty((len(stems), H, W), np.float32) if H > 0 and W > 0 else None
-        if depth is None:
-            raise DataFormatError(f"{export_dir / INDEX_NAME}: {file}: attributes image_height/image_width missing")
-        mask = np.empty((len(stems), H, W), np.uint8)
+        J, H, W = attrs["n_joints"], attrs["image_height"], attrs["image_width"]
+        depth = mask = None
         labels = []
         for i, stem in enumerate(stems):
             inside = resolve_inside(export_dir, stem)  # a checked stem; its files must not be links leading out
@@ -355,15 +403,21 @@ def import_split(export_dir: str | Path, split_dir: str | Path, *, overwrite: bo
                 if a.shape != (H, W):
                     raise DataFormatError(f"{export_dir / (stem + suffix)}: {what} is {a.shape[1]}x{a.shape[0]} px, "
                                           f"expected {W}x{H}")
+            if depth is None:  # allocated once an image has shown that the size is real
+                depth, mask = np.empty((len(stems), H, W), np.float32), np.empty((len(stems), H, W), np.uint8)
             depth[i], mask[i] = d, m
             lab = read_json_object(export_dir / (stem + LABEL_SUFFIX), "label file")
             for name in LABEL_FIELDS:
                 shape = resolve_shape(FIELDS_BY_NAME[name].shape[1:], N=0, J=J, H=H, W=W)
                 if name not in lab:
                     raise DataFormatError(f"{export_dir / (stem + LABEL_SUFFIX)}: missing label {name!r}")
-                if np.shape(lab[name]) != shape:
+                try:
+                    got = np.shape(lab[name])
+                except ValueError:  # a ragged list
+                    got = "ragged"
+                if got != shape:
                     raise DataFormatError(f"{export_dir / (stem + LABEL_SUFFIX)}: label {name!r} has shape "
-                                          f"{np.shape(lab[name])}, expected {shape}")
+                                          f"{got}, expected {shape}")
             labels.append(lab)
         arrays = {"depth": depth, "mask": mask}
         for name in LABEL_FIELDS:
@@ -377,6 +431,7 @@ def import_split(export_dir: str | Path, split_dir: str | Path, *, overwrite: bo
             if progress is not None:
                 progress(len(arrays["depth"]))
         write_manifest(tmp, {**manifest, "shards": new_records})
+        _verify_rebuilt(tmp, where)
     changed = [r["file"] for r, old in zip(new_records, (s[5] for s in shards)) if r["sha256"] != old["sha256"]]
     if changed:
         log.warning("%s: re-imported shards %s are not byte-identical to the originals (arrays are equal; "

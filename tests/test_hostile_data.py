@@ -300,6 +300,49 @@ def test_import_exr_names_stay_inside(base, world, kind, value, overwrite):
     world.assert_untouched()
 
 
+def _shard0(ix):
+    return ix["shards"][0]
+
+
+INDEX_CONTENT = {
+    "attrs-nested": lambda ix: _shard0(ix)["attrs"].update(x={"a": 1}),
+    "attrs-not-object": lambda ix: _shard0(ix).update(attrs=[1]),
+    "attrs-null": lambda ix: _shard0(ix)["attrs"].update(x=None),
+    "attrs-mixed-list": lambda ix: _shard0(ix)["attrs"].update(x=[1, "a"]),
+    "height-text": lambda ix: _shard0(ix)["attrs"].update(image_height="abc"),
+    "height-huge": lambda ix: _shard0(ix)["attrs"].update(image_height=10**12),
+    "joints-negative": lambda ix: _shard0(ix)["attrs"].update(n_joints=-3),
+    "K-text": lambda ix: _shard0(ix).update(K="abc"),
+    "K-ragged": lambda ix: _shard0(ix).update(K=[[1, 2], [3]]),
+    "K-nan": lambda ix: _shard0(ix).update(K=[["nan"] * 3] * 3),
+    "samples-twice": lambda ix: _shard0(ix).update(samples=_shard0(ix)["samples"] * 2),
+    "samples-empty": lambda ix: _shard0(ix).update(samples=[]),
+    "shard-twice": lambda ix: ix["shards"].append(json.loads(json.dumps(_shard0(ix)))),
+    "manifest-config": lambda ix: ix["manifest"].update(config="x"),
+    "manifest-count": lambda ix: ix["manifest"]["shards"][0].update(n_images="x"),
+}
+
+
+@pytest.mark.parametrize("case", list(INDEX_CONTENT))
+def test_import_exr_index_content_is_checked(base, world, case):
+    """Malformed or inconsistent split.json content: one line, nothing written (before, each of
+    these was a traceback, a 10 PiB allocation or a silently wrong split)."""
+    exp = _copy_export(base, world)
+    _edit_json(exp / INDEX_NAME, INDEX_CONTENT[case])
+    world.freeze()
+    assert_refused(run("import-exr", exp, "--out", world.root / "out", "-q"))
+    world.assert_untouched()
+
+
+@pytest.mark.parametrize("value", [float("nan"), 100.0, -5.0])
+def test_import_exr_label_values_are_verified(base, world, value):
+    exp = _copy_export(base, world)
+    _edit_json(exp / "o000001_i001.json", lambda lab: lab.update(q=[value]))
+    world.freeze()
+    assert_refused(run("import-exr", exp, "--out", world.root / "out", "-q"), "fails verification")
+    world.assert_untouched()
+
+
 @pytest.mark.parametrize("suffix", [".exr", ".mask.png", ".json"])
 def test_import_exr_file_symlink_leading_out(base, world, suffix):
     exp = _copy_export(base, world)
