@@ -14,3 +14,11 @@ __version__ = "0.1.0"
 
 #: Version of the on-disk shard format (bump when stored samples change).
 FORMAT_VERSION = "1.0"
+
+
+def estimate(depth_m, K, class_name, mask=None, model="dense"):
+    """Estimate an object's articulation from one depth image: see
+    :func:`articulated_dataset.estimation.estimate` (imports torch on first use)."""
+    from .estimation import estimate as _estimate
+
+    return _estimate(depth_m, K, class_name, mask=mask, model=model)

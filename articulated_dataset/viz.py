@@ -372,6 +372,22 @@ def _draw_axes(ax, s: dict, view: SplitView) -> None:
             ax.add_patch(arrow)  # patches added to axes are clipped to them
         muv, _ = project(marks, K)
         markers.append((j, colour, muv))
+    pred = s.get("prediction")
+    if pred is not None:  # predicted axes: dashed, hollow square at the predicted origin
+        from .rotations import quat_to_matrix
+
+        for j, jtype in enumerate(view.joint_types):
+            colour = joint_colour(j)
+            direction = quat_to_matrix(pred["axis_pose"][j, 3:])[:, 2]
+            extent = extent_along(direction, s["object_pose"][3:], s["geometry"][:3])
+            seg, marks = axis_segment_m(jtype, pred["axis_pose"][j, :3], direction, q=float(pred["q"][j]),
+                                        q_max=view.q_max[j], body_extent_m=extent)
+            uv, _ = project(seg, K)
+            if np.all(np.isfinite(uv)):
+                ax.plot(uv[:, 0], uv[:, 1], "--", color=colour, lw=AXIS_LINE_PT * 0.8, zorder=4, path_effects=halo)
+            muv, _ = project(marks, K)
+            if np.all(np.isfinite(muv[0])):
+                ax.plot(*muv[0], "s", ms=ORIGIN_MARKER_PT, mfc="none", mec=colour, mew=1.6, zorder=6)
     for j, colour, muv in markers:  # dots above every line
         if np.all(np.isfinite(muv[0])):
             ax.plot(*muv[0], "o", ms=ORIGIN_MARKER_PT, mfc=colour, mec="white", mew=1.2, zorder=6)
@@ -451,6 +467,7 @@ def _draw_sample(fig, s: dict, view: SplitView, rgb_img, *, left_in, bottom_in, 
 
 LEGEND = ("colour: depth per image, near = bright, far = dark (grey: no return)   \u00b7   line: joint axis "
           "(arrow = +q; dot = axis origin; ring = drawer front now)   \u00b7   one colour per joint")
+LEGEND_PREDICTIONS = "   \u00b7   dashed line, square: predicted axis and origin"
 
 
 def gallery_size_px(n_rows_per_split: list[int], cols: int, image_wh: tuple[int, int], *, rgb: bool,
@@ -537,9 +554,12 @@ def check_output_format(path: str | Path) -> Path:
 
 def make_gallery(split_dirs, *, out: str | Path | None = None, per_sample_dir: str | Path | None = None,
                  n: int = DEFAULT_N_SAMPLES, objects=None, images=None, rgb: bool = False, cols: int = DEFAULT_COLUMNS,
-                 dpi: int = DEFAULT_DPI, outline: bool = True, progress=None) -> list[Panel]:
+                 dpi: int = DEFAULT_DPI, outline: bool = True, progress=None, predictions=None) -> list[Panel]:
     """Draw ``n`` samples of each split into one gallery (``out``) and/or one PNG per sample
     (``per_sample_dir``).  Returns the panels drawn (with their positions in the files).
+
+    ``predictions``: a predictions.h5 path; its axes are drawn dashed beside the true ones
+    (images it does not cover are drawn without).
 
     ``objects`` / ``images``: candidate object and image indices (default: all).
     ``progress(k)`` is called after each sample.
@@ -554,16 +574,27 @@ def make_gallery(split_dirs, *, out: str | Path | None = None, per_sample_dir: s
         raise UserError(f"--dpi must be at least {MIN_DPI} (the captions' smallest font needs one pixel), got {dpi}")
     if out is not None:
         out = check_output_format(out)
+    pred_by_class = _read_predicted_axes(predictions) if predictions is not None else None
     views = [SplitView.open(d) for d in split_dirs]
     try:
         return _make_gallery(views, out, Path(per_sample_dir) if per_sample_dir else None, n, objects, images, rgb,
-                             cols, dpi, outline, progress)
+                             cols, dpi, outline, progress, pred_by_class)
     finally:
         for v in views:
             v.close()
 
 
-def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi, outline, progress) -> list[Panel]:
+def _read_predicted_axes(path) -> dict:
+    """class -> {sample_id: {"axis_pose": (J, 7), "q": (J,)}} of a predictions file."""
+    from .predictions import read_predictions
+
+    _, per_class = read_predictions(path)
+    return {c: {int(i): {"axis_pose": a["axis_pose"][k], "q": a["q"][k]} for k, i in enumerate(a["sample_id"])}
+            for c, a in per_class.items()}
+
+
+def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi, outline, progress,
+                  pred_by_class=None) -> list[Panel]:
     picks = []
     for v in views:
         for o in objects or []:
@@ -576,6 +607,14 @@ def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi
     samples, rgbs = [], []
     for v, pairs in zip(views, picks):
         ss = [v.sample(o, i) for o, i in pairs]
+        if pred_by_class is not None:
+            cls = v.manifest["class_name"]
+            if cls not in pred_by_class:
+                raise UserError(f"the predictions hold no {cls!r} images (they hold: {', '.join(sorted(pred_by_class))})")
+            for smp in ss:
+                hit = pred_by_class[cls].get(int(smp["sample_id"]))
+                if hit is not None and hit["axis_pose"].shape[0] == len(v.joint_types):
+                    smp["prediction"] = hit
         samples.append(ss)
         if rgb:
             by_obj: dict[int, list[int]] = {}
@@ -636,6 +675,7 @@ def _gallery_figure(views, samples, rgbs, path: Path, cols: int, dpi: int, outli
                 placed.append((ax, kind, v, s))
         top -= n_rows * row_h
     if header:
-        fig.text(GAP_IN / fig_w, (FOOTER_IN * 0.5) / fig_h, LEGEND, ha="left", va="center", fontsize=7.5, color="#555555")
+        with_pred = any("prediction" in s for ss in samples for s in ss)
+        fig.text(GAP_IN / fig_w, (FOOTER_IN * 0.5) / fig_h, LEGEND + (LEGEND_PREDICTIONS if with_pred else ""), ha="left", va="center", fontsize=7.5, color="#555555")
     _save(fig, path, dpi)
     return [_panel_record(fig, ax, kind, path, v, s, dpi) for ax, kind, v, s in placed]

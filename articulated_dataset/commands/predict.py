@@ -1,4 +1,4 @@
-"""``artdata predict``: run a trained MDN on a split and write predictions.h5."""
+"""``artdata predict``: run a shipped model or a trained checkpoint on a split and write predictions.h5."""
 
 from __future__ import annotations
 
@@ -12,15 +12,17 @@ from .train import _prepare_torch
 
 
 @click.command("predict")
-@click.option("--model", "model_path", type=click.Path(dir_okay=False), required=True, help="Checkpoint from 'artdata train'.")
+@click.option("--model", "model_path", required=True,
+              help="A shipped model (dense, mdn-small; see 'artdata models') or a checkpoint file from 'artdata train'.")
 @click.option("--data", type=click.Path(), required=True, help="Split folder to predict, e.g. data/cabinet/test.")
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="predictions.h5 to write (for 'artdata score').")
 @click.option("--estimate", type=click.Choice(["mean-of-best", "mode"]), default="mean-of-best", show_default=True,
-              help="Point estimate: mean of the heaviest component, or the mixture's mode (fixed-point search).")
+              help="MDN point estimate: mean of the heaviest component, or the mixture's mode (fixed-point search). "
+                   "The dense model always gives its heaviest vote mode.")
 @click.option("--snap-to-cloud", is_flag=True,
-              help="Move each axis origin to the segmented depth point most likely under the mixture (paper, Table 2).")
-@click.option("--method", default=None, help="Method name in the file and the score table (default: MDN or MDN-small).")
-@click.option("--batch-size", type=int, default=256, show_default=True, help="Images per forward pass.")
+              help="MDN: move each axis origin to the segmented depth point most likely under the mixture (paper, Table 2).")
+@click.option("--method", default=None, help="Method name in the file and the score table (default: dense, MDN or MDN-small).")
+@click.option("--batch-size", type=int, default=None, help="Images per forward pass (default: MDN 256, dense 128).")
 @click.option("--device", default="auto", show_default=True, help="auto (GPU if present), cpu, cuda or cuda:N.")
 @click.option("--threads", type=int, default=None, help="CPU threads for torch (default: all cores of this process).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
@@ -33,24 +35,38 @@ def predict_cmd(model_path, data, out, estimate, snap_to_cloud, method, batch_si
     if out.is_dir():
         raise UserError(f"--out {out} is a directory; give a file name such as predictions.h5")
     _prepare_torch(threads)
-    from ..mdn.predict import predict_split
-    from ..mdn.train import load_checkpoint
+    from ..mdn.train import resolve_split_dir, split_class
+    from ..models import resolve_model
     from ..predictions import write_predictions
 
     t0 = time.perf_counter()
-    ckpt = load_checkpoint(model_path)
-    preset = ckpt["train_config"].get("preset", "full")
-    name = method or ("MDN" if preset == "full" else f"MDN-{preset}")
-    class_name, arrays = predict_split(model_path, data, estimate=estimate, snap_to_cloud=snap_to_cloud,
-                                       batch_size=batch_size, device=device, progress=not quiet)
+    ref = resolve_model(model_path, split_class(resolve_split_dir(data)))
+    if ref.kind == "dense":
+        if snap_to_cloud:
+            raise UserError("--snap-to-cloud applies to MDN models; the dense model's origins are already point votes")
+        from ..dense.predict import predict_split as predict_dense
+        from ..dense.train import load_dense_checkpoint
+
+        ckpt = load_dense_checkpoint(ref.path)
+        name = method or "dense"
+        class_name, arrays = predict_dense(ckpt, data, batch_size=128 if batch_size is None else batch_size, progress=not quiet)
+        attrs = {"model": str(model_path), "estimate": "heaviest-mode", "steps": int(ckpt["step"])}
+    else:
+        from ..mdn.predict import predict_split
+        from ..mdn.train import load_checkpoint
+
+        ckpt = load_checkpoint(ref.path)
+        preset = ckpt["train_config"].get("preset", "full")
+        name = method or ("MDN" if preset == "full" else f"MDN-{preset}")
+        class_name, arrays = predict_split(ref.path, data, estimate=estimate, snap_to_cloud=snap_to_cloud,
+                                           batch_size=256 if batch_size is None else batch_size, device=device, progress=not quiet)
+        attrs = {"model": str(model_path), "estimate": estimate, "snap_to_cloud": int(snap_to_cloud),
+                 "epochs": int(ckpt["epoch"]), "preset": preset}
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_predictions(out, name, {class_name: arrays},
-                      attrs={"model": str(model_path), "estimate": estimate, "snap_to_cloud": int(snap_to_cloud),
-                             "epochs": int(ckpt["epoch"]), "preset": preset})
+    write_predictions(out, name, {class_name: arrays}, attrs=attrs)
     if not quiet:
         n = len(arrays["sample_id"])
-        click.echo(f"{out}: {n} {class_name} images predicted by {name} ({estimate}"
-                   f"{', snapped to the cloud' if snap_to_cloud else ''}) in {time.perf_counter() - t0:.1f} s")
-
+        click.echo(f"{out}: {n} {class_name} images predicted by {name}"
+                   f"{' (snapped to the cloud)' if snap_to_cloud else ''} in {time.perf_counter() - t0:.1f} s")
 
 COMMANDS = [predict_cmd]

@@ -47,9 +47,11 @@ def parse_index_list(text: str | None, what: str) -> list[int] | None:
 @click.option("--cols", type=int, default=None, help="Samples per row (default: 4, or 2 with --rgb).")
 @click.option("--rgb", is_flag=True, help="Add a shaded colour preview rendered from the same scene (rebuilt from the manifest).")
 @click.option("--no-outline", is_flag=True, help="Do not outline the moving parts.")
+@click.option("--predictions", "predictions", type=click.Path(dir_okay=False), default=None,
+              help="predictions.h5 (artdata predict / baseline): draw its axes dashed beside the true ones.")
 @click.option("--dpi", type=int, default=100, show_default=True)
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing on success.")
-def show_cmd(path, out, per_sample_dir, n_samples, objects, images, cols, rgb, no_outline, dpi, quiet):
+def show_cmd(path, out, per_sample_dir, n_samples, objects, images, cols, rgb, no_outline, predictions, dpi, quiet):
     """Draw labelled samples of the data at PATH (split, class folder or output root).
 
     Depth is colour-mapped per image (near bright, far dark; grey = no return); each joint's
@@ -71,7 +73,7 @@ def show_cmd(path, out, per_sample_dir, n_samples, objects, images, cols, rgb, n
         cols = DEFAULT_COLUMNS_RGB if rgb else DEFAULT_COLUMNS
     panels = make_gallery(split_dirs, out=out, per_sample_dir=per_sample_dir, n=n_samples,
                           objects=parse_index_list(objects, "objects"), images=parse_index_list(images, "images"),
-                          rgb=rgb, cols=cols, dpi=dpi, outline=not no_outline)
+                          rgb=rgb, cols=cols, dpi=dpi, outline=not no_outline, predictions=predictions)
     if not quiet:
         n_drawn = len({(p.split, p.object_index, p.image_index) for p in panels})
         written = [str(out)] if out else []

@@ -1,4 +1,5 @@
-"""``artdata train``: train the per-class ResNet-18 mixture density network."""
+"""``artdata train``: train one class's estimator: the dense voting network (``--model dense``)
+or the paper's ResNet-18 mixture density network (``--model mdn``, the default)."""
 
 from __future__ import annotations
 
@@ -27,30 +28,42 @@ def _prepare_torch(threads: int | None) -> int:
 
 
 @click.command("train")
+@click.option("--model", "model_kind", type=click.Choice(["mdn", "dense"]), default="mdn", show_default=True,
+              help="mdn: the paper's ResNet-18 mixture density network; dense: the per-pixel voting network "
+                   "(docs/model.md).")
 @click.option("--class", "class_name", type=_ClassChoice(), required=True, help="Object class (one network per class).")
 @click.option("--data", type=click.Path(), required=True, help="The class's TRAINING split folder, e.g. data/cabinet/train.")
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="Checkpoint file (written after every epoch).")
-@click.option("--small", is_flag=True, help="Reduced network at 96x54 input: minutes per class on a 2-core CPU.")
-@click.option("--epochs", type=int, default=None, help="Epochs (default: 30, or 8 with --small).")
-@click.option("--batch-size", type=int, default=None, help="Images per step (default: 128, or 64 with --small).")
-@click.option("--lr", type=float, default=None, help="Peak learning rate of AdamW (default: 1e-3, or 2e-3 with --small).")
-@click.option("--components", type=int, default=None, help="Mixture components (default 20).")
-@click.option("--val-fraction", type=float, default=0.1, show_default=True,
-              help="Fraction of the training split's OBJECTS held out for validation (0: none).")
+@click.option("--small", is_flag=True, help="mdn: reduced network at 96x54 input: minutes per class on a 2-core CPU.")
+@click.option("--epochs", type=int, default=None, help="Epochs (default: mdn 30, or 8 with --small; dense 2).")
+@click.option("--batch-size", type=int, default=None, help="Images per step (default: mdn 128, or 64 with --small; dense 64).")
+@click.option("--lr", type=float, default=None, help="Peak learning rate of AdamW (default: mdn 1e-3, or 2e-3 with --small; dense 3e-3).")
+@click.option("--components", type=int, default=None, help="mdn: mixture components (default 20).")
+@click.option("--width", type=int, default=None, help="dense: base channel width of the network (default 16).")
+@click.option("--val-fraction", type=float, default=None,
+              help="Fraction of the training split's OBJECTS held out for validation (0: none; default: mdn 0.1, dense 0.05).")
 @click.option("--max-objects", type=int, default=None, help="Train on the first N objects of the split only.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the initialisation, validation split and batch order.")
 @click.option("--device", default="auto", show_default=True, help="auto (GPU if present), cpu, cuda or cuda:N.")
 @click.option("--threads", type=int, default=None, help="CPU threads for torch (default: all cores of this process).")
 @click.option("--resume", is_flag=True, help="Continue the interrupted training stored in --out (same options).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or per-epoch lines.")
-def train_cmd(class_name, data, out, small, epochs, batch_size, lr, components, val_fraction, max_objects, seed, device,
-              threads, resume, quiet):
-    """Train the mixture density network of one class on its training split."""
+def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, components, width, val_fraction, max_objects,
+              seed, device, threads, resume, quiet):
+    """Train one class's estimator on its training split (checkpoints after every epoch; --resume continues)."""
     _prepare_torch(threads)
-    from ..mdn.train import TrainConfig, train
-
     if max_objects is not None and max_objects <= 0:
         raise UserError(f"--max-objects must be positive, got {max_objects}")
+    if model_kind == "dense":
+        if small or components is not None:
+            raise UserError("--small and --components belong to --model mdn")
+        _train_dense(class_name, data, out, epochs, batch_size, lr, width, val_fraction, max_objects, seed, resume, quiet)
+        return
+    if width is not None:
+        raise UserError("--width belongs to --model dense")
+    from ..mdn.train import TrainConfig, train
+
+    val_fraction = 0.1 if val_fraction is None else val_fraction
     config = TrainConfig(class_name=class_name, preset="small" if small else "full", epochs=epochs, batch_size=batch_size,
                          lr=lr, val_fraction=val_fraction, seed=seed, n_components=components, max_objects=max_objects)
     t0 = time.perf_counter()
@@ -62,6 +75,22 @@ def train_cmd(class_name, data, out, small, epochs, batch_size, lr, components, 
     if not quiet:
         click.echo(f"{out}: {ckpt['class_name']}, {ckpt['epoch']} epochs ({ckpt['data']['n_train']} training / "
                    f"{ckpt['data']['n_val']} validation images) in {time.perf_counter() - t0:.0f} s")
+
+
+def _train_dense(class_name, data, out, epochs, batch_size, lr, width, val_fraction, max_objects, seed, resume, quiet):
+    from ..dense.train import DenseTrainConfig, train_dense
+
+    given = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "width": width, "val_fraction": val_fraction}
+    config = DenseTrainConfig(class_name=class_name, max_objects=max_objects, seed=seed,
+                              **{k: v for k, v in given.items() if v is not None})
+    t0 = time.perf_counter()
+    try:
+        ckpt = train_dense(data, out, config, resume=resume, progress=not quiet, echo=None if quiet else click.echo)
+    except KeyboardInterrupt:
+        raise click.ClickException(f"interrupted; the last checkpoint is in {out}. Continue with the same command plus --resume") from None
+    if not quiet:
+        click.echo(f"{out}: dense {ckpt['class_name']}, {ckpt['step']} steps ({ckpt['data']['n_train_images']} training / "
+                   f"{ckpt['data']['n_val_images']} validation images) in {time.perf_counter() - t0:.0f} s")
 
 
 COMMANDS = [train_cmd]

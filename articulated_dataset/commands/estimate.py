@@ -1,0 +1,61 @@
+"""``artdata estimate``: one depth image in, the object's axis, configuration and size out."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from ..errors import UserError
+from .generate import _ClassChoice
+from .train import _prepare_torch
+
+
+@click.command("estimate")
+@click.argument("depth", type=click.Path(dir_okay=False))
+@click.option("--class", "class_name", type=_ClassChoice(), required=True, help="Object class of the object in view.")
+@click.option("--camera", "camera_path", type=click.Path(dir_okay=False), default=None,
+              help="Camera-info JSON/YAML (fx, fy, cx, cy or K; as 'artdata ingest' reads it). "
+                   "Default: DEPTH's NAME.camera.json or camera.json next to it.")
+@click.option("--mask", "mask_path", type=click.Path(dir_okay=False), default=None,
+              help="Object mask PNG (non-zero = object); needed when the image shows a scene around the object.")
+@click.option("--depth-units", type=click.Choice(["auto", "m", "mm"]), default="auto", show_default=True,
+              help="Units of the depth values (auto: 16-bit PNG = mm, float EXR/npy = m).")
+@click.option("--model", default="dense", show_default=True, help="'dense' (shipped weights) or a dense checkpoint file.")
+@click.option("--json", "as_json", is_flag=True, help="Print the estimate as JSON.")
+@click.option("--threads", type=int, default=None, help="CPU threads for torch (default: all cores of this process).")
+def estimate_cmd(depth, class_name, camera_path, mask_path, depth_units, model, as_json, threads):
+    """Estimate the articulation (axis origin and direction, q, size, uncertainty) of the object in DEPTH.
+
+    DEPTH is a 16-bit PNG in millimetres, an EXR or a .npy in metres.  Results are in the
+    camera frame (x forward, y left, z up) in metres and radians.
+    """
+    from ..real import _capture_files, load_depth, load_intrinsics, load_mask
+    from ..registry import get_class
+
+    depth_path = Path(depth)
+    if not depth_path.is_file():
+        raise UserError(f"depth file not found: {depth_path}")
+    if camera_path is None:
+        camera = _capture_files(depth_path).camera
+        if camera is None:
+            raise UserError(f"{depth_path}: intrinsics missing; pass --camera FILE (fx, fy, cx, cy) or put "
+                            f"camera.json next to it")
+    else:
+        camera = Path(camera_path)
+    K, size = load_intrinsics(camera)
+    d = load_depth(depth_path, depth_units)
+    if size is not None and (d.shape[1], d.shape[0]) != tuple(size):
+        raise UserError(f"{depth_path}: depth is {d.shape[1]}x{d.shape[0]} px but {camera} says {size[0]}x{size[1]}")
+    mask = None
+    if mask_path is not None:
+        mask = load_mask(mask_path, d.shape, get_class(class_name).n_joints) > 0
+    _prepare_torch(threads)
+    from ..estimation import estimate
+
+    est = estimate(d, K, class_name, mask=mask, model=model)
+    click.echo(json.dumps(est.to_dict(), indent=2) if as_json else est.summary())
+
+
+COMMANDS = [estimate_cmd]

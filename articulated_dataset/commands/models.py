@@ -1,0 +1,35 @@
+"""``artdata models``: the pretrained models shipped with the package."""
+
+from __future__ import annotations
+
+import json
+
+import click
+
+
+@click.command("models")
+@click.option("--json", "as_json", is_flag=True, help="Print the full descriptions (training data, figures) as JSON.")
+def models_cmd(as_json):
+    """List the shipped models: name, class, training data and test figures (docs/model.md)."""
+    from ..models import shipped_models
+
+    entries = shipped_models()
+    if as_json:
+        click.echo(json.dumps(entries, indent=2))
+        return
+    if not entries:
+        click.echo("no shipped models in this installation")
+        return
+    click.echo(f"{'model':<10} {'class':<13} {'train objects':>13} {'pos cm':>7} {'rot deg':>8} {'config':>12}  file")
+    for m in entries:
+        t = m.get("test", {})
+        unit = "cm" if m.get("config_unit") == "cm" else "deg"
+        cfg = f"{t['config']:.2f} {unit}" if "config" in t else "-"
+        pos = f"{t['pos_cm']:.2f}" if "pos_cm" in t else "-"
+        rot = f"{t['rot_deg']:.2f}" if "rot_deg" in t else "-"
+        click.echo(f"{m['name']:<10} {m['class_name']:<13} {m.get('training', {}).get('objects', '-'):>13} {pos:>7} "
+                   f"{rot:>8} {cfg:>12}  {m['file']}")
+    click.echo("test figures: 'artdata score' metric version and test split in 'artdata models --json' and docs/model.md")
+
+
+COMMANDS = [models_cmd]

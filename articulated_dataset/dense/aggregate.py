@@ -1,0 +1,174 @@
+"""Per-pixel votes -> image estimates: a differentiable mean for training, modes for inference.
+
+Notation for one image and joint: valid output pixels ``i`` with origin votes
+``v_i = p_i + offset_i`` (m), confidence weights ``w_i = softmax_i(c_i)`` over the valid
+pixels (one confidence per quantity: origin, rotation, q).
+
+* :func:`weighted_mean` (training and the image-level loss): ``o = sum_i w_i v_i``, the
+  rotation ``r6 = sum_i w^r_i r6_i`` and ``q = sum_i w^q_i q_i``.
+* :func:`vote_modes` (inference): mean-shift on the origin votes with a Gaussian kernel of
+  bandwidth :data:`BANDWIDTH_M`, started from the :data:`N_STARTS` heaviest votes; converged
+  point of highest kernel density is the first mode; the votes within :data:`MODE_SEPARATION_M`
+  of it are set aside and the search repeats on the rest (while they carry at least
+  :data:`MIN_MODE_MASS` of the weight), at most :data:`MAX_MODES` modes per joint; a later mode is
+  kept only when it stands :data:`SPLIT_FACTOR` times the two modes' spreads from the first
+  (one wide cloud is one mode).  Every vote joins its nearest kept
+  mode; a mode's weight is the sum of its votes' ``w_i``, its estimate the weighted mean of
+  its own votes (origin, rotation, q, part offset), and its spread their weighted standard
+  deviation.  So a two-sided ambiguity (the hinge of a closed door) gives two components
+  with their own weights, never their average.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch.nn import functional as F
+
+#: Mean-shift kernel bandwidth (m).
+BANDWIDTH_M = 0.05
+#: Mean-shift iterations and starting points.
+N_ITERATIONS = 10
+N_STARTS = 8
+#: Kept modes must be at least this far apart (m).
+MODE_SEPARATION_M = 0.15
+#: Modes per joint.
+MAX_MODES = 2
+#: A further mode is kept only when its centre is more than this many times the two modes'
+#: summed vote spreads (root of the summed coordinate variances) away from the first's.
+SPLIT_FACTOR = 1.5
+#: A further mode is sought only while the votes not yet explained carry this much weight.
+MIN_MODE_MASS = 0.05
+#: Logit given to invalid pixels (excluded from every softmax).
+_MASKED_LOGIT = -1e9
+
+
+def softmax_weights(logits: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """(B, J, h, w) logits, (B, h, w) validity -> (B, J, N) weights summing to 1 over valid pixels."""
+    B, J = logits.shape[:2]
+    v = valid[:, None].expand(B, J, *valid.shape[1:]).flatten(2)
+    return torch.softmax(logits.flatten(2).masked_fill(~v, _MASKED_LOGIT), -1)
+
+
+def gram_schmidt6(r6: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(..., 6) -> unit axis z = a/|a| and x = normalised (b - (b.z) z)."""
+    a, b = r6[..., :3], r6[..., 3:]
+    z = F.normalize(a, dim=-1, eps=1e-12)
+    x = F.normalize(b - (b * z).sum(-1, keepdim=True) * z, dim=-1, eps=1e-12)
+    return z, x
+
+
+def weighted_mean(parts: dict, points: torch.Tensor, valid: torch.Tensor) -> dict:
+    """Softmax-weighted image estimates (differentiable).
+
+    ``parts``: :meth:`DenseNet.split` output; ``points`` (B, 3, h, w); ``valid`` (B, h, w) bool.
+    Returns ``origin`` (B, J, 3), ``rot6`` (B, J, 6), ``q`` (B, J), ``part_offset`` (B, J, 3),
+    ``geometry`` (B, 4) (chirality as a logit).
+    """
+    conf = parts["conf"]
+    wo, wr, wq = (softmax_weights(conf[:, :, k], valid) for k in range(3))
+    votes = (points[:, None] + parts["offset"]).flatten(3)  # (B, J, 3, N)
+    wg = softmax_weights(parts["geometry_conf"][:, None], valid)[:, 0]  # (B, N)
+    return {
+        "origin": (votes * wo[:, :, None]).sum(-1),
+        "rot6": (parts["rot6"].flatten(3) * wr[:, :, None]).sum(-1),
+        "q": (parts["q"].flatten(2) * wq).sum(-1),
+        "part_offset": (parts["part_offset"].flatten(3) * wo[:, :, None]).sum(-1),
+        "geometry": (parts["geometry"].flatten(2) * wg[:, None]).sum(-1),
+    }
+
+
+def _wmean_std(x: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """x (..., C, N), w (..., N) summing to 1 -> weighted mean and std (..., C)."""
+    m = (x * w[..., None, :]).sum(-1)
+    var = (((x - m[..., None]) ** 2) * w[..., None, :]).sum(-1)
+    return m, var.clamp_min(0).sqrt()
+
+
+@torch.no_grad()
+def vote_modes(parts: dict, points: torch.Tensor, valid: torch.Tensor) -> dict:
+    """Mode-seeking aggregation per joint (see the module docstring).
+
+    Returns, with ``M = MAX_MODES``: ``weight`` (B, J, M) (0 for an unused mode; sums to 1),
+    ``origin`` (B, J, M, 3), ``axis`` and ``xaxis`` (B, J, M, 3) unit, ``q`` (B, J, M),
+    ``part_offset`` (B, J, M, 3), and spreads ``origin_std``, ``axis_std``, ``xaxis_std``,
+    ``offset_std`` (B, J, M, 3), ``q_std`` (B, J, M); ``geometry`` (B, 4) with chirality in
+    [0, 1] and ``geometry_std`` (B, 4).
+    """
+    conf = parts["conf"]
+    B, J = conf.shape[:2]
+    wo, wr, wq = (softmax_weights(conf[:, :, k], valid) for k in range(3))
+    votes = (points[:, None] + parts["offset"]).flatten(3)  # (B, J, 3, N)
+    N = votes.shape[-1]
+    S = min(N_STARTS, N)
+    inv2bw2 = 1.0 / (2 * BANDWIDTH_M**2)
+    remaining = valid[:, None].expand(B, J, *valid.shape[1:]).flatten(2).clone()  # (B, J, N)
+    centres, used = [], []
+    for r in range(MAX_MODES):
+        w_rem = wo * remaining
+        top = w_rem.topk(S, -1).indices
+        modes = torch.gather(votes, 3, top[:, :, None].expand(B, J, 3, S))  # (B, J, 3, S)
+        for _ in range(N_ITERATIONS):
+            d2 = ((votes[:, :, :, None, :] - modes[..., None]) ** 2).sum(2)  # (B, J, S, N)
+            k = w_rem[:, :, None] * torch.exp(-d2 * inv2bw2)
+            density = k.sum(-1)
+            modes = (votes[:, :, :, None, :] * k[:, :, None]).sum(-1) / density[:, :, None].clamp_min(1e-30)
+        best = density.argmax(-1)
+        centre = torch.gather(modes, 3, best[:, :, None, None].expand(B, J, 3, 1))[..., 0]  # (B, J, 3)
+        mass = w_rem.sum(-1)
+        used.append(mass > (0.0 if r == 0 else MIN_MODE_MASS))
+        centres.append(centre)
+        remaining &= ((votes - centre[..., None]) ** 2).sum(2) > MODE_SEPARATION_M**2
+    centres = torch.stack(centres, -1)  # (B, J, 3, M)
+    used = torch.stack(used, -1)  # (B, J, M)
+    d2_all = ((votes[:, :, :, None, :] - centres[..., None]) ** 2).sum(2)  # (B, J, M, N)
+
+    def assign(used):
+        d = d2_all.masked_fill(~used[..., None], float("inf"))
+        return F.one_hot(d.argmin(2), MAX_MODES).permute(0, 1, 3, 2).float()  # (B, J, M, N)
+
+    def within(w, member):  # weights restricted to each mode, renormalised
+        wm = w[:, :, None] * member
+        return wm / wm.sum(-1, keepdim=True).clamp_min(1e-30), wm.sum(-1)
+
+    # a later mode stays only if it is separated from the first by more than SPLIT_FACTOR times
+    # their spreads (a wide single cloud cut in two halves is not two modes)
+    member = assign(used)
+    w_o, _ = within(wo, member)
+    c, c_std = _wmean_std(votes[:, :, None], w_o)  # (B, J, M, 3)
+    spread = c_std.norm(dim=-1)
+    gap = (c - c[:, :, :1]).norm(dim=-1)
+    used = used & ((gap > SPLIT_FACTOR * (spread + spread[:, :, :1])) | (torch.arange(MAX_MODES) == 0))
+    member = assign(used)
+    w_o, mass = within(wo, member)
+    w_r, _ = within(wr, member)
+    w_q, _ = within(wq, member)
+    origin, origin_std = _wmean_std(votes[:, :, None], w_o)
+    r6 = parts["rot6"].flatten(3)[:, :, None]  # (B, J, 1, 6, N)
+    r6_mean = (r6 * w_r[..., None, :]).sum(-1)
+    axis, xaxis = gram_schmidt6(r6_mean)
+    z_pix, x_pix = gram_schmidt6(r6.transpose(-1, -2))  # (B, J, 1, N, 3)
+    _, axis_std = _wmean_std(z_pix.transpose(-1, -2), w_r)
+    _, xaxis_std = _wmean_std(x_pix.transpose(-1, -2), w_r)
+    q, q_std = _wmean_std(parts["q"].flatten(2)[:, :, None, None], w_q)
+    offset, offset_std = _wmean_std(parts["part_offset"].flatten(3)[:, :, None], w_o)
+    weight = torch.where(used, mass, torch.zeros_like(mass))
+    weight = weight / weight.sum(-1, keepdim=True).clamp_min(1e-30)
+    wg = softmax_weights(parts["geometry_conf"][:, None], valid)[:, 0]
+    geometry, geometry_std = _wmean_std(parts["geometry"].flatten(2), wg)
+    chirality = torch.sigmoid(parts["geometry"][:, 3].flatten(1))
+    geometry = geometry.clone()
+    geometry[:, 3] = (chirality * wg).sum(-1)
+    geometry_std = geometry_std.clone()
+    geometry_std[:, 3] = (((chirality - geometry[:, 3:4]) ** 2) * wg).sum(-1).sqrt()
+    per_mode = {
+        "weight": weight, "origin": origin, "axis": axis, "xaxis": xaxis, "q": q[..., 0], "part_offset": offset,
+        "origin_std": origin_std, "axis_std": axis_std, "xaxis_std": xaxis_std, "q_std": q_std[..., 0],
+        "offset_std": offset_std,
+    }
+    order = torch.sort(weight, dim=-1, descending=True, stable=True).indices  # heaviest mode first
+    out = {}
+    for key, v in per_mode.items():
+        idx = order if v.dim() == 3 else order[..., None].expand(*order.shape, v.shape[-1])
+        out[key] = torch.gather(v, 2, idx)
+    out["geometry"], out["geometry_std"] = geometry, geometry_std
+    return out

@@ -1,0 +1,110 @@
+"""The dense network: a small U-Net from the 9-channel point image to per-pixel outputs.
+
+Encoder: a stride-2 stem at the input resolution (so the handle's few pixels are seen at
+full resolution), then four stride-2 stages (widths ``w, 2w, 4w, 6w``) and a global
+context vector added back at the bottom; decoder: bilinear upsampling with skip
+connections back to the output resolution (input / 4).  Per output pixel it predicts
+(:meth:`DenseNet.split`):
+
+* ``seg``: logits over (body, part 0 .. part J-1) (background is given by validity);
+* per joint j: ``offset`` (3, m) from the pixel's point to the axis origin, ``rot6`` (6): the
+  axis direction and the frame's x axis (Gram-Schmidt at aggregation), ``q`` (1, rad or m),
+  ``part_offset`` (3, m, axis frame), ``conf`` (3 logits weighting the pixel's origin,
+  rotation and q votes);
+* per image, voted by every pixel: ``geometry`` (depth, width, height in m, chirality logit)
+  and one confidence logit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from .features import N_INPUT_CHANNELS
+
+#: Offsets are predicted in units of this (m).
+OFFSET_SCALE_M = 0.5
+#: Per-joint channels: offset 3, rot6 6, q 1, part offset 3, confidences 3.
+JOINT_CHANNELS = 16
+#: Geometry channels: depth, width, height, chirality logit, confidence.
+GEOMETRY_CHANNELS = 5
+
+
+@dataclass(frozen=True)
+class DenseConfig:
+    """Architecture (stored in checkpoints)."""
+
+    n_joints: int
+    width: int = 16
+    height_px: int = 108
+    width_px: int = 192
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "DenseConfig":
+        return cls(**{k: d[k] for k in ("n_joints", "width", "height_px", "width_px")})
+
+
+def _cbr(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride, 1, bias=False), nn.BatchNorm2d(c_out), nn.ReLU(inplace=True))
+
+
+class DenseNet(nn.Module):
+    def __init__(self, config: DenseConfig):
+        super().__init__()
+        self.config = config
+        J, w = config.n_joints, config.width
+        c0, c1, c2, c3, c4 = w, w, 2 * w, 4 * w, 6 * w
+        self.stem = _cbr(N_INPUT_CHANNELS, c0, 2)                       # 1/2
+        self.e1 = nn.Sequential(_cbr(c0, c1, 2), _cbr(c1, c1))          # 1/4 (output resolution)
+        self.e2 = nn.Sequential(_cbr(c1, c2, 2), _cbr(c2, c2))          # 1/8
+        self.e3 = nn.Sequential(_cbr(c2, c3, 2), _cbr(c3, c3))          # 1/16
+        self.e4 = nn.Sequential(_cbr(c3, c4, 2), _cbr(c4, c4))          # 1/32
+        self.context = nn.Sequential(nn.Linear(c4, c4), nn.ReLU(inplace=True))
+        self.d3 = _cbr(c4 + c3, c3)
+        self.d2 = _cbr(c3 + c2, c2)
+        self.d1 = nn.Sequential(_cbr(c2 + c1, 2 * w), nn.Conv2d(2 * w, 2 * w, 1, bias=False), nn.BatchNorm2d(2 * w),
+                                nn.ReLU(inplace=True))
+        self.n_out = (1 + J) + J * JOINT_CHANNELS + GEOMETRY_CHANNELS
+        self.head = nn.Conv2d(2 * w, self.n_out, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        f1 = self.e1(self.stem(x))
+        f2 = self.e2(f1)
+        f3 = self.e3(f2)
+        f4 = self.e4(f3)
+        f4 = f4 + self.context(f4.mean((2, 3)))[:, :, None, None]
+
+        def up(a, ref):
+            return F.interpolate(a, size=ref.shape[2:], mode="bilinear", align_corners=False)
+
+        y = self.d3(torch.cat([up(f4, f3), f3], 1))
+        y = self.d2(torch.cat([up(y, f2), f2], 1))
+        y = self.d1(torch.cat([up(y, f1), f1], 1))
+        return self.head(y)
+
+    def split(self, out: torch.Tensor) -> dict:
+        """Named views of the raw output (B, n_out, h, w)."""
+        J = self.config.n_joints
+        B, _, H, W = out.shape
+        r = out[:, 1 + J : 1 + J + J * JOINT_CHANNELS].reshape(B, J, JOINT_CHANNELS, H, W)
+        g = out[:, 1 + J + J * JOINT_CHANNELS :]
+        return {
+            "seg": out[:, : 1 + J],
+            "offset": r[:, :, 0:3] * OFFSET_SCALE_M,
+            "rot6": r[:, :, 3:9],
+            "q": r[:, :, 9],
+            "part_offset": r[:, :, 10:13] * OFFSET_SCALE_M,
+            "conf": r[:, :, 13:16],
+            "geometry": g[:, 0:4],
+            "geometry_conf": g[:, 4],
+        }
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())

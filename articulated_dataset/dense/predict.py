@@ -1,0 +1,208 @@
+"""Inference of the dense estimator: splits (``artdata predict --model dense``) and single images.
+
+For each image the vote modes of every joint (:func:`~articulated_dataset.dense.aggregate.vote_modes`)
+become mixture components over the class's target columns (:class:`~articulated_dataset.targets.TargetLayout`):
+with ``J`` joints and ``M`` modes per joint the mixture has ``M**J`` components, one per
+combination, weighted by the product of the modes' weights.  A component's standard
+deviation in column ``d`` is ``sigma_d = sqrt((k_d s_d)^2 + f_d^2)`` where ``s_d`` is the
+spread of its votes in that column and ``(k_d, f_d)`` the calibration fitted on the
+training split's validation objects by maximum likelihood (:func:`fit_calibration`).  The
+point estimate is the heaviest component's mean (never an average of modes).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UserError
+
+log = logging.getLogger(__name__)
+
+#: Images per forward pass.
+PREDICT_BATCH = 128
+#: Weight given to a mode that does not exist (keeps log-weights finite), before renormalising.
+MIN_COMPONENT_WEIGHT = 1e-9
+#: Calibration grids: spread factors and floors (as fractions of the residuals' median).
+CAL_SPREAD_FACTORS = np.geomspace(0.05, 50.0, 41)
+CAL_FLOOR_FRACTIONS = np.concatenate([[0.0], np.geomspace(0.02, 5.0, 33)])
+#: Scale floor of any column (label units) so densities stay finite.
+MIN_SCALE = 1e-6
+
+
+def _layout_names(J: int) -> list[str]:
+    from ..targets import TargetLayout
+
+    return TargetLayout("-", J).names
+
+
+def predict_arrays(model, data, idx: np.ndarray, *, joint_types: list[str], calibration: dict | None,
+                   batch_size: int = PREDICT_BATCH, progress: bool = False) -> dict:
+    """Predictions of ``model`` for the images ``idx`` of a :class:`~articulated_dataset.dense.train.DenseData`.
+
+    Returns the datasets of :func:`articulated_dataset.predictions.write_predictions`
+    (``sample_id``, ``axis_pose``, ``q``, ``geometry``, ``part_offset``, ``mixture_*``,
+    ``mixture_layout``) plus ``spread`` (N, M, D), the raw vote spreads.
+    """
+    import torch
+    from tqdm.auto import tqdm
+
+    from .aggregate import MAX_MODES, vote_modes
+    from .features import make_inputs
+
+    model.eval()
+    J = model.config.n_joints
+    chunks = []
+    with torch.no_grad():
+        for s in tqdm(range(0, len(idx), batch_size), desc="predicting", unit="batch", disable=not progress, leave=False):
+            b = idx[s : s + batch_size]
+            inputs = make_inputs(data.depth(b), torch.from_numpy(data.K[b]))
+            parts = model.split(model(inputs["x"]))
+            modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0)
+            chunks.append({k: v.numpy().astype(np.float64) for k, v in modes.items()})
+    m = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+    return mixture_from_modes(m, data.sample_id[idx], J, MAX_MODES, calibration)
+
+
+def mixture_from_modes(m: dict, sample_id: np.ndarray, J: int, n_modes: int, calibration: dict | None) -> dict:
+    """Mode arrays of :func:`vote_modes` (numpy) -> prediction arrays with a mixture."""
+    N = len(sample_id)
+    w = m["weight"].copy()  # (N, J, M)
+    unused = w <= 0
+    for key in ("origin", "axis", "xaxis", "part_offset", "origin_std", "axis_std", "xaxis_std", "offset_std"):
+        m[key] = np.where(unused[..., None], m[key][:, :, :1], m[key])
+    for key in ("q", "q_std"):
+        m[key] = np.where(unused, m[key][:, :, :1], m[key])
+    w = np.maximum(w, MIN_COMPONENT_WEIGHT)
+    w /= w.sum(-1, keepdims=True)
+    combos = list(itertools.product(range(n_modes), repeat=J))
+    C = len(combos)
+    D = 13 * J + 4
+    means = np.zeros((N, C, D))
+    spread = np.zeros((N, C, D))
+    weights = np.ones((N, C))
+    for c, combo in enumerate(combos):
+        for j, k in enumerate(combo):
+            o = 13 * j
+            means[:, c, o : o + 3] = m["origin"][:, j, k]
+            means[:, c, o + 3 : o + 6] = m["axis"][:, j, k]
+            means[:, c, o + 6 : o + 9] = m["xaxis"][:, j, k]
+            means[:, c, o + 9] = m["q"][:, j, k]
+            means[:, c, o + 10 : o + 13] = m["part_offset"][:, j, k]
+            spread[:, c, o : o + 3] = m["origin_std"][:, j, k]
+            spread[:, c, o + 3 : o + 6] = m["axis_std"][:, j, k]
+            spread[:, c, o + 6 : o + 9] = m["xaxis_std"][:, j, k]
+            spread[:, c, o + 9] = m["q_std"][:, j, k]
+            spread[:, c, o + 10 : o + 13] = m["offset_std"][:, j, k]
+            weights[:, c] *= w[:, j, k]
+        means[:, c, 13 * J :] = m["geometry"]
+        spread[:, c, 13 * J :] = m["geometry_std"]
+    weights /= weights.sum(-1, keepdims=True)
+    scales = apply_calibration(spread, calibration)
+    best = weights.argmax(-1)
+    point = means[np.arange(N), best]  # (N, D)
+    from ..targets import TargetLayout
+
+    decoded = TargetLayout("-", J).decode(point)
+    geometry = np.asarray(decoded["geometry"], np.float64)
+    geometry[:, 3] = np.clip(geometry[:, 3], 0.0, 1.0)
+    return {
+        "sample_id": np.asarray(sample_id, np.int64),
+        "axis_pose": np.asarray(decoded["axis_pose"], np.float64),
+        "q": np.asarray(decoded["q"], np.float64),
+        "geometry": geometry,
+        "part_offset": np.asarray(decoded["part_offset"], np.float64),
+        "mixture_weights": weights, "mixture_means": means, "mixture_scales": scales,
+        "mixture_layout": _layout_names(J), "spread": spread,
+    }
+
+
+def apply_calibration(spread: np.ndarray, calibration: dict | None) -> np.ndarray:
+    """``sigma = sqrt((k spread)^2 + f^2)`` per column (k = 1, f = 0 without calibration)."""
+    D = spread.shape[-1]
+    k = np.ones(D) if calibration is None else np.asarray(calibration["spread_factor"], np.float64)
+    f = np.zeros(D) if calibration is None else np.asarray(calibration["floor"], np.float64)
+    return np.maximum(np.sqrt((k * spread) ** 2 + f**2), MIN_SCALE)
+
+
+def truth_columns(data, idx: np.ndarray) -> np.ndarray:
+    """Target vectors (N, D) of the images ``idx`` (layout order)."""
+    J = data.origin.shape[1]
+    cols = [np.concatenate([data.origin[idx, j], data.rot6[idx, j, :3], data.rot6[idx, j, 3:], data.q[idx, j, None],
+                            data.part_offset[idx, j]], -1) for j in range(J)]
+    return np.concatenate(cols + [data.geometry[idx]], -1).astype(np.float64)
+
+
+def fit_calibration(arrays: dict, data, idx: np.ndarray) -> dict:
+    """Per column ``(k, f)`` maximising the Gaussian likelihood of the heaviest component's
+    residuals on the validation images (grids :data:`CAL_SPREAD_FACTORS`, :data:`CAL_FLOOR_FRACTIONS`)."""
+    y = truth_columns(data, idx)
+    N = len(idx)
+    best = arrays["mixture_weights"].argmax(-1)
+    mu = arrays["mixture_means"][np.arange(N), best]
+    s = arrays["spread"][np.arange(N), best]
+    res = y - mu
+    ok = np.isfinite(res)
+    D = y.shape[1]
+    k_out, f_out = np.ones(D), np.full(D, MIN_SCALE)
+    for d in range(D):
+        r, sd = res[ok[:, d], d], s[ok[:, d], d]
+        if len(r) == 0:
+            continue
+        med = max(float(np.median(np.abs(r))), MIN_SCALE)
+        best_nll = np.inf
+        for k in CAL_SPREAD_FACTORS:
+            for ff in CAL_FLOOR_FRACTIONS:
+                sig = np.maximum(np.sqrt((k * sd) ** 2 + (ff * med) ** 2), MIN_SCALE)
+                nll = float(np.mean(np.log(sig) + 0.5 * (r / sig) ** 2))
+                if nll < best_nll:
+                    best_nll, k_out[d], f_out[d] = nll, k, max(ff * med, MIN_SCALE)
+    return {"spread_factor": [float(v) for v in k_out], "floor": [float(v) for v in f_out], "n_images": int(N)}
+
+
+def quick_errors(arrays: dict, data, idx: np.ndarray, joint_types: list[str]) -> dict:
+    """Mean axis position (cm), axis rotation (deg) and configuration errors of point estimates."""
+    from .. import metrics as M
+
+    pose = arrays["axis_pose"]
+    true_pose = np.concatenate([data.origin[idx], _quat_from_rot6(data.rot6[idx])], -1)
+    pos = M.axis_position_error_cm(pose[..., :3], true_pose[..., :3])
+    rot = M.axis_rotation_error_deg(pose[..., 3:], true_pose[..., 3:])
+    prismatic = np.array([t == "prismatic" for t in joint_types])
+    cfg = M.configuration_error(arrays["q"], data.q[idx], prismatic)
+    return {"pos_cm": float(np.mean(pos)), "rot_deg": float(np.mean(rot)), "config": float(np.mean(cfg))}
+
+
+def _quat_from_rot6(r6: np.ndarray) -> np.ndarray:
+    from ..rotations import matrix_to_quat
+    from ..targets import gram_schmidt
+
+    return matrix_to_quat(gram_schmidt(r6[..., :3], r6[..., 3:]))
+
+
+def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BATCH, progress: bool = True) -> tuple[str, dict]:
+    """Run a loaded dense checkpoint on the split at ``data``; ``(class_name, arrays)`` as
+    :func:`articulated_dataset.predictions.write_predictions` takes them.  Labels are not read."""
+    from ..mdn.train import resolve_split_dir, split_class
+    from .train import build_dense_model, load_dense_split
+
+    if batch_size <= 0:
+        raise UserError(f"--batch-size must be positive, got {batch_size}")
+    class_name = ckpt["class_name"]
+    split_dir = resolve_split_dir(data)
+    data_class = split_class(split_dir)
+    if data_class != class_name:
+        raise UserError(f"{split_dir}: holds class {data_class!r} but the dense model was trained on {class_name!r}")
+    model = build_dense_model(ckpt)
+    cfg = model.config
+    d = load_dense_split(split_dir, cfg.n_joints, (cfg.height_px, cfg.width_px), with_labels=False, progress=progress)
+    t0 = time.perf_counter()
+    arrays = predict_arrays(model, d, np.arange(len(d.sample_id)), joint_types=list(ckpt["joint_types"]),
+                            calibration=ckpt.get("calibration"), batch_size=batch_size, progress=progress)
+    log.info("dense: %d images in %.1f s", len(d.sample_id), time.perf_counter() - t0)
+    arrays.pop("spread")
+    return class_name, arrays

@@ -1,0 +1,425 @@
+"""Training of the dense estimator (``artdata train --model dense``).
+
+* Data: the class's training split, every image held in memory at the model resolution
+  (depth as uint16 in units of :data:`DEPTH_STORE_QUANTUM_M`: 41 KB per 192x108 image,
+  2.7 GB for 4,000 objects x 16 images), per-pixel part labels at the output resolution,
+  and the labels (axis origin, axis frame, q, part offset, geometry).
+* Validation: a held-out part of the TRAINING split chosen by object (the MDN's
+  :func:`~articulated_dataset.mdn.train.split_by_object`); the test split is never read.
+  After the last epoch the uncertainty calibration (:mod:`articulated_dataset.dense.predict`)
+  is fitted on the validation objects.
+* Loss, per valid output pixel ``i`` (weighted by its valid fraction) and image:
+  ``CE(seg) + 0.5 huber(|v_i - o| / 5 cm) + |r6_i - r6| / ROT_SCALE + |q_i - q| / s_q
+  + |po_i - po| / 10 cm + |g_i - g| / 10 cm + BCE(chirality)``, plus the same terms on the
+  image's softmax-weighted estimate (:func:`~articulated_dataset.dense.aggregate.weighted_mean`),
+  where ``r6 = (axis, frame x axis)``, ``s_q`` the training std of q per joint.
+* Optimisation: AdamW with a one-cycle schedule, gradient clipping.  Checkpoints are written
+  atomically every :data:`CHECKPOINT_EVERY_STEPS` steps and after every epoch with the
+  optimizer, schedule and history; the batch order of epoch ``e`` depends only on
+  ``(seed, e)``, so a resumed run continues exactly where it stopped.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DataFormatError, UserError
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_FORMAT = "artdata-dense"
+CHECKPOINT_VERSION = 1
+#: Depth held in memory as uint16 multiples of this (m): 8 m range, 0.12 mm steps (the shards' quantum).
+DEPTH_STORE_QUANTUM_M = 1.0 / 8192
+#: Scales of the loss terms (see the module docstring).
+ORIGIN_SCALE_M = 0.05
+ROT_SCALE = 0.5
+OFFSET_SCALE_M = 0.1
+GEOMETRY_SCALE_M = 0.1
+ORIGIN_WEIGHT = 0.5
+#: Floor of the q normalisation (rad or m).
+MIN_Q_SCALE = 1e-3
+WEIGHT_DECAY = 1e-4
+GRAD_CLIP_NORM = 10.0
+WARMUP_FRACTION = 0.1
+CHECKPOINT_EVERY_STEPS = 200
+EPOCH_SEED_STRIDE = 1_000_003
+LOAD_CHUNK = 256
+
+
+@dataclass(frozen=True)
+class DenseTrainConfig:
+    class_name: str
+    epochs: int = 2
+    batch_size: int = 64
+    lr: float = 3e-3
+    width: int = 16
+    val_fraction: float = 0.05
+    max_objects: int | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("epochs", "batch_size", "width"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v <= 0:
+                raise UserError(f"--{name.replace('_', '-')} must be a positive integer, got {v!r}")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise UserError(f"--lr must be a positive finite number, got {self.lr}")
+        if not (0.0 <= self.val_fraction < 1.0):
+            raise UserError(f"--val-fraction must be in [0, 1), got {self.val_fraction}")
+        if self.max_objects is not None and self.max_objects <= 0:
+            raise UserError(f"--max-objects must be positive, got {self.max_objects}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "DenseTrainConfig":
+        return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
+
+
+@dataclass
+class DenseData:
+    """A split in memory, at the model resolution."""
+
+    depth_q: np.ndarray  # (N, H, W) uint16, DEPTH_STORE_QUANTUM_M units, 0 = no return
+    K: np.ndarray  # (N, 3, 3) float32, scaled to the model resolution
+    labels_out: np.ndarray | None  # (N, h, w) uint8 part labels at the output resolution
+    origin: np.ndarray | None  # (N, J, 3) m
+    rot6: np.ndarray | None  # (N, J, 6): axis (frame z) and frame x
+    q: np.ndarray | None  # (N, J)
+    part_offset: np.ndarray | None  # (N, J, 3) m
+    geometry: np.ndarray | None  # (N, 4)
+    object_index: np.ndarray
+    sample_id: np.ndarray
+    shard_of: np.ndarray
+
+    def depth(self, idx) -> "object":
+        import torch
+
+        return torch.from_numpy(self.depth_q[idx].astype(np.float32) * DEPTH_STORE_QUANTUM_M)
+
+
+def quantise_depth(depth_m: np.ndarray) -> np.ndarray:
+    """Metres -> uint16 store units; returns too far (> 8 m) or non-finite depths as 0 (no return)."""
+    d = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    q = np.rint(d / DEPTH_STORE_QUANTUM_M)
+    q[(q < 0) | (q > np.iinfo(np.uint16).max)] = 0
+    return q.astype(np.uint16)
+
+
+def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max_objects: int | None = None,
+                     with_labels: bool = True, progress: bool = False) -> DenseData:
+    """Read a split into a :class:`DenseData` (labels only if ``with_labels``)."""
+    import torch
+    from tqdm.auto import tqdm
+
+    from ..rotations import quat_to_matrix
+    from ..shards import open_split
+    from .features import output_labels, resize_depth, scale_intrinsics
+
+    manifest, shards = open_split(split_dir)
+    if not shards:
+        raise DataFormatError(f"{split_dir}: the split has no shards")
+    cols: dict[str, list] = {k: [] for k in ("depth_q", "K", "labels_out", "axis_pose", "q", "part_offset", "geometry",
+                                            "object_index", "sample_id", "shard_of")}
+    bar = tqdm(total=int(manifest.get("n_images", 0)) or None, desc=f"loading {split_dir}", unit="img",
+               disable=not progress, leave=False)
+    for s_idx, sh in enumerate(shards):
+        oi = sh.read("object_index")
+        keep = np.ones(len(oi), bool) if max_objects is None else oi < max_objects
+        idx = np.nonzero(keep)[0]
+        if len(idx) == 0:
+            sh.close()
+            continue
+        K = np.asarray(sh.K, np.float64)
+        for start in range(0, len(idx), LOAD_CHUNK):
+            sel = idx[start : start + LOAD_CHUNK]
+            rows = slice(int(sel[0]), int(sel[-1]) + 1)
+            depth = sh.read("depth", rows)[sel - sel[0]]
+            src_hw = depth.shape[1:]
+            if tuple(src_hw) != tuple(hw):
+                depth = resize_depth(torch.from_numpy(np.asarray(depth, np.float32)), hw).numpy()
+            cols["depth_q"].append(quantise_depth(depth))
+            cols["K"].append(np.repeat(scale_intrinsics(K, src_hw, hw)[None].astype(np.float32), len(sel), 0))
+            if with_labels:
+                mask = sh.read("mask", rows)[sel - sel[0]]
+                if tuple(src_hw) != tuple(hw):
+                    mask = torch.nn.functional.interpolate(torch.from_numpy(mask[:, None]).float(), size=hw,
+                                                           mode="nearest")[:, 0].numpy().astype(np.uint8)
+                cols["labels_out"].append(output_labels(mask, n_joints))
+            bar.update(len(sel))
+        if with_labels:
+            for k in ("axis_pose", "q", "part_offset", "geometry"):
+                cols[k].append(np.asarray(sh.read(k), np.float64)[idx])
+        cols["object_index"].append(oi[idx].astype(np.int64))
+        cols["sample_id"].append(np.asarray(sh.read("sample_id"))[idx].astype(np.int64))
+        cols["shard_of"].append(np.full(len(idx), s_idx))
+        sh.close()
+    bar.close()
+    if not cols["depth_q"]:
+        raise UserError(f"{split_dir}: no images selected")
+    cat = {k: np.concatenate(v) if v else None for k, v in cols.items()}
+    origin = rot6 = None
+    if with_labels:
+        pose = cat["axis_pose"]
+        R = quat_to_matrix(pose[..., 3:])
+        origin = pose[..., :3].astype(np.float32)
+        rot6 = np.concatenate([R[..., :, 2], R[..., :, 0]], -1).astype(np.float32)
+    f32 = (lambda a: None if a is None else a.astype(np.float32))
+    return DenseData(depth_q=cat["depth_q"], K=cat["K"], labels_out=cat["labels_out"], origin=origin, rot6=rot6,
+                     q=f32(cat["q"]), part_offset=f32(cat["part_offset"]), geometry=f32(cat["geometry"]),
+                     object_index=cat["object_index"], sample_id=cat["sample_id"], shard_of=cat["shard_of"])
+
+
+def dense_loss(model, out, inputs: dict, data: DenseData, idx: np.ndarray, q_scale) -> tuple["object", dict]:
+    """The training loss of one batch (module docstring) and its parts as floats."""
+    import torch
+    from torch.nn import functional as F
+
+    from .aggregate import weighted_mean
+
+    parts = model.split(out)
+    J = model.config.n_joints
+    w_pix = inputs["weight_out"]
+    valid = w_pix > 0
+    norm = w_pix.sum().clamp_min(1.0)
+    lab = torch.from_numpy(data.labels_out[idx]).long()
+    o_t = torch.from_numpy(data.origin[idx])
+    r_t = torch.from_numpy(data.rot6[idx])
+    q_t = torch.from_numpy(data.q[idx])
+    po_t = torch.from_numpy(data.part_offset[idx])
+    g_t = torch.from_numpy(data.geometry[idx])
+
+    def pix(x):  # (B, J, H, W) or (B, H, W) per-pixel loss -> weighted mean
+        if x.dim() == 4:
+            return (x * w_pix[:, None]).sum() / (norm * x.shape[1])
+        return (x * w_pix).sum() / norm
+
+    ce = F.cross_entropy(parts["seg"], (lab - 1).clamp_min(0), reduction="none")
+    votes = inputs["points_out"][:, None] + parts["offset"]
+    dist = (votes - o_t[..., None, None]).norm(dim=2) / ORIGIN_SCALE_M
+    l_o = pix(F.smooth_l1_loss(dist, torch.zeros_like(dist), reduction="none"))
+    l_r = pix((parts["rot6"] - r_t[..., None, None]).abs().sum(2)) / ROT_SCALE
+    qs = q_scale.view(1, J, 1, 1)
+    l_q = pix(((parts["q"] - q_t[..., None, None]) / qs).abs())
+    l_po = pix((parts["part_offset"] - po_t[..., None, None]).abs().sum(2)) / OFFSET_SCALE_M
+    g = parts["geometry"]
+    l_g = pix((g[:, :3] - g_t[:, :3, None, None]).abs().sum(1)) / GEOMETRY_SCALE_M
+    chir_t = g_t[:, 3:4, None].expand_as(g[:, 3])
+    l_c = pix(F.binary_cross_entropy_with_logits(g[:, 3], chir_t.nan_to_num(0.0), reduction="none"))
+    img = weighted_mean(parts, inputs["points_out"], valid)
+    li_o = ((img["origin"] - o_t).norm(dim=-1) / ORIGIN_SCALE_M).mean()
+    li_r = (img["rot6"] - r_t).abs().sum(-1).mean() / ROT_SCALE
+    li_q = ((img["q"] - q_t) / q_scale).abs().mean()
+    li_po = (img["part_offset"] - po_t).abs().sum(-1).mean() / OFFSET_SCALE_M
+    li_g = (img["geometry"][:, :3] - g_t[:, :3]).abs().sum(-1).mean() / GEOMETRY_SCALE_M
+    total = (pix(ce) + ORIGIN_WEIGHT * l_o + l_r + l_q + l_po + l_g + l_c
+             + li_o + li_r + li_q + li_po + li_g)
+    stats = {"loss": float(total.detach()), "seg": float(pix(ce).detach()),
+             "origin_cm": float((img["origin"] - o_t).norm(dim=-1).mean().detach()) * 100}
+    return total, stats
+
+
+def atomic_save(obj: dict, path: Path) -> None:
+    from ..mdn.train import atomic_torch_save
+
+    atomic_torch_save(obj, path)
+
+
+def load_dense_checkpoint(path: str | Path) -> dict:
+    """Load and check a dense checkpoint (``weights_only``); any problem is one UserError line."""
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"checkpoint not found: {path}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch.load raises many types on a corrupt file
+        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+        raise UserError(f"{path}: not a readable model checkpoint ({first})") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise UserError(f"{path}: not an artdata dense-model checkpoint (written by 'artdata train --model dense')")
+    if ckpt.get("version") != CHECKPOINT_VERSION:
+        raise UserError(f"{path}: dense checkpoint version {ckpt.get('version')!r} is not readable "
+                        f"(expected {CHECKPOINT_VERSION})")
+    need = {"class_name": str, "model_config": dict, "train_config": dict, "model_state": dict, "q_scale": list,
+            "joint_types": list}
+    for key, typ in need.items():
+        if not isinstance(ckpt.get(key), typ):
+            raise UserError(f"{path}: checkpoint field {key!r} is missing or not a {typ.__name__}")
+    return ckpt
+
+
+def build_dense_model(ckpt: dict):
+    """The network of a checkpoint, weights loaded, eval mode."""
+    from .model import DenseConfig, DenseNet
+
+    try:
+        model = DenseNet(DenseConfig.from_dict(ckpt["model_config"]))
+        model.load_state_dict(ckpt["model_state"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise UserError(f"checkpoint weights do not match its model configuration "
+                        f"({str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__})") from None
+    if model.config.n_joints != len(ckpt["joint_types"]):
+        raise UserError("checkpoint's joint types do not match its model configuration")
+    return model.eval()
+
+
+def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, resume: bool = False,
+                progress: bool = True, echo=None, stop_after_steps: int | None = None) -> dict:
+    """Train (or resume) the dense estimator of ``config.class_name`` on the split at ``data``.
+
+    ``stop_after_steps`` stops early (checkpointed, resumable) after that many steps in total.
+    Returns the last checkpoint.
+    """
+    import torch
+    from tqdm.auto import tqdm
+
+    from ..mdn.train import resolve_split_dir, split_by_object, split_class
+    from ..registry import get_class
+    from .features import make_inputs
+    from .model import DenseConfig, DenseNet, count_parameters
+    from .predict import fit_calibration, predict_arrays, quick_errors
+
+    out = Path(out)
+    obj_class = get_class(config.class_name)
+    split_dir = resolve_split_dir(data)
+    if split_class(split_dir) != obj_class.name:
+        raise UserError(f"{split_dir}: holds class {split_class(split_dir)!r}, not {obj_class.name!r} (--class)")
+    if out.exists() and out.is_dir():
+        raise UserError(f"--out {out} is a directory; give a file name such as dense.pt")
+    ckpt = None
+    if resume:
+        if not out.exists():
+            raise UserError(f"--resume: no checkpoint at {out} to resume from")
+        ckpt = load_dense_checkpoint(out)
+        old = DenseTrainConfig.from_dict(ckpt["train_config"])
+        if old != config:
+            diff = [k for k, v in config.to_dict().items() if old.to_dict().get(k) != v]
+            raise UserError(f"--resume: {out} was trained with different settings ({', '.join(diff)}); repeat the original options")
+        if ckpt.get("finished"):
+            log.info("%s: training already finished", out)
+            return ckpt
+    elif out.exists():
+        raise UserError(f"{out} exists; pass --resume to continue its training or choose another --out")
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    J = obj_class.n_joints
+    model_config = DenseConfig(n_joints=J, width=config.width)
+    hw = (model_config.height_px, model_config.width_px)
+    t_load = time.perf_counter()
+    data_ = load_dense_split(split_dir, J, hw, max_objects=config.max_objects, progress=progress)
+    t_load = time.perf_counter() - t_load
+    train_mask, val_mask = split_by_object(data_.object_index, config.val_fraction, config.seed)
+    tr_idx, va_idx = np.nonzero(train_mask)[0], np.nonzero(val_mask)[0]
+    n_train = len(tr_idx)
+    batch = min(config.batch_size, n_train)
+    if n_train < 2:
+        raise UserError(f"{split_dir}: only {n_train} training image(s) after holding out validation objects")
+    q_scale = np.maximum(data_.q[tr_idx].std(0), MIN_Q_SCALE) if ckpt is None else np.asarray(ckpt["q_scale"], np.float64)
+    q_scale_t = torch.tensor(q_scale, dtype=torch.float32)
+
+    torch.manual_seed(config.seed)
+    model = DenseNet(model_config)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=WEIGHT_DECAY)
+    steps_per_epoch = n_train // batch
+    total_steps = steps_per_epoch * config.epochs
+    scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=config.lr, total_steps=total_steps,
+                                                    pct_start=WARMUP_FRACTION)
+    history: list[dict] = []
+    step = 0
+    cpu_seconds = 0.0
+    if ckpt is not None:
+        model.load_state_dict(ckpt["model_state"])
+        optimizer.load_state_dict(ckpt["optimizer_state"])
+        scheduler.load_state_dict(ckpt["scheduler_state"])
+        torch.set_rng_state(ckpt["rng_state"])
+        history = list(ckpt["history"])
+        step = int(ckpt["step"])
+        cpu_seconds = float(ckpt.get("cpu_seconds", 0.0))
+    log.info("%s: %d train / %d val images, %s parameters", obj_class.name, n_train, len(va_idx),
+             f"{count_parameters(model):,}")
+
+    def checkpoint(finished: bool, calibration=None) -> dict:
+        return {
+            "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "class_name": obj_class.name,
+            "joint_types": list(obj_class.joint_types), "model_config": model_config.to_dict(),
+            "train_config": config.to_dict(), "q_scale": [float(v) for v in q_scale],
+            "data": {"split_dir": str(split_dir), "n_train_images": int(n_train), "n_val_images": int(len(va_idx)),
+                     "n_objects": int(len(np.unique(data_.object_index)))},
+            "step": step, "total_steps": total_steps, "finished": finished, "history": history,
+            "cpu_seconds": cpu_seconds, "calibration": calibration,
+            "model_state": model.state_dict(), "optimizer_state": optimizer.state_dict(),
+            "scheduler_state": scheduler.state_dict(), "rng_state": torch.get_rng_state(),
+        }
+
+    def validate() -> dict:
+        if not len(va_idx):
+            return {}
+        arrays = predict_arrays(model, data_, va_idx, joint_types=list(obj_class.joint_types), calibration=None)
+        return quick_errors(arrays, data_, va_idx, list(obj_class.joint_types))
+
+    end = total_steps if stop_after_steps is None else min(total_steps, stop_after_steps)
+    bar = tqdm(total=total_steps, initial=step, desc=f"training {obj_class.name}", unit="step", disable=not progress)
+    running: dict[str, float] = {}
+    n_run = 0
+    cpu0 = time.process_time()
+    while step < end:
+        epoch, pos = divmod(step, steps_per_epoch)
+        gen = np.random.default_rng(config.seed * EPOCH_SEED_STRIDE + epoch)
+        order = gen.permutation(tr_idx)
+        model.train()
+        while pos < steps_per_epoch and step < end:
+            idx = np.sort(order[pos * batch : (pos + 1) * batch])
+            inputs = make_inputs(data_.depth(idx), torch.from_numpy(data_.K[idx]))
+            out_ = model(inputs["x"])
+            loss, st = dense_loss(model, out_, inputs, data_, idx, q_scale_t)
+            if not torch.isfinite(loss):
+                raise RuntimeError(f"non-finite training loss at step {step}; lower --lr")
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), GRAD_CLIP_NORM)
+            optimizer.step()
+            scheduler.step()
+            step += 1
+            pos += 1
+            for k, v in st.items():
+                running[k] = running.get(k, 0.0) + v
+            n_run += 1
+            bar.update(1)
+            if step % 10 == 0:
+                bar.set_postfix({k: f"{v / n_run:.3g}" for k, v in running.items()})
+            if step % CHECKPOINT_EVERY_STEPS == 0 or pos == steps_per_epoch or step == end:
+                cpu_seconds += time.process_time() - cpu0
+                cpu0 = time.process_time()
+                if pos == steps_per_epoch or step == total_steps:
+                    record = {"epoch": epoch + 1, "step": step, "cpu_seconds": round(cpu_seconds, 1),
+                              **{f"train_{k}": round(v / max(n_run, 1), 4) for k, v in running.items()},
+                              **{f"val_{k}": round(v, 4) for k, v in validate().items()}}
+                    history.append(record)
+                    running, n_run = {}, 0
+                    line = "  ".join(f"{k} {v}" for k, v in record.items())
+                    log.info("%s", line)
+                    if echo is not None:
+                        echo(line)
+                    model.train()
+                atomic_save(checkpoint(finished=False), out)
+    bar.close()
+    if step < total_steps:
+        return checkpoint(finished=False)
+    calibration = None
+    if len(va_idx):
+        arrays = predict_arrays(model.eval(), data_, va_idx, joint_types=list(obj_class.joint_types), calibration=None)
+        calibration = fit_calibration(arrays, data_, va_idx)
+    result = checkpoint(finished=True, calibration=calibration)
+    result["load_seconds"] = round(t_load, 1)
+    atomic_save(result, out)
+    return result

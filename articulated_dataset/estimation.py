@@ -1,0 +1,198 @@
+"""One depth image in, the object's articulation out: ``articulated_dataset.estimate`` and ``artdata estimate``.
+
+:func:`estimate` runs a dense model (the shipped one for the class, or a checkpoint) on one
+depth image with its intrinsics and returns an :class:`Estimate`: for every joint the axis
+origin (m) and unit direction in the camera frame (x forward, y left, z up), the
+configuration q (rad or m), the part offset, the object geometry, and the uncertainty (the
+mixture's per-column standard deviations and its components).  Images of any size and
+intrinsics are resampled onto the model's camera as ``artdata ingest`` does
+(:func:`articulated_dataset.real.ingest_capture`); the estimate is in the original
+camera's frame (resampling changes intrinsics only).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import UserError
+
+log = logging.getLogger(__name__)
+
+#: Without a mask, an image with returns on more than this fraction of its pixels is a scene
+#: (walls, floor), not an isolated object: a mask is needed.
+MAX_UNMASKED_VALID_FRACTION = 0.9
+#: Depths (m) the models were trained on lie within this range; valid medians outside it
+#: usually mean wrong units (millimetres stored as metres, or the reverse).
+PLAUSIBLE_MEDIAN_DEPTH_M = (0.1, 10.0)
+#: Fewest object pixels (at the model resolution) an estimate is attempted with.
+MIN_OBJECT_PIXELS = 20
+
+
+@dataclass
+class Estimate:
+    """The estimate of one image (camera frame, metres / radians)."""
+
+    class_name: str
+    joint_types: list[str]
+    axis_origin_m: np.ndarray  # (J, 3)
+    axis_direction: np.ndarray  # (J, 3) unit
+    axis_pose: np.ndarray  # (J, 7) origin + quaternion (w, x, y, z) of the axis frame
+    q: np.ndarray  # (J,) rad (revolute) or m (prismatic)
+    part_offset_m: np.ndarray  # (J, 3) part centre in the axis frame
+    geometry: np.ndarray  # (4,) depth, width, height (m), chirality probability
+    std: dict = field(default_factory=dict)  # column name -> standard deviation of the heaviest component
+    mixture_weights: np.ndarray | None = None  # (M,)
+    mixture_means: np.ndarray | None = None  # (M, D)
+    mixture_scales: np.ndarray | None = None  # (M, D)
+    mixture_layout: list[str] = field(default_factory=list)
+    model: str = ""
+
+    def to_dict(self) -> dict:
+        """JSON-ready: lists of floats, one entry per joint."""
+        joints = []
+        for j, jt in enumerate(self.joint_types):
+            joints.append({
+                "type": jt,
+                "axis_origin_m": self.axis_origin_m[j].tolist(),
+                "axis_direction": self.axis_direction[j].tolist(),
+                "axis_quaternion_wxyz": self.axis_pose[j, 3:].tolist(),
+                ("q_rad" if jt != "prismatic" else "q_m"): float(self.q[j]),
+                "part_offset_m": self.part_offset_m[j].tolist(),
+                "std": {k.split(".", 1)[1]: v for k, v in self.std.items() if k.startswith(f"j{j}.")},
+            })
+        g = self.geometry
+        return {
+            "class": self.class_name, "model": self.model, "frame": "camera (x forward, y left, z up), metres",
+            "joints": joints,
+            "geometry": {"depth_m": float(g[0]), "width_m": float(g[1]), "height_m": float(g[2]), "chirality": float(g[3]),
+                         "std": {k.split(".", 1)[1]: v for k, v in self.std.items() if k.startswith("geometry.")}},
+            "mixture": {"weights": (self.mixture_weights.tolist() if self.mixture_weights is not None else []),
+                        "n_components": 0 if self.mixture_weights is None else int(len(self.mixture_weights))},
+        }
+
+    def summary(self) -> str:
+        """Human-readable lines."""
+        lines = [f"{self.class_name} ({self.model}), camera frame: x forward, y left, z up"]
+        for j, jt in enumerate(self.joint_types):
+            o, d = self.axis_origin_m[j], self.axis_direction[j]
+            so = [self.std.get(f"j{j}.origin.{c}", float("nan")) for c in "xyz"]
+            unit = "m" if jt == "prismatic" else "deg"
+            qv = self.q[j] if jt == "prismatic" else np.degrees(self.q[j])
+            qs = self.std.get(f"j{j}.q", float("nan"))
+            qs = qs if jt == "prismatic" else np.degrees(qs)
+            lines.append(f"joint {j} ({jt}): axis origin ({o[0]:.3f}, {o[1]:.3f}, {o[2]:.3f}) m "
+                         f"+/- ({so[0]:.3f}, {so[1]:.3f}, {so[2]:.3f}), direction ({d[0]:.3f}, {d[1]:.3f}, {d[2]:.3f}), "
+                         f"q {qv:.3f} +/- {qs:.3f} {unit}")
+        g = self.geometry
+        lines.append(f"geometry: depth {g[0]:.3f} m, width {g[1]:.3f} m, height {g[2]:.3f} m, chirality {g[3]:.2f}")
+        if self.mixture_weights is not None and len(self.mixture_weights) > 1:
+            w = np.sort(self.mixture_weights)[::-1]
+            lines.append("mixture weights: " + ", ".join(f"{v:.2f}" for v in w if v > 1e-3))
+        return "\n".join(lines)
+
+
+_MODEL_CACHE: dict = {}
+
+
+def _load(model: str, class_name: str):
+    from .dense.train import build_dense_model, load_dense_checkpoint
+    from .models import resolve_model
+
+    ref = resolve_model(model, class_name)
+    if ref.kind != "dense":
+        raise UserError(f"--model {model}: single-image estimates use a dense model (the shipped 'dense' or a "
+                        f"'artdata train --model dense' checkpoint); run MDN models with 'artdata predict'")
+    key = (str(ref.path), ref.path.stat().st_mtime_ns)
+    if key not in _MODEL_CACHE:
+        ckpt = load_dense_checkpoint(ref.path)
+        _MODEL_CACHE[key] = (ckpt, build_dense_model(ckpt), ref.name)
+    return _MODEL_CACHE[key]
+
+
+def check_depth(depth_m: np.ndarray, mask: np.ndarray | None, where: str = "depth") -> None:
+    """One-line errors for images no model can use (no pixels, wrong units, a scene without a mask)."""
+    d = np.asarray(depth_m)
+    if d.ndim != 2 or min(d.shape) < 8:
+        raise UserError(f"{where}: expected a 2-D depth image, got shape {d.shape}")
+    valid = np.isfinite(d) & (d > 0)
+    if mask is not None:
+        if mask.shape != d.shape:
+            raise UserError(f"{where}: mask shape {mask.shape} differs from the depth's {d.shape}")
+        if not mask.any():
+            raise UserError(f"{where}: the mask marks no object pixel")
+        valid &= mask
+    if not valid.any():
+        raise UserError(f"{where}: no valid depth pixel" + (" inside the mask" if mask is not None else ""))
+    med = float(np.median(d[valid]))
+    lo, hi = PLAUSIBLE_MEDIAN_DEPTH_M
+    if med > hi:
+        raise UserError(f"{where}: median depth {med:g} m is implausible; are the values millimetres? (give metres)")
+    if med < lo:
+        raise UserError(f"{where}: median depth {med:g} m is implausible; are the values in other units? (give metres)")
+    if mask is None and valid.mean() > MAX_UNMASKED_VALID_FRACTION:
+        raise UserError(f"{where}: {100 * valid.mean():.0f}% of the pixels have depth (a scene, not an isolated object); "
+                        f"pass a segmentation mask of the object")
+
+
+def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarray | None = None,
+             model: str = "dense") -> Estimate:
+    """Estimate the articulation of a ``class_name`` object in one depth image.
+
+    ``depth_m``: (H, W) z-depth in metres (0 or NaN = no return); ``K``: 3x3 intrinsics of that
+    image (OpenCV convention, pixel centres at integers); ``mask``: optional (H, W) boolean object
+    mask (pixels outside it are ignored).  ``model``: ``"dense"`` (shipped weights) or a dense
+    checkpoint path.  Bad input raises :class:`~articulated_dataset.errors.UserError`.
+    """
+    import torch
+
+    from .camera import CameraConfig
+    from .dense.features import make_inputs
+    from .dense.predict import mixture_from_modes
+    from .dense.aggregate import MAX_MODES, vote_modes
+    from .registry import get_class
+    from .real import check_intrinsics, crop_intrinsics, mask_fraction_inside, resample_depth
+
+    obj_class = get_class(class_name)
+    depth = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    m = None if mask is None else np.asarray(mask).astype(bool)
+    check_depth(depth, m)
+    K = np.asarray(K, np.float64)
+    if K.shape != (3, 3) or not np.isfinite(K).all():
+        raise UserError(f"intrinsics must be a finite 3x3 matrix, got shape {K.shape}")
+    check_intrinsics(K, (depth.shape[1], depth.shape[0]), "intrinsics")
+    ckpt, net, name = _load(model, obj_class.name)
+    cfg = net.config
+    if m is not None:
+        depth = np.where(m, depth, 0.0)
+    obj_mask = (depth > 0).astype(np.uint8)
+    size = (cfg.width_px, cfg.height_px)
+    K_dst = CameraConfig(cfg.width_px, cfg.height_px).K
+    if mask_fraction_inside(obj_mask > 0, K, K_dst, size) < 1.0:
+        # the object does not fit the training camera: zoom onto it as 'ingest --fit crop' does
+        K_dst = crop_intrinsics(K, obj_mask > 0, size)
+    depth_r, _ = resample_depth(depth, obj_mask, K, K_dst, size, "nearest")
+    if int((depth_r > 0).sum()) < MIN_OBJECT_PIXELS:
+        raise UserError(f"only {int((depth_r > 0).sum())} object pixels remain on the model's {cfg.width_px}x{cfg.height_px} "
+                        f"camera (need {MIN_OBJECT_PIXELS}); is the object in view and are the intrinsics right?")
+    with torch.no_grad():
+        inputs = make_inputs(torch.from_numpy(depth_r.astype(np.float32))[None], torch.from_numpy(K_dst.astype(np.float32))[None])
+        parts = net.split(net(inputs["x"]))
+        modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0)
+    arrays = mixture_from_modes({k: v.numpy().astype(np.float64) for k, v in modes.items()}, np.zeros(1, np.int64),
+                                cfg.n_joints, MAX_MODES, ckpt.get("calibration"))
+    from .rotations import quat_to_matrix
+
+    pose = arrays["axis_pose"][0]
+    best = int(arrays["mixture_weights"][0].argmax())
+    std = {n: float(s) for n, s in zip(arrays["mixture_layout"], arrays["mixture_scales"][0, best])}
+    return Estimate(
+        class_name=obj_class.name, joint_types=list(obj_class.joint_types), axis_origin_m=pose[:, :3],
+        axis_direction=quat_to_matrix(pose[:, 3:])[:, :, 2], axis_pose=pose, q=arrays["q"][0],
+        part_offset_m=arrays["part_offset"][0], geometry=arrays["geometry"][0], std=std,
+        mixture_weights=arrays["mixture_weights"][0], mixture_means=arrays["mixture_means"][0],
+        mixture_scales=arrays["mixture_scales"][0], mixture_layout=list(arrays["mixture_layout"]), model=name,
+    )

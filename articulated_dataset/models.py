@@ -1,0 +1,104 @@
+"""Shipped (pretrained) models and checkpoint files: one place that turns ``--model`` into a network.
+
+The package carries, as package data under ``articulated_dataset/weights/``, one checkpoint per
+class for each shipped model (``dense``: the per-pixel voting network; ``mdn-small``: the
+paper's mixture density network at the ``--small`` preset) and ``models.json`` describing
+them: file, SHA-256, size, training data (command, seed, objects), epochs/steps, wall time,
+machine and test figures.  Files are checked against their SHA-256 before loading and loaded
+with ``torch.load(weights_only=True)`` (no code runs from a checkpoint).
+
+``--model`` accepts a shipped model's name or a checkpoint path written by ``artdata train``
+(either kind; the kind is read from the file).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import UserError
+
+log = logging.getLogger(__name__)
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+MODELS_MANIFEST = WEIGHTS_DIR / "models.json"
+#: Shipped model names -> checkpoint kind.
+SHIPPED = {"dense": "dense", "mdn-small": "mdn"}
+#: Checkpoint ``format`` field -> kind.
+FORMATS = {"artdata-dense": "dense", "artdata-mdn": "mdn"}
+
+
+@dataclass(frozen=True)
+class ModelRef:
+    """A resolved ``--model``: its kind (``dense`` or ``mdn``), file, display name and class."""
+
+    kind: str
+    path: Path
+    name: str
+    class_name: str
+
+
+def shipped_models() -> list[dict]:
+    """Entries of ``weights/models.json`` (empty when no weights are shipped)."""
+    if not MODELS_MANIFEST.is_file():
+        return []
+    with open(MODELS_MANIFEST, encoding="utf-8") as fh:
+        return list(json.load(fh).get("models", []))
+
+
+def _sha256(path: Path) -> str:
+    from .shards import sha256_file
+
+    return sha256_file(path)
+
+
+def resolve_model(spec: str, class_name: str | None) -> ModelRef:
+    """The model that ``--model spec`` names, for ``class_name`` (None: take the file's class).
+
+    A shipped name needs the class; a path is read and its kind and class taken from it.  A
+    class that differs from the checkpoint's is a one-line :class:`UserError`.
+    """
+    if spec in SHIPPED:
+        if class_name is None:
+            raise UserError(f"--model {spec} needs the object class")
+        entry = next((m for m in shipped_models() if m["name"] == spec and m["class_name"] == class_name), None)
+        if entry is None:
+            have = sorted({m["class_name"] for m in shipped_models() if m["name"] == spec})
+            raise UserError(f"no shipped {spec!r} model for class {class_name!r}"
+                            + (f" (shipped: {', '.join(have)})" if have else " (this installation ships no weights)"))
+        path = WEIGHTS_DIR / entry["file"]
+        if not path.is_file():
+            raise UserError(f"shipped model file missing: {path} (reinstall the package)")
+        if _sha256(path) != entry["sha256"]:
+            raise UserError(f"shipped model file {path} does not match its checksum (reinstall the package)")
+        return ModelRef(SHIPPED[spec], path, spec, class_name)
+    path = Path(spec)
+    if not path.is_file():
+        raise UserError(f"--model {spec!r}: neither a shipped model ({', '.join(SHIPPED)}) nor a checkpoint file")
+    ckpt = _peek(path)
+    kind = FORMATS.get(ckpt.get("format")) if isinstance(ckpt, dict) else None
+    if kind is None:
+        raise UserError(f"{path}: not a checkpoint written by 'artdata train'")
+    file_class = str(ckpt.get("class_name"))
+    if class_name is not None and file_class != class_name:
+        raise UserError(f"{path}: a {file_class!r} model, but the data is {class_name!r}")
+    name = "dense" if kind == "dense" else ("MDN-" + str(ckpt.get("train_config", {}).get("preset", "full"))).replace("MDN-full", "MDN")
+    return ModelRef(kind, path, name, file_class)
+
+
+def _peek(path: Path) -> dict:
+    import torch
+
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch.load raises many types on a corrupt file
+        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+        raise UserError(f"{path}: not a readable model checkpoint ({first})") from None
+
+
+def strip_for_shipping(ckpt: dict) -> dict:
+    """A checkpoint without optimizer, schedule and RNG state (what inference needs)."""
+    drop = {"optimizer_state", "scheduler_state", "scaler_state", "rng_state"}
+    return {k: v for k, v in ckpt.items() if k not in drop}

@@ -1,0 +1,114 @@
+"""Score the shipped models (``artdata models``) on unseen test objects, beside the paper's MDN row.
+
+For every class (default: all six): generate (or reuse) ``ROOT/<class>/test`` with
+``--test-objects`` objects from ``--seed`` (default 2026: not the training seed 0 of the
+shipped weights), predict it with each shipped model (``--models``, default ``dense
+mdn-small``), score with :func:`articulated_dataset.scoring.score`, and print one table:
+axis position (cm), axis rotation (deg), configuration (deg | cm), 90% interval coverage and
+inference speed (images/s, network + aggregation, the split already in memory for dense).
+``--json`` writes every figure.
+
+    python benchmarks/shipped_models.py --root data-shipped --test-objects 1000
+    python benchmarks/shipped_models.py --root data-shipped --test-objects 50 --classes microwave
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from reproduce_table1 import PAPER_TABLE1  # noqa: E402
+
+TABLE_METRICS = ("axis_position_error_cm", "axis_rotation_error_deg", "configuration_error")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--root", type=Path, default=Path("data-shipped"))
+    p.add_argument("--test-objects", type=int, default=1000)
+    p.add_argument("--seed", type=int, default=2026, help="Test split seed (the shipped weights were trained on seed 0).")
+    p.add_argument("--classes", nargs="+", default=None)
+    p.add_argument("--models", nargs="+", default=["dense", "mdn-small"])
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--quiet", "-q", action="store_true")
+    args = p.parse_args(argv)
+
+    import torch
+
+    from articulated_dataset.mdn.train import configure_threads
+    from articulated_dataset.models import resolve_model
+    from articulated_dataset.pipeline import GenerationConfig, generate_split
+    from articulated_dataset.predictions import write_predictions
+    from articulated_dataset.registry import class_names
+    from articulated_dataset.scoring import score
+
+    configure_threads(None)
+    classes = args.classes or class_names()
+    results = []
+    for cls in classes:
+        cfg = GenerationConfig(cls, split="test", n_objects=args.test_objects, seed=args.seed)
+        split_dir = generate_split(cfg, args.root, workers=args.workers, resume=True, progress=not args.quiet)
+        for name in args.models:
+            ref = resolve_model(name, cls)
+            out = args.root / "predictions" / f"{cls}-{name}.h5"
+            out.parent.mkdir(parents=True, exist_ok=True)
+            t0 = time.perf_counter()
+            if ref.kind == "dense":
+                from articulated_dataset.dense.predict import predict_arrays
+                from articulated_dataset.dense.train import build_dense_model, load_dense_checkpoint, load_dense_split
+                import numpy as np
+
+                ckpt = load_dense_checkpoint(ref.path)
+                model = build_dense_model(ckpt)
+                c = model.config
+                data = load_dense_split(split_dir, c.n_joints, (c.height_px, c.width_px), with_labels=False)
+                t1 = time.perf_counter()
+                arrays = predict_arrays(model, data, np.arange(len(data.sample_id)), joint_types=ckpt["joint_types"],
+                                        calibration=ckpt.get("calibration"))
+                arrays.pop("spread")
+                speed = len(data.sample_id) / (time.perf_counter() - t1)
+                method = "dense"
+            else:
+                from articulated_dataset.mdn.predict import predict_split
+
+                _, arrays = predict_split(ref.path, split_dir, progress=False)
+                speed = len(arrays["sample_id"]) / (time.perf_counter() - t0)
+                method = "MDN-small"
+            write_predictions(out, method, {cls: arrays})
+            row = score(out, split_dir).rows[0]
+            m = row.metrics
+            rec = {"class": cls, "model": name, "method": method, "n_images": row.n_scored,
+                   **{k: m[k][0] for k in TABLE_METRICS}, "coverage_90": m.get("coverage_90", (float("nan"),))[0],
+                   "images_per_s": speed, "test_seed": args.seed, "test_objects": args.test_objects,
+                   "all_metrics": {k: v[0] for k, v in m.items()}}
+            results.append(rec)
+            if not args.quiet:
+                print(json.dumps({k: (round(v, 3) if isinstance(v, float) else v) for k, v in rec.items() if k != "all_metrics"}),
+                      flush=True)
+    from articulated_dataset.metrics import METRIC_VERSION
+
+    print(f"\nTest: {args.test_objects} objects per class, seed {args.seed}; scorer metric version {METRIC_VERSION}")
+    print(f"{'class':<13} {'model':<10} {'pos cm':>14} {'rot deg':>14} {'config':>14} {'cov90':>6} {'img/s':>7}")
+    for r in results:
+        paper = PAPER_TABLE1.get((r["class"], "MDN"))
+        cells = [f"{r[k]:.2f} ({paper[i][0]:.2f})" if paper else f"{r[k]:.2f}" for i, k in enumerate(TABLE_METRICS)]
+        print(f"{r['class']:<13} {r['model']:<10} {cells[0]:>14} {cells[1]:>14} {cells[2]:>14} {r['coverage_90']:>6.3f} "
+              f"{r['images_per_s']:>7.0f}")
+    print("(paper's MDN in parentheses; configuration in deg, cm for the drawer)")
+    if args.json:
+        args.json.write_text(json.dumps({"metric_version": METRIC_VERSION, "results": results}, indent=1))
+    torch.set_num_threads(torch.get_num_threads())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

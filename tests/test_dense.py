@@ -1,0 +1,253 @@
+"""The dense estimator: features, vote aggregation, training (overfit, resume), prediction, CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from click.testing import CliRunner  # noqa: E402
+
+from articulated_dataset.camera import CameraConfig, backproject  # noqa: E402
+from articulated_dataset.cli import main  # noqa: E402
+from articulated_dataset.dense import aggregate as A  # noqa: E402
+from articulated_dataset.dense.features import (  # noqa: E402
+    backproject_torch, make_inputs, output_labels, resize_depth, scale_intrinsics, surface_normals)
+from articulated_dataset.dense.model import DenseConfig, DenseNet  # noqa: E402
+from articulated_dataset.dense.train import DenseTrainConfig, load_dense_checkpoint, train_dense  # noqa: E402
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+def _run(args):
+    res = CliRunner().invoke(main, args, catch_exceptions=False)
+    return res.exit_code, res.output
+
+
+# ----------------------------------------------------------------------------- features
+def test_backprojection_matches_the_camera_module():
+    K = CameraConfig().K
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.5, 3.0, (108, 192)) * (rng.random((108, 192)) > 0.3)
+    ref = backproject(depth, K)
+    pts = backproject_torch(torch.tensor(depth)[None], torch.tensor(K)[None])[0]
+    v, u = np.nonzero(depth > 0)
+    assert np.allclose(pts[:, v, u].T.numpy(), ref, atol=1e-9)
+
+
+def test_scaled_intrinsics_keep_the_rays_of_pixel_centres():
+    K = CameraConfig().K
+    K2 = scale_intrinsics(K, (108, 192), (54, 96))
+    # the centre of low-res pixel (u2, v2) covers high-res pixels 2u2..2u2+1: its ray is their mean ray
+    for u2, v2 in [(0, 0), (10, 7), (95, 53)]:
+        ray2 = np.array([(u2 - K2[0, 2]) / K2[0, 0], (v2 - K2[1, 2]) / K2[1, 1]])
+        ray = np.array([(2 * u2 + 0.5 - K[0, 2]) / K[0, 0], (2 * v2 + 0.5 - K[1, 2]) / K[1, 1]])
+        assert np.allclose(ray2, ray)
+
+
+def test_resize_never_blends_background_into_surfaces():
+    d = torch.zeros(1, 4, 4)
+    d[0, :2, :2] = 2.0
+    d[0, 0, 0] = 0.0  # one missing return inside the surface
+    r = resize_depth(d, (2, 2))
+    assert r[0, 0, 0] == pytest.approx(2.0) and r[0, 1, 1] == 0.0
+
+
+def test_normals_of_a_plane_face_the_camera():
+    K = CameraConfig().K
+    H, W = 108, 192
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    # plane x = 2 - 0.5 y (camera frame): tilted about z; normal ~ -(1, 0.5, 0)/|.|
+    xo = (u - K[0, 2]) / K[0, 0]
+    depth = 2.0 / (1.0 - 0.5 * xo)  # y = -xo z  =>  z = 2 + 0.5 xo z
+    n = surface_normals(backproject_torch(torch.tensor(depth)[None], torch.tensor(K)[None]), torch.ones(1, H, W, dtype=torch.bool))
+    expect = -np.array([1.0, 0.5, 0.0]) / math.sqrt(1.25)
+    inner = n[0, :, 1:-1, 1:-1].reshape(3, -1).T.numpy()
+    assert np.allclose(inner, expect, atol=1e-5)
+
+
+def test_output_labels_take_the_majority_part():
+    mask = np.zeros((1, 8, 8), np.uint8)
+    mask[0, :4, :4] = 1
+    mask[0, :3, :3] = 2  # 9 of 16 pixels are the part
+    mask[0, 4:, 4:] = 1
+    lab = output_labels(mask, 1)
+    assert lab.shape == (1, 2, 2)
+    assert lab[0, 0, 0] == 2 and lab[0, 1, 1] == 1 and lab[0, 0, 1] == 0
+
+
+# ----------------------------------------------------------------------------- aggregation
+def _parts(votes_xyz, conf, J=1):
+    """Fake network outputs whose origin votes are ``votes_xyz`` (N, 3) at zero points."""
+    N = len(votes_xyz)
+    H, W = 1, N
+    off = torch.tensor(votes_xyz, dtype=torch.float32).T.reshape(1, 1, 3, H, W).expand(1, J, 3, H, W)
+    c = torch.tensor(conf, dtype=torch.float32).reshape(1, 1, 1, H, W).expand(1, J, 3, H, W)
+    rot6 = torch.tensor([0, 0, 1, 1, 0, 0], dtype=torch.float32).reshape(1, 1, 6, 1, 1).expand(1, J, 6, H, W)
+    return {"offset": off, "conf": c, "rot6": rot6, "q": torch.zeros(1, J, H, W), "part_offset": torch.zeros(1, J, 3, H, W),
+            "geometry": torch.zeros(1, 4, H, W), "geometry_conf": torch.zeros(1, H, W)}, torch.zeros(1, 3, H, W), torch.ones(1, H, W, dtype=torch.bool)
+
+
+def test_two_sided_votes_give_two_weighted_modes_not_their_average():
+    rng = np.random.default_rng(1)
+    left = rng.normal([1.5, 0.3, 0.0], 0.01, (60, 3))
+    right = rng.normal([1.5, -0.3, 0.0], 0.01, (40, 3))
+    parts, pts, valid = _parts(np.concatenate([left, right]), np.zeros(100))
+    m = A.vote_modes(parts, pts, valid)
+    w = m["weight"][0, 0].numpy()
+    o = m["origin"][0, 0].numpy()
+    assert w == pytest.approx([0.6, 0.4], abs=1e-5)
+    assert np.allclose(o[0], left.mean(0), atol=1e-6) and np.allclose(o[1], right.mean(0), atol=1e-6)
+    mean = A.weighted_mean(parts, pts, valid)["origin"][0, 0].numpy()
+    assert abs(mean[1]) < 0.1  # the plain mean lands between the sides: what the modes avoid
+
+
+def test_one_cluster_gives_one_mode_with_all_the_weight_and_its_spread():
+    rng = np.random.default_rng(2)
+    v = rng.normal([2.0, 0.0, 0.1], 0.02, (80, 3))
+    parts, pts, valid = _parts(v, rng.normal(0, 1, 80))
+    m = A.vote_modes(parts, pts, valid)
+    assert m["weight"][0, 0].numpy() == pytest.approx([1.0, 0.0])
+    assert np.all(m["origin_std"][0, 0, 0].numpy() < 0.04)
+
+
+# ----------------------------------------------------------------------------- training
+@pytest.fixture(scope="module")
+def overfit_run(tiny_root, tmp_path_factory):
+    torch.set_num_threads(2)
+    out = tmp_path_factory.mktemp("dense") / "mw.pt"
+    cfg = DenseTrainConfig("microwave", epochs=60, batch_size=16, lr=1e-2, width=8, val_fraction=0.0, max_objects=1)
+    ckpt = train_dense(tiny_root / "microwave" / "train", out, cfg, progress=False)
+    return out, ckpt, cfg
+
+
+def test_tiny_training_run_overfits(overfit_run, tiny_root):
+    from articulated_dataset.dense.predict import predict_arrays, quick_errors
+    from articulated_dataset.dense.train import build_dense_model, load_dense_split
+
+    out, ckpt, _ = overfit_run
+    d = load_dense_split(tiny_root / "microwave" / "train", 1, (108, 192), max_objects=1)
+    idx = np.arange(len(d.sample_id))
+    trained = quick_errors(predict_arrays(build_dense_model(ckpt), d, idx, joint_types=["revolute"], calibration=None), d, idx, ["revolute"])
+    torch.manual_seed(0)
+    fresh = DenseNet(DenseConfig(1, width=8)).eval()
+    untrained = quick_errors(predict_arrays(fresh, d, idx, joint_types=["revolute"], calibration=None), d, idx, ["revolute"])
+    assert trained["pos_cm"] < 0.5 * untrained["pos_cm"] and trained["pos_cm"] < 8.0
+    assert trained["rot_deg"] < 0.25 * untrained["rot_deg"]
+    assert ckpt["finished"] and ckpt["history"][-1]["train_loss"] < 0.2 * ckpt["history"][0]["train_loss"]
+
+
+def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
+    torch.set_num_threads(1)
+    cfg = DenseTrainConfig("drawer", epochs=2, batch_size=16, width=4, val_fraction=0.2, max_objects=3)
+    a, b = tmp_path / "a.pt", tmp_path / "b.pt"
+    whole = train_dense(tiny_root / "drawer" / "train", a, cfg, progress=False)
+    part = train_dense(tiny_root / "drawer" / "train", b, cfg, progress=False, stop_after_steps=3)
+    assert not part["finished"] and part["step"] == 3
+    resumed = train_dense(tiny_root / "drawer" / "train", b, cfg, progress=False, resume=True)
+    assert resumed["step"] == whole["step"]
+    for k, v in whole["model_state"].items():
+        assert torch.equal(v, resumed["model_state"][k]), k
+    assert resumed["calibration"] == whole["calibration"]
+
+
+def test_cli_train_predict_score_show(tiny_root, tmp_path, overfit_run):
+    ckpt_path = overfit_run[0]
+    preds = tmp_path / "p.h5"
+    code, out = _run(["predict", "--model", str(ckpt_path), "--data", str(tiny_root / "microwave" / "test"),
+                      "--out", str(preds), "-q"])
+    assert code == 0, out
+    code, out = _run(["score", str(preds), "--truth", str(tiny_root / "microwave" / "test"), "--json", str(tmp_path / "s.json")])
+    assert code == 0, out
+    row = json.loads((tmp_path / "s.json").read_text())["rows"][0]
+    assert row["method"] == "dense" and row["n_scored"] == row["n_truth"] == 48
+    assert 0.0 <= row["metrics"]["coverage_90"]["mean"] <= 1.0 and math.isfinite(row["metrics"]["nll"]["mean"])
+    code, out = _run(["show", str(tiny_root / "microwave" / "test"), "--predictions", str(preds), "--n", "2",
+                      "--out", str(tmp_path / "g.png"), "-q"])
+    assert code == 0 and (tmp_path / "g.png").stat().st_size > 1000, out
+    # wrong class: one line, exit 2
+    code, out = _run(["predict", "--model", str(ckpt_path), "--data", str(tiny_root / "drawer" / "test"), "--out", str(tmp_path / "q.h5")])
+    assert code == 2 and out.count("\n") == 1 and "'microwave' model" in out
+
+
+def test_cli_train_dense_and_its_errors(tiny_root, tmp_path):
+    out = tmp_path / "d.pt"
+    code, text = _run(["train", "--model", "dense", "--class", "toaster", "--data", str(tiny_root / "toaster" / "train"),
+                       "--out", str(out), "--epochs", "1", "--batch-size", "32", "--width", "4", "--max-objects", "2", "-q"])
+    assert code == 0, text
+    ckpt = load_dense_checkpoint(out)
+    assert ckpt["class_name"] == "toaster" and ckpt["finished"] and ckpt["calibration"] is not None
+    for extra, needle in [(["--lr", "nan"], "--lr"), (["--epochs", "0"], "--epochs"), (["--small"], "--model mdn"),
+                          (["--class", "drawer"], "not 'drawer'")]:
+        args = ["train", "--model", "dense", "--class", "toaster", "--data", str(tiny_root / "toaster" / "train"),
+                "--out", str(tmp_path / "e.pt")]
+        if extra[0] == "--class":
+            args[args.index("--class") + 1] = "drawer"
+        else:
+            args += extra
+        code, text = _run(args)
+        assert code == 2 and text.count("\n") == 1 and needle in text, text
+
+
+@pytest.mark.parametrize("content", [b"", b"not a checkpoint", b"PK\x03\x04garbage"])
+def test_bad_checkpoint_files_are_one_line(tmp_path, tiny_root, content):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(content)
+    code, text = _run(["predict", "--model", str(bad), "--data", str(tiny_root / "drawer" / "test"), "--out", str(tmp_path / "p.h5")])
+    assert code == 2 and text.count("\n") == 1 and text.startswith("artdata: error:"), text
+
+
+@pytest.mark.parametrize("field,value", [("format", "artdata-dense"), ("class_name", 5), ("model_state", [1]),
+                                         ("model_config", {"n_joints": "x"}), ("joint_types", ["revolute", "revolute"])])
+def test_checkpoints_with_bad_fields_are_one_line(overfit_run, tmp_path, tiny_root, field, value):
+    ckpt = dict(load_dense_checkpoint(overfit_run[0]))
+    if field == "format":
+        ckpt["version"] = 99
+    else:
+        ckpt[field] = value
+    bad = tmp_path / "bad.pt"
+    torch.save(ckpt, bad)
+    code, text = _run(["predict", "--model", str(bad), "--data", str(tiny_root / "microwave" / "test"), "--out", str(tmp_path / "p.h5")])
+    assert code == 2 and text.count("\n") == 1 and text.startswith("artdata: error:"), text
+
+
+# ----------------------------------------------------------------------------- single image
+def test_estimate_api_and_cli(overfit_run, tiny_root, tmp_path):
+    import h5py
+    from PIL import Image
+
+    import articulated_dataset as ad
+
+    with h5py.File(next((tiny_root / "microwave" / "test").glob("shard-*.h5")), "r") as f:
+        depth, K = f["depth"][5], f["K"][()]
+    est = ad.estimate(depth, K, "microwave", model=str(overfit_run[0]))
+    assert est.axis_origin_m.shape == (1, 3) and np.allclose(np.linalg.norm(est.axis_direction, axis=1), 1.0)
+    # the same image at twice the resolution gives the same estimate (intrinsics followed)
+    K2 = scale_intrinsics(K, depth.shape, (2 * depth.shape[0], 2 * depth.shape[1]))
+    est2 = ad.estimate(np.repeat(np.repeat(depth, 2, 0), 2, 1), K2, "microwave", model=str(overfit_run[0]))
+    assert np.allclose(est2.axis_origin_m, est.axis_origin_m, atol=0.02)
+    png = tmp_path / "d.png"
+    Image.fromarray(np.round(depth * 1000).astype(np.uint16)).save(png)
+    (tmp_path / "camera.json").write_text(json.dumps({"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}))
+    code, text = _run(["estimate", str(png), "--class", "microwave", "--model", str(overfit_run[0]), "--json"])
+    assert code == 0, text
+    got = json.loads(text)
+    assert np.allclose(got["joints"][0]["axis_origin_m"], est.axis_origin_m[0], atol=2e-3)
+    # millimetres given as metres, an empty mask, a scene without a mask, a wrong class
+    np.save(tmp_path / "mm.npy", depth * 1000)
+    (tmp_path / "mm.camera.json").write_text((tmp_path / "camera.json").read_text())
+    Image.fromarray(np.zeros(depth.shape, np.uint8)).save(tmp_path / "empty.png")
+    scene = np.where(depth > 0, depth, 3.0)
+    np.save(tmp_path / "scene.npy", scene)
+    for args, needle in [([str(tmp_path / "mm.npy")], "millimetres"),
+                         ([str(png), "--mask", str(tmp_path / "empty.png")], "mask"),
+                         ([str(tmp_path / "scene.npy"), "--camera", str(tmp_path / "camera.json")], "mask"),
+                         ([str(png), "--class", "drawer"], "'microwave' model")]:
+        cls = [] if "--class" in args else ["--class", "microwave"]
+        code, text = _run(["estimate", *args, *cls, "--model", str(overfit_run[0])])
+        assert code == 2 and text.count("\n") == 1 and needle in text, text
