@@ -54,12 +54,36 @@ def _sha256(path: Path) -> str:
     return sha256_file(path)
 
 
+_RESOLVED: dict = {}
+
+
+def _file_key(path: Path):
+    st = path.stat()
+    return (str(path.resolve()), st.st_mtime_ns, st.st_size)
+
+
 def resolve_model(spec: str, class_name: str | None) -> ModelRef:
     """The model that ``--model spec`` names, for ``class_name`` (None: take the file's class).
 
     A shipped name needs the class; a path is read and its kind and class taken from it.  A
-    class that differs from the checkpoint's is a one-line :class:`UserError`.
+    class that differs from the checkpoint's is a one-line :class:`UserError`.  Results are
+    cached per file state (path, modification time, size), so repeated calls cost nothing.
     """
+    if spec in SHIPPED:
+        entry = next((m for m in shipped_models() if m["name"] == spec and m["class_name"] == class_name), None)
+        target = WEIGHTS_DIR / entry["file"] if entry is not None else None
+    else:
+        target = Path(spec)
+    key = (spec, class_name, _file_key(target)) if target is not None and target.is_file() else None
+    if key is not None and key in _RESOLVED:
+        return _RESOLVED[key]
+    ref = _resolve(spec, class_name)
+    if key is not None:
+        _RESOLVED[key] = ref
+    return ref
+
+
+def _resolve(spec: str, class_name: str | None) -> ModelRef:
     if spec in SHIPPED:
         if class_name is None:
             raise UserError(f"--model {spec} needs the object class")
@@ -99,6 +123,11 @@ def _peek(path: Path) -> dict:
 
 
 def strip_for_shipping(ckpt: dict) -> dict:
-    """A checkpoint without optimizer, schedule and RNG state (what inference needs)."""
+    """A checkpoint without optimizer, schedule and RNG state (what inference needs), its
+    floating-point weights stored as float16 (half the size; loading casts them back to
+    float32: ``load_state_dict`` copies into the float32 parameters)."""
     drop = {"optimizer_state", "scheduler_state", "scaler_state", "rng_state"}
-    return {k: v for k, v in ckpt.items() if k not in drop}
+    out = {k: v for k, v in ckpt.items() if k not in drop}
+    out["model_state"] = {k: (v.half() if v.is_floating_point() else v) for k, v in ckpt["model_state"].items()}
+    out["weights_dtype"] = "float16"
+    return out

@@ -1,0 +1,97 @@
+"""Package trained checkpoints as the shipped models (maintainers' tool; see docs/model.md).
+
+    python scripts/ship_weights.py --dense-dir RUNS --mdn-dir RUNS [--results shipped.json]
+
+Reads ``RUNS/dense-<class>.pt`` (``artdata train --model dense``) and
+``RUNS/mdn-small-<class>.pt`` (``artdata train --small``), keeps what inference needs
+(:func:`articulated_dataset.models.strip_for_shipping`: no optimizer, schedule or RNG
+state), writes ``articulated_dataset/weights/<model>-<class>.pt`` and
+``articulated_dataset/weights/models.json`` (file, SHA-256, size, training data and
+recipe, history, and the test figures of ``benchmarks/shipped_models.py --json`` when
+``--results`` is given).  Only finished trainings are shipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+from articulated_dataset.models import MODELS_MANIFEST, WEIGHTS_DIR, strip_for_shipping
+from articulated_dataset.registry import class_names
+from articulated_dataset.shards import read_manifest, sha256_file
+
+MACHINE = "2-core x86_64 CPU VM shared with other jobs, no GPU, PyTorch 2.13.0 CPU"
+DATA_COMMAND = "artdata generate --class {c} --n 4000 --split train --seed 0 --out data"
+TRAIN_COMMANDS = {
+    "dense": "artdata train --model dense --class {c} --data data/{c}/train --out dense-{c}.pt",
+    "mdn-small": "artdata train --class {c} --data data/{c}/train --out mdn-small-{c}.pt --small --max-objects 1000 --seed 0",
+}
+FILES = {"dense": "dense-{c}.pt", "mdn-small": "mdn-small-{c}.pt"}
+
+
+def _training_record(name: str, c: str, ckpt: dict) -> dict:
+    rec = {"data_command": DATA_COMMAND.format(c=c), "command": TRAIN_COMMANDS[name].format(c=c), "seed": 0, "machine": MACHINE}
+    hist = ckpt.get("history", [])
+    if name == "dense":
+        rec.update(objects=ckpt["data"]["n_objects"], train_images=ckpt["data"]["n_train_images"],
+                   val_images=ckpt["data"]["n_val_images"], steps=ckpt["step"], cpu_seconds=round(ckpt.get("cpu_seconds", 0.0)),
+                   validation=hist[-1] if hist else None)
+    else:
+        rec.update(objects=int(ckpt["train_config"].get("max_objects") or 0), train_images=ckpt["data"]["n_train"],
+                   val_images=ckpt["data"]["n_val"], epochs=ckpt["epoch"],
+                   seconds=round(sum(h.get("seconds", 0.0) for h in hist)), validation=hist[-1] if hist else None)
+    return rec
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--dense-dir", type=Path, required=True)
+    p.add_argument("--mdn-dir", type=Path, required=True)
+    p.add_argument("--results", type=Path, default=None, help="benchmarks/shipped_models.py --json output")
+    p.add_argument("--classes", nargs="+", default=None)
+    args = p.parse_args(argv)
+    results = {}
+    if args.results is not None:
+        for r in json.loads(args.results.read_text())["results"]:
+            results[(r["model"], r["class"])] = r
+        metric_version = json.loads(args.results.read_text())["metric_version"]
+    WEIGHTS_DIR.mkdir(exist_ok=True)
+    entries = []
+    for c in args.classes or class_names():
+        for name, folder in (("dense", args.dense_dir), ("mdn-small", args.mdn_dir)):
+            src = folder / FILES[name].format(c=c)
+            if not src.is_file():
+                print(f"skip {name} {c}: no {src}", file=sys.stderr)
+                continue
+            ckpt = torch.load(src, map_location="cpu", weights_only=True)
+            if not ckpt.get("finished"):
+                print(f"skip {name} {c}: training not finished", file=sys.stderr)
+                continue
+            dst = WEIGHTS_DIR / FILES[name].format(c=c)
+            tmp = dst.with_name(dst.name + ".partial")
+            torch.save(strip_for_shipping(ckpt), tmp)
+            tmp.replace(dst)
+            entry = {"name": name, "class_name": c, "kind": "dense" if name == "dense" else "mdn", "file": dst.name,
+                     "sha256": sha256_file(dst), "bytes": dst.stat().st_size,
+                     "config_unit": "cm" if "prismatic" in str(ckpt.get("joint_types", "")) or c == "drawer" else "deg",
+                     "training": _training_record(name, c, ckpt)}
+            r = results.get((name, c))
+            if r is not None:
+                entry["test"] = {"pos_cm": r["axis_position_error_cm"], "rot_deg": r["axis_rotation_error_deg"],
+                                 "config": r["configuration_error"], "coverage_90": r["coverage_90"],
+                                 "images": r["n_images"], "objects": r["test_objects"], "seed": r["test_seed"],
+                                 "images_per_s": r["images_per_s"], "metric_version": metric_version}
+            entries.append(entry)
+            print(f"{dst}: {entry['bytes'] / 1e6:.2f} MB")
+    MODELS_MANIFEST.write_text(json.dumps({"models": entries}, indent=1) + "\n")
+    total = sum(e["bytes"] for e in entries)
+    print(f"{MODELS_MANIFEST}: {len(entries)} models, {total / 1e6:.1f} MB of weights")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
