@@ -20,6 +20,8 @@ Scales: ``--small`` = 300 training / 50 test objects per class (minutes on 2 cor
     python benchmarks/reproduce_table1.py --small --root data-table1
     python benchmarks/reproduce_table1.py --full --root /big/disk/table1 --workers 16
     python benchmarks/reproduce_table1.py --small --root data-table1 --train-mdn
+    python benchmarks/reproduce_table1.py --train-objects 1000 --test-objects 1000 --test-seed 2026 \
+        --methods mean nn --shipped dense mdn-small --root data-table1k
 
 The paper's microwave NN row repeats its cabinet NN row digit for digit (probably a
 typesetting slip); it is shown as printed and flagged.
@@ -90,6 +92,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--methods", nargs="+", default=list(BASELINE_METHODS), choices=BASELINE_METHODS,
                    help="Baselines to run (default: all).")
     p.add_argument("--seed", type=int, default=0, help="Dataset seed.")
+    p.add_argument("--test-seed", type=int, default=None,
+                   help="Seed of the test split (default: --seed); the shipped models were trained on seed 0.")
+    p.add_argument("--shipped", nargs="+", default=[], choices=["dense", "mdn-small"],
+                   help="Also score these shipped models (artdata models) on the test split.")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="Worker processes (default: all cores).")
     p.add_argument("--mdn-model", action="append", default=[], metavar="CLASS=CKPT",
                    help="Trained MDN checkpoint of a class (repeatable); scored as the reference model.")
@@ -127,8 +133,10 @@ def generate_class(cls: str, args) -> dict:
     from articulated_dataset.pipeline import GenerationConfig, generate_split
 
     seconds = {}
+    test_seed = args.seed if args.test_seed is None else args.test_seed
     for split, n, mean in (("train", args.n_train, False), ("test", args.n_test, False), ("mean", 1, True)):
-        config = GenerationConfig(cls, split="train" if mean else split, n_objects=n, seed=args.seed, mean=mean)
+        config = GenerationConfig(cls, split="train" if mean else split, n_objects=n,
+                                  seed=test_seed if split == "test" else args.seed, mean=mean)
         t0 = time.perf_counter()
         generate_split(config, args.root, workers=args.workers, resume=True, progress=not args.quiet)
         seconds[split] = time.perf_counter() - t0
@@ -156,8 +164,8 @@ def run_mdn(cls: str, ckpt: Path | None, args, pred_dir: Path) -> tuple[Path | N
 
 
 def paper_method(method: str) -> str:
-    """The paper's row a method compares with ("MDN-small" and other MDN variants -> "MDN")."""
-    return "MDN" if method.upper().startswith("MDN") else method
+    """The paper's row a method compares with (MDN variants and the dense estimator -> the paper's "MDN")."""
+    return "MDN" if method.upper().startswith("MDN") or method == "dense" else method
 
 
 def build_rows(report, timings: dict) -> list[dict]:
@@ -185,7 +193,8 @@ def _fmt(mean, std) -> str:
 def format_markdown(rows: list[dict], header: dict) -> str:
     lines = [
         f"Scale: {header['n_train']} training / {header['n_test']} test objects per class "
-        f"(x 16 images); seed {header['seed']}; {header['workers']} workers; total {header['total_s']:.0f} s.",
+        f"(x 16 images); seed {header['seed']} (test split: seed {header.get('test_seed', header['seed'])}); "
+        f"{header['workers']} workers; total {header['total_s']:.0f} s.",
         "",
         "| class | method | position (cm): ours | paper | ratio | rotation (deg): ours | paper | ratio "
         "| configuration: ours | paper | ratio | images | time (s) |",
@@ -259,6 +268,15 @@ def main(argv=None) -> int:
                 print(f"{cls}: {result.method} on {n} test images in {dt:.1f} s ({1e3 * dt / max(n, 1):.1f} ms/image)",
                       flush=True)
                 files.append(out)
+            for name in args.shipped:
+                out = pred_dir / f"{cls}-shipped-{name}.h5"
+                t0 = time.perf_counter()
+                cmd = ["artdata", "predict", "--model", name, "--data", str(test_dir), "--out", str(out), "--overwrite",
+                       "--method", name if name == "dense" else "MDN-small (shipped)"]
+                print("$ " + " ".join(cmd), flush=True)
+                subprocess.run(cmd + (["--quiet"] if args.quiet else []), check=True)
+                timings[(cls, name if name == "dense" else "MDN-small (shipped)")] = time.perf_counter() - t0
+                files.append(out)
             mdn_file, dt = run_mdn(cls, mdn.get(cls), args, pred_dir)
             if mdn_file is not None:
                 files.append(mdn_file)
@@ -274,6 +292,7 @@ def main(argv=None) -> int:
     total = time.perf_counter() - t_start
     rows = build_rows(report, timings)
     header = {"scale": args.scale, "n_train": args.n_train, "n_test": args.n_test, "seed": args.seed,
+              "test_seed": args.seed if args.test_seed is None else args.test_seed,
               "workers": args.workers, "total_s": total, "root": str(args.root),
               "generation_s": gen_seconds, "cpu_count": os.cpu_count()}
     md = format_markdown(rows, header)
