@@ -20,7 +20,8 @@ reported by the scorer).  Column d of the mixture datasets is named by
 ``j{j}.xaxis.z``, ``j{j}.q``, ``j{j}.offset.x``, ``geometry.depth`` ...).
 
 :func:`write_predictions` validates and writes a file; :func:`read_predictions` validates a
-file (shapes, dtypes, finite values, unit quaternions, unique ids, mixture parameters) and
+file (shapes, dtypes, finite values within +-:data:`MAX_ABS_VALUE`, unit quaternions, unique
+ids, mixture parameters, names, layout and size) and
 raises :class:`~articulated_dataset.errors.DataFormatError` with one line naming the
 dataset for anything wrong.  Non-unit quaternions are normalised with a logged warning;
 zero-length ones are rejected.
