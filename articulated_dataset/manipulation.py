@@ -436,6 +436,7 @@ class TrueObject:
     info: ModelInfo
     urdf: str
     pose: dict  # x_m, y_m, z_m, yaw_rad
+    config: object = None  # the split's GenerationConfig (camera, noise): for rendering the scene
 
     @property
     def n_joints(self) -> int:
@@ -526,7 +527,7 @@ def load_true_object(manifest: dict, labels: dict, camera=None) -> TrueObject:
     if not GRAVITY_ON:
         model.opt.gravity[:] = 0.0
     return TrueObject(config.class_name, obj_class.joint_types, tuple(config.table.q), dict(labels),
-                      model, info, urdf, pose)
+                      model, info, urdf, pose, config)
 
 
 def handle_geom(obj: TrueObject, joint: int) -> int:
@@ -566,6 +567,10 @@ class ExecutionResult:
     max_rotation_error_rad: float
     duration_s: float
     trace: dict = field(default_factory=dict, repr=False)  # time, q, force, grasp positions
+    #: Depth images the controller used (0: truth labels; 1: one-image open loop; more: closed loop).
+    images_used: int = 0
+    #: Closed loop: one entry per image (when, where from, what it gave); see :func:`closed_loop_trial`.
+    views: list = field(default_factory=list, repr=False)
 
     @property
     def error(self) -> float:
@@ -603,6 +608,7 @@ class ExecutionResult:
             "max_position_error_m": self.max_position_error_m, "max_rotation_error_rad": self.max_rotation_error_rad,
             "duration_s": self.duration_s, "reached": self.reached, "within_limits": self.within_limits,
             "success": self.success, "failure": "" if self.success else self.failure_reason(),
+            "images_used": self.images_used,
         }
 
 
@@ -641,6 +647,132 @@ def _interpolate(waypoints: np.ndarray, s: float) -> np.ndarray:
     return out
 
 
+class GripperController:
+    """The simulated compliant gripper on the true object, step by step.
+
+    :meth:`grasp` closes it at a pose (capture rule of :data:`GRASP_CAPTURE_M`), :meth:`track`
+    moves the commanded pose along waypoints (minimum-jerk time scaling) while the
+    Cartesian impedance (``GRIPPER_*``) acts on the grasped point, accumulating the peak
+    force, torque and tracking errors over every call.  :func:`execute_plan` is one grasp
+    and one track; the closed loop (:func:`closed_loop_trial`) tracks segment by segment,
+    looking at the object in between.
+    """
+
+    def __init__(self, obj: TrueObject, joint: int, q_start: np.ndarray | None = None, record: bool = False):
+        self.obj = obj
+        self.model = obj.model
+        self.data = mujoco.MjData(self.model)
+        self.joint = joint
+        self.q0 = np.asarray(obj.labels["q"], np.float64) if q_start is None else np.asarray(q_start, np.float64)
+        set_configuration(self.model, self.data, obj.info.joint_ids, self.q0)
+        self.data.qvel[:] = 0.0
+        mujoco.mj_forward(self.model, self.data)
+        self.body = obj.info.part_bodies[joint]
+        self.grasped = False
+        self.grasp_error_m = float("nan")
+        self.max_f = self.max_t = self.max_pe = self.max_re = 0.0
+        self.steps = 0
+        self.record = record
+        self.trace = {k_: [] for k_ in ("t", "q", "force", "grasp", "command")} if record else {}
+
+    @property
+    def q(self) -> np.ndarray:
+        """The object's current configuration (label order)."""
+        return self.data.qpos[self.obj.info.qpos_adr].astype(np.float64).copy()
+
+    def grasp(self, pose: np.ndarray) -> bool:
+        """Close at ``pose``: held if its point lies within :data:`GRASP_CAPTURE_M` of the handle bar's box."""
+        model, data = self.model, self.data
+        g = handle_geom(self.obj, self.joint)
+        self.grasp_error_m = point_box_distance(pose[:3], data.geom_xpos[g], data.geom_xmat[g].reshape(3, 3), model.geom_size[g])
+        if self.grasp_error_m > GRASP_CAPTURE_M:
+            return False
+        rot_b = data.xmat[self.body].reshape(3, 3)
+        self.p_local = rot_b.T @ (pose[:3] - data.xpos[self.body])
+        q_inv_b = np.zeros(4)
+        mujoco.mju_negQuat(q_inv_b, data.xquat[self.body])
+        self.quat_local = quat_multiply(q_inv_b, pose[3:])
+        self.grasped = True
+        return True
+
+    def grasp_pose(self) -> np.ndarray:
+        """The grasped point and orientation now (7,): where the arm's own kinematics puts its hand."""
+        data = self.data
+        rot_b = data.xmat[self.body].reshape(3, 3)
+        out = np.empty(7)
+        out[:3] = data.xpos[self.body] + rot_b @ self.p_local
+        gq = np.zeros(4)
+        mujoco.mju_mulQuat(gq, data.xquat[self.body], self.quat_local)
+        out[3:] = _canonical(gq)
+        return out
+
+    def track(self, waypoints: np.ndarray, settle_s: float = SETTLE_S) -> None:
+        """Follow ``waypoints`` over :func:`motion_duration` (minimum jerk), then hold the last for ``settle_s``."""
+        model, data, body = self.model, self.data, self.body
+        dt = model.opt.timestep
+        duration = motion_duration(waypoints)
+        n_move = int(math.ceil(duration / dt))
+        n_total = n_move + int(math.ceil(settle_s / dt))
+        s = minimum_jerk(np.arange(n_total + 1) * dt / duration)
+        cmd = np.stack([_interpolate(waypoints, float(si)) for si in s])
+        k, b = GRIPPER_STIFFNESS_N_PER_M, GRIPPER_DAMPING_N_S_PER_M
+        kr, br = GRIPPER_ROT_STIFFNESS_NM_PER_RAD, GRIPPER_ROT_DAMPING_NM_S_PER_RAD
+        jacp = np.zeros((3, model.nv))
+        jacr = np.zeros((3, model.nv))
+        rotvec = np.zeros(3)
+        w_cmd = np.zeros(3)
+        gq = np.zeros(4)
+        p_local, quat_local = self.p_local, self.quat_local
+        trace = self.trace
+        for i in range(n_total):
+            # mj_step1 computes the kinematics of the current state; the gripper's wrench is
+            # then set from it and mj_step2 integrates (MuJoCo's split step for state feedback)
+            mujoco.mj_step1(model, data)
+            rot_b = data.xmat[body].reshape(3, 3)
+            gp = data.xpos[body] + rot_b @ p_local
+            mujoco.mju_mulQuat(gq, data.xquat[body], quat_local)
+            mujoco.mj_jac(model, data, jacp, jacr, gp, body)
+            v = jacp @ data.qvel
+            w = jacr @ data.qvel
+            target, nxt = cmd[i], cmd[i + 1]
+            v_cmd = (nxt[:3] - target[:3]) / dt
+            tq = target[3:] if np.dot(target[3:], gq) >= 0 else -target[3:]
+            mujoco.mju_subQuat(rotvec, tq, gq)  # local to the grasp frame
+            theta = quat_to_matrix(gq) @ rotvec
+            mujoco.mju_subQuat(w_cmd, nxt[3:] if np.dot(nxt[3:], target[3:]) >= 0 else -nxt[3:], target[3:])
+            w_cmd_world = quat_to_matrix(target[3:]) @ w_cmd / dt
+            pos_err = target[:3] - gp
+            force = k * pos_err + b * (v_cmd - v)
+            torque = kr * theta + br * (w_cmd_world - w)
+            data.qfrc_applied[:] = 0.0
+            mujoco.mj_applyFT(model, data, force, torque, gp, body, data.qfrc_applied)
+            self.max_f = max(self.max_f, float(np.linalg.norm(force)))
+            self.max_t = max(self.max_t, float(np.linalg.norm(torque)))
+            self.max_pe = max(self.max_pe, float(np.linalg.norm(pos_err)))
+            self.max_re = max(self.max_re, float(np.linalg.norm(theta)))
+            if self.record:
+                trace["t"].append((self.steps + i) * dt)
+                trace["q"].append(data.qpos[self.obj.info.qpos_adr].copy())
+                trace["force"].append(float(np.linalg.norm(force)))
+                trace["grasp"].append(gp.copy())
+                trace["command"].append(target[:3].copy())
+            mujoco.mj_step2(model, data)
+        self.steps += n_total
+
+    def result(self, q_target: float) -> ExecutionResult:
+        joint = self.joint
+        base = dict(joint=joint, joint_type=self.obj.joint_types[joint], q_start=float(self.q0[joint]),
+                    q_target=float(q_target), grasp_error_m=self.grasp_error_m)
+        if not self.grasped:
+            return ExecutionResult(q_reached=float(self.q0[joint]), grasped=False, max_force_n=0.0, max_torque_nm=0.0,
+                                   max_position_error_m=0.0, max_rotation_error_rad=0.0, duration_s=0.0, **base)
+        trace = {k_: np.asarray(v_) for k_, v_ in self.trace.items()} if self.record else {}
+        return ExecutionResult(q_reached=float(self.data.qpos[int(self.obj.info.qpos_adr[joint])]), grasped=True,
+                               max_force_n=self.max_f, max_torque_nm=self.max_t, max_position_error_m=self.max_pe,
+                               max_rotation_error_rad=self.max_re, duration_s=self.steps * self.model.opt.timestep,
+                               trace=trace, **base)
+
+
 def execute_plan(obj: TrueObject, waypoints: np.ndarray, joint: int, q_target: float, *,
                  q_start: np.ndarray | None = None, record: bool = False) -> ExecutionResult:
     """Simulate a compliant gripper tracking ``waypoints`` on the true object.
@@ -657,85 +789,10 @@ def execute_plan(obj: TrueObject, waypoints: np.ndarray, joint: int, q_target: f
     4. Reported: the joint's final configuration, the peak |F| and |tau| and the peak
        position / rotation tracking error.
     """
-    model = obj.model
-    data = mujoco.MjData(model)
-    info = obj.info
-    joint_type = obj.joint_types[joint]
-    q0 = np.asarray(obj.labels["q"], np.float64) if q_start is None else np.asarray(q_start, np.float64)
-    set_configuration(model, data, info.joint_ids, q0)
-    data.qvel[:] = 0.0
-    mujoco.mj_forward(model, data)
-    adr = int(info.qpos_adr[joint])
-
-    g = handle_geom(obj, joint)
-    grasp_error = point_box_distance(waypoints[0, :3], data.geom_xpos[g], data.geom_xmat[g].reshape(3, 3), model.geom_size[g])
-    base = dict(joint=joint, joint_type=joint_type, q_start=float(q0[joint]), q_target=float(q_target),
-                grasp_error_m=grasp_error)
-    if grasp_error > GRASP_CAPTURE_M:
-        return ExecutionResult(q_reached=float(q0[joint]), grasped=False, max_force_n=0.0, max_torque_nm=0.0,
-                               max_position_error_m=0.0, max_rotation_error_rad=0.0, duration_s=0.0, **base)
-
-    body = info.part_bodies[joint]
-    rot_b = data.xmat[body].reshape(3, 3)
-    p_local = rot_b.T @ (waypoints[0, :3] - data.xpos[body])
-    q_inv_b = np.zeros(4)
-    mujoco.mju_negQuat(q_inv_b, data.xquat[body])
-    quat_local = quat_multiply(q_inv_b, waypoints[0, 3:])
-
-    dt = model.opt.timestep
-    duration = motion_duration(waypoints)
-    n_move = int(math.ceil(duration / dt))
-    n_total = n_move + int(math.ceil(SETTLE_S / dt))
-    s = minimum_jerk(np.arange(n_total + 1) * dt / duration)
-    cmd = np.stack([_interpolate(waypoints, float(si)) for si in s])
-
-    k, b = GRIPPER_STIFFNESS_N_PER_M, GRIPPER_DAMPING_N_S_PER_M
-    kr, br = GRIPPER_ROT_STIFFNESS_NM_PER_RAD, GRIPPER_ROT_DAMPING_NM_S_PER_RAD
-    jacp = np.zeros((3, model.nv))
-    jacr = np.zeros((3, model.nv))
-    rotvec = np.zeros(3)
-    w_cmd = np.zeros(3)
-    gq = np.zeros(4)
-    max_f = max_t = max_pe = max_re = 0.0
-    trace = {k_: [] for k_ in ("t", "q", "force", "grasp", "command")} if record else {}
-    for i in range(n_total):
-        # mj_step1 computes the kinematics of the current state; the gripper's wrench is
-        # then set from it and mj_step2 integrates (MuJoCo's split step for state feedback)
-        mujoco.mj_step1(model, data)
-        rot_b = data.xmat[body].reshape(3, 3)
-        gp = data.xpos[body] + rot_b @ p_local
-        mujoco.mju_mulQuat(gq, data.xquat[body], quat_local)
-        mujoco.mj_jac(model, data, jacp, jacr, gp, body)
-        v = jacp @ data.qvel
-        w = jacr @ data.qvel
-        target, nxt = cmd[i], cmd[i + 1]
-        v_cmd = (nxt[:3] - target[:3]) / dt
-        tq = target[3:] if np.dot(target[3:], gq) >= 0 else -target[3:]
-        mujoco.mju_subQuat(rotvec, tq, gq)  # local to the grasp frame
-        theta = quat_to_matrix(gq) @ rotvec
-        mujoco.mju_subQuat(w_cmd, nxt[3:] if np.dot(nxt[3:], target[3:]) >= 0 else -nxt[3:], target[3:])
-        w_cmd_world = quat_to_matrix(target[3:]) @ w_cmd / dt
-        pos_err = target[:3] - gp
-        force = k * pos_err + b * (v_cmd - v)
-        torque = kr * theta + br * (w_cmd_world - w)
-        data.qfrc_applied[:] = 0.0
-        mujoco.mj_applyFT(model, data, force, torque, gp, body, data.qfrc_applied)
-        max_f = max(max_f, float(np.linalg.norm(force)))
-        max_t = max(max_t, float(np.linalg.norm(torque)))
-        max_pe = max(max_pe, float(np.linalg.norm(pos_err)))
-        max_re = max(max_re, float(np.linalg.norm(theta)))
-        if record:
-            trace["t"].append(i * dt)
-            trace["q"].append(data.qpos[info.qpos_adr].copy())
-            trace["force"].append(float(np.linalg.norm(force)))
-            trace["grasp"].append(gp.copy())
-            trace["command"].append(target[:3].copy())
-        mujoco.mj_step2(model, data)
-    if record:
-        trace = {k_: np.asarray(v_) for k_, v_ in trace.items()}
-    return ExecutionResult(q_reached=float(data.qpos[adr]), grasped=True, max_force_n=max_f, max_torque_nm=max_t,
-                           max_position_error_m=max_pe, max_rotation_error_rad=max_re,
-                           duration_s=n_total * dt, trace=trace, **base)
+    ctl = GripperController(obj, joint, q_start, record)
+    if ctl.grasp(waypoints[0]):
+        ctl.track(waypoints)
+    return ctl.result(q_target)
 
 
 def run_trial(obj: TrueObject, estimate: Estimate, joint: int, q_target: float | None = None, *,
@@ -773,3 +830,340 @@ def load_prediction_estimates(path: str | Path, class_name: str) -> tuple[str, d
             geometry=p["geometry"][i] if "geometry" in p else None, source=method,
         )
     return method, out
+
+
+# --------------------------------------------------------------------------------------
+# Estimating from depth images (a model) and looking at the simulated scene
+# --------------------------------------------------------------------------------------
+
+@dataclass
+class DepthEstimator:
+    """A model that turns one depth image of a ``class_name`` object into an :class:`Estimate`
+    in that image's camera frame: ``estimator(depth_m, K)``.  Built by :func:`make_estimator`."""
+
+    name: str  # display / method name (dense, MDN-small, ...)
+    kind: str  # dense | mdn
+    class_name: str
+    _fn: object = field(repr=False, default=None)
+
+    def __call__(self, depth_m: np.ndarray, K: np.ndarray) -> Estimate:
+        return self._fn(np.asarray(depth_m, np.float32), np.asarray(K, np.float64))
+
+
+def make_estimator(model: str, class_name: str) -> DepthEstimator:
+    """The estimator of ``--model`` (a shipped name, ``dense`` or ``mdn-small``, or a checkpoint
+    path of either kind) for ``class_name``.  Unknown names, a wrong class or an unreadable
+    file are a :class:`UserError` (:func:`articulated_dataset.models.resolve_model`)."""
+    from .models import resolve_model
+
+    ref = resolve_model(model, class_name)
+    name = ref.name if model not in ("dense", "mdn-small") else model
+    if ref.kind == "dense":
+        from .estimation import estimate
+
+        path = str(ref.path)  # resolved (and checksummed) once
+
+        def fn(depth, K):
+            e = estimate(depth, K, class_name, model=path)
+            return Estimate(e.axis_pose.astype(np.float64), e.q.astype(np.float64), e.part_offset_m.astype(np.float64),
+                            e.geometry.astype(np.float64), source=name)
+
+        return DepthEstimator(name, "dense", class_name, fn)
+    return DepthEstimator(name, "mdn", class_name, _mdn_single_image(ref.path, class_name, name))
+
+
+def _mdn_single_image(path: Path, class_name: str, name: str):
+    """One-image inference of an MDN checkpoint (the ``mean-of-best`` point estimate, decoded
+    as :func:`articulated_dataset.mdn.predict.predict_split` does for a split)."""
+    import torch
+
+    from .mdn.loss import point_estimate
+    from .mdn.preprocess import InputConfig, assemble_inputs, preprocess_depth
+    from .mdn.train import build_model_from_checkpoint, expand_active, load_checkpoint, shift_anchored
+    from .targets import NormStats, TargetLayout
+
+    ckpt = load_checkpoint(path)
+    layout = TargetLayout.for_class(class_name)
+    names = list(layout.names)
+    if names != list(ckpt["layout_names"]):
+        raise UserError(f"{path}: the checkpoint's target layout differs from this version's {class_name!r} layout; retrain it")
+    stats = NormStats.from_dict(ckpt["norm_stats"])
+    net = build_model_from_checkpoint(ckpt, "cpu")
+    input_config = InputConfig.from_dict(ckpt["input_config"])
+    active = np.asarray(ckpt.get("active_columns", range(len(names))), np.int64)
+    anchored = [tuple(c) for c in ckpt.get("anchored_columns", [])]
+
+    def fn(depth, K):
+        planes, scalars, anchor = preprocess_depth(depth[None], input_config, K)
+        with torch.no_grad():
+            logits, mu, sigma = net(assemble_inputs(planes, input_config), scalars)
+            est = point_estimate(logits, mu, sigma, "mean-of-best").numpy()
+        est = shift_anchored(stats.denormalize(expand_active(est, active, len(names), 0.0)), anchor.numpy(), anchored, 1.0)
+        d = layout.decode(est)
+        return Estimate(np.asarray(d["axis_pose"][0], np.float64), np.asarray(d["q"][0], np.float64),
+                        np.asarray(d["part_offset"][0], np.float64), np.asarray(d["geometry"][0], np.float64), source=name)
+
+    return fn
+
+
+def stored_image(split_dir: str | Path, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(depth_m (H, W) float32, K (3, 3), mask (H, W) uint8)`` of image ``index`` (storage order) of a split."""
+    from .shards import find_split_dirs, open_split
+
+    dirs = find_split_dirs(split_dir)
+    if len(dirs) != 1:
+        raise UserError(f"{split_dir}: holds {len(dirs)} splits; pass one split folder (<root>/<class>/<split>)")
+    _, shards = open_split(dirs[0])
+    try:
+        start = 0
+        for sh in shards:
+            n = len(sh)
+            if index < start + n:
+                return (sh.read("depth", index - start).astype(np.float32), np.asarray(sh.K, np.float64),
+                        sh.read("mask", index - start))
+            start += n
+    finally:
+        for sh in shards:
+            sh.close()
+    raise UserError(f"--index {index} out of range: {dirs[0]} has {start} images")
+
+
+def transform_estimate(estimate: Estimate, rot: np.ndarray, trans: np.ndarray) -> Estimate:
+    """An estimate made in a camera at pose ``(rot, trans)`` (camera -> reference frame:
+    ``p_ref = rot p + trans``) expressed in the reference frame.  Axis origins and frames move;
+    q, part offsets (axis frame) and geometry do not."""
+    pose = np.array(estimate.axis_pose, np.float64)
+    rq = _canonical(mat_to_quat(rot))
+    for j in range(len(pose)):
+        pose[j, :3] = rot @ pose[j, :3] + trans
+        pose[j, 3:] = _canonical(quat_multiply(rq, pose[j, 3:]))
+    return Estimate(pose, np.array(estimate.q, np.float64),
+                    None if estimate.part_offset is None else np.array(estimate.part_offset, np.float64),
+                    None if estimate.geometry is None else np.array(estimate.geometry, np.float64), estimate.source)
+
+
+def orbit_viewpoint(centre, angle_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Camera pose ``(rot, trans)`` (camera -> reference frame) of the reference camera swung by
+    ``angle_rad`` about the vertical line (reference z) through ``centre``: the robot moved
+    sideways around the object at the same distance, still looking at ``centre``."""
+    c = _vec("centre", centre, 3)
+    rot = quat_to_matrix(axis_angle_quat(np.array([0.0, 0.0, 1.0]), angle_rad))
+    return rot, c - rot @ c
+
+
+class SceneCamera:
+    """Depth images of the simulated true object as the robot's camera would take them.
+
+    Renders with the dataset's renderer (:func:`articulated_dataset.render.process_renderer`,
+    the camera of the split's generation config) at the object's current configuration, from
+    the reference camera or another viewpoint ``(rot, trans)`` (camera -> reference frame),
+    then applies the split's sensor noise model (seeded by ``rng``) and depth quantisation
+    as :func:`articulated_dataset.pipeline.render_object` does.
+    """
+
+    def __init__(self, obj: TrueObject, rng: np.random.Generator):
+        from .render import process_renderer
+        from .scene import CAMERA_NAME
+
+        if obj.config is None:
+            raise UserError(f"{obj.class_name}: no generation config, so no camera to render the scene with")
+        self.obj = obj
+        self.rng = rng
+        self.camera = obj.config.camera
+        self.renderer = process_renderer(self.camera)
+        self.data = mujoco.MjData(obj.model)
+        self.cam_id = mujoco.mj_name2id(obj.model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA_NAME)
+        self.cam_pos0 = obj.model.cam_pos[self.cam_id].copy()
+        self.cam_quat0 = obj.model.cam_quat[self.cam_id].copy()
+
+    @property
+    def K(self) -> np.ndarray:  # noqa: N802
+        return self.camera.K
+
+    def render(self, q: np.ndarray, viewpoint: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """Depth (H, W) float32 metres of the object at configuration ``q``."""
+        model = self.obj.model
+        config = self.obj.config
+        if viewpoint is not None:
+            rot, trans = viewpoint
+            model.cam_pos[self.cam_id] = rot @ self.cam_pos0 + trans
+            model.cam_quat[self.cam_id] = _canonical(quat_multiply(mat_to_quat(rot), self.cam_quat0))
+        try:
+            self.renderer.bind(model)
+            set_configuration(model, self.data, self.obj.info.joint_ids, np.asarray(q, np.float64))
+            depth, _ = self.renderer.render(self.data)
+            depth = depth.copy()
+        finally:
+            model.cam_pos[self.cam_id] = self.cam_pos0
+            model.cam_quat[self.cam_id] = self.cam_quat0
+        if config.noise != "none":
+            from .noise import get_noise_model
+
+            depth = get_noise_model(config.noise)(depth, self.K, self.rng)
+        if config.depth_quantum_m > 0:
+            depth = np.round(depth / config.depth_quantum_m) * config.depth_quantum_m
+        return depth.astype(np.float32)
+
+
+def depth_centroid(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Mean back-projected point (m, camera frame) of the valid pixels: where the object is."""
+    from .camera import backproject
+
+    pts = backproject(depth_m, K)
+    if len(pts) == 0:
+        raise UserError("the depth image has no valid pixel")
+    return pts.mean(axis=0)
+
+
+# --------------------------------------------------------------------------------------
+# Fusing estimates and the closed loop
+# --------------------------------------------------------------------------------------
+
+def fuse_estimates(estimates: list[Estimate], source: str | None = None) -> Estimate:
+    """One estimate from several of the same object in the same configuration (same frame).
+
+    Per joint: axis direction = normalised mean of the directions (signs aligned to the
+    first); origin = coordinate-wise median; q and part offset = medians.  The axis frame
+    is that of the estimate whose direction is nearest the mean, turned minimally onto the
+    mean direction.  Geometry = median.  Medians make one wild view harmless.
+    """
+    if not estimates:
+        raise ValueError("no estimates to fuse")
+    if len(estimates) == 1:
+        return estimates[0]
+    J = len(estimates[0].q)
+    pose = np.zeros((J, 7))
+    for j in range(J):
+        frames = [axis_frame(e.axis_pose[j]) for e in estimates]
+        d0 = frames[0][1][:, 2]
+        dirs = np.array([f[1][:, 2] * (1.0 if f[1][:, 2] @ d0 >= 0 else -1.0) for f in frames])
+        d = dirs.mean(axis=0)
+        d /= np.linalg.norm(d)
+        k = int(np.argmax(dirs @ d))
+        rot = frames[k][1]
+        if rot[:, 2] @ d < 0:  # its own direction was flipped to align: keep its frame, flip d
+            d = -d
+        cross = np.cross(rot[:, 2], d)
+        angle = math.atan2(np.linalg.norm(cross), float(rot[:, 2] @ d))
+        turn = quat_to_matrix(axis_angle_quat(cross, angle)) if np.linalg.norm(cross) > ZERO_LENGTH else np.eye(3)
+        pose[j, :3] = np.median([f[0] for f in frames], axis=0)
+        pose[j, 3:] = _canonical(mat_to_quat(turn @ rot))
+    po = [e.part_offset for e in estimates if e.part_offset is not None]
+    geo = [e.geometry for e in estimates if e.geometry is not None]
+    return Estimate(pose, np.median([e.q for e in estimates], axis=0), np.median(po, axis=0) if po else None,
+                    np.median(geo, axis=0) if geo else None, source or estimates[0].source)
+
+
+def joint_displacement(joint_type: str, axis_origin, axis_direction, p_from, p_to) -> float:
+    """How far a point carried by the part moved from ``p_from`` to ``p_to`` in joint units:
+    the signed angle about the axis line (revolute) or the distance along it (prismatic)."""
+    a = _unit("axis_direction", axis_direction)
+    if joint_type == PRISMATIC:
+        return float((np.asarray(p_to) - np.asarray(p_from)) @ a)
+    o = np.asarray(axis_origin, np.float64)
+    u = np.asarray(p_from) - o
+    v = np.asarray(p_to) - o
+    u, v = u - (u @ a) * a, v - (v @ a) * a
+    return math.atan2(float(np.cross(u, v) @ a), float(u @ v))
+
+
+#: Closed loop defaults.  Extra views before grasping: the reference camera swung by these
+#: angles about the vertical through the object's depth centroid (the robot moving sideways
+#: at the same distance; +-15 degrees keeps the object's apparent yaw near the training range).
+CLOSED_LOOP_VIEW_ANGLES_DEG = (-15.0, 15.0)
+#: The motion is cut into segments of at most this much joint motion; after each the robot
+#: takes a depth image, re-estimates, and re-plans the rest from its own measured hand pose.
+CLOSED_LOOP_SEGMENT_RAD = math.radians(15.0)
+CLOSED_LOOP_SEGMENT_M = 0.05
+#: Hold after each segment before the image is taken (s): the part comes to rest.
+CLOSED_LOOP_LOOK_SETTLE_S = 0.2
+#: Stop correcting once the estimated remaining motion is below this fraction of the
+#: success tolerance (the estimate cannot resolve finer corrections).
+CLOSED_LOOP_DONE_FRACTION = 0.25
+#: Most images one closed-loop trial may use (the stored image included).
+CLOSED_LOOP_MAX_IMAGES = 12
+
+
+def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, first_depth: np.ndarray, K: np.ndarray,
+                      rng: np.random.Generator, q_target: float | None = None, *,
+                      view_angles_deg=CLOSED_LOOP_VIEW_ANGLES_DEG, segment: float | None = None,
+                      step_rad: float = DEFAULT_STEP_RAD, step_m: float = DEFAULT_STEP_M,
+                      max_images: int = CLOSED_LOOP_MAX_IMAGES, record: bool = False) -> tuple[Plan, ExecutionResult]:
+    """Open joint ``joint`` using depth images of the simulated scene, as a mobile robot would.
+
+    1. **Before grasping**: the estimate of ``first_depth`` (the observation, 1 image) and of
+       ``len(view_angles_deg)`` renders from viewpoints swung about the object's depth
+       centroid (:func:`orbit_viewpoint`) are mapped into the first camera's frame and fused
+       (:func:`fuse_estimates`).  The grasp is planned from the fused estimate and closes
+       only if it lands within :data:`GRASP_CAPTURE_M` of the true handle (as open loop).
+    2. **During the motion**: the robot moves at most ``segment`` (default 15 deg / 5 cm) of
+       joint motion along the arc / line about the current axis estimate, starting at its
+       own measured hand pose (an arm knows its pose from its joint encoders); holds
+       :data:`CLOSED_LOOP_LOOK_SETTLE_S`; takes a depth image from the first viewpoint and
+       re-estimates.  The axis is re-fused from every image so far; the current
+       configuration is the median over images of ``q_i + (the hand's rotation about /
+       travel along the axis since image i)``.  It stops when the estimated remaining
+       motion is below ``CLOSED_LOOP_DONE_FRACTION`` of the success tolerance or
+       ``max_images`` images are used, then holds for :data:`SETTLE_S`.
+
+    The success criterion, force/torque limits and gripper are those of :func:`execute_plan`;
+    peaks are over the whole motion.  ``result.images_used`` counts every image the
+    controller estimated from (the first included); ``result.views`` lists them.
+    """
+    if not 0 <= joint < obj.n_joints:
+        raise UserError(f"joint {joint} out of range: {obj.class_name} has {obj.n_joints} joint(s)")
+    if max_images < 1:
+        raise UserError(f"max_images must be >= 1, got {max_images}")
+    jt = obj.joint_types[joint]
+    target = obj.clip_target(joint, default_target(jt) if q_target is None else q_target)
+    seg = (CLOSED_LOOP_SEGMENT_RAD if jt == REVOLUTE else CLOSED_LOOP_SEGMENT_M) if segment is None else float(segment)
+    if not seg > 0:
+        raise UserError(f"segment must be positive, got {segment}")
+    camera = SceneCamera(obj, rng)
+    views: list[dict] = []
+    first = estimator(first_depth, K)
+    estimates = [first]
+    views.append({"when": "before grasp", "viewpoint_deg": 0.0, "q_estimate": float(first.q[joint])})
+    centre = depth_centroid(first_depth, K)
+    q_true0 = np.asarray(obj.labels["q"], np.float64)
+    for angle in list(view_angles_deg)[: max(0, max_images - 1)]:
+        rot, trans = orbit_viewpoint(centre, math.radians(angle))
+        e = transform_estimate(estimator(camera.render(q_true0, (rot, trans)), camera.K), rot, trans)
+        estimates.append(e)
+        views.append({"when": "before grasp", "viewpoint_deg": float(angle), "q_estimate": float(e.q[joint])})
+    fused = fuse_estimates(estimates, source=f"{estimator.name} closed loop")
+    plan = plan_from_estimate(fused, joint, jt, target, step_rad, step_m)
+    ctl = GripperController(obj, joint, None, record)
+    if not ctl.grasp(plan.grasp_pose):
+        res = ctl.result(target)
+        res.images_used, res.views = len(estimates), views
+        return plan, res
+    hand = ctl.grasp_pose()
+    # every image's (q estimate, hand position when it was taken): q now = q_i + hand motion since
+    seen = [(float(e.q[joint]), hand[:3].copy()) for e in estimates]
+    axis_estimates = list(estimates)
+    tol = success_tolerance(jt)
+    last_cmd = hand
+    while True:
+        axis = fuse_estimates(axis_estimates)
+        o, d = axis.axis(joint)
+        hand = ctl.grasp_pose()
+        q_now = float(np.median([q_i + joint_displacement(jt, o, d, p_i, hand[:3]) for q_i, p_i in seen]))
+        remaining = target - q_now
+        if abs(remaining) <= CLOSED_LOOP_DONE_FRACTION * tol:
+            break
+        step = math.copysign(min(abs(remaining), seg), remaining)
+        wps = plan_waypoints(jt, o, d, 0.0, step, hand, step_rad, step_m)
+        ctl.track(wps, settle_s=CLOSED_LOOP_LOOK_SETTLE_S)
+        last_cmd = wps[-1]
+        if len(seen) >= max_images:
+            break
+        e = estimator(camera.render(ctl.q), camera.K)
+        axis_estimates.append(e)
+        seen.append((float(e.q[joint]), ctl.grasp_pose()[:3].copy()))
+        views.append({"when": "during motion", "viewpoint_deg": 0.0, "q_estimate": float(e.q[joint]),
+                      "q_true": float(ctl.q[joint])})
+    ctl.track(last_cmd[None], settle_s=SETTLE_S)
+    res = ctl.result(target)
+    res.images_used, res.views = len(seen), views
+    return plan, res

@@ -86,11 +86,19 @@ def perturb(estimate, joint_types, rng: np.random.Generator, errors: tuple[float
 
 
 def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, list[Path]], perturbations: dict,
-              seed: int, progress: bool) -> list[dict]:
-    """One record per (object, joint, method) trial of one split."""
+              seed: int, progress: bool, models: dict[str, str] | None = None, closed_loop: bool = False) -> list[dict]:
+    """One record per (object, joint, method) trial of one split.
+
+    ``models``: method name -> ``--model`` spec (a shipped name, or a checkpoint path in which
+    ``{class}`` is replaced by the class name); each estimates from the observed view's stored
+    depth image (1 image), and with ``closed_loop`` also runs
+    :func:`~articulated_dataset.manipulation.closed_loop_trial` as method ``NAME-closed-loop``.
+    A class without a checkpoint (a missing ``{class}`` file, no shipped weights) has no
+    trials for that method (reported as missing)."""
     from tqdm import tqdm
 
     from articulated_dataset import manipulation as M
+    from articulated_dataset.errors import UserError
     from articulated_dataset.pipeline import GenerationConfig
     from articulated_dataset.sampling import stable_key
 
@@ -104,6 +112,12 @@ def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, lis
                 _, estimates[name] = M.load_prediction_estimates(p, cls)
                 break
     rng = np.random.default_rng([seed, stable_key(cls)])
+    estimators = {}
+    for name, spec in (models or {}).items():
+        try:
+            estimators[name] = M.make_estimator(spec.replace("{class}", cls), cls)
+        except UserError as exc:
+            print(f"manipulation.py: {cls}: no {name} model ({exc}); its trials are reported missing", file=sys.stderr)
     rows = nearest_closed_rows(labels, config.table.q, n_objects)
     records = []
     for r in tqdm(rows, desc=f"{cls}/{manifest['split']}", disable=not progress, dynamic_ncols=True):
@@ -114,12 +128,27 @@ def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, lis
         for name, errors in perturbations.items():
             methods[name] = perturb(obj.truth(), obj.joint_types, rng, errors, name)
         methods.update({name: est[sid] for name, est in estimates.items() if sid in est})
+        images = {name: 1 for name in methods if name != TRUTH}  # one image: the observed view (or its prediction)
+        images[TRUTH] = 0
+        if estimators:
+            depth, K, _ = M.stored_image(split_dir, r)
+            for name, est in estimators.items():
+                methods[name] = est(depth, K)
+                images[name] = 1
+        ident = {"class": cls, "object_index": int(row["object_index"]), "image_index": int(row["image_index"]),
+                 "sample_id": sid}
         for j in range(obj.n_joints):
             for name, estimate in methods.items():
                 _, res = M.run_trial(obj, estimate, j)
-                records.append({"class": cls, "method": name, "object_index": int(row["object_index"]),
-                                "image_index": int(row["image_index"]), "sample_id": sid, **res.to_dict()})
-        for name in estimates:
+                res.images_used = images[name]
+                records.append({"method": name, **ident, **res.to_dict()})
+            if closed_loop:
+                for name, est in estimators.items():
+                    loop_rng = np.random.default_rng([seed, stable_key(cls), sid, j])
+                    _, res = M.closed_loop_trial(obj, est, j, depth, K, loop_rng)
+                    records.append({"method": f"{name}-closed-loop", **ident, **res.to_dict(),
+                                    "views": res.views})
+        for name in list(estimates) + [n for n in (models or {}) if n not in estimators]:
             if name not in methods:
                 records.append({"class": cls, "method": name, "sample_id": sid, "missing": True})
     return records
@@ -163,6 +192,9 @@ def summarize(records: list[dict]) -> list[dict]:
             "median_max_force_n": float(np.median(force)) if held else float("nan"),
             "max_max_force_n": float(np.max(force)) if held else float("nan"),
             "max_max_torque_nm": float(np.max([r["max_torque_nm"] for r in held])) if held else float("nan"),
+            "mean_images_used": float(np.mean([r.get("images_used", 0) for r in rs])),
+            "max_images_used": int(np.max([r.get("images_used", 0) for r in rs])),
+            "q_reached": [r["q_reached"] for r in rs], "q_target": [r["q_target"] for r in rs],
         })
     return out
 
@@ -191,21 +223,21 @@ def find_score(scores: list[dict], cls: str, name: str, paths: list[Path]) -> di
 
 
 def format_table(summary: list[dict], scores: list[dict], predictions: dict[str, list[Path]]) -> str:
-    head = f"{'class':13s} {'method':12s} {'trials':>6s} {'success':>8s} {'grasped':>8s} {'reached':>8s} {'<=limits':>8s} " \
-           f"{'median |dq|':>12s} {'median F':>9s} {'max F':>7s} {'max tau':>8s}"
+    head = f"{'class':13s} {'method':18s} {'trials':>6s} {'success':>8s} {'grasped':>8s} {'reached':>8s} {'<=limits':>8s} " \
+           f"{'median |dq|':>12s} {'median F':>9s} {'max F':>7s} {'max tau':>8s} {'images':>7s}"
     if scores:
         head += "   Table 1: " + "  ".join(f"{t:>14s}" for _, t in TABLE1_METRICS)
     lines = [head, "-" * len(head)]
     for s in summary:
         if s["trials"] == 0:
-            lines.append(f"{s['class']:13s} {s['method']:12s} {0:6d}  (no predictions for the selected views)")
+            lines.append(f"{s['class']:13s} {s['method']:18s} {0:6d}  (no predictions for the selected views)")
             continue
         pct = lambda k: f"{100 * s[k]:7.1f}%" if s[k] == s[k] else f"{'-':>8s}"  # noqa: E731  (NaN: no grasp)
         num = lambda v, fmt, unit: f"{v:{fmt}}{unit}" if v == v else "-"  # noqa: E731
-        line = (f"{s['class']:13s} {s['method']:12s} {s['trials']:6d} {pct('success')} {pct('grasped')} {pct('reached')} "
+        line = (f"{s['class']:13s} {s['method']:18s} {s['trials']:6d} {pct('success')} {pct('grasped')} {pct('reached')} "
                 f"{pct('within_limits_of_grasped')} {s['median_error_text']:>12s} "
                 f"{num(s['median_max_force_n'], '.1f', ' N'):>9s} {num(s['max_max_force_n'], '.0f', ' N'):>7s} "
-                f"{num(s['max_max_torque_nm'], '.1f', ' Nm'):>8s}")
+                f"{num(s['max_max_torque_nm'], '.1f', ' Nm'):>8s} {s['mean_images_used']:7.1f}")
         if scores and s["method"] in predictions:
             row = find_score(scores, s["class"], s["method"], predictions[s["method"]])
             cells = []
@@ -373,6 +405,18 @@ def _parse_predictions(items: list[str]) -> dict[str, list[Path]]:
     return out
 
 
+def _parse_models(items: list[str], taken) -> dict[str, str]:
+    """``NAME`` (a shipped model, its own name) or ``NAME=SPEC`` items -> {name: spec}."""
+    out = {}
+    for item in items:
+        name, sep, spec = item.partition("=")
+        spec = spec if sep else name
+        if not name or not spec or name == TRUTH or name in taken or name in out:
+            sys.exit(f"manipulation.py: error: bad or duplicate --model name in {item!r}")
+        out[name] = spec
+    return out
+
+
 def _parse_perturb(items: list[str], taken) -> dict[str, tuple[float, float, float]]:
     """``NAME=POS_CM,ROT_DEG,Q_DEG,Q_CM`` -> (m, rad, (rad, m))."""
     out = {}
@@ -396,6 +440,12 @@ def main(argv=None) -> int:
     ap.add_argument("--objects", type=int, default=20, help="objects per class (first N of the split); 0 = none")
     ap.add_argument("--predictions", action="append", default=[], metavar="NAME=FILE",
                     help="predictions.h5 of a method (repeat; a NAME may repeat, e.g. one file per class)")
+    ap.add_argument("--model", action="append", default=[], metavar="NAME[=SPEC]",
+                    help="estimate from each observed view's depth image with a model: a shipped one (dense, mdn-small) "
+                         "or NAME=CHECKPOINT, where {class} in the path is replaced by each class (repeat)")
+    ap.add_argument("--closed-loop", action="store_true",
+                    help="also open with every --model in closed loop (extra views, re-estimation while opening)")
+    ap.add_argument("--threads", type=int, default=1, help="CPU threads for the models (torch)")
     ap.add_argument("--perturb", action="append", default=[], metavar="NAME=POS_CM,ROT_DEG,Q_DEG,Q_CM",
                     help="also plan from the truth with random errors of these MEAN sizes (e.g. Table 1's 'Ours')")
     ap.add_argument("--seed", type=int, default=0, help="seed of --perturb's errors")
@@ -409,7 +459,14 @@ def main(argv=None) -> int:
     from articulated_dataset.registry import class_names
 
     predictions = _parse_predictions(args.predictions)
-    perturbations = _parse_perturb(args.perturb, predictions)
+    models = _parse_models(args.model, predictions)
+    if args.closed_loop and not models:
+        sys.exit("manipulation.py: error: --closed-loop needs at least one --model")
+    if models:
+        import torch
+
+        torch.set_num_threads(max(1, args.threads))
+    perturbations = _parse_perturb(args.perturb, {**predictions, **models})
     try:
         for files in predictions.values():
             for p in files:
@@ -426,7 +483,7 @@ def main(argv=None) -> int:
         for cls in classes:
             try:
                 records += run_class(args.data / cls / args.split, args.objects, predictions, perturbations,
-                                     args.seed, not args.quiet)
+                                     args.seed, not args.quiet, models, args.closed_loop)
             except UserError as exc:
                 sys.exit(f"manipulation.py: error: {exc}")
         seconds = time.perf_counter() - t0

@@ -71,6 +71,15 @@ def _usable_truth(estimate, joint: int, where: str):
 @click.option("--joint", type=int, default=0, show_default=True, help="Joint to actuate (label order).")
 @click.option("--predictions", "predictions_path", type=click.Path(), default=None,
               help="Plan from this predictions.h5 (matched by sample_id) instead of the truth labels.")
+@click.option("--model", "model", default=None,
+              help="Estimate the kinematics from the image's stored depth with this model: a shipped model "
+                   "(dense, mdn-small) or a checkpoint from 'artdata train'.")
+@click.option("--closed-loop", is_flag=True,
+              help="With --model and --simulate: look again while opening (extra views before grasping, one image "
+                   "after each segment of the motion) and correct the plan; reports the images used.")
+@click.option("--seed", type=int, default=0, show_default=True,
+              help="Seed of the sensor noise of the closed loop's rendered images (splits generated with --noise).")
+@click.option("--threads", type=int, default=None, help="CPU threads for the model (default: torch's).")
 @click.option("--target", default=None,
               help="Target configuration with units: 60deg, 1.0rad (revolute), 0.2m, 20cm (prismatic). "
                    "Default 60deg / 0.2m; clipped to the joint's range.")
@@ -78,7 +87,8 @@ def _usable_truth(estimate, joint: int, where: str):
 @click.option("--simulate", is_flag=True, help="Execute the waypoints on the true object in MuJoCo and report the outcome.")
 @click.option("--out", "out_path", type=click.Path(dir_okay=False), default=None, help="Write the plan (and outcome) as JSON.")
 @click.option("--quiet", "-q", is_flag=True, help="Do not list the waypoints.")
-def plan_cmd(data_dir, index, joint, predictions_path, target, step, simulate, out_path, quiet):
+def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, seed, threads, target, step, simulate,
+             out_path, quiet):
     """Plan end-effector waypoints that open joint JOINT of image INDEX's object.
 
     The handle's grasp pose is estimated from the (true or predicted) axis pose, part offset
@@ -89,10 +99,16 @@ def plan_cmd(data_dir, index, joint, predictions_path, target, step, simulate, o
 
     if index < 0:
         raise UserError(f"--index must be >= 0, got {index}")
+    if model is not None and predictions_path is not None:
+        raise UserError("give either --model (estimate from the image) or --predictions (a predictions file), not both")
+    if closed_loop and (model is None or not simulate):
+        raise UserError("--closed-loop needs --model (it re-estimates from new images) and --simulate (the scene it looks at)")
     if out_path:
         from ..safeio import check_can_create
 
         check_can_create(out_path)  # before any work: a read-only or missing place is one line now
+    if model is not None and threads is not None and threads <= 0:
+        raise UserError(f"--threads must be positive, got {threads}")
     manifest, labels = M.split_row_labels(data_dir, index)
     real = "real" in manifest
     if real and simulate:
@@ -119,7 +135,21 @@ def plan_cmd(data_dir, index, joint, predictions_path, target, step, simulate, o
     clipped = obj.clip_target(joint, q_target)
 
     sample_id = int(labels["sample_id"])
-    if predictions_path is None:
+    estimator = depth = K = None
+    if model is not None:
+        from .train import _prepare_torch
+
+        _prepare_torch(threads)
+        estimator = M.make_estimator(model, obj.class_name)
+        depth, K, mask = M.stored_image(data_dir, index)
+        if real:
+            if mask.any():  # a capture's stored depth may show the scene around the object
+                depth = np.where(mask > 0, depth, 0.0).astype(np.float32)
+        estimate = estimator(depth, K)
+        if estimate.q.shape[0] != obj.n_joints:
+            raise UserError(f"--model {model}: {estimate.q.shape[0]} joints estimated for {obj.class_name} "
+                            f"({obj.n_joints} expected)")
+    elif predictions_path is None:
         estimate = _usable_truth(obj.truth(), joint, f"image {index} of {obj.class_name}/{manifest['split']}")
     else:
         _method, estimates = M.load_prediction_estimates(predictions_path, obj.class_name)
@@ -151,12 +181,23 @@ def plan_cmd(data_dir, index, joint, predictions_path, target, step, simulate, o
         "class": obj.class_name, "split": manifest["split"], "data": str(Path(data_dir)), "index": index,
         "object_index": int(labels["object_index"]), "image_index": int(labels["image_index"]),
         "sample_id": sample_id, "predictions": None if predictions_path is None else str(predictions_path),
+        "model": model, "closed_loop": bool(closed_loop),
         "units": {"position": "m (camera frame)", "quaternion": "w, x, y, z", "q": "rad (revolute) | m (prismatic)"},
         "step": step_value, "q_true": float(labels["q"][joint]) if np.isfinite(labels["q"][joint]) else None,
         **plan.to_dict(),
     }
-    if simulate:
+    if simulate and closed_loop:
+        plan, result = M.closed_loop_trial(obj, estimator, joint, depth, K, np.random.default_rng(seed), clipped,
+                                           step_rad=step_value, step_m=step_value)
+        record.update(plan.to_dict())
+        record["closed_loop"] = result.views
+        click.echo(f"closed loop: {result.images_used} depth images used "
+                   f"({sum(v['when'] == 'before grasp' for v in result.views)} before grasping, "
+                   f"{sum(v['when'] == 'during motion' for v in result.views)} during the motion)")
+    elif simulate:
         result = M.execute_plan(obj, plan.waypoints, joint, clipped)
+        result.images_used = 0 if estimator is None and predictions_path is None else 1
+    if simulate:
         record["simulation"] = result.to_dict()
         record["limits"] = {"max_force_n": M.MAX_FORCE_N, "max_torque_nm": M.MAX_TORQUE_NM,
                             "tolerance": M.success_tolerance(joint_type), "grasp_capture_m": M.GRASP_CAPTURE_M}
