@@ -15,6 +15,16 @@ limit and the gripper model are those of :mod:`articulated_dataset.manipulation`
     python benchmarks/manipulation.py --data data --predictions mean=preds/mean.h5 \\
         --predictions nn=preds/nn.h5 --scores scores.json --json manipulation.json
     python benchmarks/manipulation.py --data data --figure docs/img/manipulation.png --objects 0
+    python benchmarks/manipulation.py --data data --objects 50 --model dense --model mdn-small \
+        --closed-loop dense --threads 1 --json manipulation.json
+
+``--model NAME`` (a shipped model) or ``--model NAME=CHECKPOINT`` (``{class}`` in the path is
+replaced by each class) estimates from each observed view's stored depth image (1 image);
+``--closed-loop [NAME ...]`` also opens with those models in closed loop
+(:func:`articulated_dataset.manipulation.closed_loop_trial`: extra views before grasping,
+one image after each segment of the motion), reported as ``NAME-closed-loop``.  The
+``images`` column is the mean number of depth images a method's controller used (truth: 0;
+predictions files, perturbed truth and one-view models: 1).
 
 With ``--scores`` (the JSON of ``artdata score --json``) the Table 1 errors of each
 (class, method) are printed beside its success rate.  ``--perturb NAME=POS_CM,ROT_DEG,Q_DEG,Q_CM``
@@ -86,12 +96,13 @@ def perturb(estimate, joint_types, rng: np.random.Generator, errors: tuple[float
 
 
 def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, list[Path]], perturbations: dict,
-              seed: int, progress: bool, models: dict[str, str] | None = None, closed_loop: bool = False) -> list[dict]:
+              seed: int, progress: bool, models: dict[str, str] | None = None,
+              closed_loop: set[str] | None = None) -> list[dict]:
     """One record per (object, joint, method) trial of one split.
 
     ``models``: method name -> ``--model`` spec (a shipped name, or a checkpoint path in which
     ``{class}`` is replaced by the class name); each estimates from the observed view's stored
-    depth image (1 image), and with ``closed_loop`` also runs
+    depth image (1 image), and those named in ``closed_loop`` also run
     :func:`~articulated_dataset.manipulation.closed_loop_trial` as method ``NAME-closed-loop``.
     A class without a checkpoint (a missing ``{class}`` file, no shipped weights) has no
     trials for that method (reported as missing)."""
@@ -143,7 +154,7 @@ def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, lis
                 res.images_used = images[name]
                 records.append({"method": name, **ident, **res.to_dict()})
             if closed_loop:
-                for name, est in estimators.items():
+                for name, est in ((n, e) for n, e in estimators.items() if n in closed_loop):
                     loop_rng = np.random.default_rng([seed, stable_key(cls), sid, j])
                     _, res = M.closed_loop_trial(obj, est, j, depth, K, loop_rng)
                     records.append({"method": f"{name}-closed-loop", **ident, **res.to_dict(),
@@ -443,8 +454,9 @@ def main(argv=None) -> int:
     ap.add_argument("--model", action="append", default=[], metavar="NAME[=SPEC]",
                     help="estimate from each observed view's depth image with a model: a shipped one (dense, mdn-small) "
                          "or NAME=CHECKPOINT, where {class} in the path is replaced by each class (repeat)")
-    ap.add_argument("--closed-loop", action="store_true",
-                    help="also open with every --model in closed loop (extra views, re-estimation while opening)")
+    ap.add_argument("--closed-loop", nargs="*", default=None, metavar="NAME",
+                    help="also open in closed loop (extra views, re-estimation while opening) with these --model "
+                         "names (none given: every --model); reported as NAME-closed-loop")
     ap.add_argument("--threads", type=int, default=1, help="CPU threads for the models (torch)")
     ap.add_argument("--perturb", action="append", default=[], metavar="NAME=POS_CM,ROT_DEG,Q_DEG,Q_CM",
                     help="also plan from the truth with random errors of these MEAN sizes (e.g. Table 1's 'Ours')")
@@ -460,8 +472,9 @@ def main(argv=None) -> int:
 
     predictions = _parse_predictions(args.predictions)
     models = _parse_models(args.model, predictions)
-    if args.closed_loop and not models:
-        sys.exit("manipulation.py: error: --closed-loop needs at least one --model")
+    loop_names = None if args.closed_loop is None else set(args.closed_loop or models)
+    if loop_names is not None and (not models or not loop_names <= set(models)):
+        sys.exit("manipulation.py: error: --closed-loop takes names given with --model (none: all of them)")
     if models:
         import torch
 
@@ -483,7 +496,7 @@ def main(argv=None) -> int:
         for cls in classes:
             try:
                 records += run_class(args.data / cls / args.split, args.objects, predictions, perturbations,
-                                     args.seed, not args.quiet, models, args.closed_loop)
+                                     args.seed, not args.quiet, models, loop_names)
             except UserError as exc:
                 sys.exit(f"manipulation.py: error: {exc}")
         seconds = time.perf_counter() - t0
