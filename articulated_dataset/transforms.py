@@ -32,18 +32,34 @@ TRANSFORM_STREAM = 0x5EED0003
 Transform = Callable[[dict, np.random.Generator], dict]
 
 
-def sample_rng(seed: int, epoch: int, index: int) -> np.random.Generator:
-    """The generator a loader passes to the transform of sample ``index`` in ``epoch``."""
-    return np.random.default_rng([int(seed), int(epoch), int(index), TRANSFORM_STREAM])
+def _epoch_words(epoch) -> list[int]:
+    if isinstance(epoch, (int, np.integer)):
+        return [int(epoch)]
+    return [int(w) for w in epoch]
 
 
-def apply_to_batch(transform: Transform, batch: dict, indices: Sequence[int], *, seed: int, epoch: int) -> dict:
-    """Apply ``transform`` to every sample of ``batch`` (arrays stacked on axis 0) and restack."""
+def sample_rng(seed: int, epoch, index: int) -> np.random.Generator:
+    """The generator a loader passes to the transform of sample ``index`` in ``epoch``.
+
+    ``epoch`` is the epoch number (an int), or, for a dataset whose epoch was never set (a stock
+    DataLoader that calls only its sampler's ``set_epoch``), the key the dataset derived for
+    this read of the sample (a sequence of non-negative ints; see docs/loaders.md)."""
+    return np.random.default_rng([int(seed), *_epoch_words(epoch), int(index), TRANSFORM_STREAM])
+
+
+def apply_to_batch(transform: Transform, batch: dict, indices: Sequence[int], *, seed: int, epoch) -> dict:
+    """Apply ``transform`` to every sample of ``batch`` (arrays stacked on axis 0) and restack.
+
+    ``epoch``: one int for the whole batch, or one key per sample (a (B, k) array of
+    non-negative ints, see :func:`sample_rng`)."""
     indices = np.asarray(indices, dtype=np.int64)
+    per_sample = not isinstance(epoch, (int, np.integer))
+    if per_sample and len(epoch) != len(indices):
+        raise ValueError(f"{len(epoch)} epoch keys for {len(indices)} samples")
     out = []
     for b, index in enumerate(indices):
         sample = {k: v[b] for k, v in batch.items()}
-        out.append(transform(sample, sample_rng(seed, epoch, int(index))))
+        out.append(transform(sample, sample_rng(seed, epoch[b] if per_sample else epoch, int(index))))
     if not out:
         return batch
     keys = out[0].keys()

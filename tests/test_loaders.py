@@ -45,16 +45,25 @@ def raw(cab):
     return raw_split(cab)
 
 
-def assert_batch_equals_raw(batch: dict, raw: dict, keys=None):
+#: Where each framework's loader puts depth's channel axis: torch (B, 1, H, W), JAX (B, H, W, 1).
+DEPTH_AXIS = {"torch": 1, "jax": 3}
+
+
+def assert_batch_equals_raw(batch: dict, raw: dict, keys=None, framework="torch"):
+    """Loader batch == raw HDF5 values, in the loaders' layout: depth with a channel axis, K float32."""
     idx = np.asarray(batch["index"])
     for k in keys or [k for k in batch if k in raw]:
         got = batch[k]
         if isinstance(got, list):  # torch: strings
             assert got == [raw[k][i].decode() for i in idx], k
             continue
-        got = np.asarray(got)
-        assert got.dtype == raw[k].dtype, k
-        np.testing.assert_array_equal(got, raw[k][idx], err_msg=k)
+        got, want = np.asarray(got), raw[k][idx]
+        if k == "depth":
+            want = np.expand_dims(want, DEPTH_AXIS[framework])
+        if k == "K":
+            want = want.astype(np.float32)
+        assert got.dtype == want.dtype and got.shape == want.shape, (k, got.dtype, got.shape)
+        np.testing.assert_array_equal(got, want, err_msg=k)
 
 
 # --------------------------------------------------------------------------------------
@@ -126,14 +135,30 @@ def test_reader_reopens_per_process(cab, raw):
 def test_plan_covers_every_sample_once(sizes, parts, block, batch):
     n = sum(sizes)
     for epoch in (0, 1):
-        seen = []
-        for p in range(parts):
-            for b in plan_epoch(sizes, batch_size=batch, seed=3, epoch=epoch, part_index=p, part_count=parts,
-                                block_size=block):
-                assert 0 < len(b) <= batch
-                seen.append(b)
-        seen = np.concatenate(seen)
-        np.testing.assert_array_equal(np.sort(seen), np.arange(n))
+        by_mode = {}
+        for remainder in ("pad", "drop", "uneven"):
+            per_part = []
+            for p in range(parts):
+                plan = plan_epoch(sizes, batch_size=batch, seed=3, epoch=epoch, part_index=p, part_count=parts,
+                                  block_size=block, remainder=remainder)
+                assert all(0 < len(b) <= batch for b in plan)
+                per_part.append(np.concatenate(plan) if plan else np.zeros(0, np.int64))
+            by_mode[remainder] = per_part
+            counts = [len(x) for x in per_part]
+            if remainder != "uneven":  # equal parts: the same number of samples, hence batches
+                assert len(set(counts)) == 1
+                assert len({len(plan_epoch(sizes, batch_size=batch, seed=3, epoch=epoch, part_index=p,
+                                           part_count=parts, block_size=block, remainder=remainder))
+                            for p in range(parts)}) == 1
+            else:
+                assert max(counts) - min(counts) <= 1
+        seen = np.concatenate(by_mode["uneven"])
+        np.testing.assert_array_equal(np.sort(seen), np.arange(n))  # exactly once
+        padded = np.concatenate(by_mode["pad"])  # every sample, plus the first ones again
+        assert len(padded) == -(-n // parts) * parts
+        np.testing.assert_array_equal(np.unique(padded), np.arange(n))
+        dropped = np.concatenate(by_mode["drop"])  # no sample twice, n mod parts left out
+        assert len(dropped) == len(np.unique(dropped)) == n // parts * parts
 
 
 def test_plan_shuffling_is_deterministic_and_changes_per_epoch():
@@ -152,10 +177,6 @@ def test_plan_shuffling_is_deterministic_and_changes_per_epoch():
 
 def test_plan_options():
     sizes = [10, 7]
-    parts = [plan_epoch(sizes, batch_size=3, part_index=p, part_count=3, block_size=2, equal_parts=True)
-             for p in range(3)]
-    lengths = {sum(len(b) for b in part) for part in parts}
-    assert len(lengths) == 1
     dropped = plan_epoch(sizes, batch_size=5, drop_last=True)
     assert [len(b) for b in dropped] == [5, 5, 5]
     with pytest.raises(UserError, match="batch size"):
@@ -164,6 +185,8 @@ def test_plan_options():
         plan_epoch(sizes, batch_size=2, part_index=2, part_count=2)
     with pytest.raises(UserError, match="seed"):
         plan_epoch(sizes, batch_size=2, seed=-1)
+    with pytest.raises(UserError, match="remainder"):
+        plan_epoch(sizes, batch_size=2, remainder="equal")
 
 
 # --------------------------------------------------------------------------------------
@@ -203,7 +226,8 @@ def test_torch_map_style_and_sampler(cab, raw):
 
     ds = DepthDataset(cab)
     item = ds[3]
-    assert isinstance(item["depth"], torch.Tensor) and item["depth"].shape == raw["depth"].shape[1:]
+    assert isinstance(item["depth"], torch.Tensor) and item["depth"].shape == (1,) + raw["depth"].shape[1:]
+    assert item["mask"].shape == raw["mask"].shape[1:] and item["K"].dtype == torch.float32
     assert item["class"] == "cabinet" and int(item["index"]) == 3
     np.testing.assert_array_equal(item["mask"].numpy(), raw["mask"][3])
     # default DataLoader auto-batching goes through __getitems__
@@ -228,7 +252,7 @@ def test_torch_single_sample_iterable_and_spawn(cab, raw):
     idx = np.concatenate([b["index"].numpy() for b in loader])
     np.testing.assert_array_equal(np.sort(idx), np.arange(len(raw["depth"])))
     first = next(iter(loader))
-    np.testing.assert_array_equal(first["depth"].numpy(), raw["depth"][first["index"].numpy()])
+    np.testing.assert_array_equal(first["depth"].numpy()[:, 0], raw["depth"][first["index"].numpy()])
 
 
 def test_torch_targets_in_batches(cab, raw):
@@ -272,14 +296,16 @@ def test_jax_loader_matches_torch_and_raw(cab, raw):
         for jb, tb in pairs:
             assert set(jb) == set(tb)
             assert all(isinstance(v, np.ndarray) for v in jb.values())
+            assert jb["depth"].shape[3] == 1 and tb["depth"].shape[1] == 1  # channels-last / -first
             for k in jb:
-                np.testing.assert_array_equal(jb[k], tb[k].numpy(), err_msg=k)
+                want = tb[k].numpy()[:, 0] if k == "depth" else tb[k].numpy()
+                np.testing.assert_array_equal(jb[k][..., 0] if k == "depth" else jb[k], want, err_msg=k)
             db = dd[jb["index"]]
-            np.testing.assert_array_equal(db["depth"].numpy(), jb["depth"])
+            np.testing.assert_array_equal(db["depth"].numpy()[:, 0], jb["depth"][..., 0])
             assert_batch_equals_raw(jb, raw, keys=["q", "axis_pose", "sample_id"])  # labels: not transformed
         if epoch == 0:
             first = pairs[0][0]
-    assert first["depth"].shape[1:] == (100, 180)
+    assert first["depth"].shape[1:] == (100, 180, 1)
     assert not np.array_equal(first["index"], pairs[0][0]["index"])  # epoch 1 is shuffled differently
 
 
@@ -291,7 +317,7 @@ def test_jax_processes_cover_split_and_grain_workers(cab, raw):
     for p in range(3):
         for batch in JaxLoader(cab, 10, process_index=p, process_count=3, seed=1):
             assert "class" not in batch  # numeric fields only by default
-            assert_batch_equals_raw(batch, raw)
+            assert_batch_equals_raw(batch, raw, framework="jax")
             seen.append(batch["index"])
     np.testing.assert_array_equal(np.sort(np.concatenate(seen)), np.arange(len(raw["depth"])))
     # grain worker processes (spawned, kept across epochs) give the in-process batches
@@ -327,3 +353,133 @@ def test_core_package_imports_neither_torch_nor_jax():
             "bad = [m for m in ('torch', 'jax', 'grain') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+# --------------------------------------------------------------------------------------
+# PyTorch idioms: batches independent of workers, len, equal steps, stock DataLoader
+
+def test_batches_and_len_do_not_depend_on_num_workers(cab, raw):
+    pytest.importorskip("torch")
+    from articulated_dataset.loaders.torch import make_loader
+
+    n = len(raw["depth"])  # 96: batches of 40 are [40, 40, 16]
+    for iterable in (True, False):
+        runs = {}
+        for workers in (0, 1, 2):
+            loader = make_loader(cab, batch_size=40, num_workers=workers, iterable=iterable, seed=3,
+                                 fields=["depth", "q"], persistent_workers=False)
+            batches = [b["index"].numpy() for b in loader]
+            assert len(loader) == len(batches) == 3, (iterable, workers)
+            runs[workers] = batches
+        assert [len(b) for b in runs[0]] == [40, 40, n - 80]
+        for workers in (1, 2):
+            assert all(np.array_equal(a, b) for a, b in zip(runs[0], runs[workers], strict=True)), (iterable, workers)
+    # the docs' quick start: one batch per epoch when the batch holds the whole split
+    assert [len(b["index"]) for b in make_loader(cab, batch_size=128, num_workers=2, fields=["q"])] == [n]
+
+
+def test_equal_steps_per_rank_by_default(cab, raw):
+    pytest.importorskip("torch")
+    from articulated_dataset.loaders.jax import JaxLoader
+    from articulated_dataset.loaders.torch import make_loader
+
+    n, world = len(raw["depth"]), 5  # 96 = 5 x 19 + 1
+    for remainder, per_rank in (("pad", 20), ("drop", 19)):
+        steps, seen = set(), []
+        for rank in range(world):
+            for loader in (make_loader(cab, batch_size=4, num_workers=0, rank=rank, world_size=world, fields=["q"],
+                                       remainder=remainder, iterable=rank % 2 == 0),
+                           JaxLoader(cab, 4, fields=["q"], process_index=rank, process_count=world,
+                                     remainder=remainder)):
+                idx = [np.asarray(b["index"]) for b in loader]
+                assert len(loader) == len(idx) and sum(map(len, idx)) == per_rank
+                steps.add(len(idx))
+            seen.append(np.concatenate(idx))
+        assert steps == {5}
+        seen = np.concatenate(seen)
+        if remainder == "pad":
+            np.testing.assert_array_equal(np.unique(seen), np.arange(n))
+        else:
+            assert len(np.unique(seen)) == len(seen) == n - 1
+    sizes = [len(make_loader(cab, batch_size=4, num_workers=0, rank=r, world_size=world, remainder="uneven",
+                             fields=["q"])) for r in range(world)]
+    assert sum(sizes) == sum(-(-c // 4) for c in (19, 19, 19, 19, 20))
+
+
+def test_stock_dataloader_with_distributed_sampler_three_ranks(cab, raw):
+    """The PyTorch recipe: DataLoader(DepthDataset, sampler=DistributedSampler) per rank and only
+    ``sampler.set_epoch``: equal steps, every sample once per epoch, a new augmentation each epoch."""
+    torch = pytest.importorskip("torch")
+    from torch.utils.data import DataLoader, DistributedSampler
+
+    from articulated_dataset.loaders.torch import DepthDataset
+    from articulated_dataset.transforms import PixelDropout
+
+    torch.manual_seed(0)
+    n, world = len(raw["depth"]), 3
+    ranks = []
+    for rank in range(world):
+        ds = DepthDataset(cab, ["depth", "q", "K"], transform=PixelDropout(0.5), seed=1)
+        sampler = DistributedSampler(ds, num_replicas=world, rank=rank, shuffle=True, seed=7)
+        workers = {0: dict(num_workers=2), 1: dict(num_workers=0),
+                   2: dict(num_workers=1, persistent_workers=True)}[rank]
+        ranks.append((sampler, DataLoader(ds, batch_size=5, sampler=sampler, **workers)))
+    depth_by_epoch = []
+    for epoch in range(2):
+        depth, steps = {}, []
+        for sampler, loader in ranks:
+            sampler.set_epoch(epoch)
+            batches = list(loader)
+            steps.append(len(batches))
+            assert len(loader) == len(batches)
+            for b in batches:
+                assert b["depth"].shape[1] == 1 and b["K"].dtype == torch.float32
+                for i, d in zip(b["index"].tolist(), b["depth"][:, 0].numpy()):
+                    assert i not in depth  # exactly once across ranks
+                    depth[i] = d
+                    kept = d > 0
+                    np.testing.assert_array_equal(d[kept], raw["depth"][i][kept])  # dropout only
+        assert len(set(steps)) == 1 and sorted(depth) == list(range(n))
+        depth_by_epoch.append(depth)
+    changed = [not np.array_equal(depth_by_epoch[0][i], depth_by_epoch[1][i]) for i in range(n)]
+    assert all(changed), f"{changed.count(False)} of {n} samples kept their epoch-0 augmentation"
+
+
+def test_loader_advances_the_epoch_without_set_epoch(cab):
+    pytest.importorskip("torch")
+    from articulated_dataset.loaders.jax import JaxLoader
+    from articulated_dataset.loaders.torch import make_loader
+
+    for make in (lambda: make_loader(cab, batch_size=32, num_workers=0, fields=["q"]),
+                 lambda: JaxLoader(cab, 32, fields=["q"])):
+        loader = make()
+        passes = [np.concatenate([np.asarray(b["index"]) for b in loader]) for _ in range(2)]
+        ref = make()
+        ref.set_epoch(1)
+        np.testing.assert_array_equal(passes[1], np.concatenate([np.asarray(b["index"]) for b in ref]))
+        assert not np.array_equal(passes[0], passes[1])
+
+
+def test_jax_device_put_keeps_sample_ids_exact(cab, raw):
+    pytest.importorskip("jax")
+    from articulated_dataset.loaders.jax import JaxLoader, device_put
+
+    batch = next(iter(JaxLoader(cab, 8, fields=["depth", "sample_id", "K"], shuffle=False)))
+    big = np.array([3971172795307752716], dtype=np.int64)  # the value JAX turned into -33325812
+    put = device_put({**batch, "sample_id": np.concatenate([batch["sample_id"][:-1], big])})
+    assert put["sample_id"].dtype == np.int64 and int(put["sample_id"][-1]) == int(big[0])
+    np.testing.assert_array_equal(put["sample_id"][:-1], raw["sample_id"][:7])
+    assert put["depth"].shape == (8, 108, 192, 1) and str(put["K"].dtype) == "float32"
+
+
+@pytest.mark.parametrize("block,code", [
+    ("torch", "import articulated_dataset.loaders.torch"),
+    ("grain", "from articulated_dataset.loaders.jax import JaxLoader; JaxLoader({cab!r}, 8, num_workers=2)"),
+])
+def test_missing_optional_dependency_is_one_line(cab, block, code):
+    script = f"import sys; sys.modules[{block!r}] = None\n" + code.format(cab=str(cab))
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert res.returncode == 1
+    last = res.stderr.strip().splitlines()[-1]
+    assert last.startswith("ModuleNotFoundError: ") and f"needs {block}, which is not installed: pip install" in last
+    assert "During handling" not in res.stderr  # one error, not a chain

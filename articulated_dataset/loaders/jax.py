@@ -5,15 +5,21 @@
   ``_getitems`` that grain's batch push-down calls), for users who build their own grain
   pipeline: ``grain.MapDataset.source(ShardDataSource(path)).shuffle(seed=0).batch(128)``.
 * :class:`JaxLoader`: the recommended loader.  It yields dicts of numpy arrays (ready for
-  ``jax.device_put``) following :func:`~articulated_dataset.loaders.reader.plan_epoch`, the same
+  :func:`device_put`) following :func:`~articulated_dataset.loaders.reader.plan_epoch`, the same
   shuffling, sharding and batches as the PyTorch loaders (a process is one part:
   ``process_index`` of ``process_count``, defaults from ``jax.process_index()`` /
-  ``jax.process_count()``).  With ``num_workers > 0`` batches are read in grain worker
-  processes (``MapDataset.to_iter_dataset().mp_prefetch``), arrive through shared memory and
-  the workers stay alive from one epoch to the next (``close()`` stops them).
+  ``jax.process_count()``; every process gets the same number of batches).  With
+  ``num_workers > 0`` batches are read in grain worker processes
+  (``MapDataset.to_iter_dataset().mp_prefetch``), arrive through shared memory and the workers
+  stay alive from one epoch to the next (``close()`` stops them).
 
-By default the string field ``class`` is left out (``jax.device_put`` takes numbers only);
-``class_index`` gives the class as an integer.  Neither jax nor grain is imported until needed.
+Layout: ``depth`` is channels-last, ``(B, H, W, 1)`` float32 m (the NHWC layout of
+``flax.linen.Conv``); ``mask`` ``(B, H, W)`` uint8; ``K`` float32.  By default the string field
+``class`` is left out (``jax.device_put`` takes numbers only); ``class_index`` gives the class
+as an integer.  :func:`device_put` keeps 64-bit integer fields (``sample_id``, ``index``, ...) on
+the host unless JAX runs with 64-bit types (``jax_enable_x64``): JAX would otherwise truncate
+them to 32 bits, and predictions are matched by ``sample_id``.  Neither jax nor grain is
+imported until needed.
 """
 
 from __future__ import annotations
@@ -23,7 +29,8 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import UserError
-from .reader import DEFAULT_BLOCK_SIZE, NUMERIC_FIELDS, BatchProcessor, ShardReader, load_batch, plan_epoch
+from .reader import (DEFAULT_BLOCK_SIZE, JAX_INSTALL, NUMERIC_FIELDS, BatchProcessor, ShardReader, load_batch,
+                     n_batches, part_bounds, plan_epoch, require)
 
 #: Batches each grain worker prepares ahead.
 DEFAULT_PREFETCH_BATCHES = 2
@@ -37,6 +44,8 @@ ENDLESS_LENGTH = 2**62
 PLAN_CACHE_EPOCHS = 4
 #: Consecutive epochs without a batch for this process before the stream gives up.
 MAX_EMPTY_EPOCHS = 64
+#: Axis of the channel that the JAX loader adds to ``depth`` (channels-last: (B, H, W, 1)).
+DEPTH_CHANNEL_AXIS = -1
 
 
 class ShardDataSource(ShardReader):
@@ -157,7 +166,7 @@ def unpack(element: dict) -> dict:
 def _absl_flags_ready() -> None:
     """grain's worker processes read absl flags; a program that never parsed them (anything but an
     ``absl.app`` main) would fail with UnparsedFlagAccessError, so mark them parsed (defaults kept)."""
-    from absl import flags
+    flags = require("absl.flags", "JaxLoader(num_workers > 0)", JAX_INSTALL)
 
     if not flags.FLAGS.is_parsed():
         flags.FLAGS.mark_as_parsed()
@@ -167,7 +176,7 @@ def _process_defaults(process_index: int | None, process_count: int | None) -> t
     if process_index is None or process_count is None:
         try:
             import jax
-        except ImportError:  # jax missing: numpy batches still work on one process
+        except ModuleNotFoundError:  # jax missing: numpy batches still work on one process
             jax = None
         process_index = (jax.process_index() if jax else 0) if process_index is None else process_index
         process_count = (jax.process_count() if jax else 1) if process_count is None else process_count
@@ -177,15 +186,18 @@ def _process_defaults(process_index: int | None, process_count: int | None) -> t
 
 
 class JaxLoader:
-    """Batches of numpy arrays for one JAX process; ``set_epoch(epoch)`` before each epoch.
+    """Batches of numpy arrays for one JAX process; ``set_epoch(epoch)`` before each epoch
+    (without it, each pass runs the next epoch; the first pass runs epoch 0).
 
     ``fields`` default: every numeric field (:data:`~articulated_dataset.loaders.reader.NUMERIC_FIELDS`).
     Every batch holds ``index`` (global sample indices) and, with ``target``, ``target``.
+    ``remainder`` as in :func:`~articulated_dataset.loaders.reader.plan_epoch` (default ``"pad"``:
+    every process gets the same number of batches).  ``len(loader)``: batches per epoch.
     """
 
     def __init__(self, source, batch_size: int, *, fields: Sequence[str] | None = None, shuffle: bool = True,
                  seed: int = 0, process_index: int | None = None, process_count: int | None = None,
-                 block_size: int = DEFAULT_BLOCK_SIZE, drop_last: bool = False, equal_parts: bool = False,
+                 block_size: int = DEFAULT_BLOCK_SIZE, drop_last: bool = False, remainder: str = "pad",
                  target=None, norm=None, transform=None, num_workers: int = 0,
                  prefetch_batches: int = DEFAULT_PREFETCH_BATCHES):
         fields = NUMERIC_FIELDS if fields is None else fields
@@ -198,15 +210,21 @@ class JaxLoader:
         if num_workers < 0:
             raise UserError(f"num_workers must be >= 0, got {num_workers}")
         self.num_workers, self.prefetch_batches = int(num_workers), max(1, int(prefetch_batches))
+        if self.num_workers > 0:  # one clear line now, not a ModuleNotFoundError in the first epoch
+            require("grain", f"JaxLoader(num_workers={self.num_workers})", JAX_INSTALL + "; or num_workers=0")
         self.kw = dict(batch_size=batch_size, seed=seed, shuffle=shuffle, block_size=block_size, drop_last=drop_last,
-                       equal_parts=equal_parts)
+                       remainder=remainder)
         self.epoch = 0
+        self._epoch_given, self._passes = False, 0
         self._it = None  # grain iterator of the worker processes, kept across epochs
         self._next_epoch: int | None = None
         self.batches()  # validate the options now
 
     def set_epoch(self, epoch: int) -> None:
+        if int(epoch) < 0:
+            raise UserError(f"epoch must be >= 0, got {epoch}")
         self.epoch = int(epoch)
+        self._epoch_given = True
 
     def batches(self) -> list[np.ndarray]:
         """This process's batches (index arrays) in the current epoch."""
@@ -214,17 +232,25 @@ class JaxLoader:
                           part_count=self.process_count, **self.kw)
 
     def __len__(self) -> int:
-        return len(self.batches())
+        a, b = part_bounds(len(self.reader), self.process_count, self.process_index, self.kw["remainder"])
+        return n_batches(b - a, int(self.kw["batch_size"]), self.kw["drop_last"])
 
     def _plan_kw(self) -> dict:
         return dict(part_index=self.process_index, part_count=self.process_count, **self.kw)
 
     def __iter__(self):
+        if self._passes and not self._epoch_given:
+            self.epoch += 1
+        self._epoch_given = False
+        self._passes += 1
+        return self._iter_epoch()
+
+    def _iter_epoch(self):
         n = len(self.batches())
         if self.num_workers == 0:
             stream = _EpochStream(self.reader, self.processor, self._plan_kw(), self.epoch)
             for b in range(n):
-                yield stream[b]
+                yield _channels_last(stream[b])
             return
         if n == 0:
             return
@@ -234,7 +260,7 @@ class JaxLoader:
         finished = False
         try:
             for _ in range(n):
-                yield unpack(next(self._it))
+                yield _channels_last(unpack(next(self._it)))
             finished = True
         finally:
             if finished:
@@ -271,11 +297,26 @@ class JaxLoader:
             pass
 
 
-def device_put(batch: dict, device=None) -> dict:
-    """``jax.device_put`` of every array of a batch (strings are not accepted by JAX)."""
-    import jax
+def _channels_last(batch: dict) -> dict:
+    """``depth`` (B, H, W) -> (B, H, W, 1) (a view)."""
+    if "depth" in batch:
+        batch["depth"] = np.expand_dims(batch["depth"], DEPTH_CHANNEL_AXIS)
+    return batch
 
-    return {k: jax.device_put(v, device) for k, v in batch.items()}
+
+def device_put(batch: dict, device=None) -> dict:
+    """``jax.device_put`` of every array of a batch, except 64-bit integer arrays when JAX runs
+    without 64-bit types (the default): those (``sample_id``, ``index``, ``class_index``, ...)
+    stay numpy arrays on the host, exact, because JAX would silently truncate them to 32 bits
+    (``sample_id`` 3971172795307752716 would become -33325812).  With
+    ``jax.config.update("jax_enable_x64", True)`` everything goes to the device."""
+    jax = require("jax", "articulated_dataset.loaders.jax.device_put", JAX_INSTALL)
+    x64 = bool(jax.config.read("jax_enable_x64"))
+    out = {}
+    for k, v in batch.items():
+        a = np.asarray(v)
+        out[k] = a if (a.dtype.kind in "iu" and a.dtype.itemsize == 8 and not x64) else jax.device_put(v, device)
+    return out
 
 
 __all__ = ["ShardDataSource", "JaxLoader", "device_put"]

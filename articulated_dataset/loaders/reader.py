@@ -14,6 +14,7 @@ and the JAX loaders; :class:`BatchProcessor` the one definition of what is added
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
 from dataclasses import dataclass, field
@@ -52,6 +53,24 @@ DEFAULT_BLOCK_SIZE = 4
 #: Stream tags keep the shuffling and the transform random streams independent for one seed.
 PLAN_STREAM = 0x5EED0001
 SAMPLE_ORDER_STREAM = 0x5EED0002
+
+
+#: How to install the optional dependencies (the package is installed from its checkout).
+TORCH_INSTALL = ("pip install torch --index-url https://download.pytorch.org/whl/cpu (PyTorch's CPU build; "
+                 "or bash scripts/setup.sh from the repository checkout)")
+JAX_INSTALL = 'pip install -e ".[jax]" from the repository checkout (jax, jaxlib, grain)'
+
+
+def require(module: str, needed_by: str, install: str):
+    """``importlib.import_module(module)``; if it is not installed, a ModuleNotFoundError whose
+    message is one line naming what needs it and the command that installs it."""
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name is None or exc.name.split(".")[0] != module.split(".")[0]:
+            raise  # something inside the module is missing: a real error, keep it
+        raise ModuleNotFoundError(f"{needed_by} needs {module.split('.')[0]}, which is not installed: {install}",
+                                  name=exc.name) from None
 
 
 def _as_path_list(paths_or_split_dirs) -> list:
@@ -310,7 +329,8 @@ class ShardReader:
             return {k: v[0] for k, v in self.get_batch([i]).items()}
         raise TypeError(f"reader indices must be integers, got {type(i).__name__}; use get_batch() for several")
 
-    def get_batch(self, indices: Iterable[int], fields: Sequence[str] | None = None, *, alloc=None) -> dict:
+    def get_batch(self, indices: Iterable[int], fields: Sequence[str] | None = None, *, alloc=None,
+                  dtypes: dict | None = None) -> dict:
         """Samples ``indices`` stacked along a new first axis, in the order given.
 
         The indices are sorted and de-duplicated; each run of consecutive images of one shard is
@@ -318,7 +338,8 @@ class ShardReader:
         ``fields`` (a subset of the reader's fields) overrides the selection for this call.
         ``alloc({name: (shape, dtype)}) -> {name: array}`` allocates the output arrays (default
         ``numpy.empty`` each; the torch workers put them all in one shared-memory block so that
-        batches reach the main process uncopied).
+        batches reach the main process uncopied).  ``dtypes`` ({name: dtype}) converts fields
+        on reading (the loaders read ``K`` as float32).
         """
         names = self.fields if fields is None else check_fields(fields)
         missing = [f for f in names if f not in self.fields]
@@ -332,7 +353,7 @@ class ShardReader:
         specs = {}
         for name in names:
             shape, dtype = self.field_spec(name)
-            specs[name] = ((n,) + shape, dtype)
+            specs[name] = ((n,) + shape, np.dtype((dtypes or {}).get(name, dtype)))
         reorder = n != len(idx) or not np.array_equal(uniq, idx)
         if alloc is None or reorder:  # a reordered batch is a new array anyway
             out = {name: np.empty(shape, dtype) for name, (shape, dtype) in specs.items()}
@@ -402,20 +423,49 @@ def _check_seed(name: str, value) -> int:
     return int(value)
 
 
+#: How :func:`plan_epoch` deals with the ``N mod P`` samples that do not divide equally among
+#: ``P`` parts (ranks): ``"pad"`` repeats samples from the start of the epoch's order until every
+#: part has ``ceil(N / P)`` (``DistributedSampler(drop_last=False)``), ``"drop"`` leaves them out
+#: of the epoch, every part has ``floor(N / P)`` (``DistributedSampler(drop_last=True)``);
+#: ``"uneven"`` keeps every sample exactly once and parts differ by up to one sample.
+REMAINDER_MODES = ("pad", "drop", "uneven")
+
+
+def check_remainder(remainder: str) -> str:
+    if remainder not in REMAINDER_MODES:
+        raise UserError(f"remainder must be one of {', '.join(map(repr, REMAINDER_MODES))}, got {remainder!r}")
+    return remainder
+
+
+def part_bounds(n_samples: int, part_count: int, part_index: int, remainder: str = "pad") -> tuple[int, int]:
+    """``[start, stop)`` of part ``part_index`` in the epoch's (padded or cut) sample sequence."""
+    n, P = int(n_samples), int(part_count)
+    total = {"pad": -(-n // P) * P, "drop": n // P * P, "uneven": n}[check_remainder(remainder)] if n else 0
+    return part_index * total // P, (part_index + 1) * total // P
+
+
+def n_batches(n_samples: int, batch_size: int, drop_last: bool) -> int:
+    """Batches of ``batch_size`` cut from ``n_samples`` (a short last one kept unless ``drop_last``)."""
+    return n_samples // batch_size if drop_last else -(-n_samples // batch_size)
+
+
 def plan_epoch(shard_sizes, *, batch_size: int, seed: int = 0, epoch: int = 0, shuffle: bool = True,
                part_index: int = 0, part_count: int = 1, block_size: int = DEFAULT_BLOCK_SIZE,
-               drop_last: bool = False, equal_parts: bool = False) -> list[np.ndarray]:
+               drop_last: bool = False, remainder: str = "pad") -> list[np.ndarray]:
     """The batches (arrays of global sample indices) of one part of one epoch.
 
     1. Every shard is cut into blocks of ``block_size`` consecutive images (a block never
        crosses a shard boundary).
     2. With ``shuffle``, the blocks are permuted by a generator seeded with ``(seed, epoch)``:
-       the same for every part, different for every epoch.
-    3. Part ``p`` of ``P = part_count`` takes the contiguous range of blocks
-       ``[floor(p nb / P), floor((p + 1) nb / P))``: parts never overlap and together hold every
-       sample once.  (Parts are distributed ranks, DataLoader workers or JAX processes.)
-       With ``equal_parts`` every part is cut to the smallest part's length (for collective
-       training steps that need the same number of batches on every rank).
+       the same for every part, different for every epoch.  Their images, in that block
+       order, are the epoch's sample sequence (``N`` samples).
+    3. The sequence is made divisible by ``P = part_count`` as :data:`REMAINDER_MODES` says
+       (default ``"pad"``: repeated from its start to ``ceil(N / P) P``, as
+       ``DistributedSampler`` does), and part ``p`` takes the contiguous range
+       ``[p T / P, (p + 1) T / P)`` of it (``T`` its length): every part gets the same number of
+       samples, hence of batches (ranks of a collective training step must), and together the
+       parts hold every sample once (plus the padding).  Parts are distributed ranks or JAX
+       processes.
     4. The part's samples are cut into consecutive batches of ``batch_size`` (the last one
        shorter unless ``drop_last``).  Each batch is sorted: the order inside a batch does not
        matter to a training step, and sorted indices are read without reordering copies.
@@ -427,6 +477,8 @@ def plan_epoch(shard_sizes, *, batch_size: int, seed: int = 0, epoch: int = 0, s
         raise UserError(f"block size must be positive, got {block_size}")
     if part_count <= 0 or not 0 <= part_index < part_count:
         raise UserError(f"part index {part_index} is not in [0, {part_count})")
+    check_remainder(remainder)
+    batch_size, block_size = int(batch_size), int(block_size)
     seed, epoch = _check_seed("seed", seed), _check_seed("epoch", epoch)
     offsets = np.concatenate([[0], np.cumsum(sizes)])
     starts = np.concatenate([np.arange(o, o + n, block_size) for o, n in zip(offsets[:-1], sizes)] or [np.zeros(0, np.int64)])
@@ -434,13 +486,13 @@ def plan_epoch(shard_sizes, *, batch_size: int, seed: int = 0, epoch: int = 0, s
     stops = np.minimum(starts + block_size, shard_end)
     nb = len(starts)
     order = np.random.default_rng([seed, epoch, PLAN_STREAM]).permutation(nb) if shuffle else np.arange(nb)
-    bounds = [nb * p // part_count for p in range(part_count + 1)]
-    cum = np.concatenate([[0], np.cumsum((stops - starts)[order])])
-    part_sizes = cum[bounds[1:]] - cum[bounds[:-1]]
-    mine = order[bounds[part_index] : bounds[part_index + 1]]
-    idx = (np.concatenate([np.arange(starts[b], stops[b]) for b in mine]) if len(mine) else np.zeros(0)).astype(np.int64)
-    if equal_parts:
-        idx = idx[: int(part_sizes.min())]
+    lengths = (stops - starts)[order]
+    n = int(lengths.sum())
+    a, b = part_bounds(n, part_count, part_index, remainder)
+    pos = np.arange(a, b, dtype=np.int64) % max(n, 1)  # positions in the sequence ("pad" wraps around)
+    first = np.concatenate([[0], np.cumsum(lengths)])  # sequence position of each (ordered) block's first image
+    k = np.searchsorted(first, pos, side="right") - 1
+    idx = (starts[order][k] + pos - first[k]).astype(np.int64) if len(pos) else np.zeros(0, np.int64)
     batches = [idx[i : i + batch_size] for i in range(0, len(idx), batch_size)]
     if drop_last and batches and len(batches[-1]) < batch_size:
         batches.pop()
@@ -451,16 +503,27 @@ def plan_epoch(shard_sizes, *, batch_size: int, seed: int = 0, epoch: int = 0, s
 # What every loader adds to a batch
 # --------------------------------------------------------------------------------------
 
+#: dtype of the intrinsics ``K`` in loader batches (the reader keeps the stored float64):
+#: training code multiplies them with float32 tensors.
+LOADER_K_DTYPE = np.float32
+
+
 class BatchProcessor:
     """Applies the optional transform (per sample, seeded by ``(seed, epoch, index)``), adds the
     target vector (``target``, float32 (B, D), normalised if ``norm`` is given) and the global
-    sample indices (``index``, int64)."""
+    sample indices (``index``, int64), and gives ``K`` as :data:`LOADER_K_DTYPE`.
+
+    ``epoch`` of :meth:`__call__` is an int, or, for a dataset whose epoch was never set, one key
+    (a sequence of non-negative ints) per sample: see
+    :func:`articulated_dataset.transforms.sample_rng`."""
 
     def __init__(self, fields: Sequence[str], *, transform=None, target=None, norm=None, seed: int = 0):
         self.transform = transform
         self.target = target
         self.norm = norm
         self.seed = _check_seed("seed", seed)
+        #: dtypes the reader allocates for fields whose loader dtype differs from the stored one
+        self.dtypes = {"K": np.dtype(LOADER_K_DTYPE)} if "K" in fields else {}
         if norm is not None and target is None:
             raise UserError("normalisation statistics need a target layout (target=TargetLayout.for_class(...))")
         if target is not None:
@@ -470,7 +533,7 @@ class BatchProcessor:
             if norm is not None:
                 norm.check_layout(target)
 
-    def __call__(self, batch: dict, indices: np.ndarray, epoch: int) -> dict:
+    def __call__(self, batch: dict, indices: np.ndarray, epoch) -> dict:
         indices = np.asarray(indices, dtype=np.int64)
         if self.transform is not None:
             from ..transforms import apply_to_batch
@@ -479,16 +542,20 @@ class BatchProcessor:
         if self.target is not None:
             vec = self.target.encode(batch)
             batch[TARGET_KEY] = self.norm.normalize(vec) if self.norm is not None else vec
+        for name, dtype in self.dtypes.items():
+            if name in batch and batch[name].dtype != dtype:  # a transform made it float64 again
+                batch[name] = batch[name].astype(dtype)
         batch[INDEX_KEY] = indices.copy()
         return batch
 
 
-def load_batch(reader: ShardReader, processor: BatchProcessor, indices, epoch: int, alloc=None) -> dict:
+def load_batch(reader: ShardReader, processor: BatchProcessor, indices, epoch, alloc=None) -> dict:
     """Read and process one batch: the single code path of every loader."""
     indices = np.asarray(indices, dtype=np.int64)
-    return processor(reader.get_batch(indices, alloc=alloc), indices, epoch)
+    return processor(reader.get_batch(indices, alloc=alloc, dtypes=processor.dtypes), indices, epoch)
 
 
 __all__ = ["ShardReader", "plan_epoch", "BatchProcessor", "load_batch", "resolve_split_dirs", "check_fields",
+           "REMAINDER_MODES", "require", "TORCH_INSTALL", "JAX_INSTALL", "part_bounds", "n_batches", "LOADER_K_DTYPE",
            "DEFAULT_FIELDS", "NUMERIC_FIELDS", "ALL_FIELDS", "STRING_FIELDS", "VIRTUAL_FIELDS", "DEFAULT_BLOCK_SIZE",
            "INDEX_KEY", "TARGET_KEY"]

@@ -1,31 +1,40 @@
-"""PyTorch datasets over the shards (``pip install torch==2.13.0`` first: the CPU build).
+"""PyTorch datasets and loaders over the shards (needs torch: ``pip install torch --index-url
+https://download.pytorch.org/whl/cpu``, PyTorch's CPU build).
 
-* :class:`DepthDataset`: map-style; ``ds[i]`` is a dict of tensors, ``ds[[i, j, ...]]`` a batch
-  (one contiguous read per run of images), ``__getitems__`` serves DataLoader auto-batching.
+* :class:`DepthDataset`: map-style; ``ds[i]`` one sample, ``ds[[i, j]]`` a batch; works with a
+  stock ``DataLoader`` (auto-batching reads each batch at once through ``__getitems__``) and
+  ``DistributedSampler``.
 * :class:`EpochBatchSampler`: the batches of :func:`~articulated_dataset.loaders.reader.plan_epoch`
-  for one distributed rank; with ``DataLoader(ds, sampler=..., batch_size=None)``.
-* :class:`ShardIterableDataset`: iterable; splits the blocks of the shards across distributed
-  ranks *and* DataLoader workers (part ``rank * num_workers + worker``), so every sample is seen
-  exactly once per epoch; deterministic per-epoch shuffling from ``(seed, epoch)``.
+  for one rank, for ``DataLoader(ds, sampler=..., batch_size=None)``.
+* :class:`ShardIterableDataset`: iterable; the rank's batches of the epoch plan, dealt to the
+  DataLoader workers in turn, so batches are the same whatever ``num_workers`` is.
 * :func:`make_loader`: a DataLoader with ``set_epoch(epoch)`` over either of them.
 
-String fields (``class``) become a ``str`` per sample / a list of ``str`` per batch.  Call
-``set_epoch(epoch)`` before iterating each epoch (as with ``DistributedSampler``).  The epoch is
-kept in a shared-memory tensor, so it also reaches persistent workers (``make_loader`` keeps its
-workers alive across epochs).  In a worker process, batches are read straight into shared
-memory, so handing them to the main process copies nothing.
+Layout: ``depth`` is channels-first, ``(B, 1, H, W)`` float32 m (one sample: ``(1, H, W)``);
+``mask`` stays ``(B, H, W)`` uint8 (a class-index map, the layout of segmentation targets);
+``K`` is float32.  String fields (``class``) become a ``str`` per sample / a list of ``str`` per
+batch.  Every rank gets the same number of batches (``remainder="pad"`` by default, as
+``DistributedSampler``).  Call ``set_epoch(epoch)`` before each epoch (``make_loader``'s
+loader advances the epoch itself when it is not called); the epoch is kept in a shared-memory
+tensor, so it also reaches persistent workers.  A dataset whose epoch is never set (a stock
+DataLoader whose sampler alone gets ``set_epoch``) still gives each read of a sample a new
+augmentation (see :meth:`_SharedEpoch.transform_epoch`).  In a worker process, batches are
+read straight into shared memory, so handing them to the main process copies nothing.
 """
 
 from __future__ import annotations
 
+import hashlib
 from typing import Sequence
 
 import numpy as np
-import torch
-from torch.utils.data import DataLoader, Dataset, IterableDataset, Sampler, get_worker_info
 
 from ..errors import UserError
-from .reader import DEFAULT_BLOCK_SIZE, SAMPLE_ORDER_STREAM, BatchProcessor, ShardReader, load_batch, plan_epoch
+from .reader import (DEFAULT_BLOCK_SIZE, SAMPLE_ORDER_STREAM, TORCH_INSTALL, BatchProcessor, ShardReader, load_batch,
+                     n_batches, part_bounds, plan_epoch, require)
+
+torch = require("torch", "articulated_dataset.loaders.torch", TORCH_INSTALL)
+from torch.utils.data import DataLoader, Dataset, IterableDataset, Sampler, get_worker_info  # noqa: E402
 
 #: Default batch size of :func:`make_loader`.
 DEFAULT_BATCH_SIZE = 128
@@ -121,21 +130,82 @@ def _split_batch(batch: dict, n: int) -> list[dict]:
     return [{k: v[i] for k, v in batch.items()} for i in range(n)]
 
 
+#: Axis of the channel that the torch loaders add to ``depth`` (channels-first: (B, 1, H, W)).
+DEPTH_CHANNEL_AXIS = -3
+
+
+def _channels_first(batch: dict) -> dict:
+    """``depth`` (B, H, W) -> (B, 1, H, W): a view, so a shared-memory batch stays shared."""
+    if "depth" in batch:
+        batch["depth"] = batch["depth"].unsqueeze(DEPTH_CHANNEL_AXIS)
+    return batch
+
+
+#: First word of the transform keys of a dataset whose epoch was never set (a stock DataLoader):
+#: keeps them apart from the keys ``(epoch,)`` of set epochs.
+UNSET_EPOCH_TAG = 0xA070
+_U32 = 0xFFFFFFFF
+
+
+def _pass_entropy() -> int:
+    """A 64-bit value that changes at every pass of a stock DataLoader.
+
+    In a worker: the DataLoader's base seed of the pass (``worker_info.seed - worker_info.id``,
+    drawn from torch's RNG when the pass starts; the same in every worker of the pass).  In the
+    main process (``num_workers=0``): a digest of torch's global RNG state, which the DataLoader
+    advances when each pass starts (it draws that base seed).  Both follow ``torch.manual_seed``."""
+    info = get_worker_info()
+    if info is not None:
+        return (int(info.seed) - int(info.id)) & 0xFFFFFFFFFFFFFFFF
+    digest = hashlib.blake2b(torch.get_rng_state().numpy().tobytes(), digest_size=8).digest()
+    return int.from_bytes(digest, "little")
+
+
 class _SharedEpoch:
     """An epoch counter in shared memory: ``set_epoch`` in the main process reaches workers that
-    were started earlier (persistent workers; fork or spawn)."""
+    were started earlier (persistent workers; fork or spawn).  Also counts, in shared memory,
+    how often each sample was read (for :meth:`transform_epoch` when no epoch is set)."""
 
-    def _init_epoch(self) -> None:
-        self._epoch = torch.zeros((), dtype=torch.int64).share_memory_()
+    def _init_epoch(self, n_samples: int) -> None:
+        self._epoch = torch.full((), -1, dtype=torch.int64).share_memory_()  # -1: never set
+        self._visits = torch.zeros(int(n_samples), dtype=torch.int32).share_memory_()
 
     @property
     def epoch(self) -> int:
-        return int(self._epoch)
+        """The epoch set by ``set_epoch`` (0 if it never was)."""
+        return max(int(self._epoch), 0)
+
+    @property
+    def epoch_is_set(self) -> bool:
+        return int(self._epoch) >= 0
 
     def set_epoch(self, epoch: int) -> None:
         if int(epoch) < 0:
             raise UserError(f"epoch must be >= 0, got {epoch}")
         self._epoch.fill_(int(epoch))
+
+    def transform_epoch(self, indices: np.ndarray, rank: int):
+        """What seeds the transforms of a batch (see :func:`articulated_dataset.transforms.sample_rng`).
+
+        With an epoch set: the epoch (an int): the augmentation of a sample depends only on
+        ``(seed, epoch, index)``: the same in both frameworks, with any number of workers.
+        Never set (a stock DataLoader whose ``DistributedSampler`` alone gets ``set_epoch``):
+        one key per sample, ``(tag, pass entropy, rank, visits)``: the pass entropy (see
+        :func:`_pass_entropy`) changes every pass, and ``visits`` (how often this dataset, in any
+        of its workers, read the sample before) every time the sample is read again, so the
+        augmentation changes every epoch either way (also with persistent workers)."""
+        epoch = int(self._epoch)
+        if epoch >= 0:
+            return epoch
+        idx = np.asarray(indices, dtype=np.int64)
+        visits = self._visits.numpy()
+        seen = visits[idx].astype(np.int64)
+        np.add.at(visits, idx, 1)
+        entropy = _pass_entropy()
+        keys = np.empty((len(idx), 5), dtype=np.int64)
+        keys[:, 0], keys[:, 1], keys[:, 2], keys[:, 3], keys[:, 4] = (UNSET_EPOCH_TAG, entropy >> 32, entropy & _U32,
+                                                                      rank, seen)
+        return keys
 
 
 def distributed_rank_world(rank: int | None, world_size: int | None) -> tuple[int, int]:
@@ -154,25 +224,31 @@ def distributed_rank_world(rank: int | None, world_size: int | None) -> tuple[in
 
 
 class DepthDataset(_SharedEpoch, Dataset):
-    """Map-style dataset: item ``i`` is a dict of tensors (``index`` added; ``target`` if a
-    :class:`~articulated_dataset.targets.TargetLayout` is given, normalised by ``norm``).
+    """Map-style dataset: item ``i`` is a dict of tensors (``depth`` (1, H, W); ``index`` added;
+    ``target`` if a :class:`~articulated_dataset.targets.TargetLayout` is given, normalised by
+    ``norm``).
 
     ``transform(sample, rng)`` (see :mod:`articulated_dataset.transforms`) is seeded by
-    ``(seed, epoch, i)``; ``set_epoch`` changes the epoch.
+    ``(seed, epoch, i)`` once ``set_epoch`` was called; without it (a stock DataLoader with
+    ``DistributedSampler``) each read of a sample gets a new augmentation
+    (:meth:`~_SharedEpoch.transform_epoch`).
     """
 
     def __init__(self, source, fields: Sequence[str] | None = None, *, target=None, norm=None, transform=None,
                  seed: int = 0):
         self.reader = _reader(source, fields)
         self.processor = BatchProcessor(self.reader.fields, transform=transform, target=target, norm=norm, seed=seed)
-        self._init_epoch()
+        self._init_epoch(len(self.reader))
 
     def __len__(self) -> int:
         return len(self.reader)
 
     def _load(self, indices) -> dict:
         alloc = _worker_alloc()
-        return to_torch(load_batch(self.reader, self.processor, indices, self.epoch, alloc=alloc), alloc)
+        epoch = self.epoch
+        if self.processor.transform is not None:
+            epoch = self.transform_epoch(indices, distributed_rank_world(None, None)[0])
+        return _channels_first(to_torch(load_batch(self.reader, self.processor, indices, epoch, alloc=alloc), alloc))
 
     def __getitem__(self, i):
         """One sample (int) or a stacked batch (sequence / array of ints)."""
@@ -181,7 +257,7 @@ class DepthDataset(_SharedEpoch, Dataset):
             j = int(i) + n if int(i) < 0 else int(i)
             if not 0 <= j < n:
                 raise IndexError(f"sample index {i} out of range for a dataset of {n} images")
-            return {k: v[0] for k, v in self._load([j]).items()}
+            return {k: v[0] for k, v in self._load(np.asarray([j], dtype=np.int64)).items()}
         if isinstance(i, torch.Tensor):
             i = i.numpy()
         return self._load(np.asarray(i, dtype=np.int64))
@@ -192,15 +268,19 @@ class DepthDataset(_SharedEpoch, Dataset):
 
 
 class EpochBatchSampler(Sampler):
-    """Batches of :func:`plan_epoch` for ``rank`` of ``world_size`` (``set_epoch`` per epoch)."""
+    """Batches of :func:`plan_epoch` for ``rank`` of ``world_size`` (``set_epoch`` per epoch).
+
+    ``remainder`` (``"pad"``, ``"drop"`` or ``"uneven"``): what happens to the samples that do
+    not divide equally among the ranks (:data:`~articulated_dataset.loaders.reader.REMAINDER_MODES`);
+    with ``"pad"`` or ``"drop"`` every rank gets the same number of batches."""
 
     def __init__(self, shard_sizes, batch_size: int, *, shuffle: bool = True, seed: int = 0, rank: int | None = None,
                  world_size: int | None = None, block_size: int = DEFAULT_BLOCK_SIZE, drop_last: bool = False,
-                 equal_parts: bool = False):
+                 remainder: str = "pad"):
         self.shard_sizes = np.asarray(shard_sizes, dtype=np.int64)
         self.rank, self.world_size = distributed_rank_world(rank, world_size)
         self.kw = dict(batch_size=batch_size, seed=seed, shuffle=shuffle, block_size=block_size, drop_last=drop_last,
-                       equal_parts=equal_parts)
+                       remainder=remainder)
         self.epoch = 0
         plan_epoch(self.shard_sizes, epoch=0, part_index=self.rank, part_count=self.world_size, **self.kw)  # validate
 
@@ -215,21 +295,26 @@ class EpochBatchSampler(Sampler):
             yield b.tolist()
 
     def __len__(self) -> int:
-        return len(self.batches())
+        a, b = part_bounds(int(self.shard_sizes.sum()), self.world_size, self.rank, self.kw["remainder"])
+        return n_batches(b - a, int(self.kw["batch_size"]), self.kw["drop_last"])
 
 
 class ShardIterableDataset(_SharedEpoch, IterableDataset):
-    """Iterable dataset over shard blocks, split across ranks and DataLoader workers.
+    """Iterable dataset over shard blocks for one rank of ``world_size``.
 
-    Part ``p = rank * num_workers + worker_id`` of ``P = world_size * num_workers`` iterates its
-    batches of :func:`plan_epoch` (``seed``, current epoch).  With ``batch_size`` it yields whole
-    batches (use ``DataLoader(ds, batch_size=None)``); without, single samples, read
-    ``read_size`` at a time and (with ``shuffle``) yielded in a random order within them.
+    The rank's batches of :func:`plan_epoch` (``seed``, current epoch, ``remainder``) are dealt
+    to the DataLoader workers in turn (batch ``b`` to worker ``b mod num_workers``), and the
+    DataLoader hands them on in that order: the batches are the same whatever ``num_workers``
+    is.  With ``batch_size`` it yields whole batches (use ``DataLoader(ds, batch_size=None)``;
+    ``len(ds)`` is the number of batches); without, single samples (``len(ds)`` of them), read
+    ``read_size`` at a time and (with ``shuffle``) yielded in a random order within each read;
+    the DataLoader's ``batch_size`` then groups them inside each worker (PyTorch's rule for
+    iterable datasets), so give ``batch_size`` here for batches independent of the workers.
     """
 
     def __init__(self, source, fields: Sequence[str] | None = None, *, batch_size: int | None = None,
                  shuffle: bool = True, seed: int = 0, rank: int | None = None, world_size: int | None = None,
-                 block_size: int = DEFAULT_BLOCK_SIZE, drop_last: bool = False, equal_parts: bool = False,
+                 block_size: int = DEFAULT_BLOCK_SIZE, drop_last: bool = False, remainder: str = "pad",
                  target=None, norm=None, transform=None, read_size: int = DEFAULT_READ_SIZE):
         super().__init__()
         self.reader = _reader(source, fields)
@@ -239,60 +324,97 @@ class ShardIterableDataset(_SharedEpoch, IterableDataset):
         self.read_size = int(batch_size or read_size)
         self.shuffle, self.seed, self.block_size = bool(shuffle), seed, block_size
         self.drop_last = bool(drop_last and batch_size is not None)
-        self.equal_parts = bool(equal_parts)
-        self._init_epoch()
-        self.plan(part_index=0, part_count=1)  # validate the options now, not in a worker
+        self.remainder = remainder
+        self._init_epoch(len(self.reader))
+        self.plan()  # validate the options now, not in a worker
 
-    def plan(self, part_index: int, part_count: int, epoch: int | None = None) -> list[np.ndarray]:
-        """The batches (index arrays) of one part in ``epoch`` (default: the current epoch)."""
+    def plan(self, epoch: int | None = None) -> list[np.ndarray]:
+        """This rank's batches (index arrays) in ``epoch`` (default: the current epoch)."""
         epoch = self.epoch if epoch is None else epoch
         return plan_epoch(self.reader.shard_sizes, batch_size=self.read_size, seed=self.seed, epoch=epoch,
-                          shuffle=self.shuffle, part_index=part_index, part_count=part_count,
-                          block_size=self.block_size, drop_last=self.drop_last, equal_parts=self.equal_parts)
+                          shuffle=self.shuffle, part_index=self.rank, part_count=self.world_size,
+                          block_size=self.block_size, drop_last=self.drop_last, remainder=self.remainder)
 
-    def part(self) -> tuple[int, int]:
-        """``(part_index, part_count)`` of the calling process (worker and rank)."""
-        info = get_worker_info()
-        worker, n_workers = (info.id, info.num_workers) if info is not None else (0, 1)
-        return self.rank * n_workers + worker, self.world_size * n_workers
+    def __len__(self) -> int:
+        a, b = part_bounds(len(self.reader), self.world_size, self.rank, self.remainder)
+        return n_batches(b - a, self.read_size, self.drop_last) if self.batch_size is not None else b - a
 
     def __iter__(self):
-        part_index, part_count = self.part()
+        info = get_worker_info()
+        worker, n_workers = (info.id, info.num_workers) if info is not None else (0, 1)
         epoch = self.epoch
-        rng = np.random.default_rng([self.seed, epoch, SAMPLE_ORDER_STREAM, part_index, part_count])
-        for indices in self.plan(part_index, part_count, epoch):
+        plan = self.plan(epoch)
+        for c in range(worker, len(plan), n_workers):
+            indices = plan[c]
             alloc = _worker_alloc() if self.batch_size is not None else None
-            batch = to_torch(load_batch(self.reader, self.processor, indices, epoch, alloc=alloc), alloc)
+            key = self.transform_epoch(indices, self.rank) if self.processor.transform is not None else epoch
+            batch = _channels_first(to_torch(load_batch(self.reader, self.processor, indices, key, alloc=alloc), alloc))
             if self.batch_size is not None:
                 yield batch
                 continue
             samples = _split_batch(batch, len(indices))
-            order = rng.permutation(len(samples)) if self.shuffle else range(len(samples))
+            if self.shuffle:
+                rng = np.random.default_rng([self.seed, epoch, SAMPLE_ORDER_STREAM, self.rank, self.world_size, c])
+                order = rng.permutation(len(samples))
+            else:
+                order = range(len(samples))
             for k in order:
                 yield samples[k]
 
 
 class EpochDataLoader(DataLoader):
-    """A DataLoader whose ``set_epoch(epoch)`` reaches its dataset and batch sampler."""
+    """A DataLoader whose ``set_epoch(epoch)`` reaches its dataset and batch sampler.
 
-    def set_epoch(self, epoch: int) -> None:
+    A pass that starts without ``set_epoch`` having been called since the previous pass runs
+    the next epoch (the first pass runs epoch 0), so a loop that forgets ``set_epoch`` still
+    reshuffles and re-augments every epoch."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._epoch, self._epoch_given, self._passes = 0, False, 0
+        self._propagate(0)
+
+    def _propagate(self, epoch: int) -> None:
         for obj in (self.dataset, self.batch_sampler, self.sampler):
             if hasattr(obj, "set_epoch"):
                 obj.set_epoch(epoch)
+        self._epoch = int(epoch)
+
+    @property
+    def epoch(self) -> int:
+        return self._epoch
+
+    def set_epoch(self, epoch: int) -> None:
+        if int(epoch) < 0:
+            raise UserError(f"epoch must be >= 0, got {epoch}")
+        self._propagate(epoch)
+        self._epoch_given = True
+
+    def __iter__(self):
+        if self._passes and not self._epoch_given:
+            self._propagate(self._epoch + 1)
+        self._epoch_given = False
+        self._passes += 1
+        return super().__iter__()
 
 
 def make_loader(source, *, batch_size: int = DEFAULT_BATCH_SIZE, fields: Sequence[str] | None = None,
                 shuffle: bool = True, seed: int = 0, num_workers: int = DEFAULT_NUM_WORKERS,
                 rank: int | None = None, world_size: int | None = None, drop_last: bool = False,
-                equal_parts: bool = False, block_size: int = DEFAULT_BLOCK_SIZE, target=None, norm=None,
+                remainder: str = "pad", block_size: int = DEFAULT_BLOCK_SIZE, target=None, norm=None,
                 transform=None, iterable: bool = True, **dataloader_kwargs) -> EpochDataLoader:
     """A DataLoader of dict batches over ``source`` (split folders or a ShardReader).
 
-    ``iterable=True``: :class:`ShardIterableDataset` (batches formed in the workers);
-    ``iterable=False``: :class:`DepthDataset` with :class:`EpochBatchSampler` (batches formed in
-    the main process, handed to any worker).  Both follow :func:`plan_epoch` and cover each
-    sample once per epoch across ranks.  Call ``loader.set_epoch(epoch)`` before each epoch.
-    Extra keyword arguments go to ``torch.utils.data.DataLoader`` (e.g. ``pin_memory``).
+    ``iterable=True``: :class:`ShardIterableDataset` (batches read in the workers);
+    ``iterable=False``: :class:`DepthDataset` with :class:`EpochBatchSampler` (batches planned in
+    the main process, read by any worker).  Both give the batches of :func:`plan_epoch` for the
+    rank, whatever ``num_workers`` is; every rank gets the same number of batches
+    (``remainder="pad"``: samples that do not divide equally among the ranks are repeated from
+    the start of the epoch, as ``DistributedSampler`` does; ``"drop"`` leaves them out;
+    ``"uneven"`` keeps every sample exactly once, for evaluation).  ``len(loader)`` is the
+    number of batches per epoch of this rank.  Call ``loader.set_epoch(epoch)`` before each
+    epoch (without it, each pass runs the next epoch).  Extra keyword arguments go to
+    ``torch.utils.data.DataLoader`` (e.g. ``pin_memory``).
     """
     if num_workers < 0:
         raise UserError(f"num_workers must be >= 0, got {num_workers}")
@@ -302,14 +424,14 @@ def make_loader(source, *, batch_size: int = DEFAULT_BATCH_SIZE, fields: Sequenc
     if iterable:
         ds = ShardIterableDataset(source, fields, batch_size=batch_size, shuffle=shuffle, seed=seed, rank=rank,
                                   world_size=world_size, block_size=block_size, drop_last=drop_last,
-                                  equal_parts=equal_parts, target=target, norm=norm, transform=transform)
+                                  remainder=remainder, target=target, norm=norm, transform=transform)
         return EpochDataLoader(ds, batch_size=None, num_workers=num_workers, **dataloader_kwargs)
     ds = DepthDataset(source, fields, target=target, norm=norm, transform=transform, seed=seed)
     sampler = EpochBatchSampler(ds.reader.shard_sizes, batch_size, shuffle=shuffle, seed=seed, rank=rank,
                                 world_size=world_size, block_size=block_size, drop_last=drop_last,
-                                equal_parts=equal_parts)
+                                remainder=remainder)
     return EpochDataLoader(ds, sampler=sampler, batch_size=None, num_workers=num_workers, **dataloader_kwargs)
 
 
 __all__ = ["DepthDataset", "ShardIterableDataset", "EpochBatchSampler", "EpochDataLoader", "make_loader", "to_torch",
-           "distributed_rank_world"]
+           "distributed_rank_world", "DEPTH_CHANNEL_AXIS"]
