@@ -1067,6 +1067,99 @@ def joint_displacement(joint_type: str, axis_origin, axis_direction, p_from, p_t
     return math.atan2(float(np.cross(u, v) @ a), float(u @ v))
 
 
+#: Looking at the handle before grasping (closed loop): a wrist camera (the dataset's
+#: intrinsics) HANDLE_LOOK_DISTANCE_M out along the estimated outward normal of the planned
+#: grasp, looking back at it (3.3 mm per pixel there).  Within HANDLE_SEARCH_RADIUS_M of the
+#: view's centre the panel is the plane with most points within HANDLE_PLANE_TOL_M
+#: (RANSAC, HANDLE_RANSAC_ITERATIONS draws); handle candidates stand HANDLE_PROTRUSION_M
+#: (min, max) in front of it (the bar is a 3 cm deep block, urdf_templates/common.xacro).
+#: The connected candidate region nearest the view's centre that is bar-shaped (at most
+#: HANDLE_MAX_EXTENT_M long and HANDLE_MAX_WIDTH_M wide, at least HANDLE_MIN_PIXELS pixels)
+#: is the handle; the grasp moves to its centroid, HANDLE_STANDOFF_M / 2 back towards the
+#: panel (the bar's centre, as in the grasp rule).  None found: the planned grasp is kept.
+HANDLE_LOOK_DISTANCE_M = 0.35
+HANDLE_SEARCH_RADIUS_M = 0.15
+HANDLE_PLANE_TOL_M = 0.005
+HANDLE_RANSAC_ITERATIONS = 200
+HANDLE_PROTRUSION_M = (0.01, 0.045)
+HANDLE_MAX_EXTENT_M = 0.25
+HANDLE_MAX_WIDTH_M = 0.05
+HANDLE_MIN_PIXELS = 10
+
+
+def outward_normal(grasp_pose, joint_type: str) -> np.ndarray:
+    """The panel's outward normal of a grasp pose (:func:`grasp_pose_from_estimate`): its frame's
+    y axis for a door, z for a drawer."""
+    _check_joint_type(joint_type)
+    return quat_to_matrix(_vec("grasp_pose", grasp_pose, 7)[3:])[:, 1 if joint_type == REVOLUTE else 2]
+
+
+def look_at_viewpoint(point, normal, distance_m: float = HANDLE_LOOK_DISTANCE_M) -> tuple[np.ndarray, np.ndarray]:
+    """Camera pose ``(rot, trans)`` (camera -> reference frame; camera x forward, z up) at
+    ``point + distance_m * normal`` looking back along ``-normal`` at ``point``, its up as close
+    to the reference z (or, for a vertical normal, the reference x) as possible."""
+    n = _unit("normal", normal)
+    fwd = -n
+    up = np.array([0.0, 0.0, 1.0]) if abs(fwd[2]) < math.cos(math.radians(10.0)) else np.array([1.0, 0.0, 0.0])
+    up = up - (up @ fwd) * fwd
+    up /= np.linalg.norm(up)
+    rot = np.column_stack([fwd, np.cross(up, fwd), up])
+    return rot, _vec("point", point, 3) + distance_m * n
+
+
+def find_handle(depth_m: np.ndarray, K: np.ndarray, rng: np.random.Generator) -> np.ndarray | None:
+    """The handle bar's centre (m, in the frame of the camera that took ``depth_m``) near the
+    image centre, or None; method and thresholds: ``HANDLE_*`` above."""
+    from scipy import ndimage
+
+    from .camera import R_CAMERA_TO_OPTICAL
+
+    H, W = depth_m.shape
+    v, u = np.mgrid[0:H, 0:W]
+    z = depth_m.astype(np.float64)
+    valid = z > 0
+    pts = (np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], -1) @ R_CAMERA_TO_OPTICAL)
+    lateral = np.hypot(pts[..., 1], pts[..., 2])
+    near = valid & (lateral < HANDLE_SEARCH_RADIUS_M)
+    P = pts[near]
+    if len(P) < 3 * HANDLE_MIN_PIXELS:
+        return None
+    best, best_count = None, -1
+    for _ in range(HANDLE_RANSAC_ITERATIONS):
+        a, b, c = P[rng.choice(len(P), 3, replace=False)]
+        nrm = np.cross(b - a, c - a)
+        if np.linalg.norm(nrm) < ZERO_LENGTH:
+            continue
+        nrm /= np.linalg.norm(nrm)
+        count = int((np.abs((P - a) @ nrm) < HANDLE_PLANE_TOL_M).sum())
+        if count > best_count:
+            best, best_count = (a, nrm), count
+    if best is None:
+        return None
+    a, nrm = best
+    if nrm[0] > 0:  # towards the camera (camera x is forward, so the camera side is -x)
+        nrm = -nrm
+    height = np.where(valid, (pts - a) @ nrm, -np.inf)  # how far in front of the panel
+    cand = near & (height >= HANDLE_PROTRUSION_M[0]) & (height <= HANDLE_PROTRUSION_M[1])
+    labels, n = ndimage.label(cand)
+    found = []
+    for k in range(1, n + 1):
+        Q = pts[labels == k]
+        if len(Q) < HANDLE_MIN_PIXELS:
+            continue
+        centred = Q - Q.mean(axis=0)
+        ext = np.sort(np.ptp(centred @ np.linalg.svd(centred, full_matrices=False)[2].T, axis=0))[::-1]
+        if ext[0] > HANDLE_MAX_EXTENT_M or ext[1] > HANDLE_MAX_WIDTH_M:
+            continue
+        centre = Q.mean(axis=0)
+        found.append((float(np.hypot(centre[1], centre[2])), centre))
+    if not found:
+        return None
+    centre = min(found, key=lambda f: f[0])[1]
+    # the visible faces are the bar's front: its centre lies half the standoff nearer the panel
+    return centre - 0.5 * HANDLE_STANDOFF_M * nrm
+
+
 #: Closed loop defaults.  Extra views before grasping: the reference camera swung by these
 #: angles about the vertical through the object's depth centroid (the robot moving sideways
 #: at the same distance; +-15 degrees keeps the object's apparent yaw near the training range).
@@ -1087,15 +1180,18 @@ CLOSED_LOOP_MAX_IMAGES = 12
 def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, first_depth: np.ndarray, K: np.ndarray,
                       rng: np.random.Generator, q_target: float | None = None, *,
                       view_angles_deg=CLOSED_LOOP_VIEW_ANGLES_DEG, segment: float | None = None,
-                      step_rad: float = DEFAULT_STEP_RAD, step_m: float = DEFAULT_STEP_M,
+                      step_rad: float = DEFAULT_STEP_RAD, step_m: float = DEFAULT_STEP_M, look_at_handle: bool = True,
                       max_images: int = CLOSED_LOOP_MAX_IMAGES, record: bool = False) -> tuple[Plan, ExecutionResult]:
     """Open joint ``joint`` using depth images of the simulated scene, as a mobile robot would.
 
     1. **Before grasping**: the estimate of ``first_depth`` (the observation, 1 image) and of
        ``len(view_angles_deg)`` renders from viewpoints swung about the object's depth
        centroid (:func:`orbit_viewpoint`) are mapped into the first camera's frame and fused
-       (:func:`fuse_estimates`).  The grasp is planned from the fused estimate and closes
-       only if it lands within :data:`GRASP_CAPTURE_M` of the true handle (as open loop).
+       (:func:`fuse_estimates`).  The grasp is planned from the fused estimate; then a close-up
+       from a wrist camera :data:`HANDLE_LOOK_DISTANCE_M` out along the planned grasp's
+       outward normal (:func:`look_at_viewpoint`, 1 image, not given to the model) is searched
+       for the handle bar (:func:`find_handle`); if one is found the grasp moves onto it.  It
+       closes only if it lands within :data:`GRASP_CAPTURE_M` of the true handle (as open loop).
     2. **During the motion**: the robot moves at most ``segment`` (default 15 deg / 5 cm) of
        joint motion along the arc / line about the current axis estimate, starting at its
        own measured hand pose (an arm knows its pose from its joint encoders); holds
@@ -1133,10 +1229,23 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
         views.append({"when": "before grasp", "viewpoint_deg": float(angle), "q_estimate": float(e.q[joint])})
     fused = fuse_estimates(estimates, source=f"{estimator.name} closed loop")
     plan = plan_from_estimate(fused, joint, jt, target, step_rad, step_m)
+    grasp = plan.grasp_pose.copy()
+    n_images = len(estimates)
+    if look_at_handle and n_images < max_images:
+        rot, trans = look_at_viewpoint(grasp[:3], outward_normal(grasp, jt))
+        found = find_handle(camera.render(q_true0, (rot, trans)), camera.K, rng)
+        n_images += 1
+        if found is not None:
+            grasp[:3] = rot @ found + trans
+        views.append({"when": "before grasp", "viewpoint_deg": None, "wrist": True, "handle_found": found is not None,
+                      "grasp_moved_m": float(np.linalg.norm(grasp[:3] - plan.grasp_pose[:3]))})
+        o, d = fused.axis(joint)
+        plan.grasp_pose = grasp
+        plan.waypoints = plan_waypoints(jt, o, d, plan.q_current, target, grasp, step_rad, step_m)
     ctl = GripperController(obj, joint, None, record)
-    if not ctl.grasp(plan.grasp_pose):
+    if not ctl.grasp(grasp):
         res = ctl.result(target)
-        res.images_used, res.views = len(estimates), views
+        res.images_used, res.views = n_images, views
         return plan, res
     hand = ctl.grasp_pose()
     # every image's (q estimate, hand position when it was taken): q now = q_i + hand motion since
@@ -1156,14 +1265,15 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
         wps = plan_waypoints(jt, o, d, 0.0, step, hand, step_rad, step_m)
         ctl.track(wps, settle_s=CLOSED_LOOP_LOOK_SETTLE_S)
         last_cmd = wps[-1]
-        if len(seen) >= max_images:
+        if n_images >= max_images:
             break
         e = estimator(camera.render(ctl.q), camera.K)
         axis_estimates.append(e)
         seen.append((float(e.q[joint]), ctl.grasp_pose()[:3].copy()))
+        n_images += 1
         views.append({"when": "during motion", "viewpoint_deg": 0.0, "q_estimate": float(e.q[joint]),
                       "q_true": float(ctl.q[joint])})
     ctl.track(last_cmd[None], settle_s=SETTLE_S)
     res = ctl.result(target)
-    res.images_used, res.views = len(seen), views
+    res.images_used, res.views = n_images, views
     return plan, res

@@ -382,7 +382,8 @@ def test_cli_plan_closed_loop_counts_images(tiny_root, dense_ckpt, tmp_path):
     rec = json.loads(out.read_text())
     views = rec["closed_loop"]
     n_before = sum(v["when"] == "before grasp" for v in views)
-    assert n_before == 1 + len(M.CLOSED_LOOP_VIEW_ANGLES_DEG)
+    assert n_before == 2 + len(M.CLOSED_LOOP_VIEW_ANGLES_DEG)  # observed, swung views, the handle close-up
+    assert sum(bool(v.get("wrist")) for v in views) == 1
     assert rec["simulation"]["images_used"] == len(views) >= n_before
     assert f"closed loop: {len(views)} depth images used" in r.output
 
@@ -443,12 +444,36 @@ def test_closed_loop_with_true_estimates_opens_and_counts_every_image(tiny_root,
     during = [v for v in res.views if v["when"] == "during motion"]
     # one image after each segment of at most `seg`, so at least ceil(motion / seg) of them
     assert len(during) >= math.ceil((res.q_target - res.q_start) / seg - 1e-9)
-    assert res.images_used == len(res.views) == oracle.calls == 1 + len(M.CLOSED_LOOP_VIEW_ANGLES_DEG) + len(during)
+    # the model estimated from every image but the handle close-up, which was looked at too
+    assert res.images_used == len(res.views) == oracle.calls + 1 == 2 + len(M.CLOSED_LOOP_VIEW_ANGLES_DEG) + len(during)
     q_seen = [v["q_true"] for v in during]
     assert all(b > a for a, b in zip(q_seen, q_seen[1:]))  # the part opened between images
     # one image only: no extra view, one segment, then stop (short of the target)
     oracle, plan, res = _oracle_loop(obj, monkeypatch, max_images=1)
     assert res.images_used == oracle.calls == 1 and not res.reached
+
+
+@pytest.mark.parametrize("cls", ["cabinet", "drawer", "toaster"])
+def test_find_handle_in_a_close_up(tiny_root, cls):
+    """Looking from 35 cm at a grasp 5 cm off the handle (along the panel) finds the bar's centre."""
+    obj = _first_view_obj(tiny_root, cls)
+    t, jt = obj.truth(), obj.joint_types[0]
+    grasp = M.grasp_pose_from_estimate(t.axis_pose[0], t.part_offset[0], t.geometry, jt, t.q[0])
+    frame = quat_to_matrix(grasp[3:])
+    off = grasp[:3] + 0.05 * frame[:, 0]  # 5 cm along the frame's x (in the panel's plane)
+    camera = M.SceneCamera(obj, np.random.default_rng(0))
+    rot, trans = M.look_at_viewpoint(off, M.outward_normal(grasp, jt))
+    found = M.find_handle(camera.render(t.q, (rot, trans)), camera.K, np.random.default_rng(1))
+    assert found is not None
+    data = mujoco.MjData(obj.model)
+    set_configuration(obj.model, data, obj.info.joint_ids, t.q)
+    g = M.handle_geom(obj, 0)
+    point = rot @ found + trans
+    assert np.linalg.norm(point - data.geom_xpos[g]) < 0.02
+    assert M.point_box_distance(point, data.geom_xpos[g], data.geom_xmat[g].reshape(3, 3), obj.model.geom_size[g]) < 0.005
+    # a flat wall has no handle
+    wall = np.full((108, 192), 0.35, np.float32)
+    assert M.find_handle(wall, camera.K, np.random.default_rng(2)) is None
 
 
 def test_cli_plan_real_split_from_estimate(tiny_root, dense_ckpt, tmp_path):
