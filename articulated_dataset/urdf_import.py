@@ -48,6 +48,7 @@ fixed geometry (the table's geometry ranges are the body's bounding box, for ref
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import json
@@ -57,6 +58,7 @@ import os
 import re
 import shutil
 import tempfile
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -112,6 +114,10 @@ MAX_REVOLUTE_LIMIT_RAD = 2 * math.pi + LIMIT_ROUNDING_RAD
 #: Largest |limit| of a prismatic joint (m, after --scale): no articulated object opens
 #: farther; a larger value is a placeholder or a unit mistake.
 MAX_PRISMATIC_LIMIT_M = 10.0
+#: Largest magnitude of a length in the file (origins, sizes, mesh scales and vertices, in
+#: the file's units): beyond any object in metres or millimetres.  Larger values are
+#: placeholders and break the numerics (SVDs that never converge, MuJoCo inertia failures).
+MAX_FILE_LENGTH = 1e6
 #: Most triangles MuJoCo's STL reader takes in one mesh file (its stl_decoder's limit).
 MUJOCO_MAX_STL_FACES = 200_000
 #: yourdfpy validation messages not treated as errors: a <limit>'s effort and velocity do
@@ -262,6 +268,21 @@ def _one_line(exc: Exception) -> str:
     return (str(exc).splitlines() or [""])[0][:200]
 
 
+@contextlib.contextmanager
+def _quietly():
+    """Hostile numbers (inf, nan) make numpy and trimesh warn, and yourdfpy logs each mesh it
+    cannot find: the checks below report such input in one line, so keep the rest quiet."""
+    ylog = logging.getLogger("yourdfpy")
+    level = ylog.level
+    ylog.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)
+            yield
+    finally:
+        ylog.setLevel(level)
+
+
 def _safe_xml(path: Path):
     """The root element of ``path`` parsed as plain XML: no entity expansion, no DTD, no
     network, no XInclude (lxml only includes when asked), comments and processing
@@ -321,9 +342,12 @@ def _check_names(robot, path: Path) -> None:
 
 
 def _finite(values, what: str, path: Path) -> np.ndarray:
+    """``values`` as floats, each finite and at most :data:`MAX_FILE_LENGTH` in magnitude."""
     a = np.asarray(values, float)
-    if not np.all(np.isfinite(a)):
-        raise UserError(f"URDF {path}: {what} is not finite ({np.array2string(a.ravel()[:6], separator=' ')})")
+    bad = ~np.isfinite(a) | (np.abs(a) > MAX_FILE_LENGTH)
+    if np.any(bad):
+        raise UserError(f"URDF {path}: {what} holds {a[bad].ravel()[0]:g}: lengths must be finite and within "
+                        f"+-{MAX_FILE_LENGTH:g}")
     return a
 
 
@@ -332,6 +356,8 @@ def _check_numbers(robot, path: Path) -> None:
     for j in robot.joints:
         if j.origin is not None:
             _finite(j.origin, f"origin of joint {j.name!r}", path)
+        if j.axis is not None and (np.size(j.axis) != 3 or not np.all(np.isfinite(np.asarray(j.axis, float)))):
+            raise UserError(f"URDF {path}: <axis xyz> of joint {j.name!r} must be 3 finite numbers")
     for link in robot.links:
         for kind, items in (("visual", link.visuals), ("collision", link.collisions)):
             for item in items:
@@ -343,6 +369,8 @@ def _check_numbers(robot, path: Path) -> None:
                     continue
                 if g.mesh is not None and g.mesh.scale is not None:
                     sc = _finite(g.mesh.scale, f"mesh scale of {where}", path)
+                    if sc.size not in (1, 3):
+                        raise UserError(f"URDF {path}: mesh scale of {where} must be 3 numbers")
                     if np.any(sc == 0):
                         raise UserError(f"URDF {path}: mesh scale of {where} has a zero factor")
                 sizes = []
@@ -555,8 +583,8 @@ def _load_mesh(path: str):
         raise UserError(f"cannot read mesh file {path}: {_one_line(exc)}") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise UserError(f"mesh file {path} holds no triangles")
-    if not np.all(np.isfinite(mesh.vertices)):
-        raise UserError(f"mesh file {path} has vertices that are not finite numbers")
+    if not np.all(np.isfinite(mesh.vertices)) or np.any(np.abs(mesh.vertices) > MAX_FILE_LENGTH):
+        raise UserError(f"mesh file {path} has vertices that are not finite numbers or beyond +-{MAX_FILE_LENGTH:g}")
     return mesh
 
 
@@ -805,8 +833,11 @@ def _build_class(definition: dict) -> tuple[ObjectClass, tuple[str, ...]]:
     # Compile once at the identity pose (object frame = camera frame): checks that MuJoCo
     # reads the processed model and measures the object for the default pose table.
     try:
-        model = build_model(template.read_text(), {"x_m": 0.0, "y_m": 0.0, "z_m": 0.0, "yaw_rad": 0.0}, camera, parsed.root)
-    except ValueError as exc:  # MuJoCo's compiler refuses the model (degenerate mesh, ...)
+        with warnings.catch_warnings():  # a model MuJoCo warns about here would warn on every object
+            warnings.simplefilter("error")
+            model = build_model(template.read_text(), {"x_m": 0.0, "y_m": 0.0, "z_m": 0.0, "yaw_rad": 0.0}, camera,
+                                parsed.root)
+    except (ValueError, Warning) as exc:  # MuJoCo's compiler refuses the model (degenerate mesh, ...)
         raise UserError(f"{path}: MuJoCo cannot compile the object ({_one_line(exc)})") from None
     data = mujoco.MjData(model)
     info = model_info(model, obj_class)
@@ -876,7 +907,8 @@ def _class_for_key(key: str) -> tuple[ObjectClass, tuple[str, ...]]:
 
 def class_from_definition(definition: dict) -> ObjectClass:
     """The :class:`ObjectClass` of a third-party definition (built once per process)."""
-    return _class_for_key(json.dumps(definition, sort_keys=True))[0]
+    with _quietly():
+        return _class_for_key(json.dumps(definition, sort_keys=True))[0]
 
 
 def import_urdf(
@@ -900,6 +932,11 @@ def import_urdf(
     the folder meshes may be read from (default: the URDF's folder).  Raises
     :class:`UserError` with one line naming the file on any problem.
     """
+    with _quietly():
+        return _import_urdf(urdf_path, joints, class_name, skip_missing_meshes, camera, scale, mesh_root)
+
+
+def _import_urdf(urdf_path, joints, class_name, skip_missing_meshes, camera, scale, mesh_root) -> UrdfObject:
     path = Path(urdf_path).expanduser().resolve()
     try:
         scale = float(scale)

@@ -855,3 +855,29 @@ def test_rebuilt_definition_checked_by_the_library(urdf_split):
     cfg["third_party"]["class_name"] = "../x"
     with pytest.raises(UserError, match="corrupt third-party URDF definition"):
         GenerationConfig.from_dict(cfg).obj_class
+
+
+# --------------------------------------------------------------------------------------
+# 7. as a real process: nothing else reaches stderr (library logs, numpy warnings)
+# --------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("case", ["missing-mesh", "inf-origin"])  # a yourdfpy log line, numpy/trimesh warnings
+def test_stderr_is_one_line_in_a_real_process(world, case):
+    """CliRunner does not see what logging handlers and Python warnings write to the real
+    stderr; a subprocess does."""
+    import subprocess
+    import sys
+
+    _urdf_folder(world)
+    text = {"missing-mesh": _urdf(door_geom='<mesh filename="nothere.obj"/>'),
+            "inf-origin": _urdf(origin='xyz="1e400 0 0" rpy="1e400 0 0"')}[case]
+    (world.root / "obj" / "obj.urdf").write_text(text)
+    args = ["generate", "--urdf", str(world.root / "obj" / "obj.urdf"), "--n", "1", "--out", str(world.root / "out"), "-q"]
+    env = {**os.environ, urdf_import.CACHE_ENV: str(world.root / "cache"), "PYTHONWARNINGS": "default"}
+    world.freeze()
+    proc = subprocess.run([sys.executable, "-m", "articulated_dataset.cli", *args], capture_output=True, text=True,
+                          env=env, timeout=120)
+    lines = proc.stderr.splitlines()
+    assert proc.returncode == 2 and proc.stdout == "", proc.stderr
+    assert len(lines) == 1 and lines[0].startswith("artdata: error: "), proc.stderr
+    world.assert_untouched()
