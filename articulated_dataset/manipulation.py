@@ -78,6 +78,20 @@ SUCCESS_TOL_M = 0.02
 #: then within ~half the 85 mm stroke of a common parallel gripper, so it still ends up
 #: between the fingers.
 GRASP_CAPTURE_M = 0.03
+#: Parallel-jaw fingers (a common 85 mm stroke gripper).  At the grasp pose the jaws close
+#: along the pose frame's x axis (across the handle bar, for every built-in template), the
+#: hand approaching along minus the outward normal (:func:`outward_normal`).  The fingers hold
+#: the handle only if the bar, as it really is (its box, whatever its orientation), lies
+#: between the open jaws (its extent along the closing axis within +-GRIPPER_STROKE_M / 2
+#: of the grasp point) and overlaps each finger pad by at least FINGER_MIN_CONTACT_M both
+#: along the approach (pads FINGER_PAD_DEPTH_M deep, centred on the grasp point) and across
+#: it (pads FINGER_PAD_WIDTH_M wide); :func:`finger_hold`.  The jaws centre the bar between
+#: them (self-centring), so the hand then holds the bar's centre line, offset from its
+#: planned tool point along the closing axis, and carries that offset along the plan.
+GRIPPER_STROKE_M = 0.085
+FINGER_PAD_DEPTH_M = 0.03
+FINGER_PAD_WIDTH_M = 0.02
+FINGER_MIN_CONTACT_M = 0.01
 
 # --------------------------------------------------------------------------------------
 # Simulated gripper (Cartesian impedance) and its limits
@@ -530,6 +544,34 @@ def load_true_object(manifest: dict, labels: dict, camera=None) -> TrueObject:
                       model, info, urdf, pose, config)
 
 
+def _interval_overlap(centre: float, half: float, window_half: float) -> float:
+    """Length (m) of [centre - half, centre + half] inside [-window_half, window_half]."""
+    return max(0.0, min(centre + half, window_half) - max(centre - half, -window_half))
+
+
+def finger_hold(grasp_pose, box_centre, box_rot, box_half_size, joint_type: str) -> tuple[bool, float, str]:
+    """Do the fingers (``GRIPPER_STROKE_M``, ``FINGER_*``) closing at ``grasp_pose`` hold the box?
+
+    Returns ``(held, offset along the closing axis from the grasp point to the box centre (m),
+    why not)``.  The box's half-extent along a unit direction u is ``sum_i |u . R_i| h_i``.
+    """
+    frame = quat_to_matrix(_vec("grasp_pose", grasp_pose, 7)[3:])
+    close, normal = frame[:, 0], outward_normal(grasp_pose, joint_type)
+    across = np.cross(normal, close)
+    r = np.asarray(box_centre, np.float64) - np.asarray(grasp_pose[:3], np.float64)
+    R, h = np.asarray(box_rot), np.asarray(box_half_size)
+    half = lambda u: float(np.abs(u @ R) @ h)  # noqa: E731
+    offset = float(r @ close)
+    if abs(offset) + half(close) > 0.5 * GRIPPER_STROKE_M:
+        return False, offset, (f"the bar does not fit between the open jaws ({100 * (abs(offset) + half(close)):.1f} cm "
+                               f"from the grasp point, stroke {100 * GRIPPER_STROKE_M:.1f} cm)")
+    if _interval_overlap(float(r @ normal), half(normal), 0.5 * FINGER_PAD_DEPTH_M) < FINGER_MIN_CONTACT_M:
+        return False, offset, f"the finger pads miss the bar along the approach ({100 * float(r @ normal):+.1f} cm)"
+    if _interval_overlap(float(r @ across), half(across), 0.5 * FINGER_PAD_WIDTH_M) < FINGER_MIN_CONTACT_M:
+        return False, offset, f"the finger pads miss the bar along it ({100 * float(r @ across):+.1f} cm)"
+    return True, offset, ""
+
+
 def handle_geom(obj: TrueObject, joint: int) -> int:
     """Model id of the handle geom (``*_handle``) of joint ``joint``'s part."""
     info = obj.info
@@ -567,6 +609,8 @@ class ExecutionResult:
     max_rotation_error_rad: float
     duration_s: float
     trace: dict = field(default_factory=dict, repr=False)  # time, q, force, grasp positions
+    #: Why the fingers did not hold the handle (empty when they did, or when it was out of reach).
+    grasp_failure: str = ""
     #: Depth images the controller used (0: truth labels; 1: one-image open loop; more: closed loop).
     images_used: int = 0
     #: Closed loop: one entry per image (when, where from, what it gave); see :func:`closed_loop_trial`.
@@ -590,6 +634,8 @@ class ExecutionResult:
 
     def failure_reason(self) -> str:
         if not self.grasped:
+            if self.grasp_error_m <= GRASP_CAPTURE_M and self.grasp_failure:
+                return f"the fingers did not hold the handle: {self.grasp_failure}"
             return f"missed the handle by {100 * self.grasp_error_m:.1f} cm"
         reasons = []
         if not self.reached:
@@ -670,6 +716,8 @@ class GripperController:
         self.body = obj.info.part_bodies[joint]
         self.grasped = False
         self.grasp_error_m = float("nan")
+        self.grasp_failure = ""
+        self.tool_offset_local = np.zeros(3)
         self.max_f = self.max_t = self.max_pe = self.max_re = 0.0
         self.steps = 0
         self.record = record
@@ -684,11 +732,19 @@ class GripperController:
         """Close at ``pose``: held if its point lies within :data:`GRASP_CAPTURE_M` of the handle bar's box."""
         model, data = self.model, self.data
         g = handle_geom(self.obj, self.joint)
-        self.grasp_error_m = point_box_distance(pose[:3], data.geom_xpos[g], data.geom_xmat[g].reshape(3, 3), model.geom_size[g])
+        box = (data.geom_xpos[g], data.geom_xmat[g].reshape(3, 3), model.geom_size[g])
+        self.grasp_error_m = point_box_distance(pose[:3], *box)
         if self.grasp_error_m > GRASP_CAPTURE_M:
             return False
+        held, offset, self.grasp_failure = finger_hold(pose, *box, self.obj.joint_types[self.joint])
+        if not held:
+            return False
+        # the jaws centre the bar: the hand holds the point `offset` along its closing axis
+        close = quat_to_matrix(pose[3:])[:, 0]
+        self.tool_offset_local = np.array([offset, 0.0, 0.0])  # in the hand's frame, carried along the plan
+        held_point = pose[:3] + offset * close
         rot_b = data.xmat[self.body].reshape(3, 3)
-        self.p_local = rot_b.T @ (pose[:3] - data.xpos[self.body])
+        self.p_local = rot_b.T @ (held_point - data.xpos[self.body])
         q_inv_b = np.zeros(4)
         mujoco.mju_negQuat(q_inv_b, data.xquat[self.body])
         self.quat_local = quat_multiply(q_inv_b, pose[3:])
@@ -696,7 +752,8 @@ class GripperController:
         return True
 
     def grasp_pose(self) -> np.ndarray:
-        """The grasped point and orientation now (7,): where the arm's own kinematics puts its hand."""
+        """The hand's tool pose now (7,), as the arm's own kinematics knows it: the grasped
+        point of the part minus the jaws' centring offset, and the grasp orientation."""
         data = self.data
         rot_b = data.xmat[self.body].reshape(3, 3)
         out = np.empty(7)
@@ -704,6 +761,7 @@ class GripperController:
         gq = np.zeros(4)
         mujoco.mju_mulQuat(gq, data.xquat[self.body], self.quat_local)
         out[3:] = _canonical(gq)
+        out[:3] -= quat_to_matrix(out[3:]) @ self.tool_offset_local
         return out
 
     def track(self, waypoints: np.ndarray, settle_s: float = SETTLE_S) -> None:
@@ -715,6 +773,8 @@ class GripperController:
         n_total = n_move + int(math.ceil(settle_s / dt))
         s = minimum_jerk(np.arange(n_total + 1) * dt / duration)
         cmd = np.stack([_interpolate(waypoints, float(si)) for si in s])
+        if np.any(self.tool_offset_local):  # the held point rides with the hand, offset from the tool point
+            cmd[:, :3] += np.einsum("nij,j->ni", np.stack([quat_to_matrix(c[3:]) for c in cmd]), self.tool_offset_local)
         k, b = GRIPPER_STIFFNESS_N_PER_M, GRIPPER_DAMPING_N_S_PER_M
         kr, br = GRIPPER_ROT_STIFFNESS_NM_PER_RAD, GRIPPER_ROT_DAMPING_NM_S_PER_RAD
         jacp = np.zeros((3, model.nv))
@@ -765,7 +825,8 @@ class GripperController:
                     q_target=float(q_target), grasp_error_m=self.grasp_error_m)
         if not self.grasped:
             return ExecutionResult(q_reached=float(self.q0[joint]), grasped=False, max_force_n=0.0, max_torque_nm=0.0,
-                                   max_position_error_m=0.0, max_rotation_error_rad=0.0, duration_s=0.0, **base)
+                                   max_position_error_m=0.0, max_rotation_error_rad=0.0, duration_s=0.0,
+                                   grasp_failure=self.grasp_failure, **base)
         trace = {k_: np.asarray(v_) for k_, v_ in self.trace.items()} if self.record else {}
         return ExecutionResult(q_reached=float(self.data.qpos[int(self.obj.info.qpos_adr[joint])]), grasped=True,
                                max_force_n=self.max_f, max_torque_nm=self.max_t, max_position_error_m=self.max_pe,

@@ -234,18 +234,18 @@ def find_score(scores: list[dict], cls: str, name: str, paths: list[Path]) -> di
 
 
 def format_table(summary: list[dict], scores: list[dict], predictions: dict[str, list[Path]]) -> str:
-    head = f"{'class':13s} {'method':18s} {'trials':>6s} {'success':>8s} {'grasped':>8s} {'reached':>8s} {'<=limits':>8s} " \
+    head = f"{'class':13s} {'method':22s} {'trials':>6s} {'success':>8s} {'grasped':>8s} {'reached':>8s} {'<=limits':>8s} " \
            f"{'median |dq|':>12s} {'median F':>9s} {'max F':>7s} {'max tau':>8s} {'images':>7s}"
     if scores:
         head += "   Table 1: " + "  ".join(f"{t:>14s}" for _, t in TABLE1_METRICS)
     lines = [head, "-" * len(head)]
     for s in summary:
         if s["trials"] == 0:
-            lines.append(f"{s['class']:13s} {s['method']:18s} {0:6d}  (no predictions for the selected views)")
+            lines.append(f"{s['class']:13s} {s['method']:22s} {0:6d}  (no predictions for the selected views)")
             continue
         pct = lambda k: f"{100 * s[k]:7.1f}%" if s[k] == s[k] else f"{'-':>8s}"  # noqa: E731  (NaN: no grasp)
         num = lambda v, fmt, unit: f"{v:{fmt}}{unit}" if v == v else "-"  # noqa: E731
-        line = (f"{s['class']:13s} {s['method']:18s} {s['trials']:6d} {pct('success')} {pct('grasped')} {pct('reached')} "
+        line = (f"{s['class']:13s} {s['method']:22s} {s['trials']:6d} {pct('success')} {pct('grasped')} {pct('reached')} "
                 f"{pct('within_limits_of_grasped')} {s['median_error_text']:>12s} "
                 f"{num(s['median_max_force_n'], '.1f', ' N'):>9s} {num(s['max_max_force_n'], '.0f', ' N'):>7s} "
                 f"{num(s['max_max_torque_nm'], '.1f', ' Nm'):>8s} {s['mean_images_used']:7.1f}")

@@ -228,6 +228,43 @@ def test_missed_grasp_moves_nothing(tiny_root):
     assert res.grasp_error_m > M.GRASP_CAPTURE_M
 
 
+@pytest.mark.parametrize("shift, turn_deg, held, why", [
+    ((0, 0, 0), 0, True, ""),
+    ((0.03, 0, 0), 0, True, ""),            # 3 cm + 1 cm half-width <= 4.25 cm half-stroke
+    ((0.035, 0, 0), 0, False, "jaws"),      # 4.5 cm > 4.25 cm
+    ((0, 0, 0), 90, False, "jaws"),         # closing along the 12 cm bar
+    ((0, 0.025, 0), 0, False, "approach"),  # pads overlap the bar's depth by 0.5 cm only
+    ((0, 0, 0.065), 0, False, "along it"),  # pads 0.5 cm onto the bar's end
+])
+def test_finger_hold_hand_worked(shift, turn_deg, held, why):
+    """A door-style grasp frame (x: jaws close, y: outward normal, z: along the bar) and a
+    2 x 3 x 12 cm bar at the origin."""
+    quat = M.axis_angle_quat(np.array([0.0, 1.0, 0.0]), math.radians(turn_deg))
+    pose = np.concatenate([np.asarray(shift, float), quat])
+    ok, offset, reason = M.finger_hold(pose, np.zeros(3), np.eye(3), np.array([0.01, 0.015, 0.06]), REVOLUTE)
+    assert ok == held and why in reason
+    if held:
+        assert offset == pytest.approx(-shift[0])
+
+
+def test_fingers_must_hold_the_real_handle(tiny_root):
+    """Within the capture distance is not enough: jaws closing along the bar do not hold it;
+    a grasp 2.5 cm off across the bar is centred by the jaws and the door still opens."""
+    _, row, obj = _first_view(tiny_root, "cabinet")
+    plan, _ = M.run_trial(obj, obj.truth(), 0)
+    frame = quat_to_matrix(plan.waypoints[0, 3:])
+    shifted = plan.waypoints.copy()
+    shifted[:, :3] += 0.025 * np.stack([quat_to_matrix(w[3:])[:, 0] for w in plan.waypoints])
+    res = M.execute_plan(obj, shifted, 0, plan.q_target)
+    assert res.grasped and res.success, res.failure_reason()
+    turned = plan.waypoints.copy()
+    turn = M.axis_angle_quat(frame[:, 1], math.radians(90))  # about the outward normal
+    turned[:, 3:] = [M.quat_multiply(turn, w[3:]) for w in plan.waypoints]
+    res = M.execute_plan(obj, turned, 0, plan.q_target)
+    assert res.grasp_error_m == 0.0 and not res.grasped
+    assert "fingers did not hold" in res.failure_reason() and "jaws" in res.failure_reason()
+
+
 # --------------------------------------------------------------------------------------
 # CLI
 # --------------------------------------------------------------------------------------
