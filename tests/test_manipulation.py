@@ -554,3 +554,29 @@ def test_benchmark_script_models_and_closed_loop(tiny_root, dense_ckpt, tmp_path
     assert len(loop["q_reached"]) == 1
     # the microwave checkpoint does not fit the drawer: its trials are missing, not wrong
     assert summary[("drawer", "dense")]["trials"] == 0 and summary[("drawer", "dense")]["missing"] == 1
+
+
+def test_cli_plan_with_an_mdn_checkpoint_matches_predict(tiny_root, tmp_path):
+    """plan --model with an MDN checkpoint: the one-image estimate is the row predict gives."""
+    import torch
+
+    from articulated_dataset.mdn.predict import predict_split
+    from articulated_dataset.mdn.train import TrainConfig, train
+
+    torch.set_num_threads(1)
+    model = tmp_path / "mdn.pt"
+    train(tiny_root / "drawer" / "train", model,
+          TrainConfig(class_name="drawer", epochs=1, preset="small", width=4, blocks=(1, 1), height_px=27, width_px=48,
+                      n_components=3, batch_size=16), progress=False)
+    test = tiny_root / "drawer" / "test"
+    _, arrays = predict_split(model, test, progress=False)
+    out = tmp_path / "p.json"
+    r = CliRunner().invoke(main, ["plan", "--data", str(test), "--index", "5", "--model", str(model), "--threads", "1",
+                                  "-q", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    rec = json.loads(out.read_text())
+    _, _, labels = M.read_split_labels(test)
+    i = int(np.nonzero(arrays["sample_id"] == labels["sample_id"][5])[0][0])
+    np.testing.assert_allclose(rec["axis_origin"], arrays["axis_pose"][i, 0, :3], atol=1e-5)
+    np.testing.assert_allclose(rec["q_current"], arrays["q"][i, 0], atol=1e-5)
+    assert rec["source"].startswith("MDN")
