@@ -115,7 +115,7 @@ def check_manifest_names(manifest: dict, where: str) -> dict:
     if "class_name" not in manifest:
         raise DataFormatError(f"{where}: corrupt manifest (no class_name)")
     check_class_name(manifest["class_name"], where)
-    records = manifest.get("shards", [])
+    records = manifest.get("shards")
     if not isinstance(records, list) or not all(isinstance(r, dict) and "file" in r for r in records):
         raise DataFormatError(f"{where}: corrupt manifest (shards must be a list of records with a 'file')")
     for r in records:
