@@ -342,6 +342,20 @@ def test_continuous_joint_uses_the_revolute_default_range(tmp_path):
     assert obj.obj_class.table.q == ((0.0, math.pi / 2),)
 
 
+def test_hidden_part_error_names_joints(tmp_path, monkeypatch):
+    """A part no pose shows (here: inside the body) cannot be labelled: the error says to
+    choose the joints that open."""
+    monkeypatch.setenv(urdf_import.CACHE_ENV, str(tmp_path / "cache"))
+    _box_obj(tmp_path / "body.obj", [0.4, 0.4, 0.4], [0, 0, 0.2])
+    _box_obj(tmp_path / "inner.obj", [0.1, 0.1, 0.1], [0, 0, 0.2])  # well inside the body
+    path = _write_urdf(tmp_path / "hidden.urdf", "hidden", _link("root", "body.obj") + _link("part", "inner.obj")
+                       + _joint("inner", "prismatic", "root", "part", (0, 0, 0), (-1, 0, 0), (0, 0.05)))
+    r = CliRunner().invoke(main, ["generate", "--urdf", str(path), "--class-name", "hidden", "--n", "1", "--images", "1",
+                                  "--out", str(tmp_path / "out"), "-q"])
+    assert r.exit_code == 2, r.output
+    assert "no pose in the table shows every moving part" in r.output and "--joints" in r.output
+
+
 @pytest.mark.parametrize("case, pattern", [
     ("no_file", r"URDF file not found: .*nothere\.urdf"),
     ("bad_xml", r"cannot parse URDF .*bad\.urdf"),
