@@ -399,6 +399,95 @@ def make_figure(root: Path, split: str, out: Path) -> None:
 
 
 # --------------------------------------------------------------------------------------
+# Figure: estimated versus true handle trajectory (open and closed loop)
+# --------------------------------------------------------------------------------------
+
+#: Door classes tried (first with data and a model) and the drawer, for the trajectory figure.
+TRAJECTORY_DOORS = ("cabinet", "microwave", "refrigerator", "cabinet2", "toaster")
+TRAJECTORY_DRAWER = "drawer"
+
+
+def _trajectory_case(split_dir: Path, spec: str, name: str, seed: int) -> dict | None:
+    """Open and closed loop on the view nearest closed of the split's first object, recorded."""
+    from articulated_dataset import manipulation as M
+    from articulated_dataset.errors import UserError
+    from articulated_dataset.pipeline import GenerationConfig
+    from articulated_dataset.sampling import stable_key
+
+    path, manifest, labels = M.read_split_labels(split_dir)
+    config = GenerationConfig.from_dict(manifest["config"])
+    try:
+        est = M.make_estimator(spec.replace("{class}", config.class_name), config.class_name)
+    except UserError:
+        return None
+    r = nearest_closed_rows(labels, config.table.q, 1)[0]
+    row = M.label_row(labels, r)
+    obj = M.load_true_object(manifest, row)
+    depth, K, _ = M.stored_image(split_dir, r)
+    estimate = est(depth, K)
+    plan, open_res = M.run_trial(obj, estimate, 0, record=True)
+    open_res.images_used = 1
+    loop_plan, loop_res = M.closed_loop_trial(obj, est, 0, depth, K, np.random.default_rng([seed, stable_key(config.class_name)]),
+                                              record=True)
+    truth = obj.truth()
+    true_plan, true_res = M.run_trial(obj, truth, 0, record=True)
+    return {"class": config.class_name, "name": name, "obj": obj, "plan": plan, "open": open_res, "loop_plan": loop_plan,
+            "loop": loop_res, "true_plan": true_plan, "true": true_res, "estimate": estimate}
+
+
+def make_trajectory_figure(root: Path, split: str, models: dict[str, str], out: Path, seed: int) -> None:
+    """Top views (camera frame seen from above) of a door and a drawer: the true handle path,
+    the one-image plan and the closed loop's commanded path, with the true and estimated axes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from articulated_dataset.manipulation import format_q
+
+    name, spec = next(iter(models.items()))
+    cases = []
+    for group in (TRAJECTORY_DOORS, (TRAJECTORY_DRAWER,)):
+        for cls in group:
+            d = root / cls / split
+            case = _trajectory_case(d, spec, name, seed) if (d / "manifest.json").is_file() else None
+            if case is not None:
+                cases.append(case)
+                break
+    if not cases:
+        sys.exit(f"manipulation.py: error: no door or drawer {split} split under {root} with a {name} model")
+    fig, axes = plt.subplots(1, len(cases), figsize=(6.2 * len(cases), 5.2), squeeze=False)
+    for case, ax in zip(cases, axes[0]):
+        jt = case["obj"].joint_types[0]
+        tp = case["true"].trace["grasp"]
+        ax.plot(-tp[:, 1], tp[:, 0], "-", color="black", lw=3, alpha=0.35, label="true handle path (truth plan)")
+        for key, colour, label in (("open", "tab:red", f"{name}, 1 image"), ("loop", "tab:blue", f"{name}, closed loop")):
+            res = case[key]
+            verdict = "success" if res.success else "failure"
+            what = (f"{label}: reached {format_q(res.q_reached, jt)}, {res.images_used} image(s), "
+                    f"peak {res.max_force_n:.0f} N: {verdict}")
+            if res.grasped:
+                cmd = res.trace["command"]
+                ax.plot(-cmd[:, 1], cmd[:, 0], "--", color=colour, lw=1.6, label=f"{what} (commanded)")
+                g = res.trace["grasp"]
+                ax.plot(-g[:, 1], g[:, 0], ":", color=colour, lw=1.2)
+            else:
+                wp = (case["plan"] if key == "open" else case["loop_plan"]).waypoints
+                ax.plot(-wp[:, 1], wp[:, 0], "--", color=colour, lw=1.6, label=f"{what} (planned; {res.failure_reason()})")
+        ax.plot(-case["true_plan"].axis_origin[1], case["true_plan"].axis_origin[0], "kx", ms=10, mew=2, label="true axis")
+        eo = case["plan"].axis_origin
+        ax.plot(-eo[1], eo[0], "+", color="tab:red", ms=12, mew=2, label="estimated axis (1 image)")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel("-y (m, right)")
+        ax.set_ylabel("x (m, forward)")
+        ax.set_title(f"{case['class']} (joint 0, {jt}): open from {format_q(case['true'].q_start, jt)} "
+                     f"to {format_q(case['true'].q_target, jt)}", fontsize=9)
+        ax.legend(fontsize=6.5, loc="best", framealpha=0.85)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    print(f"wrote {out}")
 
 
 def _parse_predictions(items: list[str]) -> dict[str, list[Path]]:
@@ -464,6 +553,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scores", type=Path, default=None, help="JSON of `artdata score --json` for the Table 1 columns")
     ap.add_argument("--json", type=Path, default=None, help="write summary + per-trial records here")
     ap.add_argument("--figure", type=Path, default=None, help="also draw the before/after figure (PNG)")
+    ap.add_argument("--trajectory-figure", type=Path, default=None,
+                    help="also draw estimated (first --model) versus true handle paths of a door and a drawer (PNG)")
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
 
@@ -511,6 +602,10 @@ def main(argv=None) -> int:
             print(f"wrote {args.json}")
     if args.figure:
         make_figure(args.data, args.split, args.figure)
+    if args.trajectory_figure:
+        if not models:
+            sys.exit("manipulation.py: error: --trajectory-figure needs a --model")
+        make_trajectory_figure(args.data, args.split, models, args.trajectory_figure, args.seed)
     return 0
 
 

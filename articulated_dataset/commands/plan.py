@@ -191,9 +191,12 @@ def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, seed,
                                            step_rad=step_value, step_m=step_value)
         record.update(plan.to_dict())
         record["closed_loop"] = result.views
+        wrist = [v for v in result.views if v.get("wrist")]
+        look = "" if not wrist else (f"; the handle close-up moved the grasp {100 * wrist[0]['grasp_moved_m']:.1f} cm"
+                                     if wrist[0]["handle_found"] else "; no handle found in the close-up")
         click.echo(f"closed loop: {result.images_used} depth images used "
                    f"({sum(v['when'] == 'before grasp' for v in result.views)} before grasping, "
-                   f"{sum(v['when'] == 'during motion' for v in result.views)} during the motion)")
+                   f"{sum(v['when'] == 'during motion' for v in result.views)} during the motion){look}")
     elif simulate:
         result = M.execute_plan(obj, plan.waypoints, joint, clipped)
         result.images_used = 0 if estimator is None and predictions_path is None else 1
