@@ -443,6 +443,19 @@ def test_hdf5_layouts_reading_elsewhere_are_refused(base, world, cmd, layout):
     world.assert_untouched()
 
 
+@pytest.mark.parametrize("layout", list(H5_LAYOUTS))
+def test_verify_reports_hdf5_layouts(base, world, layout):
+    """verify reports the layout as a problem of the shard (exit 1) and reads nothing elsewhere."""
+    split = _copy_split(base, world)
+    maker, needle = H5_LAYOUTS[layout]
+    _replace_dataset(split / "shard-00001.h5", "q", maker(world))
+    world.freeze()
+    result = run("verify", split, "-q")
+    assert result.exit_code == 1 and "Traceback" not in result.output, result.output
+    assert any(ln.strip().startswith("shard-00001.h5:") and needle in ln for ln in message_lines(result)), result.output
+    world.assert_untouched()
+
+
 def _corrupt_chunk(path: Path, name: str) -> None:
     """Overwrite the compressed bytes of the dataset's first chunk (the HDF5 structure stays valid)."""
     with h5py.File(path, "r") as f:
