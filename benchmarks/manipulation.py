@@ -328,6 +328,16 @@ def _crop_box(case: dict) -> tuple[int, int, int, int]:
     return (int(max(u0 - m, 0)), int(min(u1 + m, W - 1)), int(max(v0 - m, 0)), int(min(v1 + m, H - 1)))
 
 
+def _save_figure(fig, out: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    print(f"wrote {out}")
+
+
 def make_figure(root: Path, split: str, out: Path) -> None:
     """Rows: cabinet (true axis), cabinet (axis shifted 10 cm), drawer (true axis).
     Columns: depth before, depth after (with planned and simulated handle paths), top view."""
@@ -391,11 +401,7 @@ def make_figure(root: Path, split: str, out: Path) -> None:
         ax.tick_params(labelsize=7)
         ax.set_title("top view (camera frame)", fontsize=9)
         ax.legend(fontsize=7, loc="best", framealpha=0.85)
-    fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-    print(f"wrote {out}")
+    _save_figure(fig, out)
 
 
 # --------------------------------------------------------------------------------------
@@ -483,11 +489,7 @@ def make_trajectory_figure(root: Path, split: str, models: dict[str, str], out: 
         ax.set_title(f"{case['class']} (joint 0, {jt}): open from {format_q(case['true'].q_start, jt)} "
                      f"to {format_q(case['true'].q_target, jt)}", fontsize=9)
         ax.legend(fontsize=6.5, loc="best", framealpha=0.85)
-    fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-    print(f"wrote {out}")
+    _save_figure(fig, out)
 
 
 def _parse_predictions(items: list[str]) -> dict[str, list[Path]]:

@@ -544,7 +544,9 @@ def test_benchmark_script_models_and_closed_loop(tiny_root, dense_ckpt, tmp_path
     spec.loader.exec_module(bench)
     out = tmp_path / "m.json"
     assert bench.main(["--data", str(tiny_root), "--classes", "microwave", "drawer", "--objects", "1",
-                       "--model", f"dense={dense_ckpt}", "--closed-loop", "--json", str(out), "-q"]) == 0
+                       "--model", f"dense={dense_ckpt}", "--closed-loop", "--json", str(out), "-q",
+                       "--trajectory-figure", str(tmp_path / "t.png")]) == 0
+    assert (tmp_path / "t.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rep = json.loads(out.read_text())
     summary = {(s["class"], s["method"]): s for s in rep["summary"]}
     assert summary[("microwave", "truth")]["mean_images_used"] == 0
