@@ -1,11 +1,18 @@
-"""The README stays true and the package works when installed from a wheel (non-editable)."""
+"""The README stays true and the package works when installed from a wheel (non-editable);
+its metadata (dependencies, version, citation, dataset card) says what is true."""
 
+import ast
 import re
 import subprocess
 import sys
+import tomllib
 import zipfile
+from importlib.metadata import PackageNotFoundError, distribution, packages_distributions, version
 from pathlib import Path
 
+import yaml
+
+import articulated_dataset
 from articulated_dataset.registry import all_classes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,6 +41,9 @@ def test_wheel_ships_generators_and_templates(tmp_path):
         assert f"articulated_dataset/urdf_templates/{c.template}" in names
         assert f"articulated_dataset/generators/{c.name}.py" in names
     assert "articulated_dataset/urdf_templates/common.xacro" in names
+    tracked = subprocess.run(["git", "ls-files", "articulated_dataset/weights"], cwd=ROOT, capture_output=True, text=True)
+    for w in tracked.stdout.split():  # the shipped weights and models.json (once committed)
+        assert w in names, w
     # Installed non-editable into a separate folder and imported from elsewhere, the
     # registry still finds every class and its template expands.
     target = tmp_path / "site"
@@ -46,3 +56,99 @@ def test_wheel_ships_generators_and_templates(tmp_path):
                          capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split()[0] == str(len(all_classes()))
+
+
+# --------------------------------------------------------------------------------------
+# metadata
+
+PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
+#: Distributions listed without being imported by the package's own code, and why.
+IMPORTED_BY_OTHERS = {"pyopengl": "mujoco.egl / mujoco.osmesa import it for offscreen contexts"}
+
+
+def _norm(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def _requirement_names(reqs) -> set[str]:
+    return {_norm(re.split(r"[<>=!~\[; ]", r, maxsplit=1)[0]) for r in reqs}
+
+
+def _imported_distributions() -> dict[str, set[str]]:
+    """{third-party module the package or its generators import: the distributions providing it}."""
+    mods = set()
+    for path in list((ROOT / "articulated_dataset").rglob("*.py")) + list((ROOT / "generators").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                mods |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                mods.add(node.module.split(".")[0])
+    mods -= set(sys.stdlib_module_names) | {"articulated_dataset", "__future__"}
+    dists = packages_distributions()
+    for m in mods - set(dists):  # extension modules (OpenEXR.so) may be missing from that map
+        try:
+            dists[m] = [distribution(m).metadata["Name"]]
+        except PackageNotFoundError:
+            pass
+    unknown = sorted(m for m in mods if m not in dists)
+    assert not unknown, f"imported but not installed: {unknown}"
+    return {m: {_norm(d) for d in dists[m]} for m in mods}
+
+
+def test_dependencies_are_what_the_package_imports():
+    core = _requirement_names(PYPROJECT["project"]["dependencies"])
+    extras = {k: _requirement_names(v) for k, v in PYPROJECT["project"]["optional-dependencies"].items()}
+    optional = set().union(*extras.values())
+    imported = _imported_distributions()
+    # torch, jax, grain, ray, scipy: optional, imported only where needed (one-line errors otherwise);
+    # absl comes with grain (the JAX loader marks its flags parsed for grain's workers)
+    unlisted = sorted(m for m, d in imported.items() if not d & (core | optional | {"absl-py"}))
+    assert not unlisted, f"imported by the package but in no dependency list: {unlisted}"
+    used = set().union(*imported.values())
+    unused = sorted(d for d in core if d not in used and d not in IMPORTED_BY_OTHERS)
+    assert not unused, f"core dependencies the package never imports: {unused}"
+    assert "pyrender-maintained" not in core and "pyrender-maintained" in extras["test"]  # test-only cross-check
+    assert {"torch", "jax", "grain", "ray", "scipy"} <= optional and not ({"torch", "jax", "grain", "ray"} & core)
+
+
+def test_version_is_defined_once():
+    v = articulated_dataset.__version__
+    assert "version" not in PYPROJECT["project"] and "version" in PYPROJECT["project"]["dynamic"]
+    assert PYPROJECT["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "articulated_dataset.__version__"}
+    assert version("articulated_dataset") == v  # what the installed metadata says
+    changelog = (ROOT / "CHANGELOG.md").read_text()
+    assert "## [Unreleased]" in changelog and re.search(rf"^## \[{re.escape(v)}\]", changelog, re.M)
+    assert yaml.safe_load((ROOT / "CITATION.cff").read_text())["version"] == v
+
+
+def test_citation_cites_the_paper_and_the_package():
+    cff = yaml.safe_load((ROOT / "CITATION.cff").read_text())
+    assert cff["cff-version"] == "1.2.0" and cff["type"] == "software" and "articulated_dataset" in cff["title"]
+    assert cff["license"] == "MIT" and cff["authors"]
+    paper = cff["preferred-citation"]
+    assert paper["title"] == "Learning to Generalize Kinematic Models to Novel Objects" and paper["year"] == 2019
+    assert [a["family-names"] for a in paper["authors"]] == ["Abbatematteo", "Tellex", "Konidaris"]
+    assert "CoRL" in paper["conference"]["name"]
+
+
+def test_datasheet_has_a_dataset_card_metadata_block():
+    text = (ROOT / "DATASHEET.md").read_text()
+    assert text.startswith("---\n")
+    meta = yaml.safe_load(text.split("---\n", 2)[1])
+    assert meta["license"] == "mit" and meta["pretty_name"]
+    assert meta["size_categories"] == ["1M<n<10M"]  # 1,056,000 images at the paper's size
+    assert {"depth-estimation", "robotics"} <= set(meta["task_categories"])
+    assert meta["annotations_creators"] == ["machine-generated"]
+    assert text.split("---\n", 2)[2].lstrip().startswith("# Datasheet")
+
+
+def test_setup_script_options():
+    setup = ROOT / "scripts" / "setup.sh"
+    assert subprocess.run(["bash", "-n", str(setup)]).returncode == 0
+    for args in (["--bogus"], ["--venv"]):
+        res = subprocess.run(["bash", str(setup), *args], capture_output=True, text=True)
+        assert res.returncode == 2 and res.stderr.count("\n") == 1 and res.stderr.startswith("setup: "), args
+    res = subprocess.run(["bash", str(setup), "--help"], capture_output=True, text=True)
+    assert res.returncode == 0 and "--venv" in res.stdout
+    text = setup.read_text()
+    assert "https://download.pytorch.org/whl/cpu" in text and "torch==$TORCH_VERSION" in text

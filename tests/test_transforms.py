@@ -134,3 +134,22 @@ def test_apply_to_batch_seeding():
     single = apply_to_batch(t, {k: v[2:3] for k, v in batch.items()}, idx[2:3], seed=1, epoch=0)
     np.testing.assert_array_equal(single["depth"][0], a["depth"][2])
     np.testing.assert_array_equal(t(samples[2], sample_rng(1, 0, 12))["depth"], a["depth"][2])
+
+
+def test_apply_to_batch_per_sample_keys():
+    """A dataset whose epoch was never set passes one key per sample (sample_rng's key form)."""
+    rng = np.random.default_rng(0)
+    samples = [make_sample(rng) for _ in range(3)]
+    batch = {k: np.stack([s[k] for s in samples]) for k in samples[0]}
+    t = PixelDropout(0.5)
+    idx = np.array([4, 5, 6])
+    keys = np.array([[7, 1, 2, 0, 0], [7, 1, 2, 0, 3], [7, 1, 2, 0, 0]])
+    out = apply_to_batch(t, batch, idx, seed=1, epoch=keys)
+    for b in range(3):
+        np.testing.assert_array_equal(out["depth"][b], t(samples[b], sample_rng(1, keys[b], int(idx[b])))["depth"])
+    # a key is not the epoch of the same number, and another visit is another augmentation
+    assert not np.array_equal(out["depth"][0], apply_to_batch(t, batch, idx, seed=1, epoch=0)["depth"][0])
+    again = apply_to_batch(t, batch, idx, seed=1, epoch=keys + np.array([0, 0, 0, 0, 1]))
+    assert not np.array_equal(out["depth"][1], again["depth"][1])
+    with pytest.raises(ValueError, match="keys"):
+        apply_to_batch(t, batch, idx, seed=1, epoch=keys[:2])
