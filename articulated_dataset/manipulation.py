@@ -774,7 +774,7 @@ class GripperController:
         s = minimum_jerk(np.arange(n_total + 1) * dt / duration)
         cmd = np.stack([_interpolate(waypoints, float(si)) for si in s])
         if np.any(self.tool_offset_local):  # the held point rides with the hand, offset from the tool point
-            cmd[:, :3] += np.einsum("nij,j->ni", np.stack([quat_to_matrix(c[3:]) for c in cmd]), self.tool_offset_local)
+            cmd[:, :3] += np.einsum("nij,j->ni", quat_to_matrix(cmd[:, 3:]), self.tool_offset_local)
         k, b = GRIPPER_STIFFNESS_N_PER_M, GRIPPER_DAMPING_N_S_PER_M
         kr, br = GRIPPER_ROT_STIFFNESS_NM_PER_RAD, GRIPPER_ROT_DAMPING_NM_S_PER_RAD
         jacp = np.zeros((3, model.nv))
@@ -782,6 +782,7 @@ class GripperController:
         rotvec = np.zeros(3)
         w_cmd = np.zeros(3)
         gq = np.zeros(4)
+        mat = np.zeros(9)
         p_local, quat_local = self.p_local, self.quat_local
         trace = self.trace
         for i in range(n_total):
@@ -798,9 +799,12 @@ class GripperController:
             v_cmd = (nxt[:3] - target[:3]) / dt
             tq = target[3:] if np.dot(target[3:], gq) >= 0 else -target[3:]
             mujoco.mju_subQuat(rotvec, tq, gq)  # local to the grasp frame
-            theta = quat_to_matrix(gq) @ rotvec
+            mujoco.mju_normalize4(gq)
+            mujoco.mju_quat2Mat(mat, gq)
+            theta = mat.reshape(3, 3) @ rotvec
             mujoco.mju_subQuat(w_cmd, nxt[3:] if np.dot(nxt[3:], target[3:]) >= 0 else -nxt[3:], target[3:])
-            w_cmd_world = quat_to_matrix(target[3:]) @ w_cmd / dt
+            mujoco.mju_quat2Mat(mat, target[3:] / np.linalg.norm(target[3:]))
+            w_cmd_world = mat.reshape(3, 3) @ w_cmd / dt
             pos_err = target[:3] - gp
             force = k * pos_err + b * (v_cmd - v)
             torque = kr * theta + br * (w_cmd_world - w)
@@ -1185,19 +1189,18 @@ def find_handle(depth_m: np.ndarray, K: np.ndarray, rng: np.random.Generator) ->
     P = pts[near]
     if len(P) < 3 * HANDLE_MIN_PIXELS:
         return None
-    best, best_count = None, -1
-    for _ in range(HANDLE_RANSAC_ITERATIONS):
-        a, b, c = P[rng.choice(len(P), 3, replace=False)]
-        nrm = np.cross(b - a, c - a)
-        if np.linalg.norm(nrm) < ZERO_LENGTH:
-            continue
-        nrm /= np.linalg.norm(nrm)
-        count = int((np.abs((P - a) @ nrm) < HANDLE_PLANE_TOL_M).sum())
-        if count > best_count:
-            best, best_count = (a, nrm), count
-    if best is None:
+    # RANSAC, all draws at once: plane through 3 distinct random points, counted inliers
+    idx = np.stack([rng.choice(len(P), 3, replace=False) for _ in range(HANDLE_RANSAC_ITERATIONS)])
+    a, b, c = P[idx[:, 0]], P[idx[:, 1]], P[idx[:, 2]]
+    normals = np.cross(b - a, c - a)
+    length = np.linalg.norm(normals, axis=1)
+    ok = length > ZERO_LENGTH
+    if not ok.any():
         return None
-    a, nrm = best
+    a, normals = a[ok], normals[ok] / length[ok, None]
+    counts = (np.abs(P @ normals.T - np.einsum("ij,ij->i", a, normals)) < HANDLE_PLANE_TOL_M).sum(axis=0)
+    k = int(np.argmax(counts))
+    a, nrm = a[k], normals[k]
     if nrm[0] > 0:  # towards the camera (camera x is forward, so the camera side is -x)
         nrm = -nrm
     height = np.where(valid, (pts - a) @ nrm, -np.inf)  # how far in front of the panel
