@@ -111,20 +111,32 @@ def write_depth_exr(path: str | Path, depth_m: np.ndarray, header_extra: dict | 
         f.write(str(path))
 
 
-def read_depth_exr(path: str | Path) -> np.ndarray:
-    """Read the float32 "Z" channel of an EXR file; anything else is a DataFormatError."""
+def _size_mismatch(path: Path, what: str, width: int, height: int, expect_hw) -> None:
+    if expect_hw is not None and (height, width) != tuple(expect_hw):
+        raise DataFormatError(f"{path}: {what} is {width}x{height} px, expected {expect_hw[1]}x{expect_hw[0]}")
+
+
+def read_depth_exr(path: str | Path, expect_hw: tuple[int, int] | None = None) -> np.ndarray:
+    """Read the float32 "Z" channel of an EXR file; anything else is a DataFormatError.
+
+    ``expect_hw``: the (height, width) the image must have, checked from the header before
+    any pixel is decoded (a hostile header cannot make us allocate its size)."""
     import OpenEXR
 
     path = Path(path)
     if not path.is_file():
         raise DataFormatError(f"{path}: missing depth image")
     try:
+        if expect_hw is not None:
+            with _c_output_silenced(), OpenEXR.File(str(path), header_only=True) as f:
+                lo, hi = f.header()["dataWindow"]
+            _size_mismatch(path, "depth", int(hi[0]) - int(lo[0]) + 1, int(hi[1]) - int(lo[1]) + 1, expect_hw)
         with _c_output_silenced(), OpenEXR.File(str(path)) as f:
             channels = f.channels()
             if DEPTH_CHANNEL not in channels:
                 raise DataFormatError(f"{path}: no {DEPTH_CHANNEL!r} channel (has {sorted(channels)})")
             pixels = channels[DEPTH_CHANNEL].pixels
-    except (RuntimeError, ValueError, OSError) as exc:
+    except (RuntimeError, ValueError, OSError, KeyError, TypeError) as exc:
         raise DataFormatError(f"{path}: not a readable OpenEXR file ({str(exc).splitlines()[0][:150]})") from None
     if pixels is None or pixels.dtype != np.float32 or pixels.ndim != 2:
         raise DataFormatError(f"{path}: channel {DEPTH_CHANNEL!r} must be 2-D float32 "
@@ -138,7 +150,8 @@ def write_mask_png(path: str | Path, mask: np.ndarray) -> None:
     Image.fromarray(np.ascontiguousarray(mask, dtype=np.uint8)).save(str(path), format="PNG")
 
 
-def read_mask_png(path: str | Path) -> np.ndarray:
+def read_mask_png(path: str | Path, expect_hw: tuple[int, int] | None = None) -> np.ndarray:
+    """Read an 8-bit greyscale PNG; ``expect_hw`` is checked before the pixels are decoded."""
     from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
@@ -146,10 +159,11 @@ def read_mask_png(path: str | Path) -> np.ndarray:
         raise DataFormatError(f"{path}: missing mask image")
     try:
         with Image.open(path) as im:
+            _size_mismatch(path, "mask", im.size[0], im.size[1], expect_hw)
             if im.mode != "L":
                 raise DataFormatError(f"{path}: mask must be an 8-bit greyscale PNG, got mode {im.mode}")
             return np.asarray(im, dtype=np.uint8).copy()
-    except (UnidentifiedImageError, OSError, ValueError) as exc:
+    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError) as exc:
         raise DataFormatError(f"{path}: not a readable PNG ({str(exc).splitlines()[0][:150]})") from None
 
 
@@ -397,8 +411,8 @@ def import_split(export_dir: str | Path, split_dir: str | Path, *, overwrite: bo
             inside = resolve_inside(export_dir, stem)  # a checked stem; its files must not be links leading out
             for suffix in (DEPTH_SUFFIX, MASK_SUFFIX, LABEL_SUFFIX):
                 resolve_inside(export_dir, stem + suffix)
-            d = read_depth_exr(inside.with_name(stem + DEPTH_SUFFIX))
-            m = read_mask_png(inside.with_name(stem + MASK_SUFFIX))
+            d = read_depth_exr(inside.with_name(stem + DEPTH_SUFFIX), (H, W))
+            m = read_mask_png(inside.with_name(stem + MASK_SUFFIX), (H, W))
             for what, a, suffix in (("depth", d, DEPTH_SUFFIX), ("mask", m, MASK_SUFFIX)):
                 if a.shape != (H, W):
                     raise DataFormatError(f"{export_dir / (stem + suffix)}: {what} is {a.shape[1]}x{a.shape[0]} px, "

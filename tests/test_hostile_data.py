@@ -343,6 +343,37 @@ def test_import_exr_label_values_are_verified(base, world, value):
     world.assert_untouched()
 
 
+#: Side (px) a hostile image header claims (kept moderate: a regression must not exhaust memory).
+CLAIMED_SIDE_PX = 4000
+
+
+def _claim_size_exr(path: Path) -> None:
+    """Patch the EXR header's dataWindow to CLAIMED_SIDE_PX squared (the pixels stay small)."""
+    import struct
+
+    b = bytearray(path.read_bytes())
+    key = b"dataWindow\x00box2i\x00"
+    off = b.index(key) + len(key) + 4  # after the attribute's size field
+    b[off:off + 16] = struct.pack("<4i", 0, 0, CLAIMED_SIDE_PX - 1, CLAIMED_SIDE_PX - 1)
+    path.write_bytes(bytes(b))
+
+
+def _claim_size_png(path: Path) -> None:
+    from PIL import Image
+
+    Image.new("L", (CLAIMED_SIDE_PX, CLAIMED_SIDE_PX)).save(path)
+
+
+@pytest.mark.parametrize("suffix, claim", [(".exr", _claim_size_exr), (".mask.png", _claim_size_png)], ids=["exr", "png"])
+def test_import_exr_image_size_checked_before_decoding(base, world, suffix, claim):
+    exp = _copy_export(base, world)
+    claim(exp / f"o000001_i000{suffix}")
+    world.freeze()
+    assert_refused(run("import-exr", exp, "--out", world.root / "out", "-q"),
+                   f"is {CLAIMED_SIDE_PX}x{CLAIMED_SIDE_PX} px, expected")
+    world.assert_untouched()
+
+
 @pytest.mark.parametrize("suffix", [".exr", ".mask.png", ".json"])
 def test_import_exr_file_symlink_leading_out(base, world, suffix):
     exp = _copy_export(base, world)
