@@ -2,9 +2,14 @@
 
 * :mod:`.reader` (numpy only, always importable): :class:`ShardReader` random access across
   splits and classes, :func:`plan_epoch` (shuffling and sharding shared by every loader).
-* :mod:`.torch` (``pip install torch==2.13.0``): ``DepthDataset``, ``ShardIterableDataset``,
-  ``EpochBatchSampler``, ``make_loader``.
-* :mod:`.jax` (``pip install ".[jax]"``): ``ShardDataSource`` (grain data source), ``JaxLoader``.
+* :mod:`.torch` (PyTorch: ``pip install torch --index-url https://download.pytorch.org/whl/cpu``):
+  ``DepthDataset``, ``ShardIterableDataset``, ``EpochBatchSampler``, ``make_loader``; ``depth``
+  channels-first ``(B, 1, H, W)``.
+* :mod:`.jax` (``pip install -e ".[jax]"`` from the checkout): ``ShardDataSource`` (grain data
+  source), ``JaxLoader``, ``device_put``; ``depth`` channels-last ``(B, H, W, 1)``.
+
+Both loaders give every rank (process) the same number of batches (``remainder="pad"``, as
+``DistributedSampler``), batches that do not depend on the number of workers, and ``K`` as float32.
 
 Importing this package imports neither torch nor jax; import the submodules explicitly.
 See docs/loaders.md.
@@ -14,6 +19,7 @@ from .reader import (
     DEFAULT_BLOCK_SIZE,
     DEFAULT_FIELDS,
     NUMERIC_FIELDS,
+    REMAINDER_MODES,
     BatchProcessor,
     ShardReader,
     load_batch,
@@ -21,4 +27,4 @@ from .reader import (
 )
 
 __all__ = ["ShardReader", "plan_epoch", "BatchProcessor", "load_batch", "DEFAULT_FIELDS", "NUMERIC_FIELDS",
-           "DEFAULT_BLOCK_SIZE"]
+           "DEFAULT_BLOCK_SIZE", "REMAINDER_MODES"]
