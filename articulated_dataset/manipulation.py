@@ -633,6 +633,8 @@ class ExecutionResult:
         return self.grasped and self.reached and self.within_limits
 
     def failure_reason(self) -> str:
+        if not self.grasped and not math.isfinite(self.grasp_error_m):
+            return self.grasp_failure or "no grasp was planned"
         if not self.grasped:
             if self.grasp_error_m <= GRASP_CAPTURE_M and self.grasp_failure:
                 return f"the fingers did not hold the handle: {self.grasp_failure}"
@@ -836,6 +838,16 @@ class GripperController:
                                max_force_n=self.max_f, max_torque_nm=self.max_t, max_position_error_m=self.max_pe,
                                max_rotation_error_rad=self.max_re, duration_s=self.steps * self.model.opt.timestep,
                                trace=trace, **base)
+
+
+def no_plan_result(obj: TrueObject, joint: int, q_target: float, reason: str, images_used: int = 1) -> ExecutionResult:
+    """The outcome of a trial whose estimator gave no estimate (e.g. too few object pixels):
+    nothing moves, the trial fails with ``reason``."""
+    q0 = float(np.asarray(obj.labels["q"], np.float64)[joint])
+    return ExecutionResult(joint=joint, joint_type=obj.joint_types[joint], q_start=q0, q_target=float(q_target),
+                           q_reached=q0, grasped=False, grasp_error_m=float("inf"), max_force_n=0.0, max_torque_nm=0.0,
+                           max_position_error_m=0.0, max_rotation_error_rad=0.0, duration_s=0.0,
+                           grasp_failure=f"no estimate: {reason}", images_used=images_used)
 
 
 def execute_plan(obj: TrueObject, waypoints: np.ndarray, joint: int, q_target: float, *,
@@ -1288,13 +1300,17 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
     q_true0 = np.asarray(obj.labels["q"], np.float64)
     for angle in list(view_angles_deg)[: max(0, max_images - 1)]:
         rot, trans = orbit_viewpoint(centre, math.radians(angle))
-        e = transform_estimate(estimator(camera.render(q_true0, (rot, trans)), camera.K), rot, trans)
+        try:
+            e = transform_estimate(estimator(camera.render(q_true0, (rot, trans)), camera.K), rot, trans)
+        except UserError as exc:  # e.g. the object left the view: the image is spent, nothing learnt
+            views.append({"when": "before grasp", "viewpoint_deg": float(angle), "error": str(exc)})
+            continue
         estimates.append(e)
         views.append({"when": "before grasp", "viewpoint_deg": float(angle), "q_estimate": float(e.q[joint])})
     fused = fuse_estimates(estimates, source=f"{estimator.name} closed loop")
     plan = plan_from_estimate(fused, joint, jt, target, step_rad, step_m)
     grasp = plan.grasp_pose.copy()
-    n_images = len(estimates)
+    n_images = len(views)
     if look_at_handle and n_images < max_images:
         rot, trans = look_at_viewpoint(grasp[:3], outward_normal(grasp, jt))
         found = find_handle(camera.render(q_true0, (rot, trans)), camera.K, rng)
@@ -1331,10 +1347,14 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
         last_cmd = wps[-1]
         if n_images >= max_images:
             break
-        e = estimator(camera.render(ctl.q), camera.K)
+        n_images += 1
+        try:
+            e = estimator(camera.render(ctl.q), camera.K)
+        except UserError as exc:
+            views.append({"when": "during motion", "viewpoint_deg": 0.0, "error": str(exc), "q_true": float(ctl.q[joint])})
+            continue
         axis_estimates.append(e)
         seen.append((float(e.q[joint]), ctl.grasp_pose()[:3].copy()))
-        n_images += 1
         views.append({"when": "during motion", "viewpoint_deg": 0.0, "q_estimate": float(e.q[joint]),
                       "q_true": float(ctl.q[joint])})
     ctl.track(last_cmd[None], settle_s=SETTLE_S)

@@ -141,11 +141,15 @@ def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, lis
         methods.update({name: est[sid] for name, est in estimates.items() if sid in est})
         images = {name: 1 for name in methods if name != TRUTH}  # one image: the observed view (or its prediction)
         images[TRUTH] = 0
+        failed = {}  # method -> why the model gave no estimate of the observed image
         if estimators:
             depth, K, _ = M.stored_image(split_dir, r)
             for name, est in estimators.items():
-                methods[name] = est(depth, K)
                 images[name] = 1
+                try:
+                    methods[name] = est(depth, K)
+                except UserError as exc:
+                    failed[name] = str(exc)
         ident = {"class": cls, "object_index": int(row["object_index"]), "image_index": int(row["image_index"]),
                  "sample_id": sid}
         for j in range(obj.n_joints):
@@ -153,10 +157,17 @@ def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, lis
                 _, res = M.run_trial(obj, estimate, j)
                 res.images_used = images[name]
                 records.append({"method": name, **ident, **res.to_dict()})
+            for name, why in failed.items():
+                target = obj.clip_target(j, M.default_target(obj.joint_types[j]))
+                records.append({"method": name, **ident, **M.no_plan_result(obj, j, target, why).to_dict()})
             if closed_loop:
                 for name, est in ((n, e) for n, e in estimators.items() if n in closed_loop):
                     loop_rng = np.random.default_rng([seed, stable_key(cls), sid, j])
-                    _, res = M.closed_loop_trial(obj, est, j, depth, K, loop_rng)
+                    try:
+                        _, res = M.closed_loop_trial(obj, est, j, depth, K, loop_rng)
+                    except UserError as exc:  # no estimate of the observed image
+                        target = obj.clip_target(j, M.default_target(obj.joint_types[j]))
+                        res = M.no_plan_result(obj, j, target, str(exc))
                     records.append({"method": f"{name}-closed-loop", **ident, **res.to_dict(),
                                     "views": res.views})
         for name in list(estimates) + [n for n in (models or {}) if n not in estimators]:

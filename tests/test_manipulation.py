@@ -582,3 +582,27 @@ def test_cli_plan_with_an_mdn_checkpoint_matches_predict(tiny_root, tmp_path):
     np.testing.assert_allclose(rec["axis_origin"], arrays["axis_pose"][i, 0, :3], atol=1e-5)
     np.testing.assert_allclose(rec["q_current"], arrays["q"][i, 0], atol=1e-5)
     assert rec["source"].startswith("MDN")
+
+
+def test_closed_loop_survives_images_without_an_estimate(tiny_root, monkeypatch):
+    """Rendered images the model cannot use (UserError) are spent and logged, not fatal; with the
+    first image's true estimate carried forward by the hand's motion the door still opens."""
+    obj = _first_view_obj(tiny_root, "microwave")
+    oracle = _Oracle(obj)
+
+    def picky(depth, K):
+        if oracle.calls >= 1:
+            oracle.calls += 1
+            raise UserError("only 3 object pixels remain")
+        return oracle(depth, K)
+
+    picky.name = "picky"
+    depth, K, _ = M.stored_image(obj.config_dir, obj.row_index)
+    _, res = M.closed_loop_trial(obj, picky, 0, depth, K, np.random.default_rng(0))
+    errors = [v for v in res.views if "error" in v]
+    assert len(errors) >= 2 + 1  # both swung views and at least one during the motion
+    assert res.images_used == len(res.views) == oracle.calls + 1  # every image counted, the close-up too
+    assert res.success, res.failure_reason()
+    failed = M.no_plan_result(obj, 0, 1.0, "only 3 object pixels remain")
+    assert not failed.success and failed.failure_reason() == "no estimate: only 3 object pixels remain"
+    assert failed.to_dict()["images_used"] == 1
