@@ -48,6 +48,12 @@ _SHARD_FILE_RE = re.compile(r"shard-[0-9]{5,}\.h5")
 #: Deepest group nesting accepted in an HDF5 file we read (shards are flat, predictions
 #: have one level of class groups); also ends hard-link cycles between groups.
 MAX_H5_GROUP_DEPTH = 4
+#: Largest share of the available memory one read may take.
+MAX_READ_MEMORY_FRACTION = 0.5
+#: Fewest bytes one image takes in a shard: its depth and mask are separate chunks, each with
+#: a chunk-index entry (>= 8 bytes) and deflate data (>= ~10 bytes).  A file declaring more
+#: images than its size allows (unwritten chunks read as zeros) is refused before reading.
+MIN_STORED_BYTES_PER_IMAGE = 16
 
 
 def shard_name(index: int) -> str:
@@ -204,6 +210,10 @@ class Shard:
             raise DataFormatError(f"{where}: not an articulated_dataset shard (no format_version attribute)")
         check_version(str(f.attrs["format_version"]), where)
         N, H, W = f["depth"].shape if "depth" in f else (0, 0, 0)
+        size = self.path.stat().st_size
+        if N * MIN_STORED_BYTES_PER_IMAGE > size:
+            raise DataFormatError(f"{where}: declares {N} images but holds only {size} bytes (every stored image "
+                                  f"takes at least {MIN_STORED_BYTES_PER_IMAGE}); damaged or not written by artdata")
         J = int(f.attrs.get("n_joints", 0))
         validate_arrays({k: f[k] for k in FIELDS_BY_NAME if k in f}, N=N, J=J, H=H, W=W, where=where)
 
@@ -225,10 +235,16 @@ class Shard:
         return self.read(R_DATASET, ())
 
     def read(self, name: str, index=slice(None)) -> np.ndarray:
-        """``dataset[index]``; a damaged file is a :class:`DataFormatError` (see :func:`reading`)."""
+        """``dataset[index]``; a damaged file is a :class:`DataFormatError` (see :func:`reading`).
+
+        A whole dataset larger than :data:`MAX_READ_MEMORY_FRACTION` of the available memory
+        is refused before reading (a hostile shard can declare any size: unwritten chunks
+        read as zeros)."""
         f = self.file
         with reading(self.path, name):
-            return f[name][index]
+            ds = f[name]
+            _check_fits_memory(self.path, name, _selection_rows(index, ds.shape) * _row_bytes(ds))
+            return ds[index]
 
     def sample(self, i: int) -> dict:
         """All fields of image ``i`` as numpy arrays."""
@@ -307,6 +323,34 @@ def check_h5_layout(f: h5py.Group, path: str | Path, _depth: int = 0) -> None:
             if _depth + 1 >= MAX_H5_GROUP_DEPTH:
                 raise DataFormatError(f"{where}: groups nested deeper than {MAX_H5_GROUP_DEPTH} levels (refused)")
             check_h5_layout(obj, path, _depth + 1)
+
+
+def _row_bytes(ds) -> int:
+    """Bytes of one row (first-axis entry) of dataset ``ds``."""
+    return int(np.prod(ds.shape[1:], dtype=np.float64)) * ds.dtype.itemsize if ds.shape else ds.dtype.itemsize
+
+
+def _selection_rows(index, shape) -> int:
+    """How many first-axis rows ``dataset[index]`` reads (an upper bound)."""
+    n = shape[0] if shape else 1
+    if isinstance(index, tuple):
+        if not index:
+            return n
+        index = index[0]
+    if isinstance(index, slice):
+        return len(range(*index.indices(n)))
+    if isinstance(index, (int, np.integer)):
+        return 1
+    return int(np.size(index))
+
+
+def _check_fits_memory(path: Path, name: str, nbytes: int) -> None:
+    from .safeio import available_memory_bytes, format_bytes
+
+    avail = available_memory_bytes()
+    if avail is not None and nbytes > MAX_READ_MEMORY_FRACTION * avail:
+        raise DataFormatError(f"{path}: dataset {name!r} holds {format_bytes(nbytes)}, more than "
+                              f"{MAX_READ_MEMORY_FRACTION:.0%} of the {format_bytes(avail)} of memory available")
 
 
 @contextlib.contextmanager

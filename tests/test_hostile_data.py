@@ -474,6 +474,25 @@ def test_hdf5_layouts_reading_elsewhere_are_refused(base, world, cmd, layout):
     world.assert_untouched()
 
 
+#: Images a hostile shard declares without storing them (unwritten chunks read as zeros).
+DECLARED_IMAGES = 10**8
+
+
+@pytest.mark.parametrize("cmd", READERS)
+def test_declared_but_unstored_images_are_refused(base, world, cmd):
+    """A tiny shard declaring 10^8 images (terabytes of zeros once read): refused before any read."""
+    split = _copy_split(base, world)
+    with h5py.File(split / "shard-00001.h5", "a") as f:
+        for name in [n for n in f if n not in ("K", "R")]:
+            shape, dtype = f[name].shape, f[name].dtype
+            del f[name]
+            f.create_dataset(name, shape=(DECLARED_IMAGES,) + shape[1:], dtype=dtype, chunks=(1,) + shape[1:],
+                             compression="gzip")
+    world.freeze()
+    assert_refused(_read_cmd(cmd, split, world), f"declares {DECLARED_IMAGES} images")
+    world.assert_untouched()
+
+
 @pytest.mark.parametrize("layout", list(H5_LAYOUTS))
 def test_verify_reports_hdf5_layouts(base, world, layout):
     """verify reports the layout as a problem of the shard (exit 1) and reads nothing elsewhere."""
