@@ -272,6 +272,68 @@ def test_torch_targets_in_batches(cab, raw):
         make_loader(cab, fields=["depth", "q"], target=layout)
 
 
+# PyTorch idioms (before any test imports jax: these fork DataLoader workers, and JAX is
+# multithreaded): batches independent of workers, len, the stock DataLoader recipe
+
+def test_batches_and_len_do_not_depend_on_num_workers(cab, raw):
+    pytest.importorskip("torch")
+    from articulated_dataset.loaders.torch import make_loader
+
+    n = len(raw["depth"])  # 96: batches of 40 are [40, 40, 16]
+    for iterable in (True, False):
+        runs = {}
+        for workers in (0, 1, 2):
+            loader = make_loader(cab, batch_size=40, num_workers=workers, iterable=iterable, seed=3,
+                                 fields=["depth", "q"], persistent_workers=False)
+            batches = [b["index"].numpy() for b in loader]
+            assert len(loader) == len(batches) == 3, (iterable, workers)
+            runs[workers] = batches
+        assert [len(b) for b in runs[0]] == [40, 40, n - 80]
+        for workers in (1, 2):
+            assert all(np.array_equal(a, b) for a, b in zip(runs[0], runs[workers], strict=True)), (iterable, workers)
+    # the docs' quick start: one batch per epoch when the batch holds the whole split
+    assert [len(b["index"]) for b in make_loader(cab, batch_size=128, num_workers=2, fields=["q"])] == [n]
+
+
+def test_stock_dataloader_with_distributed_sampler_three_ranks(cab, raw):
+    """The PyTorch recipe: DataLoader(DepthDataset, sampler=DistributedSampler) per rank and only
+    ``sampler.set_epoch``: equal steps, every sample once per epoch, a new augmentation each epoch."""
+    torch = pytest.importorskip("torch")
+    from torch.utils.data import DataLoader, DistributedSampler
+
+    from articulated_dataset.loaders.torch import DepthDataset
+    from articulated_dataset.transforms import PixelDropout
+
+    torch.manual_seed(0)
+    n, world = len(raw["depth"]), 3
+    ranks = []
+    for rank in range(world):
+        ds = DepthDataset(cab, ["depth", "q", "K"], transform=PixelDropout(0.5), seed=1)
+        sampler = DistributedSampler(ds, num_replicas=world, rank=rank, shuffle=True, seed=7)
+        workers = {0: dict(num_workers=2), 1: dict(num_workers=0),
+                   2: dict(num_workers=1, persistent_workers=True)}[rank]
+        ranks.append((sampler, DataLoader(ds, batch_size=5, sampler=sampler, **workers)))
+    depth_by_epoch = []
+    for epoch in range(2):
+        depth, steps = {}, []
+        for sampler, loader in ranks:
+            sampler.set_epoch(epoch)
+            batches = list(loader)
+            steps.append(len(batches))
+            assert len(loader) == len(batches)
+            for b in batches:
+                assert b["depth"].shape[1] == 1 and b["K"].dtype == torch.float32
+                for i, d in zip(b["index"].tolist(), b["depth"][:, 0].numpy()):
+                    assert i not in depth  # exactly once across ranks
+                    depth[i] = d
+                    kept = d > 0
+                    np.testing.assert_array_equal(d[kept], raw["depth"][i][kept])  # dropout only
+        assert len(set(steps)) == 1 and sorted(depth) == list(range(n))
+        depth_by_epoch.append(depth)
+    changed = [not np.array_equal(depth_by_epoch[0][i], depth_by_epoch[1][i]) for i in range(n)]
+    assert all(changed), f"{changed.count(False)} of {n} samples kept their epoch-0 augmentation"
+
+
 # --------------------------------------------------------------------------------------
 # JAX
 
@@ -356,27 +418,7 @@ def test_core_package_imports_neither_torch_nor_jax():
 
 
 # --------------------------------------------------------------------------------------
-# PyTorch idioms: batches independent of workers, len, equal steps, stock DataLoader
-
-def test_batches_and_len_do_not_depend_on_num_workers(cab, raw):
-    pytest.importorskip("torch")
-    from articulated_dataset.loaders.torch import make_loader
-
-    n = len(raw["depth"])  # 96: batches of 40 are [40, 40, 16]
-    for iterable in (True, False):
-        runs = {}
-        for workers in (0, 1, 2):
-            loader = make_loader(cab, batch_size=40, num_workers=workers, iterable=iterable, seed=3,
-                                 fields=["depth", "q"], persistent_workers=False)
-            batches = [b["index"].numpy() for b in loader]
-            assert len(loader) == len(batches) == 3, (iterable, workers)
-            runs[workers] = batches
-        assert [len(b) for b in runs[0]] == [40, 40, n - 80]
-        for workers in (1, 2):
-            assert all(np.array_equal(a, b) for a, b in zip(runs[0], runs[workers], strict=True)), (iterable, workers)
-    # the docs' quick start: one batch per epoch when the batch holds the whole split
-    assert [len(b["index"]) for b in make_loader(cab, batch_size=128, num_workers=2, fields=["q"])] == [n]
-
+# Equal steps, epochs without set_epoch, exact ids, missing optional dependencies
 
 def test_equal_steps_per_rank_by_default(cab, raw):
     pytest.importorskip("torch")
@@ -404,45 +446,6 @@ def test_equal_steps_per_rank_by_default(cab, raw):
     sizes = [len(make_loader(cab, batch_size=4, num_workers=0, rank=r, world_size=world, remainder="uneven",
                              fields=["q"])) for r in range(world)]
     assert sum(sizes) == sum(-(-c // 4) for c in (19, 19, 19, 19, 20))
-
-
-def test_stock_dataloader_with_distributed_sampler_three_ranks(cab, raw):
-    """The PyTorch recipe: DataLoader(DepthDataset, sampler=DistributedSampler) per rank and only
-    ``sampler.set_epoch``: equal steps, every sample once per epoch, a new augmentation each epoch."""
-    torch = pytest.importorskip("torch")
-    from torch.utils.data import DataLoader, DistributedSampler
-
-    from articulated_dataset.loaders.torch import DepthDataset
-    from articulated_dataset.transforms import PixelDropout
-
-    torch.manual_seed(0)
-    n, world = len(raw["depth"]), 3
-    ranks = []
-    for rank in range(world):
-        ds = DepthDataset(cab, ["depth", "q", "K"], transform=PixelDropout(0.5), seed=1)
-        sampler = DistributedSampler(ds, num_replicas=world, rank=rank, shuffle=True, seed=7)
-        workers = {0: dict(num_workers=2), 1: dict(num_workers=0),
-                   2: dict(num_workers=1, persistent_workers=True)}[rank]
-        ranks.append((sampler, DataLoader(ds, batch_size=5, sampler=sampler, **workers)))
-    depth_by_epoch = []
-    for epoch in range(2):
-        depth, steps = {}, []
-        for sampler, loader in ranks:
-            sampler.set_epoch(epoch)
-            batches = list(loader)
-            steps.append(len(batches))
-            assert len(loader) == len(batches)
-            for b in batches:
-                assert b["depth"].shape[1] == 1 and b["K"].dtype == torch.float32
-                for i, d in zip(b["index"].tolist(), b["depth"][:, 0].numpy()):
-                    assert i not in depth  # exactly once across ranks
-                    depth[i] = d
-                    kept = d > 0
-                    np.testing.assert_array_equal(d[kept], raw["depth"][i][kept])  # dropout only
-        assert len(set(steps)) == 1 and sorted(depth) == list(range(n))
-        depth_by_epoch.append(depth)
-    changed = [not np.array_equal(depth_by_epoch[0][i], depth_by_epoch[1][i]) for i in range(n)]
-    assert all(changed), f"{changed.count(False)} of {n} samples kept their epoch-0 augmentation"
 
 
 def test_loader_advances_the_epoch_without_set_epoch(cab):
