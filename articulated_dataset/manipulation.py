@@ -615,6 +615,8 @@ class ExecutionResult:
     images_used: int = 0
     #: Closed loop: one entry per image (when, where from, what it gave); see :func:`closed_loop_trial`.
     views: list = field(default_factory=list, repr=False)
+    #: Closed loop with ``close_first``: whether the closed stop was felt, and the true q there.
+    closed_stop: dict | None = None
 
     @property
     def error(self) -> float:
@@ -656,7 +658,7 @@ class ExecutionResult:
             "max_position_error_m": self.max_position_error_m, "max_rotation_error_rad": self.max_rotation_error_rad,
             "duration_s": self.duration_s, "reached": self.reached, "within_limits": self.within_limits,
             "success": self.success, "failure": "" if self.success else self.failure_reason(),
-            "images_used": self.images_used,
+            "images_used": self.images_used, "closed_stop": self.closed_stop,
         }
 
 
@@ -766,8 +768,10 @@ class GripperController:
         out[:3] -= quat_to_matrix(out[3:]) @ self.tool_offset_local
         return out
 
-    def track(self, waypoints: np.ndarray, settle_s: float = SETTLE_S) -> None:
-        """Follow ``waypoints`` over :func:`motion_duration` (minimum jerk), then hold the last for ``settle_s``."""
+    def track(self, waypoints: np.ndarray, settle_s: float = SETTLE_S, stop_force_n: float | None = None) -> bool:
+        """Follow ``waypoints`` over :func:`motion_duration` (minimum jerk), then hold the last for
+        ``settle_s``.  A guarded move (``stop_force_n``) stops as soon as the gripper's force
+        exceeds it; returns whether it stopped so."""
         model, data, body = self.model, self.data, self.body
         dt = model.opt.timestep
         duration = motion_duration(waypoints)
@@ -812,7 +816,8 @@ class GripperController:
             torque = kr * theta + br * (w_cmd_world - w)
             data.qfrc_applied[:] = 0.0
             mujoco.mj_applyFT(model, data, force, torque, gp, body, data.qfrc_applied)
-            self.max_f = max(self.max_f, float(np.linalg.norm(force)))
+            f_norm = float(np.linalg.norm(force))
+            self.max_f = max(self.max_f, f_norm)
             self.max_t = max(self.max_t, float(np.linalg.norm(torque)))
             self.max_pe = max(self.max_pe, float(np.linalg.norm(pos_err)))
             self.max_re = max(self.max_re, float(np.linalg.norm(theta)))
@@ -823,7 +828,11 @@ class GripperController:
                 trace["grasp"].append(gp.copy())
                 trace["command"].append(target[:3].copy())
             mujoco.mj_step2(model, data)
+            if stop_force_n is not None and f_norm > stop_force_n:
+                self.steps += i + 1
+                return True
         self.steps += n_total
+        return False
 
     def result(self, q_target: float) -> ExecutionResult:
         joint = self.joint
@@ -1249,6 +1258,17 @@ CLOSED_LOOP_LOOK_SETTLE_S = 0.2
 #: Stop correcting once the estimated remaining motion is below this fraction of the
 #: success tolerance (the estimate cannot resolve finer corrections).
 CLOSED_LOOP_DONE_FRACTION = 0.25
+#: Finding "closed" by touch (closed loop, ``close_first``): after grasping, the hand closes the
+#: part in guarded segments of CLOSE_SEGMENT_RAD / CLOSE_SEGMENT_M about the axis estimate
+#: (each from the measured hand pose) until the force exceeds GUARD_FORCE_N (60% of the
+#: force limit: the true-axis motions of the benchmark peak at 16 N) or a segment moves the
+#: hand less than half of what it commanded: the part is against its closed stop (q = 0 by
+#: the label convention).  At most CLOSE_MAX_SEGMENTS segments (the whole range of any
+#: built-in joint).
+CLOSE_SEGMENT_RAD = math.radians(5.0)
+CLOSE_SEGMENT_M = 0.02
+GUARD_FORCE_N = 0.6 * MAX_FORCE_N
+CLOSE_MAX_SEGMENTS = 40
 #: Most images one closed-loop trial may use (the stored image included).
 CLOSED_LOOP_MAX_IMAGES = 12
 
@@ -1257,6 +1277,7 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
                       rng: np.random.Generator, q_target: float | None = None, *,
                       view_angles_deg=CLOSED_LOOP_VIEW_ANGLES_DEG, segment: float | None = None,
                       step_rad: float = DEFAULT_STEP_RAD, step_m: float = DEFAULT_STEP_M, look_at_handle: bool = True,
+                      close_first: bool = True,
                       max_images: int = CLOSED_LOOP_MAX_IMAGES, record: bool = False) -> tuple[Plan, ExecutionResult]:
     """Open joint ``joint`` using depth images of the simulated scene, as a mobile robot would.
 
@@ -1268,19 +1289,23 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
        outward normal (:func:`look_at_viewpoint`, 1 image, not given to the model) is searched
        for the handle bar (:func:`find_handle`); if one is found the grasp moves onto it.  It
        closes only if it lands within :data:`GRASP_CAPTURE_M` of the true handle (as open loop).
-    2. **During the motion**: the robot moves at most ``segment`` (default 15 deg / 5 cm) of
+    2. **Finding "closed" by touch** (``close_first``): guarded closing segments
+       (``CLOSE_SEGMENT_*``, stop at :data:`GUARD_FORCE_N` or when the hand stops following)
+       until the closed stop; from then on q is the hand's motion since the stop.
+    3. **During the motion**: the robot moves at most ``segment`` (default 15 deg / 5 cm) of
        joint motion along the arc / line about the current axis estimate, starting at its
        own measured hand pose (an arm knows its pose from its joint encoders); holds
        :data:`CLOSED_LOOP_LOOK_SETTLE_S`; takes a depth image from the first viewpoint and
        re-estimates.  The axis is re-fused from every image so far; the current
-       configuration is the median over images of ``q_i + (the hand's rotation about /
-       travel along the axis since image i)``.  It stops when the estimated remaining
-       motion is below ``CLOSED_LOOP_DONE_FRACTION`` of the success tolerance or
+       configuration is the hand's motion since the closed stop or, without it, the median
+       over images of ``q_i + (the hand's rotation about / travel along the axis since
+       image i)``.  It stops when the estimated remaining motion is below ``CLOSED_LOOP_DONE_FRACTION`` of the success tolerance or
        ``max_images`` images are used, then holds for :data:`SETTLE_S`.
 
     The success criterion, force/torque limits and gripper are those of :func:`execute_plan`;
-    peaks are over the whole motion.  ``result.images_used`` counts every image the
-    controller estimated from (the first included); ``result.views`` lists them.
+    peaks are over the whole motion (the guarded closing included).  ``result.images_used``
+    counts every image the controller used (the first and the handle close-up included);
+    ``result.views`` lists them; ``result.closed_stop`` tells whether the stop was felt.
     """
     if not 0 <= joint < obj.n_joints:
         raise UserError(f"joint {joint} out of range: {obj.class_name} has {obj.n_joints} joint(s)")
@@ -1331,13 +1356,29 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
     # every image's (q estimate, hand position when it was taken): q now = q_i + hand motion since
     seen = [(float(e.q[joint]), hand[:3].copy()) for e in estimates]
     axis_estimates = list(estimates)
+    closed_hand = None  # the hand's position with the part against its closed stop (q = 0), once felt
+    if close_first:
+        o, d = fused.axis(joint)
+        close_seg = CLOSE_SEGMENT_RAD if jt == REVOLUTE else CLOSE_SEGMENT_M
+        for _ in range(CLOSE_MAX_SEGMENTS):
+            start = ctl.grasp_pose()
+            wps = plan_waypoints(jt, o, d, 0.0, -close_seg, start, step_rad, step_m)
+            stopped = ctl.track(wps, settle_s=CLOSED_LOOP_LOOK_SETTLE_S, stop_force_n=GUARD_FORCE_N)
+            moved = -joint_displacement(jt, o, d, start[:3], ctl.grasp_pose()[:3])
+            if stopped or moved < 0.5 * close_seg:
+                closed_hand = ctl.grasp_pose()[:3].copy()
+                break
+        closed_found, closed_q_true = closed_hand is not None, float(ctl.q[joint])
     tol = success_tolerance(jt)
     last_cmd = hand
     while True:
         axis = fuse_estimates(axis_estimates)
         o, d = axis.axis(joint)
         hand = ctl.grasp_pose()
-        q_now = float(np.median([q_i + joint_displacement(jt, o, d, p_i, hand[:3]) for q_i, p_i in seen]))
+        if closed_hand is not None:  # felt: q is the hand's motion since the closed stop
+            q_now = joint_displacement(jt, o, d, closed_hand, hand[:3])
+        else:
+            q_now = float(np.median([q_i + joint_displacement(jt, o, d, p_i, hand[:3]) for q_i, p_i in seen]))
         remaining = target - q_now
         if abs(remaining) <= CLOSED_LOOP_DONE_FRACTION * tol:
             break
@@ -1360,4 +1401,6 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
     ctl.track(last_cmd[None], settle_s=SETTLE_S)
     res = ctl.result(target)
     res.images_used, res.views = n_images, views
+    if close_first:
+        res.closed_stop = {"found": closed_found, "q_true_there": closed_q_true}
     return plan, res

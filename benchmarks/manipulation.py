@@ -97,13 +97,14 @@ def perturb(estimate, joint_types, rng: np.random.Generator, errors: tuple[float
 
 def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, list[Path]], perturbations: dict,
               seed: int, progress: bool, models: dict[str, str] | None = None,
-              closed_loop: set[str] | None = None) -> list[dict]:
+              closed_loop: set[str] | None = None, touch: bool = True) -> list[dict]:
     """One record per (object, joint, method) trial of one split.
 
     ``models``: method name -> ``--model`` spec (a shipped name, or a checkpoint path in which
     ``{class}`` is replaced by the class name); each estimates from the observed view's stored
     depth image (1 image), and those named in ``closed_loop`` also run
-    :func:`~articulated_dataset.manipulation.closed_loop_trial` as method ``NAME-closed-loop``.
+    :func:`~articulated_dataset.manipulation.closed_loop_trial` as method ``NAME-closed-loop``
+    (``touch``: closing the part by touch first, its ``close_first``).
     A class without a checkpoint (a missing ``{class}`` file, no shipped weights) has no
     trials for that method (reported as missing)."""
     from tqdm import tqdm
@@ -164,7 +165,7 @@ def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, lis
                 for name, est in ((n, e) for n, e in estimators.items() if n in closed_loop):
                     loop_rng = np.random.default_rng([seed, stable_key(cls), sid, j])
                     try:
-                        _, res = M.closed_loop_trial(obj, est, j, depth, K, loop_rng)
+                        _, res = M.closed_loop_trial(obj, est, j, depth, K, loop_rng, close_first=touch)
                     except UserError as exc:  # no estimate of the observed image
                         target = obj.clip_target(j, M.default_target(obj.joint_types[j]))
                         res = M.no_plan_result(obj, j, target, str(exc))
@@ -559,6 +560,8 @@ def main(argv=None) -> int:
     ap.add_argument("--closed-loop", nargs="*", default=None, metavar="NAME",
                     help="also open in closed loop (extra views, re-estimation while opening) with these --model "
                          "names (none given: every --model); reported as NAME-closed-loop")
+    ap.add_argument("--no-touch", action="store_true",
+                    help="closed loop without first closing the part by touch (configuration from the images only)")
     ap.add_argument("--threads", type=int, default=1, help="CPU threads for the models (torch)")
     ap.add_argument("--perturb", action="append", default=[], metavar="NAME=POS_CM,ROT_DEG,Q_DEG,Q_CM",
                     help="also plan from the truth with random errors of these MEAN sizes (e.g. Table 1's 'Ours')")
@@ -600,7 +603,7 @@ def main(argv=None) -> int:
         for cls in classes:
             try:
                 records += run_class(args.data / cls / args.split, args.objects, predictions, perturbations,
-                                     args.seed, not args.quiet, models, loop_names)
+                                     args.seed, not args.quiet, models, loop_names, not args.no_touch)
             except UserError as exc:
                 sys.exit(f"manipulation.py: error: {exc}")
         seconds = time.perf_counter() - t0

@@ -432,9 +432,9 @@ class _Oracle:
 
     name, kind = "oracle", "test"
 
-    def __init__(self, obj, shift_m=0.0):
+    def __init__(self, obj, shift_m=0.0, q_bias=0.0):
         self.obj, self.q, self.shift_m, self.calls = obj, np.asarray(obj.labels["q"], np.float64), shift_m, 0
-        self.viewpoint = None
+        self.viewpoint, self.q_bias = None, q_bias
 
     def __call__(self, depth, K):
         self.calls += 1
@@ -442,7 +442,7 @@ class _Oracle:
         for j in range(len(t.q)):
             o, rot = M.axis_frame(t.axis_pose[j])
             t.axis_pose[j, :3] = o + self.shift_m * rot[:, 1]
-        t.q = self.q.copy()
+        t.q = self.q.copy() + self.q_bias
         if self.viewpoint is not None:  # camera at p_ref = R p + t: the truth in that camera's frame
             rot, trans = self.viewpoint
             t = M.transform_estimate(t, rot.T, -rot.T @ trans)
@@ -450,7 +450,7 @@ class _Oracle:
 
 
 def _oracle_loop(obj, monkeypatch, **kwargs):
-    oracle = _Oracle(obj, kwargs.pop("shift_m", 0.0))
+    oracle = _Oracle(obj, kwargs.pop("shift_m", 0.0), kwargs.pop("q_bias", 0.0))
     render = M.SceneCamera.render
 
     def spy(self, q, viewpoint=None):
@@ -582,6 +582,19 @@ def test_cli_plan_with_an_mdn_checkpoint_matches_predict(tiny_root, tmp_path):
     np.testing.assert_allclose(rec["axis_origin"], arrays["axis_pose"][i, 0, :3], atol=1e-5)
     np.testing.assert_allclose(rec["q_current"], arrays["q"][i, 0], atol=1e-5)
     assert rec["source"].startswith("MDN")
+
+
+def test_closed_loop_feels_the_closed_stop(tiny_root, monkeypatch):
+    """Every image overestimates q by 10 degrees: by images alone the door stops ~10 degrees short;
+    closing by touch first (guarded, force-limited) gives the true reference and it opens."""
+    obj = _first_view_obj(tiny_root, "microwave")
+    _, _, res = _oracle_loop(obj, monkeypatch, q_bias=math.radians(10), close_first=False)
+    assert res.grasped and not res.reached and res.q_reached < res.q_target - math.radians(7)
+    assert res.closed_stop is None
+    _, _, res = _oracle_loop(obj, monkeypatch, q_bias=math.radians(10))
+    assert res.success, res.failure_reason()
+    assert res.closed_stop["found"] and abs(res.closed_stop["q_true_there"]) < math.radians(1)
+    assert res.max_force_n <= M.GUARD_FORCE_N + 1.0  # the guarded move stops at its threshold
 
 
 def test_closed_loop_survives_images_without_an_estimate(tiny_root, monkeypatch):

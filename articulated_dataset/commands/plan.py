@@ -77,6 +77,8 @@ def _usable_truth(estimate, joint: int, where: str):
 @click.option("--closed-loop", is_flag=True,
               help="With --model and --simulate: look again while opening (extra views before grasping, one image "
                    "after each segment of the motion) and correct the plan; reports the images used.")
+@click.option("--no-touch", is_flag=True,
+              help="Closed loop without first closing the part by touch (configuration from the images only).")
 @click.option("--seed", type=int, default=0, show_default=True,
               help="Seed of the sensor noise of the closed loop's rendered images (splits generated with --noise).")
 @click.option("--threads", type=int, default=None, help="CPU threads for the model (default: torch's).")
@@ -87,8 +89,8 @@ def _usable_truth(estimate, joint: int, where: str):
 @click.option("--simulate", is_flag=True, help="Execute the waypoints on the true object in MuJoCo and report the outcome.")
 @click.option("--out", "out_path", type=click.Path(dir_okay=False), default=None, help="Write the plan (and outcome) as JSON.")
 @click.option("--quiet", "-q", is_flag=True, help="Do not list the waypoints.")
-def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, seed, threads, target, step, simulate,
-             out_path, quiet):
+def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, no_touch, seed, threads, target, step,
+             simulate, out_path, quiet):
     """Plan end-effector waypoints that open joint JOINT of image INDEX's object.
 
     The handle's grasp pose is estimated from the (true or predicted) axis pose, part offset
@@ -188,7 +190,7 @@ def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, seed,
     }
     if simulate and closed_loop:
         plan, result = M.closed_loop_trial(obj, estimator, joint, depth, K, np.random.default_rng(seed), clipped,
-                                           step_rad=step_value, step_m=step_value)
+                                           step_rad=step_value, step_m=step_value, close_first=not no_touch)
         record.update(plan.to_dict())
         record["closed_loop"] = result.views
         wrist = [v for v in result.views if v.get("wrist")]
@@ -196,7 +198,9 @@ def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, seed,
                                      if wrist[0]["handle_found"] else "; no handle found in the close-up")
         click.echo(f"closed loop: {result.images_used} depth images used "
                    f"({sum(v['when'] == 'before grasp' for v in result.views)} before grasping, "
-                   f"{sum(v['when'] == 'during motion' for v in result.views)} during the motion){look}")
+                   f"{sum(v['when'] == 'during motion' for v in result.views)} during the motion){look}"
+                   + ("" if result.closed_stop is None else
+                      "; closed stop felt" if result.closed_stop["found"] else "; closed stop not found"))
     elif simulate:
         result = M.execute_plan(obj, plan.waypoints, joint, clipped)
         result.images_used = 0 if estimator is None and predictions_path is None else 1
