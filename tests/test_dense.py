@@ -251,3 +251,16 @@ def test_estimate_api_and_cli(overfit_run, tiny_root, tmp_path):
         cls = [] if "--class" in args else ["--class", "microwave"]
         code, text = _run(["estimate", *args, *cls, "--model", str(overfit_run[0])])
         assert code == 2 and text.count("\n") == 1 and needle in text, text
+
+
+def test_init_from_continues_a_finished_training(overfit_run, tiny_root, tmp_path):
+    src, ckpt, cfg = overfit_run
+    cont = DenseTrainConfig("microwave", epochs=1, batch_size=16, lr=1e-12, width=8, val_fraction=0.0, max_objects=1,
+                            init_from=str(src))
+    out = train_dense(tiny_root / "microwave" / "train", tmp_path / "c.pt", cont, progress=False)
+    for k, v in ckpt["model_state"].items():
+        if v.is_floating_point() and "running" not in k:
+            assert torch.allclose(v, out["model_state"][k], atol=1e-6), k
+    wrong = DenseTrainConfig("drawer", epochs=1, batch_size=16, width=8, val_fraction=0.0, max_objects=1, init_from=str(src))
+    with pytest.raises(Exception, match="init-from"):
+        train_dense(tiny_root / "drawer" / "train", tmp_path / "d.pt", wrong, progress=False)

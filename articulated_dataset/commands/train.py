@@ -40,6 +40,8 @@ def _prepare_torch(threads: int | None) -> int:
 @click.option("--lr", type=float, default=None, help="Peak learning rate of AdamW (default: mdn 1e-3, or 2e-3 with --small; dense 3e-3).")
 @click.option("--components", type=int, default=None, help="mdn: mixture components (default 20).")
 @click.option("--width", type=int, default=None, help="dense: base channel width of the network (default 16).")
+@click.option("--init-from", type=click.Path(dir_okay=False), default=None,
+              help="dense: start from this checkpoint's weights with a fresh schedule (continue a finished training).")
 @click.option("--val-fraction", type=float, default=None,
               help="Fraction of the training split's OBJECTS held out for validation (0: none; default: mdn 0.1, dense 0.05).")
 @click.option("--max-objects", type=int, default=None, help="Train on the first N objects of the split only.")
@@ -48,8 +50,8 @@ def _prepare_torch(threads: int | None) -> int:
 @click.option("--threads", type=int, default=None, help="CPU threads for torch (default: all cores of this process).")
 @click.option("--resume", is_flag=True, help="Continue the interrupted training stored in --out (same options).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or per-epoch lines.")
-def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, components, width, val_fraction, max_objects,
-              seed, device, threads, resume, quiet):
+def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, components, width, init_from, val_fraction,
+              max_objects, seed, device, threads, resume, quiet):
     """Train one class's estimator on its training split (checkpoints after every epoch; --resume continues)."""
     _prepare_torch(threads)
     if max_objects is not None and max_objects <= 0:
@@ -57,10 +59,11 @@ def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, 
     if model_kind == "dense":
         if small or components is not None:
             raise UserError("--small and --components belong to --model mdn")
-        _train_dense(class_name, data, out, epochs, batch_size, lr, width, val_fraction, max_objects, seed, resume, quiet)
+        _train_dense(class_name, data, out, epochs, batch_size, lr, width, init_from, val_fraction, max_objects, seed,
+                     resume, quiet)
         return
-    if width is not None:
-        raise UserError("--width belongs to --model dense")
+    if width is not None or init_from is not None:
+        raise UserError("--width and --init-from belong to --model dense")
     from ..mdn.train import TrainConfig, train
 
     val_fraction = 0.1 if val_fraction is None else val_fraction
@@ -77,11 +80,12 @@ def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, 
                    f"{ckpt['data']['n_val']} validation images) in {time.perf_counter() - t0:.0f} s")
 
 
-def _train_dense(class_name, data, out, epochs, batch_size, lr, width, val_fraction, max_objects, seed, resume, quiet):
+def _train_dense(class_name, data, out, epochs, batch_size, lr, width, init_from, val_fraction, max_objects, seed, resume,
+                 quiet):
     from ..dense.train import DenseTrainConfig, train_dense
 
     given = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "width": width, "val_fraction": val_fraction}
-    config = DenseTrainConfig(class_name=class_name, max_objects=max_objects, seed=seed,
+    config = DenseTrainConfig(class_name=class_name, max_objects=max_objects, seed=seed, init_from=init_from,
                               **{k: v for k, v in given.items() if v is not None})
     t0 = time.perf_counter()
     try:

@@ -63,6 +63,9 @@ class DenseTrainConfig:
     val_fraction: float = 0.05
     max_objects: int | None = None
     seed: int = 0
+    #: Start from this checkpoint's weights (same class and architecture) with a fresh schedule:
+    #: how a finished training is continued for more steps (``--init-from``).
+    init_from: str | None = None
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "width"):
@@ -329,6 +332,15 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
 
     torch.manual_seed(config.seed)
     model = DenseNet(model_config)
+    if config.init_from is not None and ckpt is None:
+        init = load_dense_checkpoint(config.init_from)
+        if init["class_name"] != obj_class.name or DenseConfig.from_dict(init["model_config"]) != model_config:
+            raise UserError(f"--init-from {config.init_from}: a {init['class_name']!r} model of another configuration "
+                            f"({init['model_config']}); expected {obj_class.name!r} {model_config.to_dict()}")
+        model.load_state_dict(build_dense_model(init).state_dict())
+        if "q_scale" in init:
+            q_scale = np.asarray(init["q_scale"], np.float64)
+            q_scale_t = torch.tensor(q_scale, dtype=torch.float32)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=WEIGHT_DECAY)
     steps_per_epoch = n_train // batch
     total_steps = steps_per_epoch * config.epochs
