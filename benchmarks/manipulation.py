@@ -453,7 +453,8 @@ def _trajectory_case(split_dir: Path, spec: str, name: str, seed: int) -> dict |
             "loop": loop_res, "true_plan": true_plan, "true": true_res, "estimate": estimate}
 
 
-def make_trajectory_figure(root: Path, split: str, models: dict[str, str], out: Path, seed: int) -> None:
+def make_trajectory_figure(root: Path, split: str, models: dict[str, str], out: Path, seed: int,
+                           classes: list[str] | None = None) -> None:
     """Top views (camera frame seen from above) of a door and a drawer: the true handle path,
     the one-image plan and the closed loop's commanded path, with the true and estimated axes."""
     import matplotlib
@@ -466,7 +467,7 @@ def make_trajectory_figure(root: Path, split: str, models: dict[str, str], out: 
     name, spec = next(iter(models.items()))
     cases = []
     for group in (TRAJECTORY_DOORS, (TRAJECTORY_DRAWER,)):
-        for cls in group:
+        for cls in (c for c in group if classes is None or c in classes):
             d = root / cls / split
             case = _trajectory_case(d, spec, name, seed) if (d / "manifest.json").is_file() else None
             if case is not None:
@@ -500,7 +501,7 @@ def make_trajectory_figure(root: Path, split: str, models: dict[str, str], out: 
         ax.set_ylabel("x (m, forward)")
         ax.set_title(f"{case['class']} (joint 0, {jt}): open from {format_q(case['true'].q_start, jt)} "
                      f"to {format_q(case['true'].q_target, jt)}", fontsize=9)
-        ax.legend(fontsize=6.5, loc="best", framealpha=0.85)
+        ax.legend(fontsize=6.5, loc="upper center", bbox_to_anchor=(0.5, -0.12), framealpha=0.85)
     _save_figure(fig, out)
 
 
@@ -570,7 +571,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="write summary + per-trial records here")
     ap.add_argument("--figure", type=Path, default=None, help="also draw the before/after figure (PNG)")
     ap.add_argument("--trajectory-figure", type=Path, default=None,
-                    help="also draw estimated (first --model) versus true handle paths of a door and a drawer (PNG)")
+                    help="also draw estimated (first --model) versus true handle paths of a door and a drawer (PNG; "
+                         "the first door class and the drawer, among --classes, with data and a model)")
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
 
@@ -621,7 +623,7 @@ def main(argv=None) -> int:
     if args.trajectory_figure:
         if not models:
             sys.exit("manipulation.py: error: --trajectory-figure needs a --model")
-        make_trajectory_figure(args.data, args.split, models, args.trajectory_figure, args.seed)
+        make_trajectory_figure(args.data, args.split, models, args.trajectory_figure, args.seed, args.classes)
     return 0
 
 
