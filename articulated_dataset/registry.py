@@ -122,7 +122,9 @@ def get_class(name: str) -> ObjectClass:
     try:
         return _REGISTRY[name]
     except KeyError:
-        raise UserError(f"unknown object class {name!r}; choose from: {', '.join(_REGISTRY)}") from None
+        folded = [n for n in _REGISTRY if isinstance(name, str) and n.lower() == name.strip().lower()]
+        hint = f"did you mean {folded[0]!r}? " if folded else ""
+        raise UserError(f"unknown object class {name!r}; {hint}choose from: {', '.join(_REGISTRY)}") from None
 
 
 def all_classes() -> list[ObjectClass]:

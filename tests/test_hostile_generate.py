@@ -145,6 +145,7 @@ def test_absurd_options_are_refused_and_create_nothing(sandbox, case):
 
 @pytest.mark.parametrize("args, needle", [
     (["--class", "nope", "--n", "1"], "unknown object class"),
+    (["--class", "Drawer", "--n", "1"], "did you mean 'drawer'"),
     (["--n", "1"], "--class"),
     (["--class", "drawer", "--urdf", "x.urdf", "--n", "1"], "either --class or --urdf"),
 ], ids=["class-unknown", "class-missing", "class-and-urdf"])
