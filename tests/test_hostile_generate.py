@@ -148,7 +148,7 @@ def test_absurd_options_are_refused_and_create_nothing(sandbox, case):
     (["--class", "Drawer", "--n", "1"], "did you mean 'drawer'"),
     (["--n", "1"], "--class"),
     (["--class", "drawer", "--urdf", "x.urdf", "--n", "1"], "either --class or --urdf"),
-], ids=["class-unknown", "class-missing", "class-and-urdf"])
+], ids=["class-unknown", "class-wrong-case", "class-missing", "class-and-urdf"])
 def test_class_choice_errors(sandbox, args, needle):
     before = snapshot(sandbox)
     assert_one_line_error(generate(*args, "--quiet", "--out", sandbox / "out"), needle)
