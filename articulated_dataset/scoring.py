@@ -75,6 +75,31 @@ METRICS: tuple[MetricSpec, ...] = (
     MetricSpec("coverage_90", "Cov. 90%", "fraction"),
 )
 METRICS_BY_NAME = {m.name: m for m in METRICS}
+#: Most characters per line of the default table (``artdata score``; ``--wide`` has no limit).
+TABLE_WIDTH = 100
+#: Column names of the default table: short, and saying which rotation is meant.
+SHORT_TITLES = {
+    "axis_position_error_cm": "Axis position (cm)",
+    "axis_rotation_error_deg": "Frame heading (deg)",
+    "configuration_error": "Configuration",
+    "axis_direction_error_deg": "Axis dir. (deg)",
+    "axis_line_distance_cm": "Line dist. (cm)",
+    "opd_success": "OPD succ.",
+    "geometry_depth_error_cm": "Depth (cm)",
+    "geometry_width_error_cm": "Width (cm)",
+    "geometry_height_error_cm": "Height (cm)",
+    "chirality_accuracy": "Chirality",
+    "mechanism_side_accuracy": "Side",
+    "nll": "NLL (nats)",
+    "coverage_50": "Cov. 50%",
+    "coverage_90": "Cov. 90%",
+}
+#: What the default table's short names mean (docs/scoring.md has the formulas).
+TABLE_LEGEND = [
+    "Axis position: distance between axis origins. Frame heading: the paper's axis rotation error, the",
+    "heading of the axis frame about the camera's vertical (a mirrored door scores 180). Axis dir.: angle",
+    "between the axis lines, sign folded. Chirality, Side, OPD succ., Cov.: fractions of images.",
+]
 #: Per-joint means are kept for these (JSON ``per_joint``).
 PER_JOINT_METRICS = ("axis_position_error_cm", "axis_rotation_error_deg", "configuration_error",
                      "axis_direction_error_deg")
@@ -450,8 +475,13 @@ class Report:
                              M.METRIC_VERSION] + vals)
         return buf.getvalue()
 
-    def format_table(self, standard: bool = True) -> str:
-        """The paper's Table 1 layout (mean +/- std, n scored / n truth); then the standard metrics."""
+    def format_table(self, standard: bool = True, wide: bool = False) -> str:
+        """The paper's Table 1 layout (mean +/- std, n scored / n truth); then the standard metrics.
+
+        Default: lines of at most :data:`TABLE_WIDTH` characters (the standard metrics wrap into
+        blocks) with short, unambiguous column names and a legend; ``wide``: one line per row
+        with the metric titles of :data:`METRICS`.
+        """
         lines = []
         sets = self.truth_sets()
         for c, s in sets.items():
@@ -459,40 +489,63 @@ class Report:
         lines.append("")
         width = max([len(r.label) for r in self.rows] + [len("Standard metrics")])
         paper = [m for m in METRICS if m.paper]
-        cols = [m.title for m in paper] + ["Images"]
-        colw = [max(len(c), 20) for c in cols[:-1]] + [11]
-        lines.append(" " * width + "  " + "  ".join(c.rjust(w) for c, w in zip(cols, colw)))
+
+        def title(m):
+            return m.title if wide else SHORT_TITLES.get(m.name, m.title)
+
+        def block(head: str, metrics, cells_of, min_w: int) -> list[str]:
+            cols = [title(m) for m in metrics]
+            rows = [cells_of(r) for r in self.rows]
+            colw = [max([len(c), min_w] + [len(row[k]) for row in rows]) for k, c in enumerate(cols)]
+            out = [head.ljust(width) + "  " + "  ".join(c.rjust(w) for c, w in zip(cols, colw))]
+            out += [r.label.ljust(width) + "  " + "  ".join(c.rjust(w) for c, w in zip(row, colw))
+                    for r, row in zip(self.rows, rows)]
+            return out
+
+        class _Images:  # the Images column of the paper block
+            name, title, units = "images", "Images", ""
+
         partial = False
-        for r in self.rows:
+
+        def paper_cells(r):
+            nonlocal partial
             cells = []
             for m in paper:
                 mean, std = r.metrics[m.name]
                 unit = {"deg": " deg", "cm": " cm"}.get(r.configuration_units, "") if m.name == "configuration_error" else ""
                 cells.append("-" if math.isnan(mean) else _pm(mean, std) + unit)  # "-": no image defines it
-            mark = "" if r.complete else "*"
             partial |= not r.complete
-            cells.append(f"{r.n_scored}/{r.n_truth}{mark}")
-            lines.append(r.label.ljust(width) + "  " + "  ".join(c.rjust(w) for c, w in zip(cells, colw)))
+            cells.append(f"{r.n_scored}/{r.n_truth}{'' if r.complete else '*'}")
+            return cells
+
+        lines += block("", paper + [_Images], paper_cells, 11 if not wide else 20)
         if partial:
             lines.append("* partial coverage: only the predicted images are averaged (n scored / n in the truth split)")
         if standard:
             std_metrics = [m for m in METRICS if not m.paper and any(m.name in r.metrics for r in self.rows)]
-            if std_metrics:
+
+            def std_cell(r, m):
+                mean, std = r.metrics.get(m.name, (None, None))
+                if mean is None or math.isnan(mean):
+                    return "-"
+                return f"{mean:.3f}" if m.units == "fraction" else _pm(mean, std)
+
+            groups, current = [], []
+            for m in std_metrics:  # wrap into blocks that fit the width (all in one block when wide)
+                trial = current + [m]
+                need = width + sum(2 + max(len(title(x)), 8, *(len(std_cell(r, x)) for r in self.rows)) for x in trial)
+                if current and not wide and need > TABLE_WIDTH:
+                    groups.append(current)
+                    trial = [m]
+                current = trial
+            if current:
+                groups.append(current)
+            for g in groups:
                 lines.append("")
-                cols = [f"{m.title}" for m in std_metrics]
-                colw = [max(len(c), 15) for c in cols]
-                lines.append("Standard metrics".ljust(width) + "  " + "  ".join(c.rjust(w) for c, w in zip(cols, colw)))
-                for r in self.rows:
-                    cells = []
-                    for m in std_metrics:
-                        mean, std = r.metrics.get(m.name, (None, None))
-                        if mean is None or math.isnan(mean):
-                            cells.append("-")
-                        elif m.units == "fraction":
-                            cells.append(f"{mean:.3f}")
-                        else:
-                            cells.append(_pm(mean, std))
-                    lines.append(r.label.ljust(width) + "  " + "  ".join(c.rjust(w) for c, w in zip(cells, colw)))
+                lines += block("Standard metrics", g, lambda r, g=g: [std_cell(r, m) for m in g], 8 if not wide else 15)
+        if not wide:
+            lines.append("")
+            lines += TABLE_LEGEND
         if self.unscored_classes:
             lines.append(f"Truth classes without predictions (not scored): {', '.join(self.unscored_classes)}")
         lines += [f"Note: {n}" for n in self.notes]

@@ -119,7 +119,11 @@ def test_cli_table_json_csv(tiny_root, tmp_path):
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
     assert lines[0].startswith("truth toaster: split 'test', 48 images")
-    assert "Axis Position Error (cm)" in lines[2] and "Axis Rotation Error (degrees)" in lines[2]
+    assert "Axis position (cm)" in lines[2] and "Frame heading (deg)" in lines[2]
+    assert max(len(line) for line in lines) <= 100 and any("Frame heading: the paper's axis rotation" in x for x in lines)
+    wide = run("score", tmp_path / "p.h5", "--truth", tiny_root, "--wide").output.splitlines()
+    assert "Axis Position Error (cm)" in wide[2] and "Axis Rotation Error (degrees)" in wide[2]
+    assert any(line.startswith("Standard metrics") and "OPD success" in line and "Direction (deg)" in line for line in wide)
     assert lines[3].startswith("Toaster - Oracle") and "0.00 +/- 0.00 deg" in lines[3] and "48/48" in lines[3]
     rep = json.loads((tmp_path / "r.json").read_text())
     row = rep["rows"][0]

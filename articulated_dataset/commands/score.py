@@ -52,7 +52,9 @@ def _check_outputs(inputs: list[str], outputs: list[str]) -> None:
               help="Write one CSV line per (class, method) to this file ('-' prints it instead of the table).")
 @click.option("--require-complete", is_flag=True,
               help="Exit with code 2 if some truth images of a predicted class have no prediction.")
-def score_cmd(predictions, truth_path, split, json_path, csv_path, require_complete):
+@click.option("--wide", is_flag=True, help="One line per row with every metric and the full metric titles "
+                                           "(default: at most 100 columns, short names and a legend).")
+def score_cmd(predictions, truth_path, split, json_path, csv_path, require_complete, wide):
     """Score PREDICTIONS (one or more predictions.h5 files) against the truth.
 
     Prints the paper's Table 1 layout (axis position error in cm, axis rotation error in
@@ -72,7 +74,7 @@ def score_cmd(predictions, truth_path, split, json_path, csv_path, require_compl
     if csv_path:
         _write(csv_path, report.to_csv())
     if "-" not in (json_path, csv_path):
-        click.echo(report.format_table())
+        click.echo(report.format_table(wide=wide))
 
 
 COMMANDS = [score_cmd]
