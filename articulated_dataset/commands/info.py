@@ -25,13 +25,41 @@ def summarize_split(split_dir) -> dict:
         summary = _manifest_summary(split_dir, manifest)
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise DataFormatError(f"{split_dir / MANIFEST_NAME}: corrupt manifest ({type(exc).__name__}: {exc})") from None
+    joint_names, joint_types = _joints(shards)
     for k, parts in stats.items():
         if not parts:
             continue
         a = np.concatenate(parts).astype(np.float64)
         a = a.reshape(a.shape[0], -1)
-        summary["labels"][k] = {"min": a.min(0).round(4).tolist(), "mean": a.mean(0).round(4).tolist(), "max": a.max(0).round(4).tolist()}
+        summary["labels"][k] = {"min": a.min(0).round(4).tolist(), "mean": a.mean(0).round(4).tolist(), "max": a.max(0).round(4).tolist(),
+                                "columns": _columns(k, a.shape[1], joint_names, joint_types)}
     return summary
+
+
+def _joints(shards) -> tuple[list[str], list[str]]:
+    """Joint names and types from the first shard's attributes (empty if unreadable)."""
+    try:
+        attrs = shards[0].attrs if shards else {}
+        return list(json.loads(attrs.get("joint_names", "[]"))), list(json.loads(attrs.get("joint_types", "[]")))
+    except (ValueError, TypeError):
+        return [], []
+
+
+def _columns(field: str, width: int, names: list[str], types: list[str]) -> list[dict]:
+    """Name and unit of every column of a summarised label (docs/format.md)."""
+    J = len(names)
+    if field == "q" and width == J:
+        return [{"name": f"q {n}", "unit": "m" if t == "prismatic" else "rad"} for n, t in zip(names, types)]
+    if field == "axis_origin" and width == 3 * J:
+        return [{"name": f"origin {n}.{c}", "unit": "m"} for n in names for c in "xyz"]
+    if field == "geometry" and width == 4:
+        return [{"name": f"geometry {g}", "unit": u} for g, u in (("depth", "m"), ("width", "m"), ("height", "m"),
+                                                                   ("chirality", "0: hinge left, 1: right"))]
+    if field == "object_yaw" and width == 1:
+        return [{"name": "object yaw", "unit": "rad"}]
+    if field == "visible_pixels" and width == 1 + J:
+        return [{"name": "visible body", "unit": "px"}] + [{"name": f"visible {n}", "unit": "px"} for n in names]
+    return [{"name": f"{field}[{i}]", "unit": ""} for i in range(width)]
 
 
 def _manifest_summary(split_dir, manifest: dict) -> dict:
@@ -51,8 +79,8 @@ def _manifest_summary(split_dir, manifest: dict) -> dict:
     }
 
 
-def _fmt(v):
-    return "[" + ", ".join(f"{x:.3f}" for x in v) + "]"
+def _cell(x: float, unit: str) -> str:
+    return f"{x:,.0f}" if unit == "px" else f"{x:.3f}"
 
 
 @click.command("info")
@@ -69,8 +97,13 @@ def info_cmd(path, as_json):
         click.echo(f"{s['path']}: class {s['class']}, split {s['split']}, seed {s['seed']}, format {s['format_version']}, {state}")
         click.echo(f"  {s['objects']} objects, {s['images']} images, {s['shards']} shards, "
                    f"{s['bytes'] / max(s['images'], 1):.0f} bytes/image, {s['image_size'][0]}x{s['image_size'][1]} px")
-        for k, v in s["labels"].items():
-            click.echo(f"  {k:15s} min {_fmt(v['min'])}  mean {_fmt(v['mean'])}  max {_fmt(v['max'])}")
+        rows = [(f"{c['name']} ({c['unit']})" if c["unit"] else c["name"], c["unit"], v["min"][i], v["mean"][i], v["max"][i])
+                for v in s["labels"].values() for i, c in enumerate(v["columns"])]
+        if rows:
+            w = max(len(r[0]) for r in rows)
+            click.echo(f"  {'label':{w}s}  {'min':>10s}  {'mean':>10s}  {'max':>10s}")
+            for name, unit, lo, mean, hi in rows:
+                click.echo(f"  {name:{w}s}  {_cell(lo, unit):>10s}  {_cell(mean, unit):>10s}  {_cell(hi, unit):>10s}")
 
 
 COMMANDS = [info_cmd]
