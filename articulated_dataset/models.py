@@ -101,7 +101,9 @@ def _resolve(spec: str, class_name: str | None) -> ModelRef:
     path = Path(spec)
     if not path.is_file():
         raise UserError(f"--model {spec!r}: neither a shipped model ({', '.join(SHIPPED)}) nor a checkpoint file")
-    ckpt = _peek(path)
+    from .mdn.train import read_checkpoint_file
+
+    ckpt = read_checkpoint_file(path)
     kind = FORMATS.get(ckpt.get("format")) if isinstance(ckpt, dict) else None
     if kind is None:
         raise UserError(f"{path}: not a checkpoint written by 'artdata train'")
@@ -110,16 +112,6 @@ def _resolve(spec: str, class_name: str | None) -> ModelRef:
         raise UserError(f"{path}: a {file_class!r} model, but the data is {class_name!r}")
     name = "dense" if kind == "dense" else ("MDN-" + str(ckpt.get("train_config", {}).get("preset", "full"))).replace("MDN-full", "MDN")
     return ModelRef(kind, path, name, file_class)
-
-
-def _peek(path: Path) -> dict:
-    import torch
-
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - torch.load raises many types on a corrupt file
-        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
-        raise UserError(f"{path}: not a readable model checkpoint ({first})") from None
 
 
 def strip_for_shipping(ckpt: dict) -> dict:

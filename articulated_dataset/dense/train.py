@@ -238,16 +238,10 @@ def atomic_save(obj: dict, path: Path) -> None:
 
 def load_dense_checkpoint(path: str | Path) -> dict:
     """Load and check a dense checkpoint (``weights_only``); any problem is one UserError line."""
-    import torch
+    from ..mdn.train import read_checkpoint_file
 
     path = Path(path)
-    if not path.is_file():
-        raise UserError(f"checkpoint not found: {path}")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - torch.load raises many types on a corrupt file
-        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
-        raise UserError(f"{path}: not a readable model checkpoint ({first})") from None
+    ckpt = read_checkpoint_file(path)
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise UserError(f"{path}: not an artdata dense-model checkpoint (written by 'artdata train --model dense')")
     if ckpt.get("version") != CHECKPOINT_VERSION:
@@ -286,7 +280,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     import torch
     from tqdm.auto import tqdm
 
-    from ..mdn.train import resolve_split_dir, split_by_object, split_class
+    from ..mdn.train import prepare_training_output, resolve_split_dir, split_by_object
     from ..registry import get_class
     from .features import make_inputs
     from .model import DenseConfig, DenseNet, count_parameters
@@ -295,24 +289,11 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     out = Path(out)
     obj_class = get_class(config.class_name)
     split_dir = resolve_split_dir(data)
-    if split_class(split_dir) != obj_class.name:
-        raise UserError(f"{split_dir}: holds class {split_class(split_dir)!r}, not {obj_class.name!r} (--class)")
-    if out.exists() and out.is_dir():
-        raise UserError(f"--out {out} is a directory; give a file name such as dense.pt")
-    ckpt = None
-    if resume:
-        if not out.exists():
-            raise UserError(f"--resume: no checkpoint at {out} to resume from")
-        ckpt = load_dense_checkpoint(out)
-        old = DenseTrainConfig.from_dict(ckpt["train_config"])
-        if old != config:
-            diff = [k for k, v in config.to_dict().items() if old.to_dict().get(k) != v]
-            raise UserError(f"--resume: {out} was trained with different settings ({', '.join(diff)}); repeat the original options")
-        if ckpt.get("finished"):
-            log.info("%s: training already finished", out)
-            return ckpt
-    elif out.exists():
-        raise UserError(f"{out} exists; pass --resume to continue its training or choose another --out")
+    ckpt = prepare_training_output(split_dir, obj_class.name, out, resume=resume, load=load_dense_checkpoint,
+                                   config=config, example_name="dense.pt")
+    if ckpt is not None and ckpt.get("finished"):
+        log.info("%s: training already finished", out)
+        return ckpt
     out.parent.mkdir(parents=True, exist_ok=True)
 
     J = obj_class.n_joints

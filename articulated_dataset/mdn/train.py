@@ -292,6 +292,51 @@ def atomic_torch_save(obj: dict, path: Path) -> None:
     os.replace(tmp, path)
 
 
+def read_checkpoint_file(path: str | Path, map_location="cpu"):
+    """``torch.load(path, weights_only=True)`` (tensors and plain containers only: nothing in the
+    file is executed); a missing or unreadable file is a one-line UserError.  The contents are
+    the caller's to check (:func:`load_checkpoint`, the dense model's loader)."""
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"checkpoint not found: {path}")
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch.load raises many types on a corrupt file (even IndexError)
+        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+        raise UserError(f"{path}: not a readable model checkpoint ({first})") from None
+
+
+def prepare_training_output(split_dir: Path, class_name: str, out: Path, *, resume: bool, load, config,
+                            example_name: str) -> dict | None:
+    """Checks shared by every ``artdata train``: the split holds ``class_name`` and is generated
+    (not ingested real captures), ``out`` is a file, and ``--resume`` finds a checkpoint trained
+    with the same ``config`` (``load(out)`` reads it; its ``train_config`` is compared through
+    ``type(config).from_dict``).  Returns that checkpoint, or None for a new run."""
+    data_class = split_class(split_dir)
+    if data_class != class_name:
+        raise UserError(f"{split_dir}: holds class {data_class!r}, not {class_name!r} (--class)")
+    if "real" in read_manifest(split_dir):
+        raise UserError(f"{split_dir} holds ingested real captures (labels NaN where not given); train on a generated "
+                        f"split and use real splits with 'artdata predict'")
+    if out.exists() and out.is_dir():
+        raise UserError(f"--out {out} is a directory; give a file name such as {example_name}")
+    if not resume:
+        if out.exists():
+            raise UserError(f"{out} exists; pass --resume to continue its training or choose another --out")
+        return None
+    if not out.exists():
+        raise UserError(f"--resume: no checkpoint at {out} to resume from")
+    ckpt = load(out)
+    old = type(config).from_dict(ckpt["train_config"])
+    if old != config:
+        diff = [k for k in config.to_dict() if config.to_dict()[k] != old.to_dict().get(k)]
+        raise UserError(f"--resume: {out} was trained with different settings ({', '.join(diff)}); "
+                        f"repeat the original options")
+    return ckpt
+
+
 def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
     """Load and check an ``artdata train`` checkpoint; any problem is a one-line UserError.
 
@@ -299,16 +344,8 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
     only: nothing in it is executed) and every field the package reads is checked
     (:func:`check_checkpoint`) before a network is built from it.
     """
-    import torch
-
     path = Path(path)
-    if not path.is_file():
-        raise UserError(f"checkpoint not found: {path}")
-    try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - torch.load raises many types on a corrupt file (even IndexError)
-        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
-        raise UserError(f"{path}: not a readable model checkpoint ({first})") from None
+    ckpt = read_checkpoint_file(path, map_location)
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise UserError(f"{path}: not an artdata MDN checkpoint (written by 'artdata train')")
     if ckpt.get("version") != CHECKPOINT_VERSION:
@@ -521,29 +558,11 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
     config = config.resolved()
     obj_class = get_class(config.class_name)
     split_dir = resolve_split_dir(data)
-    data_class = split_class(split_dir)
-    if data_class != obj_class.name:
-        raise UserError(f"{split_dir}: holds class {data_class!r}, not {obj_class.name!r} (--class)")
-    if "real" in read_manifest(split_dir):
-        raise UserError(f"{split_dir} holds ingested real captures (labels NaN where not given); train on a generated "
-                        f"split and use real splits with 'artdata predict'")
-    if out.exists() and out.is_dir():
-        raise UserError(f"--out {out} is a directory; give a file name such as model.pt")
-    ckpt = None
-    if resume:
-        if not out.exists():
-            raise UserError(f"--resume: no checkpoint at {out} to resume from")
-        ckpt = load_checkpoint(out)
-        old = TrainConfig.from_dict(ckpt["train_config"])
-        if old != config:
-            diff = [k for k in config.to_dict() if config.to_dict()[k] != old.to_dict().get(k)]
-            raise UserError(f"--resume: {out} was trained with different settings ({', '.join(diff)}); "
-                            f"repeat the original options")
-        if ckpt.get("finished"):
-            log.info("%s: training already finished (%d epochs)", out, ckpt["epoch"])
-            return ckpt
-    elif out.exists():
-        raise UserError(f"{out} exists; pass --resume to continue its training or choose another --out")
+    ckpt = prepare_training_output(split_dir, obj_class.name, out, resume=resume, load=load_checkpoint, config=config,
+                                   example_name="model.pt")
+    if ckpt is not None and ckpt.get("finished"):
+        log.info("%s: training already finished (%d epochs)", out, ckpt["epoch"])
+        return ckpt
     out.parent.mkdir(parents=True, exist_ok=True)
 
     dev = resolve_device(device)
