@@ -18,8 +18,16 @@ moving part's outline.  ``rgb=True`` adds a shaded colour preview rendered from 
 scene, rebuilt from the manifest's generation config (body grey, parts tinted in their
 joint's colour).
 
+Real (ingested) splits: labels a capture lacks are NaN.  A revolute axis without part pixels
+(binary masks) and without body extent (no geometry or object pose) spans the whole object's
+visible extent along the axis; q not labelled reads "no label"; an image without axis labels
+says so in its panel.
+
 Figures are laid out with fixed sizes (no tight bounding box), so a gallery's pixel size is
-:func:`gallery_size_px` and every panel's position is known (:class:`Panel`).
+:func:`gallery_size_px` and every panel's position is known (:class:`Panel`).  No text is
+clipped: a split header or the legend too wide for the figure wraps onto more lines (the
+figure grows by :data:`HEADER_LINE_IN` / :data:`LEGEND_LINE_IN` a line), a sample title or
+joint name too wide for its panel is drawn smaller (:class:`TextFitter` measures them).
 """
 
 from __future__ import annotations
@@ -56,6 +64,9 @@ LIGHT_ALTITUDE_DEG = 45.0
 #: at each end; without visible part pixels, this fraction of the body's extent.
 AXIS_MARGIN_FRACTION = 0.12
 AXIS_LENGTH_FRACTION = 0.8
+#: Length (m) of a revolute axis drawn without any extent to go by (no part or object
+#: pixels, no geometry label).
+DEFAULT_AXIS_LENGTH_M = 0.5
 #: Layout (inches): panel width, title band above each sample, gap between samples,
 #: header band above each split, footer band with the legend.
 PANEL_WIDTH_IN = 3.2
@@ -63,6 +74,26 @@ TITLE_IN = 0.32
 GAP_IN = 0.12
 HEADER_IN = 0.42
 FOOTER_IN = 0.34
+#: Extra band height (inches) per further line of a wrapped split header / legend.
+HEADER_LINE_IN = 0.2
+LEGEND_LINE_IN = 0.14
+#: Font sizes (points): split header (name; its details when wrapped), sample title, joint
+#: captions, legend.  Text that would not fit its place is wrapped (header, legend) or
+#: drawn smaller (titles, joint names), never clipped.
+HEADER_PT = 11.0
+HEADER_DETAIL_PT = 9.0
+TITLE_PT = 9.5
+CAPTION_PT = 8.0
+MIN_CAPTION_PT = 5.5
+LEGEND_PT = 7.5
+#: Text is fitted into this fraction of its width (glyph hinting differs a little with the
+#: dpi and the output format).
+TEXT_FIT_FRACTION = 0.97
+#: Text is measured at most at this dpi (:class:`TextFitter`).
+MAX_MEASURE_DPI = 300
+#: Indent (inches) of a joint name after its colour bullet, and the least gap before q.
+CAPTION_NAME_IN = 0.16
+CAPTION_GAP_NAME_Q_IN = 0.1
 DEFAULT_DPI = 100
 #: Smallest dpi: the captions' smallest font (6.5 pt) is 6.5 dpi / 72 pixels high, and FreeType
 #: refuses fonts under one pixel (dpi < 11).
@@ -145,31 +176,43 @@ def extent_along(direction: np.ndarray, object_quat_wxyz: np.ndarray, dims_m: np
 
 
 def axis_segment_m(joint_type: str, origin: np.ndarray, direction: np.ndarray, *, q: float, q_max: float,
-                   body_extent_m: float, part_points_m: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   body_extent_m: float, part_points_m: np.ndarray | None = None,
+                   object_points_m: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """3-D end points (2, 3) of the drawn axis (camera frame, m) and the marker point(s).
 
     Revolute, with the moving part's visible points ``P`` (camera frame): the hinge line
     over the part's extent along the axis, ``t = (P - origin) . a``, from
     ``origin + (t_min - m) a`` to ``origin + (t_max + m) a`` with a margin
     ``m = AXIS_MARGIN_FRACTION (t_max - t_min)``; without points, ``origin -/+ (L/2) a``
-    with ``L = AXIS_LENGTH_FRACTION * body_extent_m``.  Marker: the origin.
+    with ``L = AXIS_LENGTH_FRACTION * body_extent_m``; where the body's extent is not known
+    (real captures without geometry or object pose: NaN), the same span over the whole
+    object's visible points ``object_points_m``; without those either, ``L =``
+    :data:`DEFAULT_AXIS_LENGTH_M`.  Marker: the origin.
     Prismatic: ``origin`` to ``origin + q_max a``; markers: the origin and the current
-    front-face position ``origin + q a``.
+    front-face position ``origin + q a`` (NaN where q is not labelled).
     """
     origin, a = np.asarray(origin, np.float64), np.asarray(direction, np.float64)
     if joint_type == PRISMATIC:
         return np.stack([origin, origin + q_max * a]), np.stack([origin, origin + q * a])
-    if part_points_m is not None and len(part_points_m):
-        t = (np.asarray(part_points_m, np.float64) - origin) @ a
-        lo, hi = float(t.min()), float(t.max())
-        margin = AXIS_MARGIN_FRACTION * (hi - lo)
-        return np.stack([origin + (lo - margin) * a, origin + (hi + margin) * a]), origin[None]
-    half = 0.5 * AXIS_LENGTH_FRACTION * body_extent_m
-    return np.stack([origin - half * a, origin + half * a]), origin[None]
+    for points in (part_points_m, None if math.isfinite(body_extent_m) else object_points_m):
+        if points is not None and len(points):
+            t = (np.asarray(points, np.float64) - origin) @ a
+            lo, hi = float(t.min()), float(t.max())
+            margin = AXIS_MARGIN_FRACTION * (hi - lo)
+            return np.stack([origin + (lo - margin) * a, origin + (hi + margin) * a]), origin[None]
+    length = AXIS_LENGTH_FRACTION * body_extent_m if math.isfinite(body_extent_m) else DEFAULT_AXIS_LENGTH_M
+    return np.stack([origin - 0.5 * length * a, origin + 0.5 * length * a]), origin[None]
+
+
+#: Caption of a q that is not labelled (NaN: a real capture without it).
+NO_LABEL_TEXT = "no label"
 
 
 def format_q(joint_type: str, q: float) -> str:
-    """q for people: degrees for revolute joints, centimetres for prismatic ones."""
+    """q for people: degrees for revolute joints, centimetres for prismatic ones
+    (:data:`NO_LABEL_TEXT` for NaN, a real capture without it)."""
+    if not math.isfinite(q):
+        return NO_LABEL_TEXT
     return f"{q * CM_PER_M:.1f} cm" if joint_type == PRISMATIC else f"{q * DEG_PER_RAD:.1f}\u00b0"
 
 
@@ -359,12 +402,15 @@ def _draw_axes(ax, s: dict, view: SplitView) -> None:
     K = s["K"]
     halo = [pe.Stroke(linewidth=AXIS_LINE_PT + 1.6, foreground="white", alpha=0.85), pe.Normal()]
     markers = []
+    # the whole object's visible points: the span of axes whose body extent is unknown (real captures)
+    object_points = backproject(s["depth"], K, s["mask"] != MASK_BACKGROUND)
     for j, jtype in enumerate(view.joint_types):
         colour = joint_colour(j)
         extent = extent_along(s["axis_direction"][j], s["object_pose"][3:], s["geometry"][:3])
         part = backproject(s["depth"], K, s["mask"] == MASK_FIRST_PART + j)
         seg, marks = axis_segment_m(jtype, s["axis_origin"][j], s["axis_direction"][j], q=float(s["q"][j]),
-                                    q_max=view.q_max[j], body_extent_m=extent, part_points_m=part)
+                                    q_max=view.q_max[j], body_extent_m=extent, part_points_m=part,
+                                    object_points_m=object_points)
         uv, _ = project(seg, K)
         if np.all(np.isfinite(uv)):
             arrow = FancyArrowPatch(tuple(uv[0]), tuple(uv[1]), arrowstyle="-|>,head_length=5,head_width=2.6",
@@ -381,7 +427,7 @@ def _draw_axes(ax, s: dict, view: SplitView) -> None:
             direction = quat_to_matrix(pred["axis_pose"][j, 3:])[:, 2]
             extent = extent_along(direction, s["object_pose"][3:], s["geometry"][:3])
             seg, marks = axis_segment_m(jtype, pred["axis_pose"][j, :3], direction, q=float(pred["q"][j]),
-                                        q_max=view.q_max[j], body_extent_m=extent)
+                                        q_max=view.q_max[j], body_extent_m=extent, object_points_m=object_points)
             uv, _ = project(seg, K)
             if np.all(np.isfinite(uv)):
                 ax.plot(uv[:, 0], uv[:, 1], "--", color=colour, lw=AXIS_LINE_PT * 0.8, zorder=4, path_effects=halo)
@@ -411,15 +457,89 @@ def _text_colour_on(colour) -> str:
     return "#111111" if 0.2126 * r + 0.7152 * g + 0.0722 * b > 0.5 else "white"
 
 
-def _draw_caption(fig, s: dict, view: SplitView, *, left_in, top_in, fig_w_in, fig_h_in) -> None:
+class TextFitter:
+    """Measures text as a figure at ``dpi`` draws it (Agg), to wrap or shrink it into its place
+    (above :data:`MAX_MEASURE_DPI`, at that dpi: glyph hinting no longer matters, and fonts at
+    absurd resolutions take absurd memory)."""
+
+    def __init__(self, dpi: int):
+        from matplotlib.backends.backend_agg import RendererAgg
+
+        dpi = min(dpi, MAX_MEASURE_DPI)
+        self.dpi = dpi
+        self._renderer = RendererAgg(8, 8, dpi)
+
+    def width_in(self, text: str, size: float, weight: str = "normal") -> float:
+        from matplotlib.font_manager import FontProperties
+
+        w, _, _ = self._renderer.get_text_width_height_descent(text, FontProperties(size=size, weight=weight),
+                                                                ismath=False)
+        return w / self.dpi
+
+    def fit_size(self, text: str, size: float, width_in: float, weight: str = "normal") -> float:
+        """``size``, or the smaller size at which ``text`` takes at most ``width_in``."""
+        w = self.width_in(text, size, weight)
+        room = TEXT_FIT_FRACTION * width_in
+        return size if w <= room else size * room / w
+
+    def wrap(self, chunks, sep: str, width_in: float, size: float, weight: str = "normal") -> list[str]:
+        """Lines of ``chunks`` joined by ``sep``, each at most ``width_in`` wide: broken between
+        chunks, and between words inside a chunk too wide for a line of its own (a single word
+        wider than the line stays whole: draw the lines at :meth:`fit_size` of the widest)."""
+        room = TEXT_FIT_FRACTION * width_in
+
+        def fits(text):
+            return self.width_in(text, size, weight) <= room
+
+        lines, cur = [], ""
+        for chunk in chunks:
+            if cur and fits(cur + sep + chunk):
+                cur += sep + chunk
+                continue
+            if cur:
+                lines.append(cur)
+                cur = ""
+            if fits(chunk):
+                cur = chunk
+                continue
+            for word in chunk.split(" "):
+                if cur and fits(cur + " " + word):
+                    cur += " " + word
+                else:
+                    if cur:
+                        lines.append(cur)
+                    cur = word
+        if cur:
+            lines.append(cur)
+        return lines
+
+    def fit_lines(self, lines: list[str], size: float, width_in: float, weight: str = "normal") -> float:
+        """The size at which the widest of ``lines`` fits ``width_in``."""
+        return min(self.fit_size(line, size, width_in, weight) for line in lines)
+
+
+def _fig_text(fig, x, y, text, **kw):
+    """``fig.text`` for text that may come from a data file: never parsed as mathtext."""
+    return fig.text(x, y, text, parse_math=False, **kw)
+
+
+def _draw_caption(fig, s: dict, view: SplitView, fit: TextFitter, *, left_in, top_in, fig_w_in, fig_h_in) -> None:
     """q of each joint, one line per joint below the panel: a bullet in the joint's colour,
-    the joint name and q (degrees or centimetres)."""
+    the joint name and q (degrees or centimetres; :data:`NO_LABEL_TEXT` where not labelled).
+    A name too long for the room left of q is drawn smaller (down to :data:`MIN_CAPTION_PT`),
+    then shortened with an ellipsis."""
     for j, (name, jtype) in enumerate(zip(view.joint_names, view.joint_types)):
         y = (top_in - (j + 0.5) * CAPTION_LINE_IN) / fig_h_in
-        fig.text(left_in / fig_w_in, y, "\u25cf", color=joint_colour(j), fontsize=9, ha="left", va="center")
-        fig.text((left_in + 0.16) / fig_w_in, y, name, color="#333333", fontsize=8, ha="left", va="center")
-        fig.text((left_in + PANEL_WIDTH_IN) / fig_w_in, y, format_q(jtype, float(s["q"][j])), color="#111111",
-                 fontsize=8, fontweight="bold", ha="right", va="center")
+        q_text = format_q(jtype, float(s["q"][j]))
+        room = PANEL_WIDTH_IN - CAPTION_NAME_IN - CAPTION_GAP_NAME_Q_IN - fit.width_in(q_text, CAPTION_PT, "bold")
+        size = max(fit.fit_size(name, CAPTION_PT, room), MIN_CAPTION_PT)
+        while len(name) > 1 and fit.width_in(name, size) > TEXT_FIT_FRACTION * room:
+            name = name[:-2] + "\u2026"
+        _fig_text(fig, left_in / fig_w_in, y, "\u25cf", color=joint_colour(j), fontsize=9, ha="left", va="center")
+        _fig_text(fig, (left_in + CAPTION_NAME_IN) / fig_w_in, y, name, color="#333333", fontsize=size, ha="left",
+                  va="center")
+        _fig_text(fig, (left_in + PANEL_WIDTH_IN) / fig_w_in, y, q_text, color="#111111" if math.isfinite(s["q"][j])
+                  else "#777777", fontsize=CAPTION_PT, fontweight="bold", ha="right", va="center")
 
 
 def _panel_axes(fig, left_in, bottom_in, width_in, height_in, fig_w_in, fig_h_in):
@@ -428,16 +548,16 @@ def _panel_axes(fig, left_in, bottom_in, width_in, height_in, fig_w_in, fig_h_in
     return ax
 
 
-def _draw_sample(fig, s: dict, view: SplitView, rgb_img, *, left_in, bottom_in, panel_w_in, panel_h_in, fig_w_in,
-                 fig_h_in, outline: bool) -> list:
+def _draw_sample(fig, s: dict, view: SplitView, rgb_img, fit: TextFitter, *, left_in, bottom_in, panel_w_in,
+                 panel_h_in, fig_w_in, fig_h_in, outline: bool) -> list:
     """Title, depth panel (and RGB panel) of one sample; returns [(kind, axes)]."""
     H, W = s["depth"].shape
     obj, img = int(s["object_index"]), int(s["image_index"])
     n_panels = 2 if rgb_img is not None else 1
     cell_w = n_panels * panel_w_in + (n_panels - 1) * GAP_IN / 2
-    fig.text((left_in + cell_w / 2) / fig_w_in, (bottom_in + panel_h_in + TITLE_IN * 0.45) / fig_h_in,
-             f"{view.manifest['class_name']}  \u00b7  object {obj}  \u00b7  image {img}", ha="center", va="center",
-             fontsize=9.5, color="#222222")
+    title = f"{view.manifest['class_name']}  \u00b7  object {obj}  \u00b7  image {img}"
+    _fig_text(fig, (left_in + cell_w / 2) / fig_w_in, (bottom_in + panel_h_in + TITLE_IN * 0.45) / fig_h_in, title,
+              ha="center", va="center", fontsize=fit.fit_size(title, TITLE_PT, cell_w), color="#222222")
     out = []
     ax = _panel_axes(fig, left_in, bottom_in, panel_w_in, panel_h_in, fig_w_in, fig_h_in)
     ax.imshow(depth_to_rgb(s["depth"], float(s["K"][0, 0])), interpolation="nearest", extent=(-0.5, W - 0.5, H - 0.5, -0.5), aspect="auto")
@@ -449,7 +569,10 @@ def _draw_sample(fig, s: dict, view: SplitView, rgb_img, *, left_in, bottom_in, 
     if outline:
         _draw_outlines(ax, s["mask"], len(view.joint_types))
     _draw_axes(ax, s, view)
-    _draw_caption(fig, s, view, left_in=left_in, top_in=bottom_in - CAPTION_GAP_IN, fig_w_in=fig_w_in, fig_h_in=fig_h_in)
+    if not np.isfinite(s["axis_origin"]).any():
+        ax.text(0.015, 0.025, "no axis labels", transform=ax.transAxes, fontsize=6.5, color="#333333", ha="left",
+                va="bottom", zorder=7, bbox=dict(boxstyle="round,pad=0.15", fc=(1, 1, 1, 0.6), ec="none"))
+    _draw_caption(fig, s, view, fit, left_in=left_in, top_in=bottom_in - CAPTION_GAP_IN, fig_w_in=fig_w_in, fig_h_in=fig_h_in)
     ax.set_xlim(-0.5, W - 0.5)
     ax.set_ylim(H - 0.5, -0.5)
     out.append(("depth", ax))
@@ -465,28 +588,78 @@ def _draw_sample(fig, s: dict, view: SplitView, rgb_img, *, left_in, bottom_in, 
     return out
 
 
-LEGEND = ("colour: depth per image, near = bright, far = dark (grey: no return)   \u00b7   line: joint axis "
-          "(arrow = +q; dot = axis origin; ring = drawer front now)   \u00b7   one colour per joint")
-LEGEND_PREDICTIONS = "   \u00b7   dashed line, square: predicted axis and origin"
+#: The legend below a gallery: its items (wrapped between items to the figure's width).
+LEGEND_ITEMS = ("colour: depth per image, near = bright, far = dark (grey: no return)",
+                "line: joint axis (arrow = +q; dot = axis origin; ring = drawer front now)",
+                "one colour per joint")
+LEGEND_PREDICTIONS_ITEM = "dashed line, square: predicted axis and origin"
+LEGEND_SEP = "   \u00b7   "
+
+
+def legend_lines(width_in: float, *, predictions: bool, dpi: int = DEFAULT_DPI) -> list[str]:
+    """The legend's lines in a figure ``width_in`` wide (one line where it fits)."""
+    items = LEGEND_ITEMS + ((LEGEND_PREDICTIONS_ITEM,) if predictions else ())
+    return TextFitter(dpi).wrap(items, LEGEND_SEP, width_in - 2 * GAP_IN, LEGEND_PT)
+
+
+def split_header(view: SplitView, image_wh: tuple[int, int]) -> tuple[str, list[str]]:
+    """A split's header: its name and the details after it (counts, image size, seed; a real
+    split says "real captures" instead of its seed)."""
+    cam = view.manifest.get("config", {}).get("camera", {})
+    W, H = image_wh
+    source = "real captures" if "real" in view.manifest else f"seed {view.manifest['seed']}"
+    return view.name, [f"{view.manifest['n_objects']} objects", f"{view.manifest['n_images']} images",
+                       f"{cam.get('width_px', W)}\u00d7{cam.get('height_px', H)} px", source]
+
+
+def header_lines(name: str, details: list[str], width_in: float, fit: TextFitter) -> list[tuple[str, float, str]]:
+    """(text, size, weight) of each line of a split header within ``width_in``: one bold line
+    ``name  --  details`` where it fits, else the name (bold) over the wrapped details."""
+    room = width_in - 2 * GAP_IN
+    one = f"{name}   \u2014   {', '.join(details)}"
+    if fit.width_in(one, HEADER_PT, "bold") <= TEXT_FIT_FRACTION * room:
+        return [(one, HEADER_PT, "bold")]
+    lines = fit.wrap(details, ", ", room, HEADER_DETAIL_PT)
+    size = fit.fit_lines(lines, HEADER_DETAIL_PT, room)
+    return [(name, fit.fit_size(name, HEADER_PT, room, "bold"), "bold")] + [(line, size, "normal") for line in lines]
 
 
 def gallery_size_px(n_rows_per_split: list[int], cols: int, image_wh: tuple[int, int], *, rgb: bool,
-                    n_joints: int, dpi: int = DEFAULT_DPI) -> tuple[int, int]:
+                    n_joints: int, dpi: int = DEFAULT_DPI, predictions: bool = False,
+                    views: list[SplitView] | None = None) -> tuple[int, int]:
     """Pixel size (width, height) of a gallery with the given rows per split, whose classes
-    have at most ``n_joints`` joints (one caption line each)."""
-    w_in, h_in, _, _, _ = _layout(n_rows_per_split, cols, image_wh, rgb=rgb, n_joints=n_joints)
+    have at most ``n_joints`` joints (one caption line each).  ``predictions``: the legend
+    explains predicted axes too; ``views``: the splits, whose headers may wrap in a narrow
+    gallery (without them each header is taken to fit one line)."""
+    fig_w = _layout(n_rows_per_split, cols, image_wh, rgb=rgb, n_joints=n_joints)[0]
+    fit = TextFitter(dpi)
+    n_header = ([len(header_lines(*split_header(v, image_wh), fig_w, fit)) for v in views] if views is not None
+                else None)
+    n_legend = len(legend_lines(fig_w, predictions=predictions, dpi=dpi))
+    w_in, h_in, _, _, _ = _layout(n_rows_per_split, cols, image_wh, rgb=rgb, n_joints=n_joints,
+                                  header_lines=n_header, legend_lines=n_legend)
     return int(round(w_in * dpi)), int(round(h_in * dpi))
 
 
-def _layout(n_rows_per_split, cols, image_wh, *, rgb, n_joints):
-    """Figure width/height, sample cell width, panel height and row height (inches)."""
+def _header_in(n_lines: int) -> float:
+    return HEADER_IN + (n_lines - 1) * HEADER_LINE_IN
+
+
+def _footer_in(n_lines: int) -> float:
+    return FOOTER_IN + (n_lines - 1) * LEGEND_LINE_IN
+
+
+def _layout(n_rows_per_split, cols, image_wh, *, rgb, n_joints, header_lines=None, legend_lines=1):
+    """Figure width/height, sample cell width, panel height and row height (inches);
+    ``header_lines``: lines of each split's header (default one each), ``legend_lines``: of the legend."""
     W, H = image_wh
     panel_h = PANEL_WIDTH_IN * H / W
     n_panels = 2 if rgb else 1
     cell_w = n_panels * PANEL_WIDTH_IN + (n_panels - 1) * GAP_IN / 2
     row_h = TITLE_IN + panel_h + CAPTION_GAP_IN + n_joints * CAPTION_LINE_IN + GAP_IN
     fig_w = cols * cell_w + (cols + 1) * GAP_IN
-    fig_h = sum(HEADER_IN + r * row_h for r in n_rows_per_split) + FOOTER_IN
+    header_lines = header_lines or [1] * len(n_rows_per_split)
+    fig_h = sum(_header_in(k) + r * row_h for r, k in zip(n_rows_per_split, header_lines)) + _footer_in(legend_lines)
     return fig_w, fig_h, cell_w, panel_h, row_h
 
 
@@ -647,35 +820,43 @@ def _gallery_figure(views, samples, rgbs, path: Path, cols: int, dpi: int, outli
     cols = min(cols, max(len(ss) for ss in samples))
     rows = [-(-len(ss) // cols) for ss in samples]
     max_j = max(len(v.joint_types) for v in views)
-    fig_w, fig_h, cell_w, panel_h, row_h = _layout(rows, cols, (W, H), rgb=rgb, n_joints=max_j)
+    fig_w, fig_h = _layout(rows, cols, (W, H), rgb=rgb, n_joints=max_j)[:2]
+    # before measuring text (wrapping only makes a figure taller)
+    check_figure_size(fig_w, fig_h if header else fig_h - HEADER_IN * len(views) - FOOTER_IN + GAP_IN, dpi, path)
+    fit = TextFitter(dpi)
+    headers = [header_lines(*split_header(v, (W, H)), fig_w, fit) for v in views]
+    with_pred = any("prediction" in s for ss in samples for s in ss)
+    legend = legend_lines(fig_w, predictions=with_pred, dpi=dpi)
+    fig_w, fig_h, cell_w, panel_h, row_h = _layout(rows, cols, (W, H), rgb=rgb, n_joints=max_j,
+                                                   header_lines=[len(h) for h in headers], legend_lines=len(legend))
     if not header:
-        fig_h -= HEADER_IN + FOOTER_IN
+        fig_h -= sum(_header_in(len(h)) for h in headers) + _footer_in(len(legend))
         fig_h += GAP_IN
     check_figure_size(fig_w, fig_h, dpi, path)
     fig = _new_figure(fig_w, fig_h, dpi)
     placed = []
     top = fig_h
-    for v, ss, rr, n_rows in zip(views, samples, rgbs, rows):
+    for v, ss, rr, n_rows, lines in zip(views, samples, rgbs, rows, headers):
         if header:
-            cfg = v.manifest.get("config", {})
-            cam = cfg.get("camera", {})
-            fig.text(GAP_IN / fig_w, (top - HEADER_IN * 0.5) / fig_h,
-                     f"{v.name}   \u2014   {v.manifest['n_objects']} objects, {v.manifest['n_images']} images, "
-                     f"{cam.get('width_px', W)}\u00d7{cam.get('height_px', H)} px, seed {v.manifest['seed']}",
-                     ha="left", va="center", fontsize=11, fontweight="bold", color="#111111")
-            top -= HEADER_IN
+            for k, (text, size, weight) in enumerate(lines):
+                y = top - HEADER_IN * 0.5 - k * HEADER_LINE_IN
+                _fig_text(fig, GAP_IN / fig_w, y / fig_h, text, ha="left", va="center", fontsize=size,
+                          fontweight=weight, color="#111111")
+            top -= _header_in(len(lines))
         else:
             top -= GAP_IN
         for k, (s, r) in enumerate(zip(ss, rr)):
             row, col = divmod(k, cols)
             left = GAP_IN + col * (cell_w + GAP_IN)
             bottom = top - row * row_h - TITLE_IN - panel_h
-            for kind, ax in _draw_sample(fig, s, v, r, left_in=left, bottom_in=bottom, panel_w_in=PANEL_WIDTH_IN,
+            for kind, ax in _draw_sample(fig, s, v, r, fit, left_in=left, bottom_in=bottom, panel_w_in=PANEL_WIDTH_IN,
                                          panel_h_in=panel_h, fig_w_in=fig_w, fig_h_in=fig_h, outline=outline):
                 placed.append((ax, kind, v, s))
         top -= n_rows * row_h
     if header:
-        with_pred = any("prediction" in s for ss in samples for s in ss)
-        fig.text(GAP_IN / fig_w, (FOOTER_IN * 0.5) / fig_h, LEGEND + (LEGEND_PREDICTIONS if with_pred else ""), ha="left", va="center", fontsize=7.5, color="#555555")
+        size = fit.fit_lines(legend, LEGEND_PT, fig_w - 2 * GAP_IN)
+        for k, line in enumerate(legend):
+            y = _footer_in(len(legend)) - FOOTER_IN * 0.5 - k * LEGEND_LINE_IN
+            _fig_text(fig, GAP_IN / fig_w, y / fig_h, line, ha="left", va="center", fontsize=size, color="#555555")
     _save(fig, path, dpi)
     return [_panel_record(fig, ax, kind, path, v, s, dpi) for ax, kind, v, s in placed]

@@ -27,6 +27,7 @@ from PIL import Image
 
 from articulated_dataset.cli import EXIT_ENVIRONMENT_ERROR, EXIT_USER_ERROR, main
 from articulated_dataset.shards import open_split
+from helpers_real import write_capture
 
 ERROR_PREFIX = "artdata: error: "
 #: Small checkpoint settings (seconds to train on the tiny split).
@@ -36,18 +37,6 @@ TINY_MDN = dict(preset="small", width=4, blocks=(1, 1), height_px=27, width_px=4
 # --------------------------------------------------------------------------------------
 # Shared inputs (built once per module; never modified by a case)
 # --------------------------------------------------------------------------------------
-
-def _capture(folder: Path, name: str, s: dict, K: np.ndarray, labels: dict | None) -> None:
-    """A real capture at the training resolution: 16-bit PNG (mm), binary mask, camera, labels."""
-    folder.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.rint(s["depth"].astype(np.float64) * 1000).astype(np.uint16)).save(folder / f"{name}.png")
-    Image.fromarray((s["mask"] > 0).astype(np.uint8) * 255).save(folder / f"{name}.mask.png")
-    H, W = s["depth"].shape
-    (folder / "camera.json").write_text(json.dumps({"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2],
-                                                    "width": W, "height": H}))
-    if labels is not None:
-        (folder / f"{name}.labels.json").write_text(json.dumps(labels))
-
 
 @dataclass
 class Inputs:
@@ -68,8 +57,8 @@ def inputs(tiny_root, tmp_path_factory) -> Inputs:
     s0, s1 = sh.sample(0), sh.sample(3)
     label = {"q": s0["q"].tolist(), "axis_pose": s0["axis_pose"].tolist(), "geometry": s0["geometry"].tolist(),
              "object": "kitchen"}
-    _capture(root / "caps", "a", s0, sh.K, label)
-    _capture(root / "nolabels", "b", s1, sh.K, None)
+    write_capture(root / "caps", "a", s0, sh.K, label)
+    write_capture(root / "nolabels", "b", s1, sh.K, None)
     for folder, extra in (("caps", []), ("nolabels", ["--append"])):
         res = CliRunner().invoke(main, ["ingest", str(root / folder), "--class", "cabinet", "--out", str(root / "out"),
                                         "-q", *extra])

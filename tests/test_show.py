@@ -17,6 +17,7 @@ from articulated_dataset.registry import PRISMATIC, REVOLUTE
 from articulated_dataset.viz import (BACKGROUND_RGB, DEFAULT_DPI, SplitView, axis_segment_m, depth_to_rgb,
                                      extent_along, format_q, gallery_size_px, joint_colour, make_gallery,
                                      preview_rgb, select_samples)
+from helpers_real import write_capture
 
 #: Max per-channel difference between a drawn colour and the PNG's pixel (8-bit rounding
 #: and antialiasing at the centre of a 10 px marker stay far below this).
@@ -173,3 +174,195 @@ def test_bad_data_is_a_one_line_error(tiny_root, tmp_path):
     (split / "manifest.json").write_text("{")
     result = run_show(split, "--out", tmp_path / "g.png")
     assert result.exit_code == 2 and "corrupt manifest" in result.output
+
+
+# --------------------------------------------------------------------------------------
+# Nothing clipped; real (ingested) splits draw their axes
+# --------------------------------------------------------------------------------------
+
+#: Slack (figure pixels) for a text's extent at the figure's edge (antialiasing rounding).
+EDGE_SLACK_PX = 0.5
+
+
+@pytest.fixture(scope="module")
+def real_split(tiny_root, tmp_path_factory):
+    """An ingested cabinet2 real split: object 0 has two views labelled with q and axis_pose only (no
+    geometry, no object pose, binary mask: no part pixels), object 1 one view without labels."""
+    from articulated_dataset.shards import open_split
+
+    root = tmp_path_factory.mktemp("real_show")
+    _, shards = open_split(tiny_root / "cabinet2" / "test")
+    sh = shards[0]
+    for name, row in (("a", 0), ("c", 5)):
+        s = sh.sample(row)
+        write_capture(root / "caps", name, s, sh.K, {"q": s["q"].tolist(), "axis_pose": s["axis_pose"].tolist(),
+                                                "object": "kitchen"})
+    write_capture(root / "nolabels", "b", sh.sample(3), sh.K, None)
+    for folder, extra in (("caps", []), ("nolabels", ["--append"])):
+        res = CliRunner().invoke(main, ["ingest", str(root / folder), "--class", "cabinet2", "--out", str(root / "out"),
+                                        "-q", *extra])
+        assert res.exit_code == 0, res.output
+    return root / "out" / "cabinet2" / "real"
+
+
+def _write_predictions(split, path, object_image_pairs):
+    """Predictions for the given images: the true axes moved 5 cm along camera y."""
+    from articulated_dataset.predictions import write_predictions
+
+    view = SplitView.open(split)
+    ss = [view.sample(o, i) for o, i in object_image_pairs]
+    view.close()
+    pose = np.stack([s["axis_pose"] for s in ss]).astype(np.float64)
+    pose[..., 1] += 0.05
+    write_predictions(path, "test", {view.manifest["class_name"]: {
+        "sample_id": np.array([int(s["sample_id"]) for s in ss]), "axis_pose": pose,
+        "q": np.stack([s["q"] for s in ss]).astype(np.float64)}})
+    return path
+
+
+@pytest.fixture
+def saved_figures(monkeypatch):
+    """Every figure make_gallery saves, drawn with Agg (for text extents)."""
+    from articulated_dataset import viz
+
+    figs = []
+    real_save = viz._save
+
+    def save(fig, path, dpi):
+        real_save(fig, path, dpi)
+        figs.append(fig)
+
+    monkeypatch.setattr(viz, "_save", save)
+    return figs
+
+
+def _check_texts_inside(fig):
+    """Every text lies inside the figure (axes texts inside their axes), and no two figure texts overlap."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig)
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    W, H = fig.bbox.width, fig.bbox.height
+    boxes = []
+    for t in fig.texts:
+        if not t.get_text():
+            continue
+        bb = t.get_window_extent(renderer)
+        assert (bb.x0 >= -EDGE_SLACK_PX and bb.y0 >= -EDGE_SLACK_PX and bb.x1 <= W + EDGE_SLACK_PX
+                and bb.y1 <= H + EDGE_SLACK_PX), f"{t.get_text()!r} at {bb.bounds} leaves the {W}x{H} figure"
+        boxes.append((t.get_text(), bb))
+    for ax in fig.axes:
+        for t in ax.texts:
+            bb, abb = t.get_window_extent(renderer), ax.get_window_extent(renderer)
+            assert abb.x0 - EDGE_SLACK_PX <= bb.x0 and bb.x1 <= abb.x1 + EDGE_SLACK_PX, t.get_text()
+            assert abb.y0 - EDGE_SLACK_PX <= bb.y0 and bb.y1 <= abb.y1 + EDGE_SLACK_PX, t.get_text()
+    for k, (ta, a) in enumerate(boxes):
+        for tb, b in boxes[k + 1:]:
+            assert not a.overlaps(b), f"{ta!r} {a.bounds} overlaps {tb!r} {b.bounds}"
+    return [text for text, _ in boxes]
+
+
+@pytest.mark.parametrize("cls, n, cols, rgb", [
+    ("cabinet2", 1, 4, False), ("drawer", 1, 4, False), ("cabinet2", 2, 4, False), ("refrigerator", 5, 3, False),
+    ("microwave", 1, 2, True)])
+@pytest.mark.parametrize("with_predictions", [False, True], ids=["truth", "predictions"])
+def test_no_text_is_clipped_simulated(tiny_root, tmp_path, saved_figures, cls, n, cols, rgb, with_predictions):
+    split = tiny_root / cls / "test"
+    preds = _write_predictions(split, tmp_path / "p.h5", select_samples(3, 16, n)) if with_predictions else None
+    out = tmp_path / "g.png"
+    panels = make_gallery([split], out=out, n=n, cols=cols, rgb=rgb, predictions=preds,
+                          per_sample_dir=tmp_path / "per" if n == 1 else None)
+    texts = _check_texts_inside(saved_figures[0])
+    for fig in saved_figures[1:]:
+        _check_texts_inside(fig)
+    assert any(t.startswith(f"{cls}/test") for t in texts)  # the header is drawn
+    legend = " ".join(t for t in texts if t.startswith(("colour:", "line:")) or "predicted axis" in t)
+    assert ("predicted axis" in legend) == with_predictions
+    view = SplitView.open(split)
+    J = len(view.joint_types)
+    rows = -(-len(panels) // (2 if rgb else 1) // cols) if n > cols else 1
+    expected = gallery_size_px([rows], min(cols, n), (192, 108), rgb=rgb, n_joints=J, predictions=with_predictions,
+                               views=[view])
+    view.close()
+    assert _png_rgb(out).shape[1::-1] == expected
+
+
+def test_one_sample_gallery_wraps_header_and_legend(tiny_root, tmp_path, saved_figures):
+    """In a one-column gallery the header and legend are too wide for one line: they wrap (the
+    figure grows), each line fits."""
+    out = tmp_path / "g.png"
+    make_gallery([tiny_root / "cabinet2" / "test"], out=out, n=1)
+    texts = _check_texts_inside(saved_figures[0])
+    assert "cabinet2/test" in texts and any(t.startswith("3 objects, 48 images") for t in texts)
+    assert sum(t.startswith(("colour:", "line:")) or t.endswith("one colour per joint") for t in texts) >= 2
+    one_line = gallery_size_px([1], 1, (192, 108), rgb=False, n_joints=2)
+    assert _png_rgb(out).shape[0] > one_line[1]
+
+
+def _axis_arrows(ax):
+    from matplotlib.patches import FancyArrowPatch
+
+    return [p for p in ax.patches if isinstance(p, FancyArrowPatch)]
+
+
+@pytest.mark.parametrize("n", [1, 3])
+@pytest.mark.parametrize("with_predictions", [False, True], ids=["truth", "predictions"])
+def test_real_split_draws_full_axes_and_nothing_clipped(real_split, tmp_path, saved_figures, n, with_predictions):
+    preds = _write_predictions(real_split, tmp_path / "p.h5", [(0, 0), (0, 1)]) if with_predictions else None
+    out = tmp_path / "g.png"
+    panels = make_gallery([real_split], out=out, n=n, predictions=preds)
+    assert len(panels) == n
+    fig = saved_figures[0]
+    texts = _check_texts_inside(fig)
+    assert any(t.startswith("cabinet2/real") for t in texts) and any("real captures" in t for t in texts)
+    png = _png_rgb(out)
+    view = SplitView.open(real_split)
+    checked = 0
+    for p, ax in zip(panels, fig.axes):
+        s = view.sample(p.object_index, p.image_index)
+        if not np.isfinite(s["axis_origin"]).any():  # the unlabelled capture: a note, no axis
+            assert not _axis_arrows(ax) and any(t.get_text() == "no axis labels" for t in ax.texts)
+            continue
+        assert np.isnan(s["geometry"]).all() and not (s["mask"] >= 2).any()  # the case that drew only a dot
+        arrows = _axis_arrows(ax)
+        assert len(arrows) == len(view.joint_types), "every labelled joint gets an axis line with an arrowhead"
+        for j, arrow in enumerate(arrows):
+            (u0, v0), (u1, v1) = arrow._posA_posB
+            assert np.hypot(u1 - u0, v1 - v0) > 20, "a full-length hinge line, not a dot"
+            # the line's middle (inside the image) is drawn in the joint's colour in the PNG
+            mid = np.array([(u0 + u1) / 2, (v0 + v1) / 2])
+            if 2 <= mid[0] <= 189 and 2 <= mid[1] <= 105:
+                x, y = p.to_png(mid)[0]
+                np.testing.assert_allclose(png[int(round(y)), int(round(x))], to_rgb(joint_colour(j)), atol=COLOUR_TOL)
+                checked += 1
+        n_dashed = sum(line.get_linestyle() == "--" for line in ax.lines)
+        assert n_dashed == (len(view.joint_types) if with_predictions else 0)
+    view.close()
+    assert checked >= 1
+
+
+def test_unlabelled_q_reads_no_label(real_split, tmp_path, saved_figures):
+    make_gallery([real_split], out=tmp_path / "g.png", n=3)
+    texts = _check_texts_inside(saved_figures[0])
+    assert texts.count("no label") == 2  # the unlabelled capture's two joints; never "nan"
+    assert not any("nan" in t for t in texts)
+
+
+def test_text_wrapping_fits_and_keeps_words():
+    from articulated_dataset.viz import LEGEND_ITEMS, LEGEND_SEP, TEXT_FIT_FRACTION, TextFitter
+
+    fit = TextFitter(DEFAULT_DPI)
+    for width_in in (1.5, 3.2, 6.0, 40.0):
+        lines = fit.wrap(LEGEND_ITEMS, LEGEND_SEP, width_in, 7.5)
+        assert all(fit.width_in(line, 7.5) <= TEXT_FIT_FRACTION * width_in for line in lines), width_in
+        sep = LEGEND_SEP.strip()
+        assert [w for w in " ".join(lines).split() if w != sep] == " ".join(LEGEND_ITEMS).split()  # breaks drop only separators
+    assert len(fit.wrap(LEGEND_ITEMS, LEGEND_SEP, 40.0, 7.5)) == 1
+    assert fit.fit_size("a" * 200, 10.0, 1.0) < 10.0 and fit.fit_size("a", 10.0, 1.0) == 10.0
+
+
+def test_cli_show_real_split(real_split, tmp_path):
+    result = run_show(real_split, "--out", tmp_path / "g.png", "--n", "1")
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "g.png").stat().st_size > 1000
