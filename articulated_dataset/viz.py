@@ -231,6 +231,9 @@ class SplitView:
     joint_types: list[str]
     q_max: list[float]
     images_per_object: int
+    #: Real (ingested) splits: images of each object (objects may have different numbers of
+    #: captures; ``images_per_object`` is then the largest); None for generated splits.
+    object_images: dict[int, int] | None = None
 
     @classmethod
     def open(cls, split_dir: str | Path) -> "SplitView":
@@ -243,7 +246,8 @@ class SplitView:
         try:
             table = json.loads(attrs["sampling_table"])
             return cls(split_dir, manifest, shards, json.loads(attrs["joint_names"]), json.loads(attrs["joint_types"]),
-                       [float(r[1]) for r in table["q"]], int(attrs["images_per_object"]))
+                       [float(r[1]) for r in table["q"]], int(attrs["images_per_object"]),
+                       _object_images(manifest))
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise DataFormatError(f"{shards[0].path}: unreadable joint attributes ({exc})") from None
 
@@ -259,6 +263,8 @@ class SplitView:
         """The shard holding ``object_index`` and the row of its first image."""
         for rec, sh in zip(self.manifest["shards"], self.shards):
             if rec["object_start"] <= object_index < rec["object_stop"]:
+                if self.object_images is not None:
+                    return sh, sum(self.object_images.get(o, 0) for o in range(rec["object_start"], object_index))
                 return sh, (object_index - rec["object_start"]) * self.images_per_object
         raise UserError(f"object {object_index} is not in {self.name} (it holds objects 0..{self.n_objects - 1})")
 
@@ -276,16 +282,28 @@ class SplitView:
             sh.close()
 
 
-def select_samples(n_objects: int, images_per_object: int, n: int, objects=None, images=None) -> list[tuple[int, int]]:
+def _object_images(manifest: dict) -> dict[int, int] | None:
+    """{object: number of images} of a real split's manifest (its shards' ``object_images``), else None."""
+    if "real" not in manifest:
+        return None
+    try:
+        return {int(o): int(c) for rec in manifest["shards"] for o, c in rec.get("object_images", {}).items()}
+    except (AttributeError, TypeError, ValueError) as exc:
+        raise DataFormatError(f"manifest: unreadable object_images ({exc})") from None
+
+
+def select_samples(n_objects: int, images_per_object: int, n: int, objects=None, images=None,
+                   object_images: dict[int, int] | None = None) -> list[tuple[int, int]]:
     """``n`` (object, image) pairs spread over the candidates.
 
     Objects are taken evenly spaced over ``objects`` (default: all) and images evenly
     spaced over ``images`` (default: all), so a gallery sweeps from closed to open.  With
-    fewer candidate pairs than ``n``, all of them are returned.
+    fewer candidate pairs than ``n``, all of them are returned.  ``object_images`` (real
+    splits: images of each object) leaves out the pairs an object does not have.
     """
     objects = list(range(n_objects)) if objects is None else list(objects)
     images = list(range(images_per_object)) if images is None else list(images)
-    pairs = [(o, i) for o in objects for i in images]
+    pairs = [(o, i) for o in objects for i in images if object_images is None or i < object_images.get(o, 0)]
     if len(pairs) <= n:
         return pairs
     if len(objects) >= n:
@@ -293,11 +311,11 @@ def select_samples(n_objects: int, images_per_object: int, n: int, objects=None,
     else:
         objs = [objects[k % len(objects)] for k in range(n)]
     if n == 1:
-        return [(objs[0], images[0])]
+        return [(objs[0], images[0]) if (objs[0], images[0]) in pairs else pairs[0]]
     imgs = [images[round(k * (len(images) - 1) / (n - 1))] for k in range(n)]
-    out, seen = [], set()
+    out, seen, candidates = [], set(), set(pairs)
     for p in zip(objs, imgs):
-        if p not in seen:
+        if p in candidates and p not in seen:
             seen.add(p)
             out.append(p)
     for p in pairs:  # fill duplicates (few objects, few images) from the remaining pairs
@@ -776,7 +794,10 @@ def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi
         for i in images or []:
             if not 0 <= i < v.images_per_object:
                 raise UserError(f"image {i} is not in {v.name} (objects have images 0..{v.images_per_object - 1})")
-        picks.append(select_samples(v.n_objects, v.images_per_object, n, objects, images))
+        picks.append(select_samples(v.n_objects, v.images_per_object, n, objects, images, v.object_images))
+        if not picks[-1]:
+            raise UserError(f"{v.name} has no image {', '.join(map(str, images or []))} of object(s) "
+                            f"{', '.join(map(str, objects or []))}")
     samples, rgbs = [], []
     for v, pairs in zip(views, picks):
         ss = [v.sample(o, i) for o, i in pairs]

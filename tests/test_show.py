@@ -366,3 +366,18 @@ def test_cli_show_real_split(real_split, tmp_path):
     result = run_show(real_split, "--out", tmp_path / "g.png", "--n", "1")
     assert result.exit_code == 0, result.output
     assert (tmp_path / "g.png").stat().st_size > 1000
+
+
+def test_real_split_with_uneven_images_per_object(real_split, tmp_path):
+    """Object 0 has two captures, object 1 one: the default gallery (12 asked) draws all three, and a
+    pair that does not exist is never asked for."""
+    view = SplitView.open(real_split)
+    assert view.object_images == {0: 2, 1: 1} and view.images_per_object == 2
+    view.close()
+    panels = make_gallery([real_split], out=tmp_path / "g.png")
+    assert sorted((p.object_index, p.image_index) for p in panels) == [(0, 0), (0, 1), (1, 0)]
+    assert select_samples(2, 2, 12, object_images={0: 2, 1: 1}) == [(0, 0), (0, 1), (1, 0)]
+    assert select_samples(3, 4, 2, object_images={0: 1, 1: 4, 2: 1}) == [(0, 0), (1, 3)]
+    assert select_samples(2, 2, 1, images=[1], object_images={0: 1, 1: 2}) == [(1, 1)]
+    result = run_show(real_split, "--out", tmp_path / "h.png", "--objects", "1", "--images", "1")
+    assert result.exit_code == 2 and "no image 1 of object(s) 1" in result.output
