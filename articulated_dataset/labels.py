@@ -29,14 +29,11 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from .format.schema import MASK_BACKGROUND, MASK_BODY, MASK_FIRST_PART  # noqa: F401  (declared with the format)
 from .registry import PRISMATIC, ObjectClass
 from .rotations import matrix_to_quat
 from .scene import OBJECT_PREFIX, object_joint_ids, set_configuration
 
-#: Mask values: 0 background, 1 body (everything not moved by a joint), 2 + j moving part j.
-MASK_BACKGROUND = 0
-MASK_BODY = 1
-MASK_FIRST_PART = 2
 HANDLE_SUFFIX = "_handle"
 
 _BOX_CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)

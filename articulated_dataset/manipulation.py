@@ -36,7 +36,8 @@ import mujoco
 import numpy as np
 
 from .errors import UserError
-from .labels import HANDLE_SUFFIX, MASK_FIRST_PART, ModelInfo, mat_to_quat, model_info, read_object_labels
+from .format import MASK_FIRST_PART
+from .labels import HANDLE_SUFFIX, ModelInfo, mat_to_quat, model_info, read_object_labels
 from .registry import JOINT_TYPES, PRISMATIC, REVOLUTE
 from .rotations import axis_angle_quat, quat_multiply, quat_to_matrix  # noqa: F401  (re-exported)
 from .scene import build_model, set_configuration
@@ -469,26 +470,14 @@ class TrueObject:
 def read_split_labels(split_dir: str | Path) -> tuple[Path, dict, dict]:
     """``(split folder, manifest, {field: (N, ...) array})`` of every label field of a split
     (storage order; ``class`` decoded to str)."""
-    from .schema import IMAGE_FIELDS, LABEL_FIELDS
-    from .shards import find_split_dirs, open_split
+    from .format import Split, one_split_dir
 
-    dirs = find_split_dirs(split_dir)
-    if len(dirs) != 1:
-        raise UserError(f"{split_dir}: holds {len(dirs)} splits; pass one split folder (<root>/<class>/<split>)")
-    manifest, shards = open_split(dirs[0])
-    if not shards:
-        raise UserError(f"{dirs[0]}: no shards (generation not finished?)")
-    parts: dict[str, list] = {k: [] for k in LABEL_FIELDS if k not in IMAGE_FIELDS}
-    try:
-        for sh in shards:
-            for k in parts:
-                parts[k].append(sh.read(k))
-    finally:
-        for sh in shards:
-            sh.close()
-    labels = {k: np.concatenate(v) for k, v in parts.items()}
+    split = Split(one_split_dir(split_dir))
+    if not split.shards:
+        raise UserError(f"{split.path}: no shards (generation not finished?)")
+    labels = split.labels()
     labels["class"] = np.array([c.decode() if isinstance(c, bytes) else str(c) for c in labels["class"]])
-    return dirs[0], manifest, labels
+    return split.path, split.manifest, labels
 
 
 def label_row(labels: dict, index: int) -> dict:
@@ -994,24 +983,17 @@ def _mdn_single_image(path: Path, class_name: str, name: str):
 
 def stored_image(split_dir: str | Path, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(depth_m (H, W) float32, K (3, 3), mask (H, W) uint8)`` of image ``index`` (storage order) of a split."""
-    from .shards import find_split_dirs, open_split
+    from .format import Split, one_split_dir
 
-    dirs = find_split_dirs(split_dir)
-    if len(dirs) != 1:
-        raise UserError(f"{split_dir}: holds {len(dirs)} splits; pass one split folder (<root>/<class>/<split>)")
-    _, shards = open_split(dirs[0])
-    try:
+    with Split(one_split_dir(split_dir)) as split:
         start = 0
-        for sh in shards:
+        for sh in split.shards:
             n = len(sh)
             if index < start + n:
                 return (sh.read("depth", index - start).astype(np.float32), np.asarray(sh.K, np.float64),
                         sh.read("mask", index - start))
             start += n
-    finally:
-        for sh in shards:
-            sh.close()
-    raise UserError(f"--index {index} out of range: {dirs[0]} has {start} images")
+    raise UserError(f"--index {index} out of range: {split.path} has {start} images")
 
 
 def transform_estimate(estimate: Estimate, rot: np.ndarray, trans: np.ndarray) -> Estimate:

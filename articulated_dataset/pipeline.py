@@ -13,15 +13,24 @@ import logging
 import math
 import os
 import re
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import mujoco
 import numpy as np
 
 from . import FORMAT_VERSION, __version__
-from .camera import R_CAMERA_TO_OPTICAL, CameraConfig
+from .camera import R_CAMERA_TO_OPTICAL
 from .errors import DataFormatError, UserError
+from .format.manifest import (  # noqa: F401  (re-exported: the generator's defaults are the format's)
+    DEFAULT_DEPTH_QUANTUM_M,
+    DEFAULT_IMAGES_PER_OBJECT,
+    DEFAULT_MIN_PART_FRACTION,
+    DEFAULT_OBJECTS_PER_SHARD,
+    DEFAULT_SEED,
+    MAX_SEED,
+    SplitConfig,
+)
 from .labels import model_info, read_configuration, read_object_labels, visible_pixels
 from .registry import JOINT_TYPES, REVOLUTE, ObjectClass, get_class
 from .render import DepthRenderer, process_renderer
@@ -29,66 +38,29 @@ from .safeio import (FULL_HINT, TMP_SUFFIX, WriteError, available_memory_bytes, 
                      fsync_dir, remove_created_dirs, translated)
 from .sampling import ObjectSample, mean_object, object_rng, sample_id, sample_object, sample_pose
 from .scene import build_model, set_configuration
-from .schema import FIELDS
+from .format.schema import FIELDS
 from .shards import shard_name, write_shard
-from .tables import SamplingTable
 from .templating import render_urdf
 
 log = logging.getLogger(__name__)
 
-#: Depth values are rounded to multiples of 2**-13 m (0.122 mm), far below any depth
-#: sensor's resolution; it makes float32 depth compress ~3x better losslessly.
-DEFAULT_DEPTH_QUANTUM_M = 2.0**-13
-#: A moving part must cover at least this fraction of the image in every view
-#: (0.2% = 41 px at 192x108); otherwise the object's pose is redrawn.
-DEFAULT_MIN_PART_FRACTION = 0.002
-DEFAULT_IMAGES_PER_OBJECT = 16
-DEFAULT_OBJECTS_PER_SHARD = 64
-DEFAULT_SEED = 0
 #: Largest configuration of a revolute joint (rad): one full turn.
 MAX_REVOLUTE_Q_RAD = 2.0 * math.pi
-#: Largest seed: shards store it as a signed 64-bit integer attribute.
-MAX_SEED = 2**63 - 1
 #: Pose redraws allowed per object before giving up (a table that never shows the part).
 MAX_POSE_ATTEMPTS = 200
 
 
 @dataclass(frozen=True)
-class GenerationConfig:
-    """Everything that determines a split's bytes."""
+class GenerationConfig(SplitConfig):
+    """Everything that determines a split's bytes: a :class:`SplitConfig` (the manifest's
+    schema, :mod:`articulated_dataset.format.manifest`) whose class is checked against the
+    registry and whose table defaults to the class's."""
 
-    class_name: str
-    split: str = "train"
-    n_objects: int = 100
-    seed: int = DEFAULT_SEED
-    images_per_object: int = DEFAULT_IMAGES_PER_OBJECT
-    objects_per_shard: int = DEFAULT_OBJECTS_PER_SHARD
-    camera: CameraConfig = field(default_factory=CameraConfig)
-    table: SamplingTable | None = None  # None: the class's default table
-    min_part_pixels: int | None = None  # None: DEFAULT_MIN_PART_FRACTION of the image
-    depth_quantum_m: float = DEFAULT_DEPTH_QUANTUM_M
-    mean: bool = False  # render the class's mean object (n_objects must be 1)
-    noise: str = "none"  # depth sensor-noise model applied after rendering (articulated_dataset.noise)
-    # Definition of a third-party URDF class (articulated_dataset.urdf_import), rebuilt in
-    # every worker process; None for registry classes.
-    third_party: dict | None = None
-
-    def __post_init__(self) -> None:
+    def _validate(self) -> None:
         # UserError for unknown names.  A third-party class with its table given (e.g. read
         # back from a manifest) is not rebuilt here: its URDF files are needed only to render.
         obj_class = self.obj_class if self.third_party is None or self.table is None else None
-        if self.n_objects <= 0:
-            raise UserError(f"number of objects must be positive, got {self.n_objects}")
-        if self.images_per_object <= 0:
-            raise UserError(f"images per object must be positive, got {self.images_per_object}")
-        if self.objects_per_shard <= 0:
-            raise UserError(f"objects per shard must be positive, got {self.objects_per_shard}")
-        if not 0 <= self.seed <= MAX_SEED:
-            raise UserError(f"seed must be in [0, 2**63 - 1] (it is stored as a 64-bit integer), got {self.seed}")
-        if self.mean and self.n_objects != 1:
-            raise UserError("--mean renders exactly one object (the class's mean object)")
-        if not self.split or "/" in self.split or self.split.startswith("."):
-            raise UserError(f"invalid split name {self.split!r}")
+        super()._validate()
         if self.table is None:
             object.__setattr__(self, "table", obj_class.table)
         if obj_class is not None:
@@ -98,9 +70,6 @@ class GenerationConfig:
                 if joint.type == REVOLUTE and hi > MAX_REVOLUTE_Q_RAD:
                     raise UserError(f"sampling table: q[{j}] (revolute joint {joint.name}) must be at most one turn "
                                     f"({MAX_REVOLUTE_Q_RAD:.4f} rad), got {hi}")
-        if self.min_part_pixels is None:
-            area = self.camera.width_px * self.camera.height_px
-            object.__setattr__(self, "min_part_pixels", int(math.ceil(DEFAULT_MIN_PART_FRACTION * area)))
 
     @property
     def obj_class(self) -> ObjectClass:
@@ -109,27 +78,6 @@ class GenerationConfig:
 
             return class_from_definition(self.third_party)
         return get_class(self.class_name)
-
-    @property
-    def n_shards(self) -> int:
-        return -(-self.n_objects // self.objects_per_shard)
-
-    def shard_objects(self, shard_index: int) -> range:
-        start = shard_index * self.objects_per_shard
-        return range(start, min(start + self.objects_per_shard, self.n_objects))
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["table"] = self.table.to_dict()
-        d["format_version"] = FORMAT_VERSION
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "GenerationConfig":
-        d = {k: v for k, v in d.items() if k != "format_version"}
-        d["camera"] = CameraConfig(**d["camera"])
-        d["table"] = SamplingTable.from_dict(d["table"])
-        return cls(**d)
 
 
 def render_object(sample: ObjectSample, config: GenerationConfig, renderer: DepthRenderer, *, check_visibility: bool = True,

@@ -14,11 +14,9 @@ from importlib import resources
 from pathlib import Path
 
 from .errors import UserError
+from .format.schema import JOINT_TYPES, PRISMATIC, REVOLUTE  # noqa: F401  (declared with the format)
 from .tables import SamplingTable
 
-REVOLUTE = "revolute"
-PRISMATIC = "prismatic"
-JOINT_TYPES = (REVOLUTE, PRISMATIC)
 #: Integer codes of joint types as stored in shards (``joint_type`` attribute / dataset).
 JOINT_TYPE_CODES = {REVOLUTE: 0, PRISMATIC: 1}
 

@@ -1,117 +1,23 @@
-"""The shard schema: every stored field declared once (dtype, shape, units, frame).
+"""Old home of the shard schema: it lives in :mod:`articulated_dataset.format.schema` now
+(re-exported here so that existing imports keep working)."""
 
-Shapes use symbols: ``N`` images in the shard, ``J`` joints of the class, ``H``/``W`` image
-height/width, ``P = 1 + J`` (body + parts).  The writer and the reader both validate
-against :data:`FIELDS`; docs/format.md is generated from the same table
-(``python -m articulated_dataset.schema``).
-"""
-
-from __future__ import annotations
-
-from dataclasses import dataclass
-
-import numpy as np
-
-from . import FORMAT_VERSION
-from .errors import DataFormatError
-
-
-@dataclass(frozen=True)
-class Field:
-    name: str
-    dtype: str
-    shape: tuple  # symbols ("N", "J", "H", "W", "P") and ints
-    units: str
-    frame: str
-    description: str
-
-
-FIELDS: tuple[Field, ...] = (
-    Field("depth", "float32", ("N", "H", "W"), "m", "optical",
-          "z-depth along the optical axis; 0 where nothing was hit. Values are multiples of the "
-          "root attribute depth_quantum_m."),
-    Field("mask", "uint8", ("N", "H", "W"), "-", "image",
-          "0 background, 1 body, 2 + j moving part of joint j (handles belong to their part)."),
-    Field("q", "float32", ("N", "J"), "rad | m", "joint",
-          "configuration per joint: radians (revolute) or metres (prismatic); 0 = closed, >= 0."),
-    Field("axis_origin", "float32", ("N", "J", 3), "m", "camera",
-          "canonical point on the joint axis (revolute: on the hinge line at the middle of the part's "
-          "extent along the axis; prismatic: centre of the part's front face at q = 0)."),
-    Field("axis_direction", "float32", ("N", "J", 3), "-", "camera",
-          "unit joint axis; positive q opens (right-hand rule for revolute joints)."),
-    Field("axis_pose", "float32", ("N", "J", 7), "m, quaternion (w,x,y,z)", "camera",
-          "axis frame: position = axis_origin; z = axis_direction; x towards the part centre (revolute) "
-          "or the object's up direction (prismatic); y = z x x."),
-    Field("part_offset", "float32", ("N", "J", 3), "m", "axis",
-          "moving part's centre at q = 0 in the axis frame (x = radius of rotation for a door)."),
-    Field("object_pose", "float32", ("N", 7), "m, quaternion (w,x,y,z)", "camera",
-          "centre of the object's base and its orientation."),
-    Field("object_yaw", "float32", ("N",), "rad", "camera", "rotation of the object about z (0 = front faces the camera)."),
-    Field("geometry", "float32", ("N", 4), "m, m, m, -", "object",
-          "body depth, width, height and chirality (0: hinge of joint 0 on the object's left; 1: right)."),
-    Field("visible_pixels", "int32", ("N", "P"), "px", "image", "pixels of the body and of each moving part."),
-    Field("object_index", "int64", ("N",), "-", "-", "index of the object within its split."),
-    Field("image_index", "int32", ("N",), "-", "-", "index of the image within its object."),
-    Field("sample_id", "int64", ("N",), "-", "-",
-          "stable 63-bit id of the image: hash of (class, split, seed, object_index, image_index)."),
-    Field("class", "S32", ("N",), "-", "-", "object class name (ASCII)."),
+from .format.schema import (  # noqa: F401
+    FIELDS,
+    FIELDS_BY_NAME,
+    IMAGE_FIELDS,
+    K_DATASET,
+    LABEL_FIELDS,
+    MASK_BACKGROUND,
+    MASK_BODY,
+    MASK_FIRST_PART,
+    R_DATASET,
+    ROOT_ATTRS,
+    Field,
+    check_version,
+    markdown_table,
+    resolve_shape,
+    validate_arrays,
 )
-FIELDS_BY_NAME = {f.name: f for f in FIELDS}
-IMAGE_FIELDS = ("depth", "mask")
-LABEL_FIELDS = tuple(f.name for f in FIELDS if f.name not in IMAGE_FIELDS)
-
-#: File-level datasets (not per image).
-K_DATASET = "K"  # (3, 3) float64, OpenCV intrinsics, pixel centres at integer coordinates
-R_DATASET = "R_camera_to_optical"  # (3, 3) float64, p_optical = R p_camera
-
-#: Root attributes every shard carries.
-ROOT_ATTRS = (
-    "format_version", "class_name", "split", "seed", "n_objects", "object_start", "object_stop",
-    "images_per_object", "n_joints", "joint_names", "joint_types", "image_width", "image_height",
-    "vfov_deg", "depth_quantum_m", "min_part_pixels", "sampling_table", "package_version",
-)
-
-
-def resolve_shape(shape: tuple, *, N: int, J: int, H: int, W: int) -> tuple[int, ...]:
-    sizes = {"N": N, "J": J, "H": H, "W": W, "P": 1 + J}
-    return tuple(sizes[s] if isinstance(s, str) else int(s) for s in shape)
-
-
-def validate_arrays(arrays: dict, *, N: int, J: int, H: int, W: int, where: str = "") -> None:
-    """Check that ``arrays`` holds every field with the declared dtype and shape.
-
-    Raises :class:`DataFormatError` naming the first offending field.
-    """
-    prefix = f"{where}: " if where else ""
-    for f in FIELDS:
-        if f.name not in arrays:
-            raise DataFormatError(f"{prefix}missing dataset {f.name!r}")
-        a = arrays[f.name]
-        expected = resolve_shape(f.shape, N=N, J=J, H=H, W=W)
-        if tuple(a.shape) != expected:
-            raise DataFormatError(f"{prefix}dataset {f.name!r} has shape {tuple(a.shape)}, expected {expected}")
-        if np.dtype(a.dtype) != np.dtype(f.dtype):
-            raise DataFormatError(f"{prefix}dataset {f.name!r} has dtype {a.dtype}, expected {f.dtype}")
-
-
-def check_version(version: str, where: str = "") -> None:
-    major = str(version).split(".")[0]
-    if major != FORMAT_VERSION.split(".")[0]:
-        raise DataFormatError(
-            f"{where + ': ' if where else ''}format version {version} is not readable by this package "
-            f"(reads {FORMAT_VERSION.split('.')[0]}.x)"
-        )
-
-
-def markdown_table() -> str:
-    """The schema as a Markdown table (used to build docs/format.md)."""
-    rows = ["| dataset | dtype | shape | units | frame | meaning |", "|---|---|---|---|---|---|"]
-    for f in FIELDS:
-        shape = "(" + ", ".join(str(s) for s in f.shape) + ")"
-        cells = [f"`{f.name}`", f.dtype, shape, f.units, f.frame, f.description]
-        rows.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
-    return "\n".join(rows)
-
 
 if __name__ == "__main__":  # pragma: no cover - doc helper
     print(markdown_table())

@@ -30,7 +30,7 @@ from . import metrics as M
 from .errors import DataFormatError, UserError
 from .predictions import MIXTURE_LAYOUT_ATTR, read_predictions
 from .registry import PRISMATIC, REVOLUTE
-from .shards import find_split_dirs, open_split
+from .format import Split, splits_by_class
 
 log = logging.getLogger(__name__)
 
@@ -125,47 +125,14 @@ class TruthSet:
         return int(self.arrays["sample_id"].shape[0])
 
 
-def _check_inside(split_dir: Path, path: Path) -> None:
-    """Refuse a shard path (built from a name in the manifest) that leads outside ``split_dir``.
-
-    :func:`shards.open_split` checks the names; this is the scorer's own check on the
-    resolved path (symbolic links followed), done before any shard is opened.
-    """
-    try:
-        base, real = split_dir.resolve(), path.resolve()
-    except (OSError, RuntimeError):  # a symbolic-link loop
-        raise DataFormatError(f"{split_dir}: cannot resolve shard path {str(path)[:200]!r} (refused)") from None
-    if real == base or not real.is_relative_to(base):
-        raise DataFormatError(f"{split_dir}: the manifest names a shard outside the split folder "
-                              f"({str(path)[:200]!r}; refused)")
-
-
 def load_truth_set(split_dir: str | Path) -> TruthSet:
     """Read the label fields the scorer needs from every shard of a split folder."""
     split_dir = Path(split_dir)
-    manifest, shards = open_split(split_dir)
-    if not shards:
+    split = Split(split_dir)  # checks the manifest and that every shard path stays inside the folder
+    if not split.shards:
         raise DataFormatError(f"{split_dir}: the split has no shards")
-    for sh in shards:
-        _check_inside(split_dir, Path(sh.path))
-    parts: dict[str, list] = {k: [] for k in TRUTH_FIELDS}
-    joint_types = None
-    for sh in shards:
-        attrs = sh.attrs
-        try:
-            types = tuple(json.loads(attrs["joint_types"]))
-        except (KeyError, TypeError, json.JSONDecodeError):
-            raise DataFormatError(f"{sh.path}: missing or invalid 'joint_types' attribute") from None
-        if any(t not in CONFIG_UNITS for t in types):
-            raise DataFormatError(f"{sh.path}: unknown joint type in {list(types)}")
-        if joint_types is None:
-            joint_types = types
-        elif types != joint_types:
-            raise DataFormatError(f"{sh.path}: joint types {list(types)} differ from the split's {list(joint_types)}")
-        for k in TRUTH_FIELDS:
-            parts[k].append(sh.read(k))
-        sh.close()
-    arrays = {k: np.concatenate(v) for k, v in parts.items()}
+    joint_types = split.joint_types()  # every shard's, known and equal
+    arrays = split.read_fields(TRUTH_FIELDS)
     ids = arrays["sample_id"].astype(np.int64)
     order = np.argsort(ids, kind="stable")
     arrays = {k: np.asarray(v[order], np.float64) if k != "sample_id" else ids[order] for k, v in arrays.items()}
@@ -177,22 +144,14 @@ def load_truth_set(split_dir: str | Path) -> TruthSet:
     quat = arrays["axis_pose"][..., 3:]
     with np.errstate(all="ignore"):  # a NaN or zero quaternion (undefined truth) stays NaN
         arrays["axis_pose"][..., 3:] = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
-    return TruthSet(class_name=str(manifest["class_name"]), split=split_dir.name, path=split_dir,
-                    joint_types=joint_types, complete=bool(manifest.get("complete", True)), arrays=arrays)
+    return TruthSet(class_name=split.class_name, split=split_dir.name, path=split_dir,
+                    joint_types=joint_types, complete=split.complete, arrays=arrays)
 
 
 def available_truth(truth_path: str | Path) -> dict[str, dict[str, Path]]:
-    """``{class: {split name: split folder}}`` of the splits under ``truth_path``.
-
-    The split name is the folder's name (``OUT/<class>/<split>``; ``mean`` for a mean object).
-    """
-    from .shards import read_manifest
-
-    found: dict[str, dict[str, Path]] = {}
-    for d in find_split_dirs(truth_path):
-        cls = str(read_manifest(d)["class_name"])
-        found.setdefault(cls, {})[d.name] = d
-    return found
+    """``{class: {split name: split folder}}`` of the splits under ``truth_path``
+    (:func:`articulated_dataset.format.splits_by_class`)."""
+    return splits_by_class(truth_path)
 
 
 def select_truth(truth_path: str | Path, classes, split: str | None = None,

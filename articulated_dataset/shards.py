@@ -1,4 +1,4 @@
-"""Stage 6 of the pipeline: HDF5 shards and the per-split JSON manifest.
+"""Stage 6 of the pipeline: writing HDF5 shards and the per-split JSON manifest.
 
 Layout::
 
@@ -7,137 +7,56 @@ Layout::
 
 A shard becomes visible only when complete: it is written under a temporary name, flushed,
 fsync'ed and atomically renamed.  The manifest is replaced atomically the same way.
+
+Reading lives in :mod:`articulated_dataset.format` (re-exported here so that existing imports
+keep working).
 """
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
 import json
 import logging
-import os
-import re
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from .errors import DataFormatError, UserError
-from .schema import FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, R_DATASET, check_version, validate_arrays
+from .format.discovery import find_split_dirs  # noqa: F401
+from .format.manifest import MANIFEST_NAME, check_manifest_names, read_manifest, shard_paths  # noqa: F401
+from .format.schema import FIELDS, IMAGE_FIELDS, K_DATASET, R_DATASET, validate_arrays
+from .format.shards import (  # noqa: F401
+    _CLASS_NAME_RE,
+    _SHARD_FILE_RE,
+    MAX_CLASS_NAME_CHARS,
+    MAX_H5_GROUP_DEPTH,
+    MAX_READ_MEMORY_FRACTION,
+    MIN_STORED_BYTES_PER_IMAGE,
+    SHARD_PATTERN,
+    TMP_SUFFIX,
+    Shard,
+    _short,
+    attr_value,
+    check_class_name,
+    check_h5_layout,
+    check_shard_file,
+    is_class_name,
+    open_h5,
+    read_json_object,
+    reading,
+    resolve_inside,
+    sha256_file,
+    shard_name,
+)
+from .format.split import Split, open_split  # noqa: F401
 
 log = logging.getLogger(__name__)
 
-MANIFEST_NAME = "manifest.json"
-SHARD_PATTERN = "shard-{:05d}.h5"
-from .safeio import TMP_SUFFIX  # noqa: E402,F401  (re-exported: one definition)
 #: Deflate level of the per-image depth/mask chunks.  Compression is the costliest step after
 #: rendering: level 1 takes ~40% of level 4's time for ~1.4x its size, still well under the
 #: 4 KB/image budget (benchmarks/generation.py prints bytes per image).
 IMAGE_GZIP_LEVEL = 1
 #: Deflate level of the (small) label datasets.
 LABEL_GZIP_LEVEL = 4
-
-
-#: Longest class name: the shards' ``class`` field is S32 (32 ASCII bytes).
-MAX_CLASS_NAME_CHARS = 32
-#: A class name (registry names, third-party ``--class-name``): it becomes a folder name, so
-#: letters, digits, ``_ . -``, not starting with ``.`` or ``-``.
-_CLASS_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
-#: A shard file name as :data:`SHARD_PATTERN` writes it (5 or more digits).
-_SHARD_FILE_RE = re.compile(r"shard-[0-9]{5,}\.h5")
-#: Deepest group nesting accepted in an HDF5 file we read (shards are flat, predictions
-#: have one level of class groups); also ends hard-link cycles between groups.
-MAX_H5_GROUP_DEPTH = 4
-#: Largest share of the available memory one read may take.
-MAX_READ_MEMORY_FRACTION = 0.5
-#: Fewest bytes one image takes in a shard: its depth and mask are separate chunks, each with
-#: a chunk-index entry (>= 8 bytes) and deflate data (>= ~10 bytes).  A file declaring more
-#: images than its size allows (unwritten chunks read as zeros) is refused before reading.
-MIN_STORED_BYTES_PER_IMAGE = 16
-
-
-def shard_name(index: int) -> str:
-    return SHARD_PATTERN.format(index)
-
-
-# --------------------------------------------------------------------------------------
-# Names read from data files are names, not paths
-# --------------------------------------------------------------------------------------
-
-def is_class_name(name) -> bool:
-    """True if ``name`` is a valid class name: 1-32 characters from ``A-Z a-z 0-9 _ . -``,
-    not starting with ``.`` or ``-`` (so never ``..``, a path or an option)."""
-    return isinstance(name, str) and len(name) <= MAX_CLASS_NAME_CHARS and _CLASS_NAME_RE.fullmatch(name) is not None
-
-
-def check_class_name(name, where: str) -> str:
-    """``name`` if :func:`is_class_name`, else a :class:`DataFormatError` naming ``where``
-    (the file the name was read from)."""
-    if not is_class_name(name):
-        raise DataFormatError(f"{where}: invalid class name {str(name)[:80]!r} (expected 1-{MAX_CLASS_NAME_CHARS} "
-                              "characters from A-Z a-z 0-9 _ . -, not starting with . or -)")
-    return name
-
-
-def check_shard_file(name, where: str) -> str:
-    """``name`` if it is a shard file name (``shard-NNNNN.h5``), else a :class:`DataFormatError`."""
-    if not isinstance(name, str) or _SHARD_FILE_RE.fullmatch(name) is None:
-        raise DataFormatError(f"{where}: invalid shard file name {str(name)[:80]!r} (expected shard-NNNNN.h5)")
-    return name
-
-
-def resolve_inside(root: str | Path, name: str | Path, *, where: str | None = None) -> Path:
-    """``root / name`` after checking that it stays inside ``root``.
-
-    Use it for every path built from a name read from a data file (manifest, export index,
-    label file): ``name`` must be a relative path (one or more components, none of them
-    empty, ``.`` or ``..``, no NUL byte), and ``root / name`` with every symbolic link
-    resolved must lie strictly below ``root`` with its links resolved (so a link inside the
-    data folder pointing elsewhere is refused too).  ``root`` itself is the folder the
-    user named and is trusted; it need not exist yet.
-
-    Returns ``Path(root) / name`` (as the user spelled ``root``, not resolved).  Raises
-    :class:`DataFormatError` naming ``where`` (default: ``root``) otherwise.
-    """
-    where = str(root) if where is None else where
-    text = os.fspath(name) if isinstance(name, (str, os.PathLike)) else None
-    parts = Path(text).parts if text else ()
-    if (not text or "\0" in text or Path(text).is_absolute() or not parts
-            or any(p in ("", ".", "..") for p in parts) or any(p in ("", ".", "..") for p in text.split("/"))):
-        raise DataFormatError(f"{where}: {str(name)[:80]!r} is not a plain relative name inside {root} (refused)")
-    path = Path(root) / text
-    try:
-        base, real = Path(root).resolve(), path.resolve()
-    except (OSError, RuntimeError) as exc:  # a symbolic-link loop
-        raise DataFormatError(f"{where}: cannot resolve {text[:80]!r} ({_short(exc)}; refused)") from None
-    if real == base or not real.is_relative_to(base):
-        raise DataFormatError(f"{where}: {text[:80]!r} leads outside {root} (to {real}; refused)")
-    return path
-
-
-def check_manifest_names(manifest: dict, where: str) -> dict:
-    """Check the names a manifest gives to paths: its ``class_name`` and every shard's
-    ``file``.  Returns ``manifest``; raises :class:`DataFormatError` naming ``where``."""
-    if "class_name" not in manifest:
-        raise DataFormatError(f"{where}: corrupt manifest (no class_name)")
-    check_class_name(manifest["class_name"], where)
-    records = manifest.get("shards")
-    if not isinstance(records, list) or not all(isinstance(r, dict) and "file" in r for r in records):
-        raise DataFormatError(f"{where}: corrupt manifest (shards must be a list of records with a 'file')")
-    for r in records:
-        check_shard_file(r["file"], where)
-        n = r.get("n_images", 0)
-        if not isinstance(n, int) or isinstance(n, bool) or n < 0:
-            raise DataFormatError(f"{where}: corrupt manifest ({r['file']}: n_images must be a count, got {str(n)[:40]!r})")
-    return manifest
-
-
-def sha256_file(path: str | Path, chunk_bytes: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(chunk_bytes), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
@@ -183,245 +102,5 @@ def write_shard(path: str | Path, arrays: dict, attrs: dict, K: np.ndarray, R: n
     return {"file": path.name, "n_images": int(N), "bytes": path.stat().st_size, "sha256": sha256_file(path)}
 
 
-class Shard:
-    """Read access to one shard; the file is opened lazily on first use (once per process)."""
-
-    def __init__(self, path: str | Path):
-        self.path = Path(path)
-        self._file: h5py.File | None = None
-        self._pid: int | None = None
-
-    @property
-    def file(self) -> h5py.File:
-        if self._file is None or self._pid != os.getpid():
-            f = open_h5(self.path)
-            try:
-                with reading(self.path):
-                    self._check(f)
-            except BaseException:
-                f.close()
-                raise
-            self._file, self._pid = f, os.getpid()
-        return self._file
-
-    def _check(self, f: h5py.File) -> None:
-        where = str(self.path)
-        if "format_version" not in f.attrs:
-            raise DataFormatError(f"{where}: not an articulated_dataset shard (no format_version attribute)")
-        check_version(str(f.attrs["format_version"]), where)
-        N, H, W = f["depth"].shape if "depth" in f else (0, 0, 0)
-        size = self.path.stat().st_size
-        if N * MIN_STORED_BYTES_PER_IMAGE > size:
-            raise DataFormatError(f"{where}: declares {N} images but holds only {size} bytes (every stored image "
-                                  f"takes at least {MIN_STORED_BYTES_PER_IMAGE}); damaged or not written by artdata")
-        J = int(f.attrs.get("n_joints", 0))
-        validate_arrays({k: f[k] for k in FIELDS_BY_NAME if k in f}, N=N, J=J, H=H, W=W, where=where)
-
-    @property
-    def attrs(self) -> dict:
-        f = self.file
-        with reading(self.path):
-            return {k: attr_value(v) for k, v in f.attrs.items()}
-
-    def __len__(self) -> int:
-        return int(self.file["depth"].shape[0])
-
-    @property
-    def K(self) -> np.ndarray:  # noqa: N802
-        return self.read(K_DATASET, ())
-
-    @property
-    def R(self) -> np.ndarray:  # noqa: N802
-        return self.read(R_DATASET, ())
-
-    def read(self, name: str, index=slice(None)) -> np.ndarray:
-        """``dataset[index]``; a damaged file is a :class:`DataFormatError` (see :func:`reading`).
-
-        A whole dataset larger than :data:`MAX_READ_MEMORY_FRACTION` of the available memory
-        is refused before reading (a hostile shard can declare any size: unwritten chunks
-        read as zeros)."""
-        f = self.file
-        with reading(self.path, name):
-            ds = f[name]
-            _check_fits_memory(self.path, name, _selection_rows(index, ds.shape) * _row_bytes(ds))
-            return ds[index]
-
-    def sample(self, i: int) -> dict:
-        """All fields of image ``i`` as numpy arrays."""
-        return {f.name: self.read(f.name, i) for f in FIELDS}
-
-    def labels(self) -> dict:
-        """All label fields (everything but depth and mask) for every image."""
-        return {f.name: self.read(f.name, ()) for f in FIELDS if f.name not in IMAGE_FIELDS}
-
-    def close(self) -> None:
-        if self._file is not None:
-            self._file.close()
-            self._file = None
-
-    def __getstate__(self):  # picklable for spawn-based workers: reopen in the child
-        return {"path": self.path}
-
-    def __setstate__(self, state):
-        self.__init__(state["path"])
-
-
-def attr_value(v):
-    """An HDF5 attribute as a plain Python value (str, list, int/float)."""
-    if isinstance(v, bytes):
-        return v.decode()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, np.generic):
-        return v.item()
-    return v
-
-
-def open_h5(path: str | Path) -> h5py.File:
-    """Open an HDF5 file read-only; missing, truncated or non-HDF5 files are a DataFormatError,
-    and so is a file whose layout reads data from elsewhere (see :func:`check_h5_layout`)."""
-    path = Path(path)
-    if not path.exists():
-        raise DataFormatError(f"file not found: {path}")
-    if path.is_dir():
-        raise DataFormatError(f"expected an HDF5 file, got a directory: {path}")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise DataFormatError(f"{path}: not a readable HDF5 file ({_short(exc)})") from None
-    try:
-        with reading(path):
-            check_h5_layout(f, path)
-    except BaseException:
-        f.close()
-        raise
-    return f
-
-
-def check_h5_layout(f: h5py.Group, path: str | Path, _depth: int = 0) -> None:
-    """Refuse an HDF5 file whose content lives outside it or loops.
-
-    Every link must be a hard link (no soft, external or user-defined links: an external
-    link reads another file, a soft link can loop), no dataset may use external raw storage
-    (``dset.external``: bytes read from another file) or be virtual (``dset.is_virtual``:
-    mapped from other files), and groups nest at most :data:`MAX_H5_GROUP_DEPTH` deep.
-    Raises :class:`DataFormatError` naming the object; reads no data.
-    """
-    for name in f:  # link names: iterating does not follow the links
-        link = f.get(name, getlink=True)
-        where = f"{path}: {f.name.rstrip('/')}/{name}"
-        if not isinstance(link, h5py.HardLink):
-            kind = {h5py.SoftLink: "a soft link", h5py.ExternalLink: "an external link"}.get(type(link), "a user-defined link")
-            raise DataFormatError(f"{where} is {kind}; only datasets stored in the file itself are read (refused)")
-        obj = f[name]
-        if isinstance(obj, h5py.Dataset):
-            if obj.is_virtual:
-                raise DataFormatError(f"{where} is a virtual dataset (data mapped from other files; refused)")
-            if obj.external:
-                raise DataFormatError(f"{where} uses external storage (data read from other files; refused)")
-        elif isinstance(obj, h5py.Group):
-            if _depth + 1 >= MAX_H5_GROUP_DEPTH:
-                raise DataFormatError(f"{where}: groups nested deeper than {MAX_H5_GROUP_DEPTH} levels (refused)")
-            check_h5_layout(obj, path, _depth + 1)
-
-
-def _row_bytes(ds) -> int:
-    """Bytes of one row (first-axis entry) of dataset ``ds``."""
-    return int(np.prod(ds.shape[1:], dtype=np.float64)) * ds.dtype.itemsize if ds.shape else ds.dtype.itemsize
-
-
-def _selection_rows(index, shape) -> int:
-    """How many first-axis rows ``dataset[index]`` reads (an upper bound)."""
-    n = shape[0] if shape else 1
-    if isinstance(index, tuple):
-        if not index:
-            return n
-        index = index[0]
-    if isinstance(index, slice):
-        return len(range(*index.indices(n)))
-    if isinstance(index, (int, np.integer)):
-        return 1
-    return int(np.size(index))
-
-
-def _check_fits_memory(path: Path, name: str, nbytes: int) -> None:
-    from .safeio import available_memory_bytes, format_bytes
-
-    avail = available_memory_bytes()
-    if avail is not None and nbytes > MAX_READ_MEMORY_FRACTION * avail:
-        raise DataFormatError(f"{path}: dataset {name!r} holds {format_bytes(nbytes)}, more than "
-                              f"{MAX_READ_MEMORY_FRACTION:.0%} of the {format_bytes(avail)} of memory available")
-
-
-@contextlib.contextmanager
-def reading(path: str | Path, dataset: str | None = None):
-    """Turn HDF5 read failures inside the block (a corrupt chunk: ``OSError: Can't
-    synchronously read data``, a damaged heap...) into one :class:`DataFormatError` naming
-    the file (and dataset) and pointing to ``artdata verify``."""
-    try:
-        yield
-    except (OSError, RuntimeError) as exc:
-        what = f"{path}" + (f": dataset {dataset!r}" if dataset else "")
-        raise DataFormatError(f"{what}: cannot read ({_short(exc)}); the file is damaged, "
-                              f"run 'artdata verify' on its split") from None
-
-
-def _short(exc: Exception) -> str:
-    return str(exc).splitlines()[0][:200]
-
-
-def read_json_object(path: str | Path, what: str) -> dict:
-    """A JSON object from ``path``; a missing, unparsable or non-object file is a DataFormatError
-    naming ``what`` (e.g. "manifest")."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataFormatError(f"{path}: missing {what}")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataFormatError(f"{path}: corrupt {what} ({exc})") from None
-    if not isinstance(data, dict):
-        raise DataFormatError(f"{path}: corrupt {what} (not a JSON object)")
-    return data
-
-
-def read_manifest(split_dir: str | Path) -> dict:
-    split_dir = Path(split_dir)
-    path = split_dir / MANIFEST_NAME
-    if not path.is_file():
-        raise DataFormatError(f"{split_dir}: no {MANIFEST_NAME} (not a generated split folder)")
-    manifest = read_json_object(path, "manifest")
-    check_version(manifest.get("format_version", "?"), str(path))
-    check_manifest_names(manifest, str(path))
-    shard_paths(split_dir, manifest)  # every shard path stays inside the folder (no links leading out)
-    return manifest
-
-
 def write_manifest(split_dir: str | Path, manifest: dict) -> None:
     atomic_write_bytes(Path(split_dir) / MANIFEST_NAME, (json.dumps(manifest, indent=1, sort_keys=True) + "\n").encode())
-
-
-def find_split_dirs(path: str | Path, *, marker: str = MANIFEST_NAME, what: str = "generated split") -> list[Path]:
-    """Split folders (holding ``marker``) at ``path`` or one/two levels below (class/split layout)."""
-    path = Path(path)
-    if not path.is_dir():
-        raise UserError(f"no such directory: {path}")
-    if (path / marker).is_file():
-        return [path]
-    found = sorted(p.parent for p in path.glob(f"*/{marker}")) + sorted(p.parent for p in path.glob(f"*/*/{marker}"))
-    if not found:
-        raise UserError(f"{path}: no {what} found (expected {marker} in it or in <class>/<split>/ below it)")
-    return found
-
-
-def shard_paths(split_dir: str | Path, manifest: dict) -> list[Path]:
-    """The paths of a manifest's shards, each checked to be a shard name inside ``split_dir``."""
-    where = str(Path(split_dir) / MANIFEST_NAME)
-    return [resolve_inside(split_dir, check_shard_file(rec["file"], where), where=where) for rec in manifest["shards"]]
-
-
-def open_split(split_dir: str | Path) -> tuple[dict, list[Shard]]:
-    """The manifest of a split folder and its shards (complete ones, in order)."""
-    split_dir = Path(split_dir)
-    manifest = read_manifest(split_dir)
-    return manifest, [Shard(p) for p in shard_paths(split_dir, manifest)]

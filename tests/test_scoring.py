@@ -441,16 +441,15 @@ def test_tiny_mixture_scales_give_infinite_nll_never_dropped(good, tiny_root, tm
 
 
 def test_truth_reader_refuses_shards_outside_the_split(tiny_root, tmp_path, monkeypatch):
-    """The scorer's own check on resolved shard paths, independent of the manifest-name checks in shards."""
+    """The split reader's own check on resolved shard paths (format.Split), independent of the manifest-name checks."""
     from articulated_dataset import scoring
     from articulated_dataset.errors import DataFormatError
-    from articulated_dataset.shards import Shard
+    from articulated_dataset.format import split as split_module
 
     split = tmp_path / "cabinet" / "test"
     shutil.copytree(tiny_root / "cabinet" / "test", split)
     outside = shutil.copy(next(split.glob("shard-*.h5")), tmp_path / "elsewhere.h5")
-    manifest, _ = open_split(split)
     for path in (outside, split / ".." / "test" / ".." / ".." / "elsewhere.h5", split):
-        monkeypatch.setattr(scoring, "open_split", lambda d, p=path: (manifest, [Shard(p)]))
+        monkeypatch.setattr(split_module, "shard_paths", lambda d, m, p=path: [p])
         with pytest.raises(DataFormatError, match="outside the split folder"):
             scoring.load_truth_set(split)

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
-from ..shards import Shard, open_split
+from ..format import Split
 
 log = logging.getLogger(__name__)
 
@@ -30,59 +30,15 @@ log = logging.getLogger(__name__)
 PREDICTED_FIELDS = ("axis_pose", "q", "geometry", "part_offset")
 
 
-@dataclass
-class SplitInfo:
-    """A generated split folder: its manifest, shards and the facts the baselines need."""
-
-    path: Path
-    manifest: dict
-    shards: list[Shard]
-
-    @property
-    def class_name(self) -> str:
-        return str(self.manifest["class_name"])
-
-    @property
-    def n_images(self) -> int:
-        return int(self.manifest["n_images"])
-
-    @property
-    def config(self) -> dict:
-        return self.manifest.get("config", {})
-
-    @property
-    def n_joints(self) -> int:
-        return int(self.shards[0].attrs["n_joints"])
-
-    @property
-    def image_size(self) -> tuple[int, int]:
-        """(height, width) in pixels."""
-        a = self.shards[0].attrs
-        return int(a["image_height"]), int(a["image_width"])
-
-    @property
-    def is_real(self) -> bool:
-        """Ingested real captures (labels NaN where a capture does not give them)."""
-        return "real" in self.manifest
-
-    @property
-    def is_mean_object(self) -> bool:
-        """The class's mean object (``artdata generate --mean``)."""
-        return self.config.get("mean") is True
+class SplitInfo(Split):
+    """A generated split folder (:class:`articulated_dataset.format.Split`) with the facts the
+    baselines need."""
 
     @property
     def yaw_range_rad(self) -> tuple[float, float]:
         """The yaw range (rad) of the split's sampling table (the class prior of object rotations)."""
-        lo, hi = self.config["table"]["pose"]["yaw_rad"]
+        lo, hi = self.config.table.pose["yaw_rad"]
         return float(lo), float(hi)
-
-    def read(self, name: str) -> np.ndarray:
-        """One dataset concatenated over all shards, in storage order."""
-        return np.concatenate([sh.read(name) for sh in self.shards], axis=0)
-
-    def close(self) -> None:
-        for sh in self.shards:
-            sh.close()
 
 
 def open_split_checked(path, role: str) -> SplitInfo:
@@ -92,10 +48,10 @@ def open_split_checked(path, role: str) -> SplitInfo:
         raise UserError(f"{role} split folder not found: {path}")
     if not path.is_dir():
         raise UserError(f"{role} split must be a folder holding manifest.json, got a file: {path}")
-    manifest, shards = open_split(path)
-    if not shards or int(manifest.get("n_images", 0)) == 0:
+    info = SplitInfo(path)
+    manifest = info.manifest
+    if not info.shards or info.n_images == 0:
         raise UserError(f"{role} split {path} holds no images")
-    info = SplitInfo(path, manifest, shards)
     if role != "test" and info.is_real:
         info.close()
         raise UserError(f"{role} split {path} holds ingested real captures; the baselines learn from a generated "

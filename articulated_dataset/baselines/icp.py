@@ -66,7 +66,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import backproject
-from ..labels import MASK_BACKGROUND
+from ..format import MASK_BACKGROUND
 from ..rotations import matrix_to_quat
 from .common import BaselineResult, SplitInfo, check_compatible, open_split_checked
 
@@ -402,7 +402,7 @@ def _init_worker(mean_dir: str, yaw_range_rad) -> None:
 
 def _run_task(task) -> tuple[int, dict]:
     """Pool task: predictions for images [start, stop) of one shard; returns (global offset, arrays)."""
-    from ..shards import Shard
+    from ..format import Shard
 
     offset, path, start, stop = task
     sh = Shard(path)
@@ -513,8 +513,8 @@ def ensure_mean_object(train_dir, mean_dir=None, *, workers: int = 1) -> Path:
     with the training split's camera and sampling table) into
     ``<train_dir>/../.mean-object/<class>/mean`` and reused from there.
     """
+    from ..format import MANIFEST_NAME, read_manifest
     from ..pipeline import GenerationConfig, generate_split, split_dir_for
-    from ..shards import MANIFEST_NAME, read_manifest
 
     train = open_split_checked(train_dir, "train")
     try:
@@ -527,7 +527,7 @@ def ensure_mean_object(train_dir, mean_dir=None, *, workers: int = 1) -> Path:
     sibling = default_mean_dir(train_dir)
     if (sibling / MANIFEST_NAME).is_file() and read_manifest(sibling).get("class_name") == class_name:
         return sibling
-    cfg = replace(GenerationConfig.from_dict(config), mean=True, n_objects=1, noise="none")
+    cfg = replace(GenerationConfig.from_dict(config.to_dict()), mean=True, n_objects=1, noise="none")
     cache_root = Path(train_dir).parent / MEAN_CACHE_DIR
     target = split_dir_for(cache_root, cfg)
     if (target / MANIFEST_NAME).is_file() and read_manifest(target).get("complete"):

@@ -109,7 +109,7 @@ def depth_features(depth_m: np.ndarray, block_px: int = BLOCK_PX, normalization:
 
 def _shard_features(args) -> np.ndarray:
     """Pool task: features of every image of one shard file."""
-    from ..shards import Shard
+    from ..format import Shard
 
     path, block_px, normalization = args
     sh = Shard(path)

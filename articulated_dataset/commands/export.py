@@ -25,7 +25,7 @@ def export_cmd(path, out_root, fmt, overwrite, quiet):
     from tqdm import tqdm
 
     from ..exr import export_split, target_dir
-    from ..shards import find_split_dirs, open_split
+    from ..format import find_split_dirs, open_split
 
     split_dirs = find_split_dirs(path)
     opened = [open_split(d) for d in split_dirs]  # names and shard paths checked before any output

@@ -179,7 +179,7 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
         ) from None
     seconds = time.perf_counter() - t0
     if not quiet:
-        from ..shards import read_manifest
+        from ..format import read_manifest
 
         m = read_manifest(split_dir)
         n_bytes = sum(s["bytes"] for s in m["shards"])

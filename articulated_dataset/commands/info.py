@@ -8,38 +8,33 @@ import click
 import numpy as np
 
 from ..errors import DataFormatError
-from ..shards import MANIFEST_NAME, find_split_dirs, open_split
+from ..format import MANIFEST_NAME, Split, find_split_dirs
 
 _SUMMARY_FIELDS = ("q", "axis_origin", "geometry", "object_yaw", "visible_pixels")
 
 
 def summarize_split(split_dir) -> dict:
     """Counts, settings and min/mean/max of the main labels of one split folder."""
-    manifest, shards = open_split(split_dir)
-    stats: dict[str, list] = {k: [] for k in _SUMMARY_FIELDS}
-    for sh in shards:
-        for k in _SUMMARY_FIELDS:
-            stats[k].append(sh.read(k))
-        sh.close()
+    split = Split(split_dir)
+    stats = split.read_fields(_SUMMARY_FIELDS)
     try:
-        summary = _manifest_summary(split_dir, manifest)
+        summary = _manifest_summary(split_dir, split.manifest)
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise DataFormatError(f"{split_dir / MANIFEST_NAME}: corrupt manifest ({type(exc).__name__}: {exc})") from None
-    joint_names, joint_types = _joints(shards)
-    for k, parts in stats.items():
-        if not parts:
-            continue
-        a = np.concatenate(parts).astype(np.float64)
+    joint_names, joint_types = _joints(split)
+    split.close()
+    for k, a in stats.items():
+        a = a.astype(np.float64)
         a = a.reshape(a.shape[0], -1)
         summary["labels"][k] = {"min": a.min(0).round(4).tolist(), "mean": a.mean(0).round(4).tolist(), "max": a.max(0).round(4).tolist(),
                                 "columns": _columns(k, a.shape[1], joint_names, joint_types)}
     return summary
 
 
-def _joints(shards) -> tuple[list[str], list[str]]:
+def _joints(split: Split) -> tuple[list[str], list[str]]:
     """Joint names and types from the first shard's attributes (empty if unreadable)."""
     try:
-        attrs = shards[0].attrs if shards else {}
+        attrs = split.attrs
         return list(json.loads(attrs.get("joint_names", "[]"))), list(json.loads(attrs.get("joint_types", "[]")))
     except (ValueError, TypeError):
         return [], []

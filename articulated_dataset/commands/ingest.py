@@ -29,7 +29,7 @@ def _parse_size(text: str | None) -> tuple[int, int] | None:
 
 def _camera_like(path: str) -> CameraConfig:
     """The camera of an existing split (its manifest's config)."""
-    from ..shards import find_split_dirs, read_manifest
+    from ..format import find_split_dirs, read_manifest
 
     dirs = find_split_dirs(path)
     try:

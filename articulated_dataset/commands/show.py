@@ -59,7 +59,7 @@ def show_cmd(path, out, per_sample_dir, n_samples, objects, images, cols, rgb, n
     arrow spans the full travel and a ring marks the front's current position), and q is
     printed in degrees (revolute) or centimetres (prismatic).
     """
-    from ..shards import find_split_dirs
+    from ..format import find_split_dirs
     from ..viz import DEFAULT_COLUMNS, DEFAULT_COLUMNS_RGB, make_gallery
 
     from ..safeio import check_can_create

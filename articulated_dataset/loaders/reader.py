@@ -24,8 +24,8 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ..errors import DataFormatError, UserError
-from ..schema import FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, resolve_shape
-from ..shards import Shard, find_split_dirs, open_h5, read_manifest, reading, shard_paths
+from ..format import (FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, Shard, find_splits, open_h5, read_manifest, reading,
+                      resolve_shape, shard_paths)
 
 log = logging.getLogger(__name__)
 
@@ -73,26 +73,10 @@ def require(module: str, needed_by: str, install: str):
                                   name=exc.name) from None
 
 
-def _as_path_list(paths_or_split_dirs) -> list:
-    if isinstance(paths_or_split_dirs, (str, os.PathLike)):
-        return [paths_or_split_dirs]
-    items = list(paths_or_split_dirs)
-    if not items:
-        raise UserError("no split folders given")
-    return items
-
-
 def resolve_split_dirs(paths_or_split_dirs) -> list[Path]:
-    """Split folders (holding a manifest) at or below each given path, without duplicates."""
-    out: list[Path] = []
-    seen: set = set()
-    for p in _as_path_list(paths_or_split_dirs):
-        for d in find_split_dirs(p):
-            key = d.resolve()
-            if key not in seen:
-                seen.add(key)
-                out.append(d)
-    return out
+    """Split folders (holding a manifest) at or below each given path, without duplicates
+    (:func:`articulated_dataset.format.find_splits`)."""
+    return find_splits(paths_or_split_dirs)
 
 
 def check_fields(fields) -> tuple[str, ...]:
@@ -128,7 +112,7 @@ class ShardReader:
     Parameters
     ----------
     paths_or_split_dirs: a split folder (``OUT/<class>/<split>``), a class folder, a dataset root,
-        or a list of them.  Split folders are found with :func:`articulated_dataset.shards.find_split_dirs`.
+        or a list of them.  Split folders are found with :func:`articulated_dataset.format.find_splits`.
     fields: the fields each sample holds (default :data:`DEFAULT_FIELDS`: every stored field and
         ``K``).  ``class_index`` (int64 index into :attr:`class_names`) is available on request.
 

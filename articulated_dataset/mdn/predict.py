@@ -117,10 +117,10 @@ def _snap(split_dir: Path, prepared, arrays: dict, names: list[str], progress: b
     """Axis poses with every joint's origin moved to the most likely segmented point."""
     from tqdm.auto import tqdm
 
+    from ..format import Split
     from ..pointlik import snap_axis_poses, snap_batch
-    from ..shards import open_split
 
-    _, shards = open_split(split_dir)
+    shards = Split(split_dir).shards
     pose = arrays["axis_pose"].copy()
     J = pose.shape[1]
     for s_idx, sh in enumerate(tqdm(shards, desc="snapping to the cloud", unit="shard", disable=not progress, leave=False)):

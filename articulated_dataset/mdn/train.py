@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataFormatError, UserError, check_memory
-from ..shards import find_split_dirs, open_split, read_manifest
+from ..format import Split, one_split_dir, read_manifest
 
 log = logging.getLogger(__name__)
 
@@ -205,16 +205,11 @@ class PreparedSplit:
 
 def resolve_split_dir(data: str | Path) -> Path:
     """The one split folder at ``data`` (a UserError if there is none or several)."""
-    dirs = find_split_dirs(data)
-    if len(dirs) != 1:
-        raise UserError(f"{data}: expected one split folder (e.g. data/<class>/train), found {len(dirs)}: "
-                        + ", ".join(str(d) for d in dirs[:4]))
-    return dirs[0]
+    return one_split_dir(data)
 
 
 def split_class(split_dir: Path) -> str:
-    manifest, _ = open_split(split_dir)
-    return str(manifest.get("class_name", ""))
+    return Split(split_dir).class_name
 
 
 def load_split(split_dir: Path, layout, input_config, *, max_objects: int | None = None, progress: bool = False,
@@ -225,7 +220,8 @@ def load_split(split_dir: Path, layout, input_config, *, max_objects: int | None
 
     from .preprocess import preprocess_depth
 
-    manifest, shards = open_split(split_dir)
+    split = Split(split_dir)
+    manifest, shards = split.manifest, split.shards
     if not shards:
         raise DataFormatError(f"{split_dir}: the split has no shards")
     planes, scalars, anchors, targets, obj, sid, shard_of = [], [], [], [], [], [], []

@@ -1,0 +1,161 @@
+"""The per-split manifest: what it holds (:class:`SplitConfig`, the shard records) and how it
+is read and checked.
+
+``OUT/<class>/<split>/manifest.json`` lists the split's complete shards (file, images,
+bytes, sha256, object range) and the settings that determine its bytes (``config``: a
+:class:`SplitConfig` as a dict).  The generator fills a :class:`SplitConfig`
+(:class:`articulated_dataset.pipeline.GenerationConfig` is one, with the checks that need the
+class registry); reading one needs neither the generator nor MuJoCo.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+from .. import FORMAT_VERSION
+from ..camera import CameraConfig
+from ..errors import DataFormatError, UserError
+from ..tables import SamplingTable
+from .schema import check_version
+from .shards import check_class_name, check_shard_file, read_json_object, resolve_inside
+
+MANIFEST_NAME = "manifest.json"
+
+#: Depth values are rounded to multiples of 2**-13 m (0.122 mm), far below any depth
+#: sensor's resolution; it makes float32 depth compress ~3x better losslessly.
+DEFAULT_DEPTH_QUANTUM_M = 2.0**-13
+#: A moving part must cover at least this fraction of the image in every view
+#: (0.2% = 41 px at 192x108); otherwise the object's pose is redrawn.
+DEFAULT_MIN_PART_FRACTION = 0.002
+DEFAULT_IMAGES_PER_OBJECT = 16
+DEFAULT_OBJECTS_PER_SHARD = 64
+DEFAULT_SEED = 0
+#: Largest seed: shards store it as a signed 64-bit integer attribute.
+MAX_SEED = 2**63 - 1
+
+
+@dataclass(frozen=True)
+class SplitConfig:
+    """Everything that determines a split's bytes: the manifest's ``config``.
+
+    Its own checks need no class registry (counts, seed range, split name); the generator's
+    :class:`~articulated_dataset.pipeline.GenerationConfig` adds those that do.
+    """
+
+    class_name: str
+    split: str = "train"
+    n_objects: int = 100
+    seed: int = DEFAULT_SEED
+    images_per_object: int = DEFAULT_IMAGES_PER_OBJECT
+    objects_per_shard: int = DEFAULT_OBJECTS_PER_SHARD
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    table: SamplingTable | None = None  # None: the class's default table (filled by the generator)
+    min_part_pixels: int | None = None  # None: DEFAULT_MIN_PART_FRACTION of the image
+    depth_quantum_m: float = DEFAULT_DEPTH_QUANTUM_M
+    mean: bool = False  # render the class's mean object (n_objects must be 1)
+    noise: str = "none"  # depth sensor-noise model applied after rendering (articulated_dataset.noise)
+    # Definition of a third-party URDF class (articulated_dataset.urdf_import), rebuilt in
+    # every worker process; None for registry classes.
+    third_party: dict | None = None
+
+    def __post_init__(self) -> None:
+        self._validate()
+        if self.min_part_pixels is None:
+            area = self.camera.width_px * self.camera.height_px
+            object.__setattr__(self, "min_part_pixels", int(math.ceil(DEFAULT_MIN_PART_FRACTION * area)))
+
+    def _validate(self) -> None:
+        """UserErrors for settings no split can have (the generator adds its class checks)."""
+        if self.n_objects <= 0:
+            raise UserError(f"number of objects must be positive, got {self.n_objects}")
+        if self.images_per_object <= 0:
+            raise UserError(f"images per object must be positive, got {self.images_per_object}")
+        if self.objects_per_shard <= 0:
+            raise UserError(f"objects per shard must be positive, got {self.objects_per_shard}")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise UserError(f"seed must be in [0, 2**63 - 1] (it is stored as a 64-bit integer), got {self.seed}")
+        if self.mean and self.n_objects != 1:
+            raise UserError("--mean renders exactly one object (the class's mean object)")
+        if not self.split or "/" in self.split or self.split.startswith("."):
+            raise UserError(f"invalid split name {self.split!r}")
+
+    @property
+    def n_shards(self) -> int:
+        return -(-self.n_objects // self.objects_per_shard)
+
+    def shard_objects(self, shard_index: int) -> range:
+        start = shard_index * self.objects_per_shard
+        return range(start, min(start + self.objects_per_shard, self.n_objects))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["table"] = self.table.to_dict()
+        d["format_version"] = FORMAT_VERSION
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        """The inverse of :meth:`to_dict`: UserError for invalid settings, KeyError/TypeError/
+        ValueError for a malformed dict (:func:`split_config` turns both into one line)."""
+        d = {k: v for k, v in d.items() if k != "format_version"}
+        d["camera"] = CameraConfig(**d["camera"])
+        d["table"] = SamplingTable.from_dict(d["table"])
+        return cls(**d)
+
+    def as_split_config(self) -> "SplitConfig":
+        """The same settings as a plain :class:`SplitConfig` (drops a subclass's behaviour)."""
+        return SplitConfig(**{f.name: getattr(self, f.name) for f in fields(SplitConfig)})
+
+
+def split_config(manifest: dict, where: str = "") -> SplitConfig:
+    """The manifest's ``config`` as a :class:`SplitConfig`; a missing, malformed or invalid
+    config is one :class:`DataFormatError` naming ``where``."""
+    prefix = f"{where}: " if where else ""
+    config = manifest.get("config")
+    if not isinstance(config, dict):
+        raise DataFormatError(f"{prefix}corrupt manifest (no config object)")
+    try:
+        return SplitConfig.from_dict(config)
+    except UserError as exc:
+        raise DataFormatError(f"{prefix}invalid generation config ({exc})") from None
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise DataFormatError(f"{prefix}corrupt generation config ({type(exc).__name__}: "
+                              f"{str(exc).splitlines()[0][:200] if str(exc) else ''})") from None
+
+
+def check_manifest_names(manifest: dict, where: str) -> dict:
+    """Check the names a manifest gives to paths: its ``class_name`` and every shard's
+    ``file``.  Returns ``manifest``; raises :class:`DataFormatError` naming ``where``."""
+    if "class_name" not in manifest:
+        raise DataFormatError(f"{where}: corrupt manifest (no class_name)")
+    check_class_name(manifest["class_name"], where)
+    records = manifest.get("shards")
+    if not isinstance(records, list) or not all(isinstance(r, dict) and "file" in r for r in records):
+        raise DataFormatError(f"{where}: corrupt manifest (shards must be a list of records with a 'file')")
+    for r in records:
+        check_shard_file(r["file"], where)
+        n = r.get("n_images", 0)
+        if not isinstance(n, int) or isinstance(n, bool) or n < 0:
+            raise DataFormatError(f"{where}: corrupt manifest ({r['file']}: n_images must be a count, got {str(n)[:40]!r})")
+    return manifest
+
+
+def read_manifest(split_dir: str | Path) -> dict:
+    """The manifest of ``split_dir``: version, names and shard paths checked."""
+    split_dir = Path(split_dir)
+    path = split_dir / MANIFEST_NAME
+    if not path.is_file():
+        raise DataFormatError(f"{split_dir}: no {MANIFEST_NAME} (not a generated split folder)")
+    manifest = read_json_object(path, "manifest")
+    check_version(manifest.get("format_version", "?"), str(path))
+    check_manifest_names(manifest, str(path))
+    shard_paths(split_dir, manifest)  # every shard path stays inside the folder (no links leading out)
+    return manifest
+
+
+def shard_paths(split_dir: str | Path, manifest: dict) -> list[Path]:
+    """The paths of a manifest's shards, each checked to be a shard name inside ``split_dir``."""
+    where = str(Path(split_dir) / MANIFEST_NAME)
+    return [resolve_inside(split_dir, check_shard_file(rec["file"], where), where=where) for rec in manifest["shards"]]
