@@ -334,6 +334,27 @@ def test_stock_dataloader_with_distributed_sampler_three_ranks(cab, raw):
     assert all(changed), f"{changed.count(False)} of {n} samples kept their epoch-0 augmentation"
 
 
+def test_three_ranks_get_equal_steps_by_default(tmp_path):
+    """world_size=3 with the defaults (remainder="pad") on 2 objects x 16 images (32 = 3 x 10 + 2):
+    every rank the same number of batches, len(loader) each rank's batches per epoch, every image seen."""
+    pytest.importorskip("torch")
+    from articulated_dataset.loaders.torch import make_loader
+    from articulated_dataset.pipeline import GenerationConfig, generate_split
+
+    split = generate_split(GenerationConfig("drawer", split="test", n_objects=2), tmp_path)
+    for iterable in (True, False):
+        steps, seen = [], []
+        for rank in range(3):
+            loader = make_loader(split, batch_size=5, num_workers=0, rank=rank, world_size=3, fields=["q"],
+                                 iterable=iterable)
+            idx = [b["index"].numpy() for b in loader]
+            assert len(loader) == len(idx), (iterable, rank)
+            steps.append(len(idx))
+            seen.append(np.concatenate(idx))
+        assert steps == [3, 3, 3], (iterable, steps)  # 11 samples a rank (one padded): 5, 5, 1; uneven: 3, 3, 2
+        np.testing.assert_array_equal(np.unique(np.concatenate(seen)), np.arange(32))
+
+
 # --------------------------------------------------------------------------------------
 # JAX
 
