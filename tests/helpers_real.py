@@ -6,7 +6,11 @@ import json
 from pathlib import Path
 
 import numpy as np
+from click.testing import CliRunner
 from PIL import Image
+
+from articulated_dataset.cli import main
+from articulated_dataset.shards import open_split
 
 
 def write_capture(folder: Path, name: str, s: dict, K: np.ndarray, labels: dict | None) -> None:
@@ -20,3 +24,21 @@ def write_capture(folder: Path, name: str, s: dict, K: np.ndarray, labels: dict 
                                                     "width": W, "height": H}))
     if labels is not None:
         (folder / f"{name}.labels.json").write_text(json.dumps(labels))
+
+
+def ingest_uneven_cabinet2(tiny_root: Path, root: Path) -> Path:
+    """An ingested cabinet2 real split under ``root``: object 0 ("kitchen") has two views labelled with
+    q and axis_pose only (no geometry, no object pose; binary mask: no part pixels), object 1 one
+    view without labels.  Returns the split folder."""
+    _, shards = open_split(tiny_root / "cabinet2" / "test")
+    sh = shards[0]
+    for name, row in (("a", 0), ("c", 5)):
+        s = sh.sample(row)
+        write_capture(root / "caps", name, s, sh.K, {"q": s["q"].tolist(), "axis_pose": s["axis_pose"].tolist(),
+                                                     "object": "kitchen"})
+    write_capture(root / "nolabels", "b", sh.sample(3), sh.K, None)
+    for folder, extra in (("caps", []), ("nolabels", ["--append"])):
+        res = CliRunner().invoke(main, ["ingest", str(root / folder), "--class", "cabinet2", "--out", str(root / "out"),
+                                        "-q", *extra])
+        assert res.exit_code == 0, res.output
+    return root / "out" / "cabinet2" / "real"

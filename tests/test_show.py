@@ -17,7 +17,7 @@ from articulated_dataset.registry import PRISMATIC, REVOLUTE
 from articulated_dataset.viz import (BACKGROUND_RGB, DEFAULT_DPI, SplitView, axis_segment_m, depth_to_rgb,
                                      extent_along, format_q, gallery_size_px, joint_colour, make_gallery,
                                      preview_rgb, select_samples)
-from helpers_real import write_capture
+from helpers_real import ingest_uneven_cabinet2
 
 #: Max per-channel difference between a drawn colour and the PNG's pixel (8-bit rounding
 #: and antialiasing at the centre of a 10 px marker stay far below this).
@@ -186,23 +186,7 @@ EDGE_SLACK_PX = 0.5
 
 @pytest.fixture(scope="module")
 def real_split(tiny_root, tmp_path_factory):
-    """An ingested cabinet2 real split: object 0 has two views labelled with q and axis_pose only (no
-    geometry, no object pose, binary mask: no part pixels), object 1 one view without labels."""
-    from articulated_dataset.shards import open_split
-
-    root = tmp_path_factory.mktemp("real_show")
-    _, shards = open_split(tiny_root / "cabinet2" / "test")
-    sh = shards[0]
-    for name, row in (("a", 0), ("c", 5)):
-        s = sh.sample(row)
-        write_capture(root / "caps", name, s, sh.K, {"q": s["q"].tolist(), "axis_pose": s["axis_pose"].tolist(),
-                                                "object": "kitchen"})
-    write_capture(root / "nolabels", "b", sh.sample(3), sh.K, None)
-    for folder, extra in (("caps", []), ("nolabels", ["--append"])):
-        res = CliRunner().invoke(main, ["ingest", str(root / folder), "--class", "cabinet2", "--out", str(root / "out"),
-                                        "-q", *extra])
-        assert res.exit_code == 0, res.output
-    return root / "out" / "cabinet2" / "real"
+    return ingest_uneven_cabinet2(tiny_root, tmp_path_factory.mktemp("real_show"))
 
 
 def _write_predictions(split, path, object_image_pairs):

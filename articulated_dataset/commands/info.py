@@ -26,9 +26,20 @@ def summarize_split(split_dir) -> dict:
     for k, a in stats.items():
         a = a.astype(np.float64)
         a = a.reshape(a.shape[0], -1)
-        summary["labels"][k] = {"min": a.min(0).round(4).tolist(), "mean": a.mean(0).round(4).tolist(), "max": a.max(0).round(4).tolist(),
-                                "columns": _columns(k, a.shape[1], joint_names, joint_types)}
+        summary["labels"][k] = {**_column_stats(a), "columns": _columns(k, a.shape[1], joint_names, joint_types)}
     return summary
+
+
+def _column_stats(a: np.ndarray) -> dict:
+    """min/mean/max of each column over its labelled (non-NaN) values, and their count; None
+    where a column has none (a real split's labels are NaN where a capture does not give them)."""
+    labelled = ~np.isnan(a)
+    out = {"min": [], "mean": [], "max": [], "n_labelled": labelled.sum(0).tolist()}
+    for column, ok in zip(a.T, labelled.T):
+        values = column[ok]
+        for key, fn in (("min", np.min), ("mean", np.mean), ("max", np.max)):
+            out[key].append(round(float(fn(values)), 4) if values.size else None)
+    return out
 
 
 def _joints(split: Split) -> tuple[list[str], list[str]]:
@@ -74,7 +85,9 @@ def _manifest_summary(split_dir, manifest: dict) -> dict:
     }
 
 
-def _cell(x: float, unit: str) -> str:
+def _cell(x: float | None, unit: str) -> str:
+    if x is None:
+        return "-"
     return f"{x:,.0f}" if unit == "px" else f"{x:.3f}"
 
 
@@ -92,13 +105,15 @@ def info_cmd(path, as_json):
         click.echo(f"{s['path']}: class {s['class']}, split {s['split']}, seed {s['seed']}, format {s['format_version']}, {state}")
         click.echo(f"  {s['objects']} objects, {s['images']} images, {s['shards']} shards, "
                    f"{s['bytes'] / max(s['images'], 1):.0f} bytes/image, {s['image_size'][0]}x{s['image_size'][1]} px")
-        rows = [(f"{c['name']} ({c['unit']})" if c["unit"] else c["name"], c["unit"], v["min"][i], v["mean"][i], v["max"][i])
-                for v in s["labels"].values() for i, c in enumerate(v["columns"])]
+        rows = [(f"{c['name']} ({c['unit']})" if c["unit"] else c["name"], c["unit"], v["min"][i], v["mean"][i], v["max"][i],
+                 v["n_labelled"][i]) for v in s["labels"].values() for i, c in enumerate(v["columns"])]
         if rows:
+            partial = any(n < s["images"] for *_, n in rows)  # a real split: say how many images give each label
             w = max(len(r[0]) for r in rows)
-            click.echo(f"  {'label':{w}s}  {'min':>10s}  {'mean':>10s}  {'max':>10s}")
-            for name, unit, lo, mean, hi in rows:
-                click.echo(f"  {name:{w}s}  {_cell(lo, unit):>10s}  {_cell(mean, unit):>10s}  {_cell(hi, unit):>10s}")
+            click.echo(f"  {'label':{w}s}  {'min':>10s}  {'mean':>10s}  {'max':>10s}" + ("  labelled" if partial else ""))
+            for name, unit, lo, mean, hi, n in rows:
+                click.echo(f"  {name:{w}s}  {_cell(lo, unit):>10s}  {_cell(mean, unit):>10s}  {_cell(hi, unit):>10s}"
+                           + (f"  {n:>8,d}" if partial else ""))
 
 
 COMMANDS = [info_cmd]
