@@ -24,8 +24,8 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ..errors import DataFormatError, UserError
-from ..format import (FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, Shard, find_splits, open_h5, read_manifest, reading,
-                      resolve_shape, shard_paths)
+from ..format import (FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, Shard, Split, find_splits, open_h5, reading, resolve_shape,
+                      shard_paths)
 
 log = logging.getLogger(__name__)
 
@@ -127,16 +127,16 @@ class ShardReader:
         self.class_names: list[str] = []
         self._split_meta: list[dict] = []
         for s, split_dir in enumerate(self.split_dirs):
-            manifest = read_manifest(split_dir)
-            if not manifest.get("complete", True):
-                log.warning("%s: the split is incomplete; reading its %d finished shard(s)", split_dir, len(manifest["shards"]))
-            meta = self._split_metadata(split_dir, manifest)
+            split = Split(split_dir)  # manifest, names and shard paths checked; no shard opened
+            if not split.complete:
+                log.warning("%s: the split is incomplete; reading its %d finished shard(s)", split_dir, len(split.shards))
+            meta = self._split_metadata(split_dir, split.manifest)
             self._split_meta.append(meta)
             if meta["class_name"] not in self.class_names:
                 self.class_names.append(meta["class_name"])
-            for rec, path in zip(manifest["shards"], shard_paths(split_dir, manifest)):  # names checked
+            for path, size in zip(split.shard_paths, split.shard_sizes):
                 paths.append(path)
-                sizes.append(int(rec["n_images"]))
+                sizes.append(size)
                 shard_split.append(s)
                 shard_class.append(self.class_names.index(meta["class_name"]))
         self._check_compatible()
