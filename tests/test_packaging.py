@@ -58,6 +58,38 @@ def test_wheel_ships_generators_and_templates(tmp_path):
     assert out.stdout.split()[0] == str(len(all_classes()))
 
 
+def test_every_subpackage_is_packaged():
+    """The package list is explicit (generators/ and urdf_templates/ are mapped into the package):
+    a new subpackage left out of it is missing from the wheel and the sdist's build."""
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "articulated_dataset").rglob("__init__.py")
+             if "__pycache__" not in p.parts}
+    assert found - listed == set(), f"subpackages missing from [tool.setuptools] packages: {sorted(found - listed)}"
+
+
+def test_sdist_ships_generators_templates_and_weights(tmp_path):
+    """The sdist (what `python -m build` builds the wheel from in .ci/run) carries the templates, the
+    generators, every tracked weight file and every subpackage."""
+    res = subprocess.run([sys.executable, "-m", "build", "--sdist", "--no-isolation", "--outdir", str(tmp_path), str(ROOT)],
+                         capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    import tarfile
+
+    sdist = next(tmp_path.glob("articulated_dataset-*.tar.gz"))
+    with tarfile.open(sdist) as tar:
+        names = {n.split("/", 1)[1] for n in tar.getnames() if "/" in n}
+    want = [f"urdf_templates/{p.name}" for p in (ROOT / "urdf_templates").glob("*.xacro")]
+    want += [f"generators/{p.name}" for p in (ROOT / "generators").glob("*.py")]
+    want += [p.relative_to(ROOT).as_posix() for p in (ROOT / "articulated_dataset").rglob("__init__.py")
+             if "__pycache__" not in p.parts]
+    tracked = subprocess.run(["git", "ls-files", "articulated_dataset/weights"], cwd=ROOT, capture_output=True, text=True)
+    want += tracked.stdout.split()
+    missing = [w for w in want if w not in names]
+    assert not missing, missing
+    ci = (ROOT / ".ci" / "run").read_text()  # CI builds both, installs the wheel in a fresh venv, generates, scores
+    assert "python3 -m build" in ci and "-m venv" in ci and '/artdata" generate' in ci and '/artdata" score' in ci
+
+
 # --------------------------------------------------------------------------------------
 # metadata
 
