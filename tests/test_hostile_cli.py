@@ -274,6 +274,8 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
                              "not 'drawer'"),
     "train:resume-nothing": (lambda e: ["train", "--class", "cabinet", "--data", e.split(split="train"), "--out", "m.pt",
                                         "--resume", "-q"], "--resume"),
+    "train:class-wrong-case": (lambda e: ["train", "--class", "Cabinet", "--data", e.split(split="train"), "--out",
+                                          "m.pt", "-q"], "did you mean 'cabinet'"),
     # predict: options and checkpoints
     "predict:threads-huge": (lambda e: ["predict", "--model", e.inputs.model, "--data", e.split(), "--out", "p.h5",
                                         "--threads", 10**9, "-q"], "--threads"),
@@ -481,6 +483,8 @@ INGEST_CASES: dict[str, tuple[Callable[[Env], list], str]] = {
     "ingest:append-corrupt-record": (lambda e: _ingest(e, e.capture(), "--append", "--out", _corrupt_real(e)),
                                      "corrupt real-split record"),
     "ingest:unknown-class": (lambda e: ["ingest", e.capture(), "--class", "sofa", "--out", e.tmp / "out", "-q"], "sofa"),
+    "ingest:class-wrong-case": (lambda e: ["ingest", e.capture(), "--class", "Drawer", "--out", e.tmp / "out", "-q"],
+                                "did you mean 'drawer'"),
     "ingest:missing-capture": (lambda e: _ingest(e, str(e.tmp / "nope.png")), "no such file"),
     "ingest:existing-split": (lambda e: ["ingest", e.capture(), "--class", "cabinet", "--out",
                                          e.inputs.real.parent.parent, "-q"], "already holds data"),
