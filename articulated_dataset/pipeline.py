@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 import re
 from dataclasses import dataclass, replace
@@ -32,7 +31,7 @@ from .format.manifest import (  # noqa: F401  (re-exported: the generator's defa
     SplitConfig,
 )
 from .labels import model_info, read_configuration, read_object_labels, visible_pixels
-from .registry import JOINT_TYPES, REVOLUTE, ObjectClass, get_class
+from .registry import JOINT_TYPES, MAX_REVOLUTE_Q_RAD, ObjectClass, check_table, get_class  # noqa: F401
 from .render import DepthRenderer, process_renderer
 from .safeio import (FULL_HINT, TMP_SUFFIX, WriteError, available_memory_bytes, check_free_space, ensure_dir, format_bytes,
                      fsync_dir, remove_created_dirs, translated)
@@ -44,8 +43,6 @@ from .templating import render_urdf
 
 log = logging.getLogger(__name__)
 
-#: Largest configuration of a revolute joint (rad): one full turn.
-MAX_REVOLUTE_Q_RAD = 2.0 * math.pi
 #: Pose redraws allowed per object before giving up (a table that never shows the part).
 MAX_POSE_ATTEMPTS = 200
 
@@ -64,12 +61,7 @@ class GenerationConfig(SplitConfig):
         if self.table is None:
             object.__setattr__(self, "table", obj_class.table)
         if obj_class is not None:
-            if len(self.table.q) != obj_class.n_joints:
-                raise UserError(f"sampling table: q needs {obj_class.n_joints} ranges (one per joint), got {len(self.table.q)}")
-            for j, (joint, (_, hi)) in enumerate(zip(obj_class.joints, self.table.q)):
-                if joint.type == REVOLUTE and hi > MAX_REVOLUTE_Q_RAD:
-                    raise UserError(f"sampling table: q[{j}] (revolute joint {joint.name}) must be at most one turn "
-                                    f"({MAX_REVOLUTE_Q_RAD:.4f} rad), got {hi}")
+            check_table(obj_class, self.table)
 
     @property
     def obj_class(self) -> ObjectClass:

@@ -8,6 +8,7 @@ rendering, labelling, CLI choices, docs tables, contract tests) iterates over th
 from __future__ import annotations
 
 import importlib
+import math
 import pkgutil
 from dataclasses import dataclass
 from importlib import resources
@@ -17,6 +18,8 @@ from .errors import UserError
 from .format.schema import JOINT_TYPES, PRISMATIC, REVOLUTE  # noqa: F401  (declared with the format)
 from .tables import SamplingTable
 
+#: Largest configuration of a revolute joint (rad): one full turn.
+MAX_REVOLUTE_Q_RAD = 2.0 * math.pi
 #: Integer codes of joint types as stored in shards (``joint_type`` attribute / dataset).
 JOINT_TYPE_CODES = {REVOLUTE: 0, PRISMATIC: 1}
 
@@ -128,3 +131,14 @@ def get_class(name: str) -> ObjectClass:
 def all_classes() -> list[ObjectClass]:
     _load_builtins()
     return list(_REGISTRY.values())
+
+
+def check_table(obj_class: ObjectClass, table: SamplingTable) -> None:
+    """UserError unless ``table`` fits ``obj_class``: one q range per joint, a revolute joint
+    opening at most one turn."""
+    if len(table.q) != obj_class.n_joints:
+        raise UserError(f"sampling table: q needs {obj_class.n_joints} ranges (one per joint), got {len(table.q)}")
+    for j, (joint, (_, hi)) in enumerate(zip(obj_class.joints, table.q)):
+        if joint.type == REVOLUTE and hi > MAX_REVOLUTE_Q_RAD:
+            raise UserError(f"sampling table: q[{j}] (revolute joint {joint.name}) must be at most one turn "
+                            f"({MAX_REVOLUTE_Q_RAD:.4f} rad), got {hi}")

@@ -51,9 +51,9 @@ import numpy as np
 
 from .camera import R_CAMERA_TO_OPTICAL, CameraConfig
 from .errors import DataFormatError, UserError
-from .labels import MASK_BACKGROUND, MASK_FIRST_PART
-from .schema import FIELDS, K_DATASET, R_DATASET, ROOT_ATTRS, check_version, resolve_shape
-from .shards import MANIFEST_NAME, TMP_SUFFIX, check_h5_layout, sha256_file
+from .format import (FIELDS, K_DATASET, MANIFEST_NAME, MASK_BACKGROUND, MASK_FIRST_PART, R_DATASET, ROOT_ATTRS, TMP_SUFFIX,
+                     check_h5_layout, check_version, find_split_dirs, resolve_shape, sha256_file, shard_name)
+from .format.discovery import SHARD_GLOB
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +79,6 @@ PER_OBJECT_FIELDS = ("axis_origin", "axis_direction", "axis_pose", "part_offset"
 MANIFEST_KEYS = ("format_version", "class_name", "split", "seed", "complete", "n_objects", "n_images",
                  "n_shards_expected", "config", "shards")
 SHARD_RECORD_KEYS = ("file", "n_images", "bytes", "sha256", "object_start", "object_stop")
-SHARD_GLOB = "shard-*.h5"
 
 
 @dataclass(frozen=True)
@@ -122,29 +121,13 @@ class SplitReport:
 # Discovery
 # --------------------------------------------------------------------------------------
 
-def _is_split_dir(path: Path) -> bool:
-    return (path / MANIFEST_NAME).is_file() or any(path.glob(SHARD_GLOB))
-
-
 def find_splits(path: str | Path) -> list[Path]:
     """Split folders at ``path`` or one/two levels below it (``<class>/<split>``).
 
     A folder counts if it holds a manifest or shard files, so a split whose manifest was
     lost is still found (and reported).  Nothing found is a :class:`UserError`.
     """
-    path = Path(path)
-    if not path.exists():
-        raise UserError(f"no such directory: {path}")
-    if not path.is_dir():
-        raise UserError(f"expected a directory (split, class or output root), got a file: {path}")
-    if _is_split_dir(path):
-        return [path]
-    found = sorted({p for p in path.glob("*/") if p.is_dir() and _is_split_dir(p)}
-                   | {p for p in path.glob("*/*/") if p.is_dir() and _is_split_dir(p)})
-    if not found:
-        raise UserError(f"{path}: no generated split found (expected {MANIFEST_NAME} or shard files in it "
-                        f"or in <class>/<split>/ below it)")
-    return found
+    return find_split_dirs(path, unlisted_shards=True)
 
 
 # --------------------------------------------------------------------------------------
@@ -192,11 +175,16 @@ def _valid_record(r) -> bool:
 
 
 def _manifest_config(manifest: dict):
-    """The manifest's GenerationConfig, or a problem message."""
-    from .pipeline import GenerationConfig  # imports MuJoCo: only when a manifest is checked
+    """The manifest's :class:`~articulated_dataset.format.SplitConfig` (checked against the
+    class's registry entry for a registered class), or a problem message."""
+    from .format import SplitConfig
+    from .registry import check_table, get_class
 
     try:
-        return GenerationConfig.from_dict(manifest["config"]), None
+        config = SplitConfig.from_dict(manifest["config"])
+        if config.third_party is None:
+            check_table(get_class(config.class_name), config.table)
+        return config, None
     except UserError as exc:
         return None, f"invalid generation config ({exc})"
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -222,8 +210,6 @@ def _check_manifest_counts(manifest: dict, config) -> list[Problem]:
         return out
     if manifest["n_shards_expected"] != config.n_shards:
         out.append(Problem(MANIFEST_NAME, f"n_shards_expected is {manifest['n_shards_expected']}, config gives {config.n_shards}"))
-    from .shards import shard_name
-
     for r in records:
         try:
             index = int(Path(r["file"]).stem.split("-")[1])
@@ -275,8 +261,6 @@ def _check_real_manifest(manifest: dict, config) -> tuple[list[Problem], dict]:
     for key in ("class_name", "split", "seed"):
         if config is not None and manifest[key] != getattr(config, key):
             out.append(Problem(MANIFEST_NAME, f"{key} {manifest[key]!r} differs from its config's {getattr(config, key)!r}"))
-    from .shards import shard_name
-
     captures_of, offset = {}, 0
     for k, r in enumerate(records):
         if r["file"] != shard_name(k):

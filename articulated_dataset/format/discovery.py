@@ -9,17 +9,33 @@ from pathlib import Path
 from ..errors import UserError
 from .manifest import MANIFEST_NAME, read_manifest
 
+#: Shard files of a split folder (names as :data:`~articulated_dataset.format.shards.SHARD_PATTERN` writes them).
+SHARD_GLOB = "shard-*.h5"
 
-def find_split_dirs(path: str | Path, *, marker: str = MANIFEST_NAME, what: str = "generated split") -> list[Path]:
-    """Split folders (holding ``marker``) at ``path`` or one/two levels below (class/split layout)."""
+
+def find_split_dirs(path: str | Path, *, marker: str = MANIFEST_NAME, what: str = "generated split",
+                    unlisted_shards: bool = False) -> list[Path]:
+    """Split folders (holding ``marker``) at ``path`` or one/two levels below (class/split layout).
+
+    With ``unlisted_shards``, a folder holding shard files but no ``marker`` counts too (a split
+    whose manifest was lost, which ``artdata verify`` reports), and a file is refused as such.
+    Nothing found is a :class:`UserError`.
+    """
     path = Path(path)
     if not path.is_dir():
+        if unlisted_shards and path.exists():
+            raise UserError(f"expected a directory (split, class or output root), got a file: {path}")
         raise UserError(f"no such directory: {path}")
-    if (path / marker).is_file():
+
+    def is_split(p: Path) -> bool:
+        return (p / marker).is_file() or (unlisted_shards and any(p.glob(SHARD_GLOB)))
+
+    if is_split(path):
         return [path]
-    found = sorted(p.parent for p in path.glob(f"*/{marker}")) + sorted(p.parent for p in path.glob(f"*/*/{marker}"))
+    found = [p for level in ("*/", "*/*/") for p in sorted(p for p in path.glob(level) if is_split(p))]
     if not found:
-        raise UserError(f"{path}: no {what} found (expected {marker} in it or in <class>/<split>/ below it)")
+        raise UserError(f"{path}: no {what} found (expected {marker}{' or shard files' if unlisted_shards else ''} "
+                        f"in it or in <class>/<split>/ below it)")
     return found
 
 
