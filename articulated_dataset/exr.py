@@ -31,20 +31,24 @@ import numpy as np
 
 from .errors import DataFormatError, UserError
 from .safeio import ensure_dir, remove_created_dirs, translated
-from .schema import FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, R_DATASET, resolve_shape
-from .shards import (
+from .format import (
+    FIELDS,
+    FIELDS_BY_NAME,
+    K_DATASET,
+    LABEL_FIELDS,
     MANIFEST_NAME,
+    R_DATASET,
     TMP_SUFFIX,
+    Split,
     check_manifest_names,
     check_shard_file,
     find_split_dirs,
-    open_split,
     read_json_object,
     reading,
     resolve_inside,
-    write_manifest,
-    write_shard,
+    resolve_shape,
 )
+from .shards import write_manifest, write_shard
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +59,6 @@ DEPTH_CHANNEL = "Z"
 DEPTH_SUFFIX = ".exr"
 MASK_SUFFIX = ".mask.png"
 LABEL_SUFFIX = ".json"
-LABEL_FIELDS = tuple(f.name for f in FIELDS if f.name not in IMAGE_FIELDS)
 #: An image stem as :func:`sample_stem` writes it (read back from ``split.json``).
 _STEM_RE = re.compile(r"o[0-9]{6,}_i[0-9]{3,}")
 
@@ -222,9 +225,9 @@ def export_split(split_dir: str | Path, out_dir: str | Path, *, overwrite: bool 
     ``progress(n)`` is called after each shard with its image count.  Returns ``out_dir``.
     """
     split_dir, out_dir = Path(split_dir), Path(out_dir)
-    manifest, shards = open_split(split_dir)
+    split = Split(split_dir)
     with _staged_dir(out_dir, overwrite, "export folder", INDEX_NAME) as tmp:
-        _export_into(tmp, manifest, shards, progress)
+        _export_into(tmp, split.manifest, split.shards, progress)
     return out_dir
 
 

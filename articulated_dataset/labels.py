@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from .format.schema import MASK_BACKGROUND, MASK_BODY, MASK_FIRST_PART  # noqa: F401  (declared with the format)
+from .format.schema import MASK_BACKGROUND, MASK_BODY, MASK_FIRST_PART, visible_pixels  # noqa: F401  (declared with the format)
 from .registry import PRISMATIC, ObjectClass
 from .rotations import matrix_to_quat
 from .scene import OBJECT_PREFIX, object_joint_ids, set_configuration
@@ -189,9 +189,3 @@ def read_object_labels(model: mujoco.MjModel, data: mujoco.MjData, info: ModelIn
 def read_configuration(data: mujoco.MjData, info: ModelInfo) -> np.ndarray:
     """The object's current configuration q (J,) from ``qpos``."""
     return data.qpos[info.qpos_adr].copy()
-
-
-def visible_pixels(mask: np.ndarray, n_joints: int) -> np.ndarray:
-    """Pixel counts (1 + J,) of the body and of each moving part in a mask."""
-    counts = np.bincount(mask.ravel(), minlength=MASK_FIRST_PART + n_joints)
-    return counts[MASK_BODY : MASK_FIRST_PART + n_joints].astype(np.int32)

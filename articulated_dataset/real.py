@@ -39,10 +39,10 @@ import numpy as np
 from . import FORMAT_VERSION, __version__
 from .camera import R_CAMERA_TO_OPTICAL, CameraConfig
 from .errors import UserError
-from .labels import MASK_BODY, MASK_FIRST_PART, mat_to_quat, visible_pixels
+from .format import FIELDS, MASK_BODY, MASK_FIRST_PART, SplitConfig, visible_pixels
 from .registry import get_class
+from .rotations import matrix_to_quat as mat_to_quat
 from .rotations import quat_to_matrix
-from .schema import FIELDS
 
 log = logging.getLogger(__name__)
 
@@ -977,7 +977,6 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
     split (same camera; capture names must be new; captures naming a known object keep its
     index); ``overwrite`` replaces it.  Returns the split folder.
     """
-    from .pipeline import GenerationConfig
     from .safeio import ensure_dir, remove_created_dirs
     from .shards import MANIFEST_NAME, read_manifest, shard_name, write_manifest, write_shard
 
@@ -1109,8 +1108,8 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
         for r in records:
             for o, n in r.get("object_images", {}).items():
                 per_obj_total[int(o)] = per_obj_total.get(int(o), 0) + int(n)
-        config = GenerationConfig(class_name, split=split, n_objects=len(objects), seed=0,
-                                  images_per_object=max(per_obj_total.values()), objects_per_shard=len(objects), camera=camera)
+        config = SplitConfig(class_name, split=split, n_objects=len(objects), seed=0, images_per_object=max(per_obj_total.values()),
+                             objects_per_shard=len(objects), camera=camera, table=obj_class.table)
         manifest = {
             "format_version": FORMAT_VERSION,
             "package_version": __version__,

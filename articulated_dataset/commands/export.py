@@ -25,15 +25,14 @@ def export_cmd(path, out_root, fmt, overwrite, quiet):
     from tqdm import tqdm
 
     from ..exr import export_split, target_dir
-    from ..format import find_split_dirs, open_split
+    from ..format import Split, find_split_dirs
 
     split_dirs = find_split_dirs(path)
-    opened = [open_split(d) for d in split_dirs]  # names and shard paths checked before any output
-    targets = [target_dir(out_root, m, d.name) for d, (m, _) in zip(split_dirs, opened)]
-    total = sum(len(sh) for _, shards in opened for sh in shards)
-    for _, shards in opened:
-        for sh in shards:
-            sh.close()
+    opened = [Split(d) for d in split_dirs]  # names and shard paths checked before any output
+    targets = [target_dir(out_root, s.manifest, s.name) for s in opened]
+    total = sum(len(sh) for s in opened for sh in s.shards)
+    for s in opened:
+        s.close()
     with tqdm(total=total, unit="img", desc=f"export {fmt}", disable=quiet, dynamic_ncols=True, leave=False) as bar:
         for d, target in zip(split_dirs, targets):
             export_split(d, target, overwrite=overwrite, progress=bar.update)

@@ -44,6 +44,7 @@ from .schema import (
     check_version,
     resolve_shape,
     validate_arrays,
+    visible_pixels,
 )
 from .shards import (
     MAX_CLASS_NAME_CHARS,
@@ -72,5 +73,5 @@ __all__ = [
     "SplitConfig", "attr_value", "check_class_name", "check_h5_layout", "check_manifest_names", "check_shard_file",
     "check_version", "find_split_dirs", "find_splits", "is_class_name", "one_split_dir", "open_h5", "open_split",
     "read_json_object", "read_manifest", "reading", "resolve_inside", "resolve_shape", "sha256_file", "shard_name",
-    "shard_paths", "split_config", "splits_by_class", "validate_arrays",
+    "shard_paths", "split_config", "splits_by_class", "validate_arrays", "visible_pixels",
 ]

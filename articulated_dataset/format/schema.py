@@ -68,6 +68,13 @@ JOINT_TYPES = (REVOLUTE, PRISMATIC)
 MASK_BACKGROUND = 0
 MASK_BODY = 1
 MASK_FIRST_PART = 2
+
+
+def visible_pixels(mask: np.ndarray, n_joints: int) -> np.ndarray:
+    """Pixel counts (1 + J,) of the body and of each moving part in a mask (the
+    ``visible_pixels`` field)."""
+    counts = np.bincount(mask.ravel(), minlength=MASK_FIRST_PART + n_joints)
+    return counts[MASK_BODY : MASK_FIRST_PART + n_joints].astype(np.int32)
 IMAGE_FIELDS = ("depth", "mask")
 LABEL_FIELDS = tuple(f.name for f in FIELDS if f.name not in IMAGE_FIELDS)
 
