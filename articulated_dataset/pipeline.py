@@ -443,7 +443,7 @@ def _begin(split_dir: Path, config: GenerationConfig, *, resume: bool, overwrite
 def _resume_records(split_dir: Path, config: GenerationConfig) -> dict[int, dict]:
     """Records of the shards a run of ``config`` already completed in ``split_dir``; a
     manifest or shard of other settings is refused (never adopted)."""
-    from .shards import MANIFEST_NAME, Shard, read_manifest, sha256_file
+    from .format import MANIFEST_NAME, Shard, read_manifest, sha256_file
 
     records: dict[int, dict] = {}
     manifest_path = split_dir / MANIFEST_NAME

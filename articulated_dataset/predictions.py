@@ -40,7 +40,7 @@ import numpy as np
 
 from .errors import DataFormatError, UserError
 from .safeio import atomic_write_h5, available_memory_bytes, format_bytes
-from .shards import attr_value, open_h5
+from .format import attr_value, open_h5
 
 log = logging.getLogger(__name__)
 

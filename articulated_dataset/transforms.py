@@ -24,7 +24,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .errors import UserError
-from .schema import IMAGE_FIELDS
+from .format import IMAGE_FIELDS
 
 #: Stream tag of the transform generators (independent of the shuffling stream).
 TRANSFORM_STREAM = 0x5EED0003

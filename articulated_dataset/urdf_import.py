@@ -67,7 +67,7 @@ import numpy as np
 from .camera import CameraConfig
 from .errors import UserError
 from .registry import PRISMATIC, REVOLUTE, JointSpec, ObjectClass, class_names
-from .shards import MAX_CLASS_NAME_CHARS, is_class_name
+from .format import MAX_CLASS_NAME_CHARS, is_class_name
 from .tables import SamplingTable
 
 log = logging.getLogger(__name__)
