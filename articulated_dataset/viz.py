@@ -42,9 +42,7 @@ import numpy as np
 
 from .camera import backproject, project
 from .errors import DataFormatError, UserError
-from .labels import MASK_BACKGROUND, MASK_FIRST_PART
-from .registry import PRISMATIC
-from .shards import Shard, read_manifest
+from .format import MASK_BACKGROUND, MASK_FIRST_PART, PRISMATIC, Shard, Split
 
 log = logging.getLogger(__name__)
 
@@ -222,7 +220,8 @@ def format_q(joint_type: str, q: float) -> str:
 
 @dataclass
 class SplitView:
-    """A split folder opened for display: manifest, shards and the class's joint info."""
+    """A split folder opened for display (through :class:`articulated_dataset.format.Split`):
+    manifest, shards and the class's joint info."""
 
     split_dir: Path
     manifest: dict
@@ -238,10 +237,10 @@ class SplitView:
     @classmethod
     def open(cls, split_dir: str | Path) -> "SplitView":
         split_dir = Path(split_dir)
-        manifest = read_manifest(split_dir)
-        if not manifest.get("shards"):
+        split = Split(split_dir)  # manifest, names and shard paths checked
+        manifest, shards = split.manifest, split.shards
+        if not shards:
             raise DataFormatError(f"{split_dir}: the manifest lists no shards (nothing generated yet)")
-        shards = [Shard(split_dir / rec["file"]) for rec in manifest["shards"]]
         attrs = shards[0].attrs
         try:
             table = json.loads(attrs["sampling_table"])

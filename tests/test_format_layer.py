@@ -40,7 +40,8 @@ def heavy_modules_after_import(*modules: str) -> list[str]:
 
 @pytest.mark.parametrize("module", ["articulated_dataset.format", "articulated_dataset.scoring",
                                     "articulated_dataset.loaders", "articulated_dataset.baselines.common",
-                                    "articulated_dataset.commands.info", "articulated_dataset.verify"])
+                                    "articulated_dataset.commands.info", "articulated_dataset.verify",
+                                    "articulated_dataset.real", "articulated_dataset.viz"])
 def test_reading_imports_no_simulator_renderer_or_framework(module):
     assert heavy_modules_after_import(module) == []
 
