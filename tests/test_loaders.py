@@ -484,6 +484,46 @@ def test_loader_advances_the_epoch_without_set_epoch(cab):
         assert not np.array_equal(passes[0], passes[1])
 
 
+def test_grain_workers_keep_little_shared_memory(cab):
+    """grain workers prepare only a few batches ahead, and close() leaves none of their shared-memory
+    blocks behind (grain's default read-ahead held ~1000 batch blocks, left in /dev/shm at close)."""
+    pytest.importorskip("grain")
+    import time
+
+    from articulated_dataset.loaders.jax import JaxLoader
+
+    shm = Path("/dev/shm")
+    if not shm.is_dir():
+        pytest.skip("no /dev/shm to count shared-memory blocks in")
+    batch = 7
+    depth_bytes = batch * 108 * 192 * 4
+
+    def blocks() -> set[str]:  # this loader's batch blocks: depth plus the few label bytes after it
+        out = set()
+        for p in shm.iterdir():
+            try:
+                if depth_bytes <= p.stat().st_size < depth_bytes + 4096:
+                    out.add(p.name)
+            except OSError:  # removed meanwhile
+                pass
+        return out
+
+    before = blocks()
+    loader = JaxLoader(cab, batch, fields=["depth", "q"], num_workers=2, seed=1)
+    it = iter(loader)
+    next(it)
+    time.sleep(2.0)  # the workers read ahead as far as they will
+    ahead = len(blocks() - before)
+    assert ahead <= 40, f"{ahead} batch blocks in shared memory with 2 workers"
+    del it
+    loader.close()
+    for _ in range(50):
+        if len(blocks() - before) <= 2:
+            break
+        time.sleep(0.1)
+    assert len(blocks() - before) <= 2, f"{len(blocks() - before)} batch blocks left in /dev/shm after close"
+
+
 def test_jax_device_put_keeps_sample_ids_exact(cab, raw):
     pytest.importorskip("jax")
     from articulated_dataset.loaders.jax import JaxLoader, device_put

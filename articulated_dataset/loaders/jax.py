@@ -11,7 +11,8 @@
   ``jax.process_count()``; every process gets the same number of batches).  With
   ``num_workers > 0`` batches are read in grain worker processes
   (``MapDataset.to_iter_dataset().mp_prefetch``), arrive through shared memory and the workers
-  stay alive from one epoch to the next (``close()`` stops them).
+  stay alive from one epoch to the next (``close()`` stops them); each worker prepares at most
+  ``prefetch_batches`` batches ahead.
 
 Layout: ``depth`` is channels-last, ``(B, H, W, 1)`` float32 m (the NHWC layout of
 ``flax.linen.Conv``); ``mask`` ``(B, H, W)`` uint8; ``K`` float32.  By default the string field
@@ -34,6 +35,8 @@ from .reader import (DEFAULT_BLOCK_SIZE, JAX_INSTALL, NUMERIC_FIELDS, BatchProce
 
 #: Batches each grain worker prepares ahead.
 DEFAULT_PREFETCH_BATCHES = 2
+#: Reader threads in each grain worker (0: the worker reads its batches itself).
+WORKER_READ_THREADS = 0
 #: Alignment of each field inside a worker's shared-memory batch block (a cache line).
 SHARED_ALIGN_BYTES = 64
 #: Key of the shared block in the elements grain workers send.
@@ -273,7 +276,11 @@ class JaxLoader:
 
         _absl_flags_ready()
         stream = _EpochStream(self.reader, self.processor, self._plan_kw(), self.epoch, packed=True)
-        ds = grain.MapDataset.source(stream).to_iter_dataset()
+        # each worker reads its batches in turn (no reader threads: h5py and the GIL serialise them anyway), and
+        # prepares at most prefetch_batches ahead: grain's default read-ahead (500 elements, 16 threads) filled
+        # /dev/shm with hundreds of batch blocks per worker, left behind at close
+        read = grain.ReadOptions(num_threads=WORKER_READ_THREADS, prefetch_buffer_size=self.prefetch_batches)
+        ds = grain.MapDataset.source(stream).to_iter_dataset(read)
         ds = ds.mp_prefetch(grain.MultiprocessingOptions(num_workers=self.num_workers,
                                                          per_worker_buffer_size=self.prefetch_batches))
         return iter(ds)
