@@ -790,6 +790,9 @@ def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi
         for o in objects or []:
             if not 0 <= o < v.n_objects:
                 raise UserError(f"object {o} is not in {v.name} (it holds objects 0..{v.n_objects - 1})")
+        if rgb and "real" in v.manifest:
+            raise UserError(f"--rgb rebuilds a generated object's scene; {v.name} holds real captures (no scene to "
+                            "rebuild): leave out --rgb")
         for i in images or []:
             if not 0 <= i < v.images_per_object:
                 raise UserError(f"image {i} is not in {v.name} (objects have images 0..{v.images_per_object - 1})")

@@ -365,3 +365,7 @@ def test_real_split_with_uneven_images_per_object(real_split, tmp_path):
     assert select_samples(2, 2, 1, images=[1], object_images={0: 1, 1: 2}) == [(1, 1)]
     result = run_show(real_split, "--out", tmp_path / "h.png", "--objects", "1", "--images", "1")
     assert result.exit_code == 2 and "no image 1 of object(s) 1" in result.output
+    # --rgb re-renders a generated object: a real split has none (it drew an unrelated random object)
+    result = run_show(real_split, "--out", tmp_path / "r.png", "--rgb")
+    assert result.exit_code == 2 and "real captures" in result.output and len(result.output.strip().splitlines()) == 1
+    assert not (tmp_path / "r.png").exists()
