@@ -606,9 +606,8 @@ def _draw_sample(fig, s: dict, view: SplitView, rgb_img, fit: TextFitter, *, lef
 
 
 #: The legend below a gallery: its items (wrapped between items to the figure's width).
-LEGEND_ITEMS = ("colour: depth per image, near = bright, far = dark (grey: no return)",
-                "line: joint axis (arrow = +q; dot = axis origin; ring = drawer front now)",
-                "one colour per joint")
+LEGEND_ITEMS = ("colour: depth per image, near = bright, far = dark", "grey: no return",
+                "line: joint axis, arrow = +q", "dot: axis origin", "ring: drawer front now", "one colour per joint")
 LEGEND_PREDICTIONS_ITEM = "dashed line, square: predicted axis and origin"
 LEGEND_SEP = "   \u00b7   "
 

@@ -16,7 +16,7 @@ from articulated_dataset.cli import main
 from articulated_dataset.registry import PRISMATIC, REVOLUTE
 from articulated_dataset.viz import (BACKGROUND_RGB, DEFAULT_DPI, SplitView, axis_segment_m, depth_to_rgb,
                                      extent_along, format_q, gallery_size_px, joint_colour, make_gallery,
-                                     preview_rgb, select_samples)
+                                     legend_lines, preview_rgb, select_samples)
 from helpers_real import ingest_uneven_cabinet2
 
 #: Max per-channel difference between a drawn colour and the PNG's pixel (8-bit rounding
@@ -261,8 +261,9 @@ def test_no_text_is_clipped_simulated(tiny_root, tmp_path, saved_figures, cls, n
     for fig in saved_figures[1:]:
         _check_texts_inside(fig)
     assert any(t.startswith(f"{cls}/test") for t in texts)  # the header is drawn
-    legend = " ".join(t for t in texts if t.startswith(("colour:", "line:")) or "predicted axis" in t)
-    assert ("predicted axis" in legend) == with_predictions
+    legend = legend_lines(saved_figures[0].get_figwidth(), predictions=with_predictions)
+    assert all(line in texts for line in legend), (legend, texts)
+    assert any("predicted axis" in t for t in texts) == with_predictions
     view = SplitView.open(split)
     J = len(view.joint_types)
     rows = -(-len(panels) // (2 if rgb else 1) // cols) if n > cols else 1
@@ -279,7 +280,8 @@ def test_one_sample_gallery_wraps_header_and_legend(tiny_root, tmp_path, saved_f
     make_gallery([tiny_root / "cabinet2" / "test"], out=out, n=1)
     texts = _check_texts_inside(saved_figures[0])
     assert "cabinet2/test" in texts and any(t.startswith("3 objects, 48 images") for t in texts)
-    assert sum(t.startswith(("colour:", "line:")) or t.endswith("one colour per joint") for t in texts) >= 2
+    legend = legend_lines(saved_figures[0].get_figwidth(), predictions=False)
+    assert len(legend) >= 2 and all(line in texts for line in legend)
     one_line = gallery_size_px([1], 1, (192, 108), rgb=False, n_joints=2)
     assert _png_rgb(out).shape[0] > one_line[1]
 
