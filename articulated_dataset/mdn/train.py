@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataFormatError, UserError, check_memory
-from ..format import Split, one_split_dir, read_manifest
+from ..format import Split, one_split_dir
 
 log = logging.getLogger(__name__)
 
@@ -310,10 +310,10 @@ def prepare_training_output(split_dir: Path, class_name: str, out: Path, *, resu
     (not ingested real captures), ``out`` is a file, and ``--resume`` finds a checkpoint trained
     with the same ``config`` (``load(out)`` reads it; its ``train_config`` is compared through
     ``type(config).from_dict``).  Returns that checkpoint, or None for a new run."""
-    data_class = split_class(split_dir)
-    if data_class != class_name:
-        raise UserError(f"{split_dir}: holds class {data_class!r}, not {class_name!r} (--class)")
-    if "real" in read_manifest(split_dir):
+    split = Split(split_dir)
+    if split.class_name != class_name:
+        raise UserError(f"{split_dir}: holds class {split.class_name!r}, not {class_name!r} (--class)")
+    if split.is_real:
         raise UserError(f"{split_dir} holds ingested real captures (labels NaN where not given); train on a generated "
                         f"split and use real splits with 'artdata predict'")
     if out.exists() and out.is_dir():
