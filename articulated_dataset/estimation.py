@@ -150,9 +150,7 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     import torch
 
     from .camera import CameraConfig
-    from .dense.features import make_inputs
-    from .dense.predict import mixture_from_modes
-    from .dense.aggregate import MAX_MODES, vote_modes
+    from .dense.predict import as_refinement, batch_modes, modes_to_arrays, needs_refinement, refine_modes
     from .registry import get_class
     from .real import check_intrinsics, crop_intrinsics, mask_fraction_inside, resample_depth
 
@@ -178,12 +176,13 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     if int((depth_r > 0).sum()) < MIN_OBJECT_PIXELS:
         raise UserError(f"only {int((depth_r > 0).sum())} object pixels remain on the model's {cfg.width_px}x{cfg.height_px} "
                         f"camera (need {MIN_OBJECT_PIXELS}); is the object in view and are the intrinsics right?")
-    with torch.no_grad():
-        inputs = make_inputs(torch.from_numpy(depth_r.astype(np.float32))[None], torch.from_numpy(K_dst.astype(np.float32))[None])
-        parts = net.split(net(inputs["x"]))
-        modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0)
-    arrays = mixture_from_modes({k: v.numpy().astype(np.float64) for k, v in modes.items()}, np.zeros(1, np.int64),
-                                cfg.n_joints, MAX_MODES, ckpt.get("calibration"))
+    refinement = as_refinement(ckpt.get("refinement"))
+    joint_types = list(obj_class.joint_types)
+    modes, refined = batch_modes(net, torch.from_numpy(depth_r.astype(np.float32))[None],
+                                 torch.from_numpy(K_dst.astype(np.float32))[None], joint_types=joint_types,
+                                 refine=needs_refinement(refinement))
+    arrays = modes_to_arrays(refine_modes(modes, refined, refinement, joint_types), np.zeros(1, np.int64), net,
+                             ckpt.get("calibration"))
     from .rotations import quat_to_matrix
 
     pose = arrays["axis_pose"][0]

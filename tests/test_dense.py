@@ -154,6 +154,9 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
     for k, v in whole["model_state"].items():
         assert torch.equal(v, resumed["model_state"][k]), k
     assert resumed["calibration"] == whole["calibration"]
+    # the refinement is chosen on the validation objects at the end (dense.refine.fit_refinement)
+    assert whole["refinement"]["version"] == 1 and resumed["refinement"] == whole["refinement"]
+    assert set(whole["refinement_report"]["rotation_deg"]) == {"votes", "box_frame"}
 
 
 def test_cli_train_predict_score_show(tiny_root, tmp_path, overfit_run):

@@ -41,31 +41,85 @@ def _layout_names(J: int) -> list[str]:
 
 
 def predict_arrays(model, data, idx: np.ndarray, *, joint_types: list[str], calibration: dict | None,
-                   batch_size: int = PREDICT_BATCH, progress: bool = False) -> dict:
+                   refinement=None, batch_size: int = PREDICT_BATCH, progress: bool = False) -> dict:
     """Predictions of ``model`` for the images ``idx`` of a :class:`~articulated_dataset.dense.train.DenseData`.
 
-    Returns the datasets of :func:`articulated_dataset.predictions.write_predictions`
-    (``sample_id``, ``axis_pose``, ``q``, ``geometry``, ``part_offset``, ``mixture_*``,
-    ``mixture_layout``) plus ``spread`` (N, M, D), the raw vote spreads.
+    ``refinement``: the checkpoint's :class:`~articulated_dataset.dense.refine.Refinement` (or
+    its dict) applied to the vote modes, or None.  Returns the datasets of
+    :func:`articulated_dataset.predictions.write_predictions` (``sample_id``, ``axis_pose``,
+    ``q``, ``geometry``, ``part_offset``, ``mixture_*``, ``mixture_layout``) plus ``spread``
+    (N, M, D), the raw vote spreads.
     """
     import torch
     from tqdm.auto import tqdm
 
-    from .aggregate import MAX_MODES, vote_modes
+    refinement = as_refinement(refinement)
+    chunks = []
+    for s in tqdm(range(0, len(idx), batch_size), desc="predicting", unit="batch", disable=not progress, leave=False):
+        b = idx[s : s + batch_size]
+        m, r = batch_modes(model, data.depth(b), torch.from_numpy(data.K[b]), joint_types=joint_types,
+                           refine=needs_refinement(refinement))
+        chunks.append(refine_modes(m, r, refinement, joint_types))
+    m = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+    return modes_to_arrays(m, data.sample_id[idx], model, calibration)
+
+
+def as_refinement(refinement):
+    """A :class:`~.refine.Refinement` from one, its dict, or None."""
+    from .refine import Refinement
+
+    return Refinement.from_dict(refinement) if isinstance(refinement, dict) else refinement
+
+
+def needs_refinement(refinement) -> bool:
+    return refinement is not None and (refinement.frame or refinement.min_door_px is not None)
+
+
+def refine_modes(m: dict, r: dict | None, refinement, joint_types) -> dict:
+    from .refine import apply_refinement
+
+    return apply_refinement(m, r, refinement, joint_types) if needs_refinement(refinement) else m
+
+
+def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: dict | None) -> dict:
+    from .aggregate import MAX_MODES
+
+    return mixture_from_modes(m, sample_id, model.config.n_joints, MAX_MODES, calibration)
+
+
+def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool) -> tuple[dict, dict | None]:
+    """One batch of depth images (B, H, W) m and intrinsics (B, 3, 3) at the model's resolution ->
+    vote modes (:func:`~.aggregate.vote_modes`) and, with ``refine``, the refined quantities
+    (:func:`~.refine.refined_quantities`), as float64 numpy arrays."""
+    import torch
+
+    from .aggregate import vote_modes
     from .features import make_inputs
+    from .refine import refined_quantities
 
     model.eval()
-    J = model.config.n_joints
-    chunks = []
     with torch.no_grad():
-        for s in tqdm(range(0, len(idx), batch_size), desc="predicting", unit="batch", disable=not progress, leave=False):
-            b = idx[s : s + batch_size]
-            inputs = make_inputs(data.depth(b), torch.from_numpy(data.K[b]))
-            parts = model.split(model(inputs["x"]))
-            modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0)
-            chunks.append({k: v.numpy().astype(np.float64) for k, v in modes.items()})
-    m = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
-    return mixture_from_modes(m, data.sample_id[idx], J, MAX_MODES, calibration)
+        inputs = make_inputs(depth_m, K)
+        parts = model.split(model(inputs["x"]))
+        modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0)
+        r = refined_quantities(parts, inputs, modes, joint_types) if refine else None
+    as_np = lambda d: {k: v.numpy().astype(np.float64) for k, v in d.items()}  # noqa: E731
+    return as_np(modes), (as_np(r) if r is not None else None)
+
+
+def predict_modes(model, data, idx: np.ndarray, *, joint_types: list[str], batch_size: int = PREDICT_BATCH,
+                  progress: bool = False) -> tuple[dict, dict]:
+    """Vote modes and refined quantities of the images ``idx`` (for :func:`~.refine.fit_refinement`)."""
+    import torch
+    from tqdm.auto import tqdm
+
+    ms, rs = [], []
+    for s in tqdm(range(0, len(idx), batch_size), desc="refinement", unit="batch", disable=not progress, leave=False):
+        b = idx[s : s + batch_size]
+        m, r = batch_modes(model, data.depth(b), torch.from_numpy(data.K[b]), joint_types=joint_types, refine=True)
+        ms.append(m)
+        rs.append(r)
+    return ({k: np.concatenate([c[k] for c in ms]) for k in ms[0]}, {k: np.concatenate([c[k] for c in rs]) for k in rs[0]})
 
 
 def mixture_from_modes(m: dict, sample_id: np.ndarray, J: int, n_modes: int, calibration: dict | None) -> dict:
@@ -164,6 +218,22 @@ def fit_calibration(arrays: dict, data, idx: np.ndarray) -> dict:
     return {"spread_factor": [float(v) for v in k_out], "floor": [float(v) for v in f_out], "n_images": int(N)}
 
 
+def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, progress: bool = False) -> dict:
+    """Fit what inference needs beyond the weights on validation images ``idx`` (with labels):
+    the refinement (:func:`~.refine.fit_refinement`), then the uncertainty calibration of the
+    refined predictions (:func:`fit_calibration`).  Returns ``{"refinement": dict,
+    "calibration": dict, "refinement_report": dict}`` for the checkpoint."""
+    from .refine import apply_refinement, fit_refinement
+
+    m, r = predict_modes(model, data, idx, joint_types=joint_types, progress=progress)
+    truth = {"axis_pose": np.concatenate([data.origin[idx], _quat_from_rot6(data.rot6[idx])], -1).astype(np.float64),
+             "q": data.q[idx].astype(np.float64), "part_offset": data.part_offset[idx].astype(np.float64)}
+    refinement, report = fit_refinement(m, r, truth, joint_types)
+    arrays = modes_to_arrays(apply_refinement(m, r, refinement, joint_types), data.sample_id[idx], model, None)
+    return {"refinement": refinement.to_dict(), "calibration": fit_calibration(arrays, data, idx),
+            "refinement_report": report}
+
+
 def quick_errors(arrays: dict, data, idx: np.ndarray, joint_types: list[str]) -> dict:
     """Mean axis position (cm), axis rotation (deg) and configuration errors of point estimates."""
     from .. import metrics as M
@@ -202,7 +272,8 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
     d = load_dense_split(split_dir, cfg.n_joints, (cfg.height_px, cfg.width_px), with_labels=False, progress=progress)
     t0 = time.perf_counter()
     arrays = predict_arrays(model, d, np.arange(len(d.sample_id)), joint_types=list(ckpt["joint_types"]),
-                            calibration=ckpt.get("calibration"), batch_size=batch_size, progress=progress)
+                            calibration=ckpt.get("calibration"), refinement=ckpt.get("refinement"),
+                            batch_size=batch_size, progress=progress)
     log.info("dense: %d images in %.1f s", len(d.sample_id), time.perf_counter() - t0)
     arrays.pop("spread")
     return class_name, arrays

@@ -6,8 +6,9 @@
   and the labels (axis origin, axis frame, q, part offset, geometry).
 * Validation: a held-out part of the TRAINING split chosen by object (the MDN's
   :func:`~articulated_dataset.mdn.train.split_by_object`); the test split is never read.
-  After the last epoch the uncertainty calibration (:mod:`articulated_dataset.dense.predict`)
-  is fitted on the validation objects.
+  After the last epoch the geometric refinement (:mod:`articulated_dataset.dense.refine`) is
+  chosen and the uncertainty calibration (:mod:`articulated_dataset.dense.predict`) fitted on
+  the validation objects (:func:`~articulated_dataset.dense.predict.fit_inference`).
 * Loss, per valid output pixel ``i`` (weighted by its valid fraction) and image:
   ``CE(seg) + 0.5 huber(|v_i - o| / 5 cm) + |r6_i - r6| / ROT_SCALE + |q_i - q| / s_q
   + |po_i - po| / 10 cm + |g_i - g| / 10 cm + BCE(chirality)``, plus the same terms on the
@@ -284,7 +285,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     from ..registry import get_class
     from .features import make_inputs
     from .model import DenseConfig, DenseNet, count_parameters
-    from .predict import fit_calibration, predict_arrays, quick_errors
+    from .predict import fit_inference, predict_arrays, quick_errors
 
     out = Path(out)
     obj_class = get_class(config.class_name)
@@ -408,11 +409,40 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     bar.close()
     if step < total_steps:
         return checkpoint(finished=False)
-    calibration = None
-    if len(va_idx):
-        arrays = predict_arrays(model.eval(), data_, va_idx, joint_types=list(obj_class.joint_types), calibration=None)
-        calibration = fit_calibration(arrays, data_, va_idx)
-    result = checkpoint(finished=True, calibration=calibration)
+    result = checkpoint(finished=True)
+    if len(va_idx):  # refinement choice and uncertainty calibration on the validation objects
+        result.update(fit_inference(model.eval(), data_, va_idx, list(obj_class.joint_types)))
     result["load_seconds"] = round(t_load, 1)
+    atomic_save(result, out)
+    return result
+
+
+def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *, progress: bool = True) -> dict:
+    """Refit what inference needs beyond the weights (refinement choice, calibration) of a finished
+    dense checkpoint on the validation objects of its training split ``data`` (the same objects
+    training held out: its ``val_fraction``, ``seed`` and ``max_objects``), and write the result
+    to ``out`` atomically.  For checkpoints trained before a refinement existed."""
+    from ..mdn.train import resolve_split_dir, split_by_object, split_class
+    from .predict import fit_inference
+
+    ckpt = load_dense_checkpoint(checkpoint)
+    if not ckpt.get("finished"):
+        raise UserError(f"{checkpoint}: training is not finished (resume it first)")
+    split_dir = resolve_split_dir(data)
+    if split_class(split_dir) != ckpt["class_name"]:
+        raise UserError(f"{split_dir}: holds class {split_class(split_dir)!r}, the checkpoint {ckpt['class_name']!r}")
+    config = DenseTrainConfig.from_dict(ckpt["train_config"])
+    model = build_dense_model(ckpt)
+    c = model.config
+    data_ = load_dense_split(split_dir, c.n_joints, (c.height_px, c.width_px), max_objects=config.max_objects,
+                             progress=progress)
+    _, val_mask = split_by_object(data_.object_index, config.val_fraction, config.seed)
+    va_idx = np.nonzero(val_mask)[0]
+    if not len(va_idx):
+        raise UserError(f"{checkpoint}: trained without validation objects (--val-fraction 0): nothing to fit on")
+    result = dict(ckpt)
+    result.update(fit_inference(model, data_, va_idx, list(ckpt["joint_types"]), progress=progress))
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     atomic_save(result, out)
     return result

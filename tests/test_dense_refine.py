@@ -1,0 +1,198 @@
+"""Geometric refinement of the dense estimate (articulated_dataset.dense.refine): each step on
+constructed cases with a known answer, the fit on synthetic validation arrays, and the
+refinement stored by training and applied by prediction."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from articulated_dataset import metrics as M  # noqa: E402
+from articulated_dataset.dense import refine as R  # noqa: E402
+from articulated_dataset.dense.features import make_inputs  # noqa: E402
+from articulated_dataset.rotations import matrix_to_quat  # noqa: E402
+
+
+def _frame_columns(rot: Rotation) -> torch.Tensor:
+    return torch.tensor(rot.as_matrix(), dtype=torch.float32)
+
+
+def test_weighted_median_matches_brute_force():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        n = int(rng.integers(1, 30))
+        v, w = rng.normal(size=n), rng.random(n) * (rng.random(n) > 0.3)
+        got = R.weighted_median(torch.tensor(v)[None], torch.tensor(w)[None])[0].item()
+        if w.sum() == 0:
+            assert math.isnan(got)
+            continue
+        # brute force: the smallest value whose cumulative weight reaches half the total
+        order = np.argsort(v, kind="stable")
+        cw = np.cumsum(w[order])
+        expect = v[order][np.searchsorted(cw, 0.5 * w.sum())]
+        assert got == pytest.approx(expect)
+
+
+def test_rotate_about_matches_scipy():
+    rng = np.random.default_rng(1)
+    axis = rng.normal(size=(20, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    v, ang = rng.normal(size=(20, 3)), rng.uniform(-3, 3, 20)
+    got = R.rotate_about(torch.tensor(v), torch.tensor(axis), torch.tensor(ang)).numpy()
+    assert np.allclose(got, Rotation.from_rotvec(axis * ang[:, None]).apply(v), atol=1e-12)
+
+
+def _votes(z, x, n=200, mirrored=0.0, noise_deg=0.0, seed=0):
+    """(1, 1, 6, 1, n) rotation votes: the frame (z, x), a fraction of them mirrored (-z, -x)."""
+    rng = np.random.default_rng(seed)
+    zs = np.repeat(np.asarray(z, float)[None], n, 0)
+    xs = np.repeat(np.asarray(x, float)[None], n, 0)
+    if noise_deg:
+        jitter = Rotation.from_rotvec(rng.normal(0, math.radians(noise_deg), (n, 3)))
+        zs, xs = jitter.apply(zs), jitter.apply(xs)
+    flip = rng.random(n) < mirrored
+    zs[flip], xs[flip] = -zs[flip], -xs[flip]
+    r6 = np.concatenate([zs, xs], 1).T.reshape(1, 1, 6, 1, n)
+    return torch.tensor(r6, dtype=torch.float32)
+
+
+def test_sign_free_frame_survives_mirrored_votes_that_cancel_a_plain_mean():
+    true = Rotation.from_euler("zyx", [30, 4, -3], degrees=True)
+    F = true.as_matrix()
+    r6 = _votes(F[:, 2], F[:, 0], mirrored=0.5, noise_deg=2.0)
+    n = r6.shape[-1]
+    parts = {"rot6": r6, "conf": torch.zeros(1, 1, 3, 1, n)}
+    frame = R._sign_free_frame(parts, torch.ones(1, 1, n, dtype=torch.bool))[0, 0].numpy()
+    assert abs(abs(frame[:, 2] @ F[:, 2]) - 1) < 1e-3  # the axis line
+    assert frame[:, 1] @ F[:, 1] > 0.999  # y = z x x is the same for both signs
+    assert np.allclose(frame.T @ frame, np.eye(3), atol=1e-5) and np.linalg.det(frame) > 0
+    plain = r6.mean(-1)[0, 0, :3, 0].norm().item()
+    assert plain < 0.2  # what a plain mean of these votes would use as its axis
+
+
+def _box_normals(frame: np.ndarray, counts=(300, 200, 100), noise_deg=1.0, outliers=60, seed=0):
+    """Normals of three visible box faces (+x, +y, +z of ``frame``) with noise and outliers."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k, n in enumerate(counts):
+        v = np.repeat(frame[:, k][None], n, 0)
+        v = Rotation.from_rotvec(rng.normal(0, math.radians(noise_deg), (n, 3))).apply(v)
+        out.append(v)
+    junk = rng.normal(size=(outliers, 3))
+    out.append(junk / np.linalg.norm(junk, axis=1, keepdims=True))
+    return torch.tensor(np.concatenate(out)[None], dtype=torch.float32)
+
+
+def test_box_frame_alignment_recovers_the_faces_from_a_frame_8_degrees_off():
+    true = Rotation.from_euler("zyx", [-20, 5, 2], degrees=True)
+    start = true * Rotation.from_euler("zyx", [8, -3, 2], degrees=True)
+    normals = _box_normals(true.as_matrix())
+    frame = R._align_to_normals(_frame_columns(start)[None, None], normals, torch.ones(normals.shape[:2]))
+    err = Rotation.from_matrix(frame[0, 0].double().numpy()) * true.inv()
+    assert err.magnitude() < math.radians(0.3)
+    before = (start * true.inv()).magnitude()
+    assert before > math.radians(8)
+
+
+def test_box_frame_alignment_keeps_what_no_face_constrains():
+    true = Rotation.from_euler("z", 10, degrees=True)
+    start = true * Rotation.from_euler("zyx", [0, 0, 6], degrees=True)  # 6 deg about the frame's x
+    only_x_face = _box_normals(true.as_matrix(), counts=(400, 0, 0), outliers=0)  # x normals fix nothing about x
+    frame = R._align_to_normals(_frame_columns(start)[None, None], only_x_face, torch.ones(only_x_face.shape[:2]))
+    got = frame[0, 0].double().numpy()
+    assert got[:, 0] @ true.as_matrix()[:, 0] > math.cos(math.radians(0.3))
+    assert np.allclose(got, start.as_matrix(), atol=0.02)  # the free rotation stayed where it was
+
+
+def _door_scene(q_rad: float, distance_m: float = 1.5, hw=(108, 192)):
+    """Depth of a plane through (distance, 0, 0) whose normal is the camera's -x turned by q about
+    the vertical, and the frame x (lateral), y (towards the camera), z (up) of its box."""
+    H, W = hw
+    f = 100.0
+    K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    rays = np.stack([np.ones_like(u, float), -(u - K[0, 2]) / f, -(v - K[1, 2]) / f], -1)
+    y = np.array([-1.0, 0.0, 0.0])
+    z = np.array([0.0, 0.0, 1.0])
+    n = Rotation.from_rotvec(z * q_rad).apply(y)
+    depth = (n @ np.array([distance_m, 0, 0])) / (rays @ n)
+    depth[(depth <= 0) | (depth > 4.0)] = 0.0  # the plane's far side: no return
+    frame = np.stack([np.cross(y, z), y, z], -1)
+    return torch.tensor(depth[None], dtype=torch.float32), torch.tensor(K[None], dtype=torch.float32), frame
+
+
+@pytest.mark.parametrize("q_deg", [0.0, 17.0, 48.0, 80.0])
+def test_door_angle_is_read_from_the_door_normals(q_deg):
+    depth, K, frame = _door_scene(math.radians(q_deg))
+    inputs = make_inputs(depth, K)
+    h, w = inputs["weight_out"].shape[1:]
+    seg = torch.zeros(1, 2, h, w)
+    seg[:, 1] = 5.0  # every pixel is the door
+    F = torch.tensor(frame, dtype=torch.float32)
+    rot6 = torch.cat([F[:, 2], F[:, 0]]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w)
+    parts = {"seg": seg, "rot6": rot6, "conf": torch.zeros(1, 1, 3, h, w)}
+    modes = {"origin": torch.tensor([[[[1.5, 0.5, 0.0]]]]), "axis": F[:, 2].reshape(1, 1, 1, 3)}
+    r = R.refined_quantities(parts, inputs, modes, ["revolute"])
+    assert math.degrees(r["q"][0, 0].item()) == pytest.approx(q_deg, abs=0.3)
+    assert r["door_px"][0, 0].item() > 0.5 * (depth > 0).sum().item() > 1000
+    # the anchor (object centre) is at y = 0, the origin at y = +0.5: x must point to -y (camera right)
+    assert r["xaxis"][0, 0, 0, 1].item() < -0.99
+
+
+def _quat(frames: np.ndarray) -> np.ndarray:
+    return matrix_to_quat(frames)
+
+
+def test_fit_chooses_the_box_frame_and_the_hinge_offset_and_they_remove_the_error():
+    rng = np.random.default_rng(3)
+    N, t_m = 400, -0.012
+    true = Rotation.from_euler("zyx", np.c_[rng.uniform(-45, 45, N), rng.normal(0, 2, N), rng.normal(0, 2, N)],
+                               degrees=True)
+    F = true.as_matrix()  # (N, 3, 3): the label frames (x points at the door centre)
+    radius = rng.uniform(0.2, 0.5, N)
+    # the box frame is the label frame turned back by the offset angle about z
+    box = (true * Rotation.from_rotvec(np.c_[np.zeros(N), np.zeros(N), -np.arctan2(t_m, radius)])).as_matrix()
+    noisy = (true * Rotation.from_rotvec(rng.normal(0, math.radians(4), (N, 3)))).as_matrix()
+    q_true = rng.uniform(0, math.pi / 2, N)
+    m = {"axis": noisy[:, None, None, :, 2], "xaxis": noisy[:, None, None, :, 0],
+         "q": (q_true + rng.normal(0, 0.2, N))[:, None, None], "part_offset": np.c_[radius, 0 * radius, 0 * radius][:, None, None]}
+    r = {"axis": box[:, None, None, :, 2], "xaxis": box[:, None, None, :, 0],
+         "q": (q_true + rng.normal(0, 0.01, N))[:, None], "door_px": np.full((N, 1), 500.0)}
+    truth = {"axis_pose": np.concatenate([np.zeros((N, 1, 3)), _quat(F)[:, None]], -1), "q": q_true[:, None],
+             "part_offset": np.c_[radius, 0 * radius, 0 * radius][:, None]}
+    ref, report = R.fit_refinement(m, r, truth, ["revolute"])
+    assert ref.frame and ref.hinge_offset_m == pytest.approx(t_m, abs=1e-4)
+    assert ref.min_door_px is not None
+    out = R.apply_refinement(m, r, ref, ["revolute"])
+    err = M.axis_rotation_error_deg(_quat(np.stack([out["xaxis"][:, 0, 0], np.cross(out["axis"][:, 0, 0], out["xaxis"][:, 0, 0]),
+                                                     out["axis"][:, 0, 0]], -1)), truth["axis_pose"][:, 0, 3:])
+    assert err.max() < 0.05 and report["rotation_deg"]["votes"] > 3
+    assert np.abs(out["q"][:, 0, 0] - q_true).mean() < 0.02
+
+
+def test_fit_keeps_the_votes_where_the_refinement_is_worse():
+    rng = np.random.default_rng(4)
+    N = 200
+    true = Rotation.from_euler("z", rng.uniform(-45, 45, N)[:, None], degrees=True).as_matrix()
+    bad = (Rotation.from_matrix(true) * Rotation.from_rotvec(rng.normal(0, 0.3, (N, 3)))).as_matrix()
+    q_true = rng.uniform(0, 1.5, N)
+    m = {"axis": true[:, None, None, :, 2], "xaxis": true[:, None, None, :, 0], "q": q_true[:, None, None] + 0.001,
+         "part_offset": np.full((N, 1, 1, 3), 0.3)}
+    r = {"axis": bad[:, None, None, :, 2], "xaxis": bad[:, None, None, :, 0], "q": q_true[:, None] + 0.5,
+         "door_px": np.full((N, 1), 500.0)}
+    truth = {"axis_pose": np.concatenate([np.zeros((N, 1, 3)), _quat(true)[:, None]], -1), "q": q_true[:, None]}
+    ref, _ = R.fit_refinement(m, r, truth, ["revolute"])
+    assert not ref.frame and ref.min_door_px is None
+    assert R.apply_refinement(m, r, ref, ["revolute"])["q"] is m["q"]
+
+
+def test_refinement_round_trips_through_its_dict():
+    ref = R.Refinement(frame=True, hinge_offset_m=-0.01, min_door_px=80)
+    assert R.Refinement.from_dict(ref.to_dict()) == ref
+    assert R.Refinement.from_dict(None) is None
