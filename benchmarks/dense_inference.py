@@ -58,11 +58,12 @@ def main(argv=None) -> int:
         for _ in range(args.repeats):
             model(x)
         net = args.repeats * len(idx) / (time.perf_counter() - t0)
-    predict_arrays(model, data, idx, joint_types=ckpt["joint_types"], calibration=ckpt.get("calibration"))
+    predict_arrays(model, data, idx, joint_types=ckpt["joint_types"], calibration=ckpt.get("calibration"),
+                                        refinement=ckpt.get("refinement"))
     t0 = time.perf_counter()
     for _ in range(args.repeats):
         predict_arrays(model, data, idx, joint_types=ckpt["joint_types"], calibration=ckpt.get("calibration"),
-                       batch_size=args.batch)
+                       refinement=ckpt.get("refinement"), batch_size=args.batch)
     full = args.repeats * len(idx) / (time.perf_counter() - t0)
     import h5py
 

@@ -73,7 +73,8 @@ def main(argv=None) -> int:
                 data = load_dense_split(split_dir, c.n_joints, (c.height_px, c.width_px), with_labels=False)
                 t1 = time.perf_counter()
                 arrays = predict_arrays(model, data, np.arange(len(data.sample_id)), joint_types=ckpt["joint_types"],
-                                        calibration=ckpt.get("calibration"))
+                                        calibration=ckpt.get("calibration"),
+                                        refinement=ckpt.get("refinement"))
                 arrays.pop("spread")
                 speed = len(data.sample_id) / (time.perf_counter() - t1)
                 method = "dense"

@@ -25,7 +25,6 @@ from articulated_dataset.registry import class_names
 from articulated_dataset.shards import read_manifest, sha256_file
 
 MACHINE = "2-core x86_64 CPU VM shared with other jobs, no GPU, PyTorch 2.13.0 CPU"
-DATA_COMMAND = "artdata generate --class {c} --n 4000 --split train --seed 0 --out data"
 TRAIN_COMMANDS = {
     "dense": "artdata train --model dense --class {c} --data data/{c}/train --out dense-{c}.pt{opts}",
     "mdn-small": "artdata train --class {c} --data data/{c}/train --out mdn-small-{c}.pt --small --max-objects 1000 --seed 0",
@@ -33,20 +32,56 @@ TRAIN_COMMANDS = {
 FILES = {"dense": "dense-{c}.pt", "mdn-small": "mdn-small-{c}.pt"}
 
 
-def _training_record(name: str, c: str, ckpt: dict) -> dict:
+def _data_command(c: str, ckpt: dict) -> tuple[str, int]:
+    """The generate command of the checkpoint's training split (from its manifest when it is still
+    there; the shipped recipe's seed-0 split otherwise) and its seed."""
+    split_dir = Path(ckpt.get("data", {}).get("split_dir", ""))
+    try:
+        cfg = read_manifest(split_dir)["config"]
+        n, seed = int(cfg["n_objects"]), int(cfg["seed"])
+    except Exception:  # noqa: BLE001 - the split is gone: the documented default recipe
+        n, seed = 4000, 0
+    data = "data" if seed == 0 else f"data-seed{seed}"
+    return f"artdata generate --class {c} --n {n} --split train --seed {seed} --out {data}", seed
+
+
+def _previous_record(init_from: str, shipped: list[dict]) -> dict | None:
+    """The models.json record (before this run) of the weights a training was continued from, when
+    those were shipped weights (found by SHA-256), so the lineage of a continuation is kept."""
+    path = Path(init_from)
+    if not path.is_file():
+        return None
+    digest = sha256_file(path)
+    for e in shipped:
+        if e["sha256"] == digest:
+            return {"file": e["file"], "sha256": e["sha256"], "training": e["training"]}
+    return None
+
+
+def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None, shipped=()) -> dict:
+    refit = ckpt.get("refit_of")
+    if refit is not None:  # shipped weights whose inference was refitted (scripts/fit_dense_inference.py)
+        for e in shipped:
+            if e["sha256"] == refit["sha256"]:
+                return {**e["training"], "refinement": ckpt["refinement"],
+                        "refinement_validation": ckpt.get("refinement_report"),
+                        "refit": "scripts/fit_dense_inference.py on the same validation objects"}
     tc = ckpt.get("train_config", {})
-    opts = ""
+    data_command, seed = _data_command(c, ckpt)
+    data = data_command.split("--out ")[-1]
     if name == "dense":
         opts = f" --epochs {tc.get('epochs')}" + (f" --lr {tc.get('lr')}" if tc.get("lr") != 3e-3 else "")
-    command = TRAIN_COMMANDS[name].format(c=c, opts=opts)
+        if tc.get("init_from"):
+            opts += f" --init-from {Path(tc['init_from']).name}"
+        command = TRAIN_COMMANDS[name].format(c=c, opts=opts).replace("data/", f"{data}/")
+    else:
+        command = TRAIN_COMMANDS[name].format(c=c, opts="")
+    rec = {"data_command": data_command, "command": command, "seed": int(tc.get("seed", 0)), "machine": MACHINE}
+    if ckpt.get("refinement") is not None:
+        rec["refinement"] = ckpt["refinement"]
+        rec["refinement_validation"] = ckpt.get("refinement_report")
     if name == "dense" and tc.get("init_from"):
-        first = TRAIN_COMMANDS[name].format(c=c, opts=" --epochs 1").replace(f"dense-{c}.pt", f"dense-{c}-e1.pt")
-        command = f"{first} && {command} --init-from dense-{c}-e1.pt"
-    rec = {"data_command": DATA_COMMAND.format(c=c), "command": command, "seed": 0, "machine": MACHINE}
-    if name == "dense" and tc.get("init_from"):
-        prev = Path(tc["init_from"])
-        rec["continued_from"] = {"note": f"the finished one-epoch model ({prev.name} when trained), continued for one "
-                                         "epoch at peak lr 1e-3 (chosen on the validation objects): 1,900 steps in all"}
+        rec["continued_from"] = previous if previous is not None else {"checkpoint": Path(tc["init_from"]).name}
     hist = ckpt.get("history", [])
     if name == "dense":
         rec.update(objects=ckpt["data"]["n_objects"], train_images=ckpt["data"]["n_train_images"],
@@ -73,6 +108,7 @@ def main(argv=None) -> int:
         metric_version = json.loads(args.results.read_text())["metric_version"]
     WEIGHTS_DIR.mkdir(exist_ok=True)
     entries = []
+    shipped = json.loads(MODELS_MANIFEST.read_text())["models"] if MODELS_MANIFEST.is_file() else []
     for c in args.classes or class_names():
         for name, folder in (("dense", args.dense_dir), ("mdn-small", args.mdn_dir)):
             src = folder / FILES[name].format(c=c)
@@ -83,6 +119,8 @@ def main(argv=None) -> int:
             if not ckpt.get("finished"):
                 print(f"skip {name} {c}: training not finished", file=sys.stderr)
                 continue
+            init_from = ckpt.get("train_config", {}).get("init_from")
+            previous = _previous_record(init_from, shipped) if name == "dense" and init_from else None
             dst = WEIGHTS_DIR / FILES[name].format(c=c)
             tmp = dst.with_name(dst.name + ".partial")
             torch.save(strip_for_shipping(ckpt), tmp)
@@ -90,7 +128,7 @@ def main(argv=None) -> int:
             entry = {"name": name, "class_name": c, "kind": "dense" if name == "dense" else "mdn", "file": dst.name,
                      "sha256": sha256_file(dst), "bytes": dst.stat().st_size,
                      "config_unit": "cm" if "prismatic" in str(ckpt.get("joint_types", "")) or c == "drawer" else "deg",
-                     "training": _training_record(name, c, ckpt)}
+                     "training": _training_record(name, c, ckpt, previous, shipped)}
             r = results.get((name, c))
             if r is not None:
                 entry["test"] = {"pos_cm": r["axis_position_error_cm"], "rot_deg": r["axis_rotation_error_deg"],

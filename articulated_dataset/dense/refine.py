@@ -50,6 +50,9 @@ from .features import OUTPUT_STRIDE
 INLIER_ANGLES_DEG = (25.0, 10.0, 5.0)
 #: Weight (in pixels) of the current frame's own axes in each alignment round.
 PRIOR_WEIGHT_PX = 10.0
+#: The frame alignment reads the normals of every this-many-th row and column (2 is ~10% faster
+#: and measured ~0.05 deg worse on microwave validation objects).
+ALIGN_STRIDE = 1
 #: A normal channel vector shorter than this is "no normal" (the input holds unit normals or 0).
 MIN_NORMAL_NORM = 0.5
 #: Thresholds tried for ``min_door_px`` (door pixels with a normal) by :func:`fit_refinement`.
@@ -118,13 +121,16 @@ def _align_to_normals(frame: torch.Tensor, normals: torch.Tensor, weights: torch
     """Step 2: Manhattan alignment of (B, J, 3, 3) frames to (B, P, 3) normals weighted (B, P)."""
     for inlier_deg in INLIER_ANGLES_DEG:
         cos_in = math.cos(math.radians(inlier_deg))
-        c = torch.einsum("bpc,bjck->bjpk", normals, frame)  # normal in frame coordinates
-        k = c.abs().argmax(-1, keepdim=True)
-        ck = torch.gather(c, -1, k)
-        w = weights[:, None] * (ck[..., 0].abs() > cos_in)
-        target = F.one_hot(k[..., 0], 3).to(frame.dtype) * torch.sign(ck)  # (B, J, P, 3) signed axis
-        # H = sum_p w_p a_p n_p^T (+ prior: the current axes onto themselves); R = V diag(1, 1, d) U^T
-        H = torch.einsum("bjp,bjpk,bpc->bjkc", w, target, normals) + PRIOR_WEIGHT_PX * frame.transpose(-1, -2)
+        c = [torch.einsum("bpc,bjc->bjp", normals, frame[..., k]) for k in range(3)]  # normal in frame coordinates
+        a = [ck.abs() for ck in c]
+        nearest = [(a[0] >= a[1]) & (a[0] >= a[2])]
+        nearest.append(~nearest[0] & (a[1] >= a[2]))
+        nearest.append(~nearest[0] & ~nearest[1])
+        # H = sum_p w_p a_p n_p^T with a_p the matched signed axis (row k: the normals matched to
+        # +-axis k), plus the prior (the current axes onto themselves); R = V diag(1, 1, d) U^T
+        rows = [torch.einsum("bjp,bpc->bjc", weights[:, None] * (nearest[k] & (a[k] > cos_in)) * torch.sign(c[k]), normals)
+                for k in range(3)]
+        H = torch.stack(rows, -2) + PRIOR_WEIGHT_PX * frame.transpose(-1, -2)
         U, _, Vh = torch.linalg.svd(H)
         d = torch.sign(torch.linalg.det(Vh.transpose(-1, -2) @ U.transpose(-1, -2)))
         D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
@@ -146,12 +152,15 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types) -> d
     B, J = parts["conf"].shape[:2]
     H, W = x.shape[2:]
     normals = x[:, 4:7]
-    has_normal = normals.norm(dim=1) > MIN_NORMAL_NORM
+    has_normal = (normals[:, 0] ** 2 + normals[:, 1] ** 2 + normals[:, 2] ** 2) > MIN_NORMAL_NORM**2
     label = F.interpolate(parts["seg"].argmax(1, keepdim=True).float(), scale_factor=OUTPUT_STRIDE,
                           mode="nearest")[:, 0, :H, :W].long()  # 0 body, 1 + j part j
     n_flat = normals.flatten(2).transpose(1, 2)  # (B, P, 3)
-    body_w = ((label == 0) & has_normal).flatten(1).to(x.dtype)
-    frame = _align_to_normals(_sign_free_frame(parts, valid), n_flat, body_w)
+    # the frame fit uses every ALIGN_STRIDE-th row and column (neighbouring normals share pixels)
+    sub = (slice(None), slice(None, None, ALIGN_STRIDE), slice(None, None, ALIGN_STRIDE))
+    body_w = ((label == 0) & has_normal)[sub].flatten(1).to(x.dtype)
+    n_sub = normals[(slice(None), slice(None)) + sub[1:]].flatten(2).transpose(1, 2)
+    frame = _align_to_normals(_sign_free_frame(parts, valid), n_sub, body_w)
     xf, yf, zf = frame[..., 0], frame[..., 1], frame[..., 2]  # (B, J, 3)
     # step 3: each mode's side
     revolute = torch.tensor([t == "revolute" for t in joint_types])

@@ -440,8 +440,11 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     va_idx = np.nonzero(val_mask)[0]
     if not len(va_idx):
         raise UserError(f"{checkpoint}: trained without validation objects (--val-fraction 0): nothing to fit on")
+    from ..shards import sha256_file
+
     result = dict(ckpt)
     result.update(fit_inference(model, data_, va_idx, list(ckpt["joint_types"]), progress=progress))
+    result["refit_of"] = {"file": Path(checkpoint).name, "sha256": sha256_file(Path(checkpoint))}
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_save(result, out)
