@@ -188,17 +188,14 @@ def apply_refinement(m: dict, r: dict, refinement: "Refinement | None", joint_ty
     :func:`refined_quantities`) applied as ``refinement`` says; returns a new dict."""
     if refinement is None:
         return m
-    from scipy.spatial.transform import Rotation
-
     out = dict(m)
     revolute = np.array([t == "revolute" for t in joint_types])
     if refinement.frame:
         axis, xaxis = r["axis"].copy(), r["xaxis"].copy()
         angle = hinge_offset_angle(m["part_offset"][..., 0], refinement.hinge_offset_m)
         angle = np.where(revolute[None, :, None], angle, 0.0)
-        turn = Rotation.from_rotvec((axis * angle[..., None]).reshape(-1, 3))
         out["axis"] = axis
-        out["xaxis"] = turn.apply(xaxis.reshape(-1, 3)).reshape(xaxis.shape)
+        out["xaxis"] = rotate_about(torch.from_numpy(xaxis), torch.from_numpy(axis), torch.from_numpy(angle)).numpy()
     if refinement.min_door_px is not None:
         use = revolute[None] & (r["door_px"] >= refinement.min_door_px) & np.isfinite(r["q"])
         out["q"] = np.where(use[..., None], r["q"][..., None], m["q"])
