@@ -1,7 +1,10 @@
 """The ``artdata`` command line.
 
 Subcommands live in :mod:`articulated_dataset.commands`, one module each, exposing
-``COMMANDS`` (a list of click commands); they are discovered automatically.
+``COMMANDS`` (a list of click commands); :data:`COMMAND_MODULES` names the module of each
+command, and a module is imported only when one of its commands runs or shows its help (or
+``artdata --help`` lists them all).  Importing this module loads no MuJoCo, OpenGL, torch or
+jax: MuJoCo is imported only by the commands of :data:`MUJOCO_COMMANDS` when they run.
 
 Errors: a :class:`~articulated_dataset.errors.UserError` (bad option, bad file, existing
 output...) and every click usage error (unknown option, bad value, missing option or
@@ -17,7 +20,6 @@ import functools
 import importlib
 import logging
 import os
-import pkgutil
 import sys
 
 import click
@@ -28,9 +30,19 @@ from .errors import RenderError, UserError
 EXIT_USER_ERROR = 2
 #: The machine lacks something rendering needs (EGL/OSMesa libraries).
 EXIT_ENVIRONMENT_ERROR = 3
+#: Every subcommand and the module of :mod:`articulated_dataset.commands` that defines it
+#: (tests/test_import_light.py checks it against the modules' ``COMMANDS``).
+COMMAND_MODULES = {
+    "baseline": "baseline", "estimate": "estimate", "export": "export", "generate": "generate",
+    "import-exr": "export", "info": "info", "ingest": "ingest", "models": "models", "plan": "plan",
+    "predict": "predict", "score": "score", "show": "show", "train": "train", "verify": "verify",
+}
 #: Commands that always render with MuJoCo (the others render only on request and then
 #: report a missing GL library through :class:`RenderError`, or never render).
 RENDERING_COMMANDS = ("generate",)
+#: Commands that may build MuJoCo models when they run (rendering, physics): MuJoCo is imported
+#: before they start, without GL if its GL backend cannot start (see :func:`_import_mujoco`).
+MUJOCO_COMMANDS = ("baseline", "generate", "plan", "show")
 #: ``MUJOCO_GL`` value under which MuJoCo imports without any GL library (physics only).
 _GL_DISABLED = "disable"
 
@@ -52,6 +64,14 @@ def _usage_error_line(exc: click.UsageError) -> str:
 
 
 class _Group(click.Group):
+    def list_commands(self, ctx):
+        return sorted(set(self.commands) | set(COMMAND_MODULES))
+
+    def get_command(self, ctx, cmd_name):
+        if cmd_name not in self.commands and cmd_name in COMMAND_MODULES:
+            _load_commands(COMMAND_MODULES[cmd_name])
+        return self.commands.get(cmd_name)
+
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         """Click's entry point with one-line errors: usage errors exit 2, other click
         exceptions (e.g. an interrupted run) exit with their own code, always on one line."""
@@ -130,20 +150,32 @@ def _import_mujoco() -> None:
         os.environ["MUJOCO_GL"] = backend
 
 
-def _needs_rendering(cmd: click.Command) -> click.Command:
-    """Make ``cmd`` stop with the one-line exit-3 message when MuJoCo cannot render (checked
-    when it runs, so ``--help`` still works)."""
-    callback = cmd.callback
+def _prepared(cmd: click.Command) -> click.Command:
+    """``cmd`` with MuJoCo imported before it runs (commands of :data:`MUJOCO_COMMANDS`), and
+    stopping with the one-line exit-3 message when MuJoCo cannot render (commands of
+    :data:`RENDERING_COMMANDS`); checked when it runs, so ``--help`` stays light."""
+    if cmd.name in MUJOCO_COMMANDS:
+        for leaf in _leaves(cmd):
+            leaf.callback = _with_mujoco(leaf.callback, cmd.name)
+    return cmd
 
-    @functools.wraps(callback)
+
+def _leaves(cmd: click.Command) -> list[click.Command]:
+    if isinstance(cmd, click.Group):
+        return [leaf for sub in cmd.commands.values() for leaf in _leaves(sub)]
+    return [cmd]
+
+
+def _with_mujoco(function, name: str):
+    @functools.wraps(function)
     def checked(*args, **kwargs):
-        if MUJOCO_GL_PROBLEM is not None:
+        _import_mujoco()
+        if name in RENDERING_COMMANDS and MUJOCO_GL_PROBLEM is not None:
             click.echo(f"artdata: error: {MUJOCO_GL_PROBLEM}", err=True)
             click.get_current_context().exit(EXIT_ENVIRONMENT_ERROR)
-        return callback(*args, **kwargs)
+        return function(*args, **kwargs)
 
-    cmd.callback = checked
-    return cmd
+    return checked
 
 
 def _unavailable_command(name: str, exc: BaseException) -> click.Command:
@@ -159,25 +191,32 @@ def _unavailable_command(name: str, exc: BaseException) -> click.Command:
     return unavailable
 
 
-def _register_commands() -> None:
-    from . import commands
-
-    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda i: i.name):
-        if info.name.startswith("_"):
-            continue
-        try:
-            module = importlib.import_module(f"{commands.__name__}.{info.name}")
-        except Exception as exc:
-            if MUJOCO_GL_PROBLEM is None and "mujoco" not in sys.modules:
-                main.add_command(_unavailable_command(info.name, exc))
-                continue
+def _load_commands(module_name: str) -> None:
+    """Import ``articulated_dataset.commands.<module_name>`` and add its commands.  A module
+    that imports MuJoCo at its top fails where MuJoCo's GL backend cannot start: then MuJoCo is
+    imported without GL (:func:`_import_mujoco`) and the module again, and its commands stop
+    with the one-line message when they render; if it still cannot be imported, they are
+    stand-ins that say why."""
+    name = f"{__package__}.commands.{module_name}"
+    try:
+        module = importlib.import_module(name)
+    except Exception as exc:
+        if MUJOCO_GL_PROBLEM is not None or "mujoco" in sys.modules:
             raise
-        for cmd in getattr(module, "COMMANDS", []):
-            main.add_command(_needs_rendering(cmd) if cmd.name in RENDERING_COMMANDS else cmd)
+        _import_mujoco()
+        if MUJOCO_GL_PROBLEM is None and "mujoco" in sys.modules:  # MuJoCo is fine: a bug
+            raise
+        try:
+            module = importlib.import_module(name)
+        except Exception:
+            if "mujoco" in sys.modules:
+                raise
+            for cmd_name in [c for c, m in COMMAND_MODULES.items() if m == module_name]:
+                main.add_command(_unavailable_command(cmd_name, exc))
+            return
+    for cmd in getattr(module, "COMMANDS", []):
+        main.add_command(_prepared(cmd))
 
-
-_import_mujoco()
-_register_commands()
 
 if __name__ == "__main__":  # pragma: no cover
     main()

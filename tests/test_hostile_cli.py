@@ -153,7 +153,8 @@ def run_case(env: Env, args: list, needle: str | None) -> None:
 # --------------------------------------------------------------------------------------
 
 def _commands(group: click.Group = main, path: tuple = ()):
-    for name, cmd in sorted(group.commands.items()):
+    for name in group.list_commands(None):  # the CLI imports a command's module when asked for it
+        cmd = group.get_command(None, name)
         if isinstance(cmd, click.Group):
             yield from _commands(cmd, path + (name,))
         else:
