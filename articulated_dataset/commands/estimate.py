@@ -24,7 +24,8 @@ from .train import _prepare_torch
               help="Units of the depth values (auto: 16-bit PNG = mm, float EXR/npy = m).")
 @click.option("--model", default="dense", show_default=True, help="'dense' (shipped weights) or a dense checkpoint file.")
 @click.option("--json", "as_json", is_flag=True, help="Print the estimate as JSON.")
-@click.option("--threads", type=int, default=None, help="CPU threads for torch (default: all cores of this process).")
+@click.option("--threads", type=int, default=1, show_default=True,
+              help="CPU threads for torch (one image gains little from more, and loses much on a busy machine).")
 def estimate_cmd(depth, class_name, camera_path, mask_path, depth_units, model, as_json, threads):
     """Estimate the articulation (axis origin and direction, q, size, uncertainty) of the object in DEPTH.
 
