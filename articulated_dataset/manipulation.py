@@ -509,6 +509,9 @@ def load_true_object(manifest: dict, labels: dict, camera=None) -> TrueObject:
     from .templating import render_urdf
 
     config = GenerationConfig.from_dict(manifest["config"])
+    if config.camera.mount != "fixed":
+        raise UserError(f"{config.class_name}/{config.split} was generated with --camera {config.camera.mount}; "
+                        "manipulation rebuilds objects upright in the camera frame (generate with --camera fixed)")
     obj_class = config.obj_class
     sample = stored_sample(config, int(labels["object_index"]), labels["object_pose"], labels["object_yaw"])
     pose = sample.pose

@@ -36,10 +36,11 @@ from .render import DepthRenderer, process_renderer
 from .safeio import (FULL_HINT, TMP_SUFFIX, WriteError, available_memory_bytes, check_free_space, ensure_dir, format_bytes,
                      fsync_dir, remove_created_dirs, translated)
 from .sampling import ObjectSample, mean_object, object_rng, sample_id, sample_object, sample_pose
-from .scene import build_model, set_configuration
+from .scene import ORIGIN_POSE, ObjectPlacer, build_model, set_configuration
 from .format.schema import FIELDS
 from .shards import shard_name, write_shard
 from .templating import render_urdf
+from .viewpoint import CAMERA_STREAM, head_ranges, head_views, object_in_camera
 
 log = logging.getLogger(__name__)
 
@@ -88,11 +89,21 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
     J = obj_class.n_joints
     n = config.images_per_object
     H, W = config.camera.height_px, config.camera.width_px
+    head = config.camera.mount == "head"
+    crng = camera_rng(config, sample.object_index) if head and not config.mean else None
     for attempt in range(1, MAX_POSE_ATTEMPTS + 1):
-        model = build_model(urdf, sample.pose, config.camera, obj_class.base_link)
+        if head:  # the object is built at the origin and placed in each image's camera frame
+            sample = replace(sample, views=head_views(crng, sample.pose, sample.geometry, n))
+            model = build_model(urdf, ORIGIN_POSE, config.camera, obj_class.base_link)
+        else:
+            model = build_model(urdf, sample.pose, config.camera, obj_class.base_link)
         data = mujoco.MjData(model)
         info = model_info(model, obj_class)
-        labels = read_object_labels(model, data, info, obj_class)
+        if head:
+            placer = ObjectPlacer(model, info.base_body)
+            per_image = [None] * n
+        else:
+            labels = read_object_labels(model, data, info, obj_class)
         renderer.bind(model)
         depth = out["depth"] if out is not None else np.empty((n, H, W), np.float32)
         mask = out["mask"] if out is not None else np.empty((n, H, W), np.uint8)
@@ -102,6 +113,9 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
         # Widest-open configurations first: they are the views that fail the visibility
         # check (doors edge-on or swung out of the frame), so a rejected pose costs few renders.
         for i in np.argsort(-sample.q.sum(axis=1), kind="stable"):
+            if head:  # this image's camera: labels are read from the model as placed for it
+                placer.place(object_in_camera(sample.pose, sample.views[i]))
+                per_image[i] = read_object_labels(model, data, info, obj_class)
             set_configuration(model, data, info.joint_ids, sample.q[i])
             _, geom_id = renderer.render(data, depth_out=depth[i])
             mask[i] = info.mask_from_geoms(geom_id)
@@ -136,17 +150,21 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
         np.round(depth, out=depth)
         np.multiply(depth, config.depth_quantum_m, out=depth)
     ids = np.array([sample_id(config.class_name, config.split, config.seed, sample.object_index, i) for i in range(n)], np.int64)
+    if head:
+        stacked = {k: np.stack([np.asarray(per_image[i][k]) for i in range(n)]) for k in per_image[0]}
+    else:
+        stacked = {k: np.repeat(np.asarray(v)[None], n, 0) for k, v in labels.items()}
     arrays = {
         "depth": depth,
         "mask": mask,
         "q": q.astype(np.float32),
-        "axis_origin": np.repeat(labels["axis_origin"][None], n, 0).astype(np.float32),
-        "axis_direction": np.repeat(labels["axis_direction"][None], n, 0).astype(np.float32),
-        "axis_pose": np.repeat(labels["axis_pose"][None], n, 0).astype(np.float32),
-        "part_offset": np.repeat(labels["part_offset"][None], n, 0).astype(np.float32),
-        "object_pose": np.repeat(labels["object_pose"][None], n, 0).astype(np.float32),
-        "object_yaw": np.full(n, labels["object_yaw"], np.float32),
-        "geometry": np.repeat(labels["geometry"][None], n, 0).astype(np.float32),
+        "axis_origin": stacked["axis_origin"].astype(np.float32),
+        "axis_direction": stacked["axis_direction"].astype(np.float32),
+        "axis_pose": stacked["axis_pose"].astype(np.float32),
+        "part_offset": stacked["part_offset"].astype(np.float32),
+        "object_pose": stacked["object_pose"].astype(np.float32),
+        "object_yaw": stacked["object_yaw"].astype(np.float32),
+        "geometry": stacked["geometry"].astype(np.float32),
         "visible_pixels": vis,
         "object_index": np.full(n, sample.object_index, np.int64),
         "image_index": np.arange(n, dtype=np.int32),
@@ -163,6 +181,12 @@ NOISE_STREAM = 1
 def noise_rng(config: GenerationConfig, object_index: int) -> np.random.Generator:
     """Generator of the sensor noise of one object, independent of its sampling stream."""
     return object_rng(config.seed, config.class_name, config.split, object_index, stream=NOISE_STREAM)
+
+
+def camera_rng(config: GenerationConfig, object_index: int) -> np.random.Generator:
+    """Generator of one object's head-camera views (:mod:`articulated_dataset.viewpoint`),
+    independent of its sampling stream: an object is the same with either camera."""
+    return object_rng(config.seed, config.class_name, config.split, object_index, stream=CAMERA_STREAM)
 
 
 def object_sample(config: GenerationConfig, object_index: int) -> ObjectSample:
@@ -189,7 +213,7 @@ def stored_sample(config: GenerationConfig, object_index: int, object_pose, obje
 def shard_attrs(config: GenerationConfig, objects: range) -> dict:
     obj_class = config.obj_class
     assert set(obj_class.joint_types) <= set(JOINT_TYPES)
-    return {
+    attrs = {
         "format_version": FORMAT_VERSION,
         "class_name": config.class_name,
         "split": config.split,
@@ -211,6 +235,13 @@ def shard_attrs(config: GenerationConfig, objects: range) -> dict:
         "sampling_table": config.table.to_json(),
         "package_version": __version__,
     }
+    # Options added after the paper's setting: recorded only when used (a default shard's
+    # attributes, and bytes, are as they were).
+    if config.camera.intrinsics is not None:
+        attrs["intrinsics"] = config.camera.intrinsics
+    if config.camera.mount != "fixed":
+        attrs["camera_mount"] = json.dumps({"mount": config.camera.mount, **head_ranges()}, sort_keys=True)
+    return attrs
 
 
 def generate_shard(config: GenerationConfig, shard_index: int, split_dir: str | Path, progress=None) -> dict:

@@ -79,6 +79,9 @@ class ObjectSample:
     chirality: int
     q: np.ndarray  # (n_images, J)
     pose: dict  # x_m, y_m, z_m, yaw_rad
+    # Head camera (CameraConfig.mount "head"): (n_images, 3) height_m, pitch_rad, roll_rad of
+    # each image's camera (articulated_dataset.viewpoint), set by the pipeline; None: fixed.
+    views: np.ndarray | None = None
 
     def template_mappings(self, table: SamplingTable) -> dict[str, str]:
         """Xacro arguments of the class template (all as strings, SI units)."""

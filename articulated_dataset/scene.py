@@ -46,13 +46,56 @@ def build_model(urdf_xml: str, pose: dict, camera: CameraConfig, base_link: str 
     # No multisampling: segmentation rendering disables it anyway (identical pixels), and
     # resolving a 4x offscreen buffer on every read-back cost 40% of the frame time.
     spec.visual.quality.offsamples = 0
-    spec.worldbody.add_camera(name=CAMERA_NAME, pos=[0.0, 0.0, 0.0], xyaxes=list(CAMERA_XYAXES), fovy=camera.vfov_deg)
+    cam = spec.worldbody.add_camera(name=CAMERA_NAME, pos=[0.0, 0.0, 0.0], xyaxes=list(CAMERA_XYAXES), fovy=camera.vfov_deg)
+    if camera.intrinsics is not None:
+        _set_intrinsics(cam, camera)
     spec.worldbody.add_light(name="key", pos=[0.0, 0.5, 1.0], dir=[1.0, -0.3, -0.6], type=int(mujoco.mjtLightType.mjLIGHT_DIRECTIONAL))
     frame = spec.worldbody.add_frame(
         pos=[pose["x_m"], pose["y_m"], pose["z_m"]], quat=list(yaw_quaternion(pose["yaw_rad"]))
     )
     frame.attach_body(base, OBJECT_PREFIX, "")
     return spec.compile()
+
+
+def _set_intrinsics(cam, camera: CameraConfig) -> None:
+    """Give MuJoCo's camera the matrix K of ``camera`` (any fx, fy, cx, cy): a sensor of
+    W x H length units (1 unit = 1 px), focal lengths fx, fy and the principal point's
+    offset from the sensor centre.  MuJoCo counts that offset with the opposite sign of
+    OpenCV's (cx - centre, cy - centre) in both axes (checked against projected points by
+    tests/test_robot_camera.py and every label test run with a preset)."""
+    W, H = camera.width_px, camera.height_px
+    fx, fy, cx, cy = camera.intrinsics_px
+    cam.resolution = [W, H]
+    cam.sensor_size = [float(W), float(H)]
+    cam.focal_length = [fx, fy]
+    cam.principal_length = [-(cx + 0.5 - W / 2.0), -(cy + 0.5 - H / 2.0)]
+
+
+#: The pose ``build_model`` is given when the object is then placed per image (head camera).
+ORIGIN_POSE = {"x_m": 0.0, "y_m": 0.0, "z_m": 0.0, "yaw_rad": 0.0}
+
+
+class ObjectPlacer:
+    """Moves a compiled object (built at :data:`ORIGIN_POSE`) to any pose in the camera
+    frame by setting its root body's position and orientation in the model; the next
+    :func:`set_configuration` updates every body, geom and label read from the model."""
+
+    def __init__(self, model: mujoco.MjModel, base_body: int):
+        if model.body_parentid[base_body] != 0:
+            raise ValueError("the object's base body must be a child of the world body")
+        self.model, self.body = model, base_body
+        self._pos = model.body_pos[base_body].copy()  # the root's own offset in the object frame
+        self._quat = model.body_quat[base_body].copy()
+
+    def place(self, T_camera_object: np.ndarray) -> None:
+        """Put the object frame at the 4x4 pose ``T_camera_object``."""
+        from .rotations import matrix_to_quat
+
+        R, t = T_camera_object[:3, :3], T_camera_object[:3, 3]
+        quat = np.empty(4)
+        mujoco.mju_mulQuat(quat, matrix_to_quat(R), self._quat)
+        self.model.body_pos[self.body] = t + R @ self._pos
+        self.model.body_quat[self.body] = quat
 
 
 def object_joint_ids(model: mujoco.MjModel, joint_names) -> np.ndarray:

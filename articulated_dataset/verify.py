@@ -20,8 +20,13 @@ or ``shard-NNNNN.h5``); nothing raises for bad data.  What is checked:
     normalised (within :data:`UNIT_TOL`); ``axis_pose`` position = ``axis_origin`` and its
     z axis = ``axis_direction``;
   - ``q``, the object position and ``object_yaw`` within the sampling table's limits (root
-    attribute ``sampling_table``); ``object_yaw`` = yaw of ``object_pose``;
-  - per-object labels identical over the object's images; ``object_index`` /
+    attribute ``sampling_table``); ``object_yaw`` = yaw of ``object_pose``; with a head
+    camera (root attribute ``camera_mount``), the camera's pitch and roll read from the
+    object's up axis within the head ranges and the object's level-frame pose within the
+    table (:func:`articulated_dataset.viewpoint.level_pose_from_camera`);
+  - ``K`` equal to the image size's paper camera, or its ``intrinsics`` preset;
+  - per-object labels identical over the object's images (only ``geometry`` with a head
+    camera, which moves per image); ``object_index`` /
     ``image_index`` in generation order; ``sample_id`` equal to
     :func:`articulated_dataset.sampling.sample_id` and unique over the split;
   - ``class`` = the shard's class; positive body dimensions; chirality 0 or 1.
@@ -54,6 +59,8 @@ from .errors import DataFormatError, UserError
 from .format import (FIELDS, K_DATASET, MANIFEST_NAME, MASK_BACKGROUND, MASK_FIRST_PART, R_DATASET, ROOT_ATTRS, TMP_SUFFIX,
                      check_h5_layout, check_version, find_split_dirs, resolve_shape, sha256_file, shard_name)
 from .format.discovery import SHARD_GLOB
+from .rotations import quat_to_matrix
+from .viewpoint import is_head_mount
 
 log = logging.getLogger(__name__)
 
@@ -499,12 +506,14 @@ def _check_camera(f: h5py.File, attrs: dict, W: int, H: int, p: list, real: bool
         _check_real_K(K, attrs, H, p)
         return
     try:
-        want = CameraConfig(W, H, float(attrs["vfov_deg"])).K
+        preset = attrs.get("intrinsics")  # present only for generate --intrinsics
+        want = CameraConfig(W, H, float(attrs["vfov_deg"]), intrinsics=None if preset is None else str(preset)).K
     except (KeyError, TypeError, ValueError):
-        p.append("cannot rebuild K: attributes image_width/image_height/vfov_deg invalid")
+        p.append("cannot rebuild K: attributes image_width/image_height/vfov_deg/intrinsics invalid")
         return
     if not np.allclose(K, want, rtol=K_RTOL, atol=0.0):
-        p.append(f"{K_DATASET} does not match image size {W}x{H} and vfov {attrs['vfov_deg']} deg")
+        what = f"intrinsics preset {preset}" if preset is not None else f"vfov {attrs['vfov_deg']} deg"
+        p.append(f"{K_DATASET} does not match image size {W}x{H} and {what}")
 
 
 def _check_real_K(K: np.ndarray, attrs: dict, H: int, p: list) -> None:
@@ -624,7 +633,11 @@ def _check_content(a: dict, attrs: dict, table, *, J: int, ipo: int, start: int,
         if bad.any():
             p.append(f"object_pose: quaternion not normalised in {_where(bad)}")
         if "object_yaw" in f64:
-            yaw = 2 * np.arctan2(quat[:, 3], quat[:, 0])
+            if is_head_mount(attrs):  # tilted: the heading of the object's x axis (labels.py)
+                R = quat_to_matrix(quat)
+                yaw = np.arctan2(R[:, 1, 0], R[:, 0, 0])
+            else:
+                yaw = 2 * np.arctan2(quat[:, 3], quat[:, 0])
             diff = np.abs(np.angle(np.exp(1j * (yaw - f64["object_yaw"]))))
             bad = diff > FRAME_TOL_RAD
             if bad.any():
@@ -762,6 +775,9 @@ def _check_limits(f64: dict, table, J: int, attrs: dict, p: list) -> None:
                 p.append(f"q[{j}]: outside the table's limits [{table.q[j][0]:.6g}, {table.q[j][1]:.6g}] in {_where(bad)}")
     elif "q" in f64:
         p.append(f"sampling_table has {len(table.q)} q ranges for {J} joints")
+    if "object_pose" in f64 and is_head_mount(attrs):
+        _check_head_limits(f64["object_pose"], table, p)
+        return
     if "object_pose" in f64:
         for axis, key in enumerate(("x_m", "y_m", "z_m")):
             lo, hi = table.pose[key]
@@ -775,6 +791,29 @@ def _check_limits(f64: dict, table, J: int, attrs: dict, p: list) -> None:
         bad = (v < lo - LIMIT_TOL) | (v > hi + LIMIT_TOL)
         if bad.any():
             p.append(f"object_yaw: outside the table's [{lo:.6g}, {hi:.6g}] rad in {_where(bad)}")
+
+
+def _check_head_limits(object_pose: np.ndarray, table, p: list) -> None:
+    """A head camera's images: the camera's pitch and roll (read from the object's up axis)
+    within the head ranges, and the object's pose in the level frame within the table (its
+    height relative to the camera also moves by up to half the camera-height range)."""
+    from .viewpoint import HEAD_HEIGHT_M, HEAD_PITCH_DEG, HEAD_ROLL_DEG, level_pose_from_camera
+
+    level = level_pose_from_camera(object_pose)
+    for key, (lo, hi) in (("pitch_rad", HEAD_PITCH_DEG), ("roll_rad", HEAD_ROLL_DEG)):
+        lo, hi = math.radians(lo), math.radians(hi)
+        bad = (level[key] < lo - LIMIT_TOL) | (level[key] > hi + LIMIT_TOL)
+        if bad.any():
+            p.append(f"object_pose: head camera {key[:-4]} outside [{math.degrees(lo):g}, {math.degrees(hi):g}] deg "
+                     f"in {_where(bad)}")
+    rise = 0.5 * (HEAD_HEIGHT_M[1] - HEAD_HEIGHT_M[0])
+    for key in ("x_m", "y_m", "z_m", "yaw_rad"):
+        lo, hi = table.pose[key]
+        if key == "z_m":
+            lo, hi = lo - rise, hi + rise
+        bad = (level[key] < lo - LIMIT_TOL) | (level[key] > hi + LIMIT_TOL)
+        if bad.any():
+            p.append(f"object_pose: level-frame {key} outside the table's [{lo:.6g}, {hi:.6g}] in {_where(bad)}")
 
 
 def _check_order(a: dict, attrs: dict, *, J: int, ipo: int, start: int, problems: list) -> None:
@@ -792,7 +831,8 @@ def _check_order(a: dict, attrs: dict, *, J: int, ipo: int, start: int, problems
         bad = a["image_index"] != img
         if bad.any():
             p.append(f"image_index: not in generation order in {_where(bad)}")
-    for name in PER_OBJECT_FIELDS:
+    # A head camera moves per image: only the object's own geometry is the same in all its images.
+    for name in (("geometry",) if is_head_mount(attrs) else PER_OBJECT_FIELDS):
         if name not in a or n == 0:
             continue
         v = a[name].reshape(n, -1)
@@ -906,15 +946,12 @@ def _map(tasks: list, workers: int, progress):
                 progress(1)
             yield out
         return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
+    from .executors import process_map
 
-    # spawn: h5py/HDF5 state is never shared through a fork.
-    with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=mp.get_context("spawn")) as pool:
-        for out in pool.map(_check_shard_task, tasks):
-            if progress is not None:
-                progress(1)
-            yield out
+    for out in process_map(_check_shard_task, tasks, min(workers, len(tasks)), ordered=True):
+        if progress is not None:
+            progress(1)
+        yield out
 
 
 def count_shards(split_dirs) -> int:

@@ -344,8 +344,9 @@ def preview_rgb(manifest: dict, object_index: int, image_indices, stored_depth: 
     from .labels import model_info
     from .pipeline import GenerationConfig, object_sample, render_object
     from .render import process_renderer
-    from .scene import build_model, set_configuration
+    from .scene import ORIGIN_POSE, ObjectPlacer, build_model, set_configuration
     from .templating import render_urdf
+    from .viewpoint import object_in_camera
     from matplotlib.colors import to_rgba
 
     try:
@@ -363,8 +364,10 @@ def preview_rgb(manifest: dict, object_index: int, image_indices, stored_depth: 
                             "may not match (data from another package version?)", config.class_name, object_index, i)
                 break
     urdf = render_urdf(obj_class.template_path(), sample.template_mappings(config.table))
-    model = build_model(urdf, sample.pose, config.camera, obj_class.base_link)
+    head = sample.views is not None  # a head camera: the object is placed in each image's camera frame
+    model = build_model(urdf, ORIGIN_POSE if head else sample.pose, config.camera, obj_class.base_link)
     info = model_info(model, obj_class)
+    placer = ObjectPlacer(model, info.base_body) if head else None
     for g in range(model.ngeom):
         part = int(info.geom_part[g])
         if part >= MASK_FIRST_PART:
@@ -376,6 +379,8 @@ def preview_rgb(manifest: dict, object_index: int, image_indices, stored_depth: 
     renderer.bind(model)
     out = {}
     for i in image_indices:
+        if placer is not None:
+            placer.place(object_in_camera(sample.pose, sample.views[i]))
         set_configuration(model, data, info.joint_ids, sample.q[i])
         out[i] = renderer.render_rgb(data)
     return out

@@ -11,8 +11,9 @@ from articulated_dataset.camera import CameraConfig, backproject
 from articulated_dataset.labels import MASK_FIRST_PART, model_info, read_object_labels
 from articulated_dataset.pipeline import GenerationConfig, object_sample, render_object
 from articulated_dataset.render import process_renderer
-from articulated_dataset.scene import build_model, set_configuration
+from articulated_dataset.scene import ORIGIN_POSE, ObjectPlacer, build_model, set_configuration
 from articulated_dataset.templating import render_urdf
+from articulated_dataset.viewpoint import object_in_camera
 
 
 def final_object(class_name: str, index: int = 0, camera: CameraConfig | None = None, split: str = "train"):
@@ -23,12 +24,23 @@ def final_object(class_name: str, index: int = 0, camera: CameraConfig | None = 
     return config, sample
 
 
-def compile_object(config, sample):
+def object_transform(sample, image: int = 0) -> np.ndarray:
+    """4x4 pose of the object's base in the camera frame of image ``image`` (the sampled
+    pose; with a head camera, seen from that image's camera)."""
+    return object_in_camera(sample.pose, None if sample.views is None else sample.views[image])
+
+
+def compile_object(config, sample, image: int = 0):
+    """Compile the object as the pipeline rendered image ``image`` (a head camera's object is
+    built at the origin and placed in that image's camera frame); labels read from the model."""
     obj_class = config.obj_class
     urdf = render_urdf(obj_class.template_path(), sample.template_mappings(config.table))
-    model = build_model(urdf, sample.pose, config.camera, obj_class.base_link)
+    head = sample.views is not None
+    model = build_model(urdf, ORIGIN_POSE if head else sample.pose, config.camera, obj_class.base_link)
     data = mujoco.MjData(model)
     info = model_info(model, obj_class)
+    if head:
+        ObjectPlacer(model, info.base_body).place(object_transform(sample, image))
     labels = read_object_labels(model, data, info, obj_class)
     return urdf, model, data, info, labels
 
@@ -54,10 +66,10 @@ def rotate_about_axis(points, origin, direction, angle_rad):
 
 
 def to_object_frame(points, pose):
-    """Camera-frame points -> object frame given the sampled pose (x_m, y_m, z_m, yaw_rad)."""
-    c, s = np.cos(pose["yaw_rad"]), np.sin(pose["yaw_rad"])
-    rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-    return (points - np.array([pose["x_m"], pose["y_m"], pose["z_m"]])) @ rot
+    """Camera-frame points -> object frame given the sampled pose (x_m, y_m, z_m, yaw_rad)
+    or a 4x4 pose of the object in the camera frame (:func:`object_transform`)."""
+    T = pose if isinstance(pose, np.ndarray) else object_in_camera(pose)
+    return (points - T[:3, 3]) @ T[:3, :3]
 
 
 def nearest_distances(a, b, chunk=2048):

@@ -1,6 +1,9 @@
 """Labels against rendered pixels, the sampled tables and an independent kinematics library.
 
-Every test runs over every registered class (and every joint of 2-DoF classes).
+Every test runs over every registered class (and every joint of 2-DoF classes), and with
+each camera of :data:`CAMERAS`: the paper's, a head camera with the D435 preset (tilted and
+rolled view, off-centre principal point) and the Azure Kinect preset squeezed to 192x108
+(non-square pixels, fx != fy).
 """
 
 import json
@@ -9,12 +12,13 @@ import numpy as np
 import pytest
 import yourdfpy
 
-from articulated_dataset.camera import project
+from articulated_dataset.camera import CameraConfig, project
 from articulated_dataset.labels import MASK_BODY, MASK_FIRST_PART
 from articulated_dataset.registry import PRISMATIC, all_classes
+from articulated_dataset.rotations import matrix_to_quat
 from articulated_dataset.shards import open_split
-from helpers_core import (compile_object, final_object, part_points, render_at, rotate_about_axis, surface_distances,
-                          to_object_frame)
+from helpers_core import (compile_object, final_object, object_transform, part_points, render_at, rotate_about_axis,
+                          surface_distances, to_object_frame)
 
 CLASSES = all_classes()
 JOINT_CASES = [(c, j) for c in CLASSES for j in range(c.n_joints)]
@@ -26,17 +30,31 @@ PANEL_M = 0.02
 #: at pixel centres.
 PLANE_TOL_M = 0.003
 MOTION_TOL_M = 0.005
+EXACT_TOL_M = 0.001
+
+
+CAMERAS = {
+    "paper": CameraConfig(),
+    "d435-head": CameraConfig(192, 108, intrinsics="d435", mount="head"),
+    "azure-192x108": CameraConfig(192, 108, intrinsics="azure-kinect"),
+}
 
 
 @pytest.fixture(scope="module")
-def objects():
-    cache = {}
+def _object_cache():
+    return {}
+
+
+@pytest.fixture(params=list(CAMERAS))
+def objects(request, _object_cache):
+    camera_key = request.param
 
     def get(name):
-        if name not in cache:
-            config, sample = final_object(name, index=1)
-            cache[name] = (config, sample) + compile_object(config, sample)
-        return cache[name]
+        key = (name, camera_key)
+        if key not in _object_cache:
+            config, sample = final_object(name, index=1, camera=CAMERAS[camera_key])
+            _object_cache[key] = (config, sample) + compile_object(config, sample)
+        return _object_cache[key]
 
     return get
 
@@ -70,7 +88,13 @@ def test_labelled_joint_motion_maps_q1_pixels_onto_q2_surface(objects, case):
     o, a, jtype = labels["axis_origin"][j], labels["axis_direction"][j], obj_class.joints[j].type
     residual = surface_distances(_move(p1, o, a, jtype, dq), d2, sel, K)
     assert len(residual) > 0.5 * len(p1)
-    assert np.median(residual) < MOTION_TOL_M
+    # At least 40% of the part's points land exactly (< 1 mm) on the rendered q2 surface; the
+    # rest are faces that one configuration hides and the other shows (the microwave's door
+    # beside its control panel, seen from above by a tilted head camera: 43%).  With the
+    # paper's level camera most faces stay visible: the median lands within 5 mm as well.
+    assert np.quantile(residual, 0.4) < EXACT_TOL_M
+    if config.camera == CameraConfig():
+        assert np.median(residual) < MOTION_TOL_M
     # Negative controls (the check can fail): an axis shifted by 10 cm, or moved twice as far.
     normal = np.cross(a, [0.3, 0.4, 0.5])
     wrong_motions = [_move(p1, o, a, jtype, 2 * dq)]
@@ -78,7 +102,7 @@ def test_labelled_joint_motion_maps_q1_pixels_onto_q2_surface(objects, case):
         wrong_motions.append(_move(p1, o + 0.10 * normal / np.linalg.norm(normal), a, jtype, dq))
     for wrong in wrong_motions:
         r = surface_distances(wrong, d2, sel, K)
-        assert len(r) < 0.5 * len(p1) or np.median(r) > MOTION_TOL_M
+        assert len(r) < 0.5 * len(p1) or (np.median(r) > MOTION_TOL_M and np.quantile(r, 0.4) > EXACT_TOL_M)
 
 
 @pytest.mark.parametrize("obj_class", CLASSES, ids=lambda c: c.name)
@@ -88,7 +112,7 @@ def test_closed_object_front_and_body_match_sampled_geometry_and_pose(objects, o
     depth, mask = render_at(config, model, data, info, np.zeros(obj_class.n_joints))
     front_x = -d / 2 - PANEL_M  # the closed doors'/drawer's outer face, object frame
     for j in range(obj_class.n_joints):
-        p = to_object_frame(part_points(config, depth, mask, j), sample.pose)
+        p = to_object_frame(part_points(config, depth, mask, j), object_transform(sample))
         on_front = np.abs(p[:, 0] - front_x) < PLANE_TOL_M
         # handles stand proud of the face; everything else of a closed part lies on it
         assert on_front.mean() > 0.75
@@ -98,7 +122,7 @@ def test_closed_object_front_and_body_match_sampled_geometry_and_pose(objects, o
     # body pixels (any configuration) lie inside the sampled outer box
     q_open = np.array([r[1] for r in obj_class.table.q])
     depth, mask = render_at(config, model, data, info, q_open)
-    body = to_object_frame(part_points(config, depth, mask, -1), sample.pose)  # mask value 1 = MASK_BODY
+    body = to_object_frame(part_points(config, depth, mask, -1), object_transform(sample))  # mask value 1 = MASK_BODY
     assert MASK_FIRST_PART - 1 == MASK_BODY and len(body) > 30
     lo = np.array([-d / 2, -w / 2, 0.0]) - PLANE_TOL_M
     hi = np.array([d / 2, w / 2, h]) + PLANE_TOL_M
@@ -111,8 +135,12 @@ def test_geometry_and_pose_labels_read_from_model_equal_the_sample(objects, obj_
     g = labels["geometry"]
     assert g[:3] == pytest.approx([sample.geometry["depth_m"], sample.geometry["width_m"], sample.geometry["height_m"]], abs=1e-6)
     assert g[3] == (sample.chirality if obj_class.sided else 0)
-    assert labels["object_pose"][:3] == pytest.approx([sample.pose["x_m"], sample.pose["y_m"], sample.pose["z_m"]], abs=1e-9)
-    assert labels["object_yaw"] == pytest.approx(sample.pose["yaw_rad"], abs=1e-9)
+    T = object_transform(sample)  # the sampled pose (head camera: seen from image 0's camera)
+    assert labels["object_pose"][:3] == pytest.approx(T[:3, 3], abs=1e-9)
+    assert np.abs(labels["object_pose"][3:] @ matrix_to_quat(T[:3, :3])) == pytest.approx(1.0, abs=1e-9)
+    assert labels["object_yaw"] == pytest.approx(np.arctan2(T[1, 0], T[0, 0]), abs=1e-9)
+    if sample.views is None:
+        assert labels["object_yaw"] == pytest.approx(sample.pose["yaw_rad"], abs=1e-9)
 
 
 def _panel_box(model, data, info, j, direction, prismatic):
@@ -166,7 +194,8 @@ def test_axis_frame_and_part_offset_conventions(objects, obj_class):
         assert np.allclose(pose[:3], labels["axis_origin"][j])
         off = labels["part_offset"][j]
         if obj_class.joints[j].type == PRISMATIC:
-            assert rot[:, 0] @ np.array([0, 0, 1.0]) == pytest.approx(1.0, abs=1e-9)  # x = up
+            up = object_transform(sample)[:3, 2]  # the object's up axis ([0, 0, 1] for the paper's camera)
+            assert rot[:, 0] @ up == pytest.approx(1.0, abs=1e-9)  # x = up
         else:
             # door centre sits on the axis frame's x axis, at half the door's width
             assert abs(off[1]) < 1e-9 and abs(off[2]) < 1e-9 and off[0] > 0.05
@@ -180,10 +209,7 @@ def test_yourdfpy_forward_kinematics_agrees_with_mujoco(objects, obj_class, tmp_
     path.write_text(urdf)
     robot = yourdfpy.URDF.load(str(path), build_scene_graph=True, load_meshes=False)
     assert robot.validate()
-    c, s = np.cos(sample.pose["yaw_rad"]), np.sin(sample.pose["yaw_rad"])
-    world_T_base = np.eye(4)
-    world_T_base[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
-    world_T_base[:3, 3] = [sample.pose["x_m"], sample.pose["y_m"], sample.pose["z_m"]]
+    world_T_base = object_transform(sample)
     q = np.array([0.5 * (r[0] + r[1]) for r in obj_class.table.q])
     robot.update_cfg({spec.name: float(q[j]) for j, spec in enumerate(obj_class.joints)})
     render_at(config, model, data, info, q)

@@ -9,12 +9,13 @@ import time
 
 import click
 
-from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, KINECT_V2_VFOV_DEG, CameraConfig
+from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, INTRINSICS_PRESETS, KINECT_V2_VFOV_DEG, CameraConfig, parse_resolution
 from ..errors import UserError
 from ..executors import EXECUTORS, get_executor
 from ..pipeline import DEFAULT_IMAGES_PER_OBJECT, DEFAULT_OBJECTS_PER_SHARD, DEFAULT_SEED, GenerationConfig, generate_split
 from ..registry import class_names, get_class
 from ..tables import load_table_file
+from ..viewpoint import CAMERA_MOUNTS
 
 
 class _NoiseChoice(click.ParamType):
@@ -59,6 +60,32 @@ def _split_names(text: str | None) -> list[str] | None:
     return names
 
 
+def camera_from_options(width: int | None, height: int | None, resolution: str | None, vfov: float | None,
+                        intrinsics: str | None, mount: str = "fixed") -> CameraConfig:
+    """The camera of ``--width/--height`` or ``--resolution``, ``--vfov`` or ``--intrinsics``
+    and ``--camera``; contradictions and impossible values are one-line UserErrors."""
+    if resolution is not None:
+        if width is not None or height is not None:
+            raise UserError("give either --resolution or --width/--height, not both")
+        width, height = parse_resolution(resolution)
+    if intrinsics is not None:
+        if vfov is not None:
+            raise UserError("--vfov is for the paper's camera; --intrinsics gives the sensor's own field of view")
+        native = INTRINSICS_PRESETS[intrinsics]
+        width = native.width_px if width is None else width
+        height = native.height_px if height is None else height
+    width = DEFAULT_WIDTH_PX if width is None else width
+    height = DEFAULT_HEIGHT_PX if height is None else height
+    for name, px in (("--width", width), ("--height", height)):
+        if px > MAX_IMAGE_SIDE_PX:
+            name = "--resolution" if resolution is not None else name
+            raise UserError(f"{name} {px} px is larger than the renderer's largest image side ({MAX_IMAGE_SIDE_PX} px)")
+    try:
+        return CameraConfig(width, height, KINECT_V2_VFOV_DEG if vfov is None else vfov, intrinsics=intrinsics, mount=mount)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
 class _ClassChoice(click.ParamType):
     """Class names from the registry (validated lazily so --help lists them)."""
 
@@ -94,9 +121,14 @@ class _ClassChoice(click.ParamType):
 @click.option("--seed", type=int, default=DEFAULT_SEED, show_default=True, help="Dataset seed (object k depends only on seed, class, split, k).")
 @click.option("--images", "images_per_object", type=int, default=DEFAULT_IMAGES_PER_OBJECT, show_default=True, help="Images (configurations) per object.")
 @click.option("--objects-per-shard", type=int, default=DEFAULT_OBJECTS_PER_SHARD, show_default=True)
-@click.option("--width", type=int, default=DEFAULT_WIDTH_PX, show_default=True, help="Image width (px).")
-@click.option("--height", type=int, default=DEFAULT_HEIGHT_PX, show_default=True, help="Image height (px).")
-@click.option("--vfov", type=float, default=KINECT_V2_VFOV_DEG, show_default=True, help="Vertical field of view (deg).")
+@click.option("--width", type=int, default=None, help=f"Image width (px)  [default: {DEFAULT_WIDTH_PX}, or the --intrinsics sensor's]")
+@click.option("--height", type=int, default=None, help=f"Image height (px)  [default: {DEFAULT_HEIGHT_PX}, or the --intrinsics sensor's]")
+@click.option("--resolution", default=None, metavar="WxH", help="Image size in pixels, e.g. 640x480 (instead of --width/--height).")
+@click.option("--vfov", type=float, default=None, help=f"Vertical field of view (deg) of the paper's camera  [default: {KINECT_V2_VFOV_DEG}]")
+@click.option("--intrinsics", type=click.Choice(list(INTRINSICS_PRESETS)), default=None,
+              help="A depth sensor's intrinsics (fx, fy, cx, cy), scaled to the image size (default: the paper's camera).")
+@click.option("--camera", "camera_mount", type=click.Choice(list(CAMERA_MOUNTS)), default="fixed", show_default=True,
+              help="fixed: the paper's level camera; head: a mobile manipulator's head camera (height, pitch, roll per image).")
 @click.option("--table", "table_file", type=click.Path(dir_okay=False), default=None, help="JSON/TOML file overriding (part of) the class's sampling table.")
 @click.option("--workers", type=int, default=None,
               help="Worker processes (default: all cores); with --executor ray: most shard tasks in flight (default: 1024).")
@@ -110,16 +142,10 @@ class _ClassChoice(click.ParamType):
 @click.option("--mean", "mean_object", is_flag=True, help="Render the class's mean object (centre of every range) into OUT/<class>/mean/.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missing_meshes, urdf_scale, urdf_mesh_root,
-                 n_objects, split, out_root, seed, images_per_object, objects_per_shard, width, height, vfov, table_file,
-                 workers, executor, address, noise, resume, overwrite, mean_object, quiet):
+                 n_objects, split, out_root, seed, images_per_object, objects_per_shard, width, height, resolution, vfov,
+                 intrinsics, camera_mount, table_file, workers, executor, address, noise, resume, overwrite, mean_object, quiet):
     """Generate labelled depth images of one object class (or one URDF object) into HDF5 shards."""
-    for name, px in (("--width", width), ("--height", height)):
-        if px > MAX_IMAGE_SIDE_PX:
-            raise UserError(f"{name} {px} px is larger than the renderer's largest image side ({MAX_IMAGE_SIDE_PX} px)")
-    try:
-        camera = CameraConfig(width, height, vfov)
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
+    camera = camera_from_options(width, height, resolution, vfov, intrinsics, camera_mount)
     third_party = None
     if urdf_path is not None:
         if class_name is not None:

@@ -91,6 +91,7 @@ class SplitConfig:
 
     def to_dict(self) -> dict:
         d = asdict(self)
+        d["camera"] = self.camera.to_dict()  # options beyond the paper's camera only when set
         d["table"] = self.table.to_dict()
         d["format_version"] = FORMAT_VERSION
         return d
