@@ -1,5 +1,9 @@
 """Executors: how shard tasks are run.  They wrap the pipeline's stages, never the reverse.
 
+:func:`process_map` is the package's one local process pool (generation, verify and the
+baselines use it): spawned workers that end with their parent, a bounded queue of lazily
+produced tasks, and a one-line error, not a hang, when a worker dies.
+
 An executor has one method, ``map_unordered(fn, tasks, progress=None)``, yielding
 ``fn(task)`` results in any order.  ``fn`` must be a picklable top-level function of one
 argument returning ``(shard_index, record)``; in-process executors may pass a
@@ -69,14 +73,68 @@ def _die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="artdata-parent-watch", daemon=True).start()
 
 
-def _worker_init(parent_pid: int) -> None:
+def _worker_init(parent_pid: int, initializer: Callable | None = None, initargs: tuple = ()) -> None:
     # One llvmpipe rasteriser thread per worker: the pool provides the parallelism.
     os.environ.setdefault("LP_NUM_THREADS", "1")
     _die_with_parent(parent_pid)
+    if initializer is not None:
+        initializer(*initargs)
+
+
+#: The one-line error when a worker of :func:`process_map` dies.
+WORKER_DIED = "a worker process died (killed or out of memory?)"
+
+
+def process_map(fn: Callable, tasks: Iterable, workers: int, *, ordered: bool = False,
+                initializer: Callable | None = None, initargs: tuple = (), died: str = WORKER_DIED) -> Iterator:
+    """``fn(task)`` for every task in ``workers`` local processes, yielded as they finish (in
+    the tasks' order if ``ordered``).
+
+    Workers are spawned (GL contexts and HDF5 state never cross a fork), run
+    ``initializer(*initargs)`` once, and end with the process that started them (killed
+    included).  At most ``workers * (1 + QUEUED_TASKS_PER_WORKER)`` tasks are submitted at a
+    time, so ``tasks`` may be a lazy iterable of any length.  concurrent.futures rather than
+    multiprocessing.Pool: a worker that dies (killed, out of memory, a crash in the GL driver)
+    breaks the pool, reported as the one-line :class:`UserError` ``died``, where Pool would
+    replace the worker and wait for its lost task forever.
+    """
+    from collections import deque
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
+
+    if workers < 1:
+        raise ValueError("workers must be >= 1")
+    queue = iter(tasks)
+    first = list(itertools.islice(queue, workers))
+    if not first:
+        return
+    pool = ProcessPoolExecutor(max_workers=len(first), mp_context=mp.get_context("spawn"),
+                               initializer=_worker_init, initargs=(os.getpid(), initializer, initargs))
+    limit = len(first) * (1 + QUEUED_TASKS_PER_WORKER)
+
+    def result(future):
+        try:
+            return future.result()
+        except BrokenProcessPool:  # not the input's fault, but one line is all there is to say
+            raise UserError(died) from None
+
+    try:
+        submitted = deque(pool.submit(fn, task) for task in first)
+        while submitted:
+            submitted.extend(pool.submit(fn, task) for task in itertools.islice(queue, limit - len(submitted)))
+            if ordered:
+                yield result(submitted.popleft())
+                continue
+            done, _ = wait(submitted, return_when=FIRST_COMPLETED)
+            for future in done:
+                submitted.remove(future)
+                yield result(future)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 class ProcessExecutor:
-    """Run tasks in ``workers`` local processes (spawned: GL contexts never cross a fork).
+    """Run tasks in ``workers`` local processes (:func:`process_map`).
 
     Workers end with the process that started them (killed included), so a killed
     ``generate`` leaves no process writing its split.
@@ -88,37 +146,12 @@ class ProcessExecutor:
         self.workers = workers
 
     def map_unordered(self, fn: Callable, tasks: Iterable, progress=None) -> Iterator:
-        # concurrent.futures rather than multiprocessing.Pool: a worker that dies (killed,
-        # out of memory, a crash in the GL driver) breaks the pool with an error, where
-        # Pool would replace the worker and wait for its lost task forever.
-        from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-        from concurrent.futures.process import BrokenProcessPool
-
-        queue = iter(tasks)
-        first = list(itertools.islice(queue, self.workers))
-        if not first:
-            return
-        pool = ProcessPoolExecutor(max_workers=len(first), mp_context=mp.get_context("spawn"),
-                                   initializer=_worker_init, initargs=(os.getpid(),))
-        limit = len(first) * (1 + QUEUED_TASKS_PER_WORKER)
-        try:
-            pending = {pool.submit(fn, task) for task in first}
-            while pending:
-                pending.update(pool.submit(fn, task) for task in itertools.islice(queue, limit - len(pending)))
-                done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                for future in done:
-                    try:
-                        result = future.result()
-                    except BrokenProcessPool:  # not the input's fault, but one line is all there is to say
-                        raise UserError(
-                            "a generation worker process died (killed or out of memory?); completed shards are kept, "
-                            "continue with --resume"
-                        ) from None
-                    if progress is not None:
-                        progress(result[1]["n_images"])
-                    yield result
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+        died = ("a generation worker process died (killed or out of memory?); completed shards are kept, "
+                "continue with --resume")
+        for result in process_map(fn, tasks, self.workers, died=died):
+            if progress is not None:
+                progress(result[1]["n_images"])
+            yield result
 
 
 def local_executor(workers: int):

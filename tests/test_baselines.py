@@ -298,3 +298,21 @@ def test_icp_image_without_object_pixels_gets_the_mean_model_labels(icp_objects)
     labels, fit = model.predict_image(depth, np.zeros(depth.shape, np.uint8), np.eye(3))
     assert fit is None
     np.testing.assert_array_equal(labels["axis_pose"], model.labels["axis_pose"][0])
+
+
+def test_worker_processes_give_the_serial_results(tiny_root, icp_objects, monkeypatch):
+    """NN features and ICP predictions through the process pool (executors.process_map) equal
+    the serial ones, in the same order."""
+    split = open_split_checked(tiny_root / "drawer" / "train", "train")
+    try:
+        assert len(split.shards) > 1
+        np.testing.assert_array_equal(nn.split_features(split, workers=2), nn.split_features(split, workers=1))
+    finally:
+        split.close()
+    model_dir, _, _ = icp_objects
+    monkeypatch.setattr(icp, "TASK_IMAGES", 1)  # one task per image: the pool's results are reordered
+    train, test = tiny_root / ICP_CLASS / "train", tiny_root / ICP_CLASS / "test"
+    serial = icp.predict(train, test, mean_dir=model_dir, workers=1, limit=3)
+    pooled = icp.predict(train, test, mean_dir=model_dir, workers=2, limit=3)
+    for k in LABELS + ("sample_id",):
+        np.testing.assert_array_equal(pooled.predictions[k], serial.predictions[k])

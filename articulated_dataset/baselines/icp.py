@@ -58,7 +58,6 @@ the paper.
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -66,6 +65,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import backproject
+from ..executors import process_map
 from ..format import MASK_BACKGROUND
 from ..rotations import matrix_to_quat
 from .common import BaselineResult, SplitInfo, check_compatible, open_split_checked
@@ -466,11 +466,10 @@ def predict(train_dir, test_dir, *, mean_dir=None, workers: int = 1, progress: b
                     results[off] = arrays
                     bar.update(len(arrays["q"]))
             else:
-                ctx = mp.get_context("spawn")
-                with ctx.Pool(min(workers, len(tasks)), initializer=_init_worker, initargs=(str(mean.path), yaw_range)) as pool:
-                    for off, arrays in pool.imap_unordered(_run_task, tasks):
-                        results[off] = arrays
-                        bar.update(len(arrays["q"]))
+                for off, arrays in process_map(_run_task, tasks, min(workers, len(tasks)), initializer=_init_worker,
+                                               initargs=(str(mean.path), yaw_range)):
+                    results[off] = arrays
+                    bar.update(len(arrays["q"]))
         finally:
             bar.close()
             _WORKER_MODEL = None

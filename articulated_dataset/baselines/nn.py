@@ -38,12 +38,12 @@ best is kept.  Usually a handful of pairs per query pass (near-duplicates pass t
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
 import time
 
 import numpy as np
 
 from ..errors import UserError
+from ..executors import process_map
 from .common import BaselineResult, check_compatible, open_split_checked
 
 log = logging.getLogger(__name__)
@@ -149,11 +149,10 @@ def split_features(split, block_px: int = BLOCK_PX, normalization: str = DEFAULT
                 out.append(_shard_features(t))
                 bar.update()
         else:
-            with mp.get_context("spawn").Pool(min(workers, len(tasks))) as pool:
-                out = []
-                for f in pool.imap(_shard_features, tasks):
-                    out.append(f)
-                    bar.update()
+            out = []
+            for f in process_map(_shard_features, tasks, min(workers, len(tasks)), ordered=True):
+                out.append(f)
+                bar.update()
     finally:
         bar.close()
     return np.concatenate(out, axis=0)
