@@ -69,7 +69,7 @@ INTRINSICS_PRESETS: dict[str, CameraCalibration] = {
                               "Intel RealSense D435 depth stream 1280x720, librealsense rs2_intrinsics"),
     # Azure Kinect DK depth camera, NFOV unbinned mode 640x576: k4a_calibration_t
     # depth_camera_calibration intrinsics of one unit (Azure Kinect Sensor SDK); field of
-    # view 65 x 59 deg of the full rectangle (Microsoft's hardware specification gives the
+    # view 64.8 x 59.3 deg of the full rectangle (Microsoft's hardware specification gives the
     # NFOV mode's hexagonal field as 75 x 65 deg).
     "azure-kinect": CameraCalibration(640, 576, 503.928, 503.979, 332.064, 325.881,
                                       "Azure Kinect DK depth camera NFOV unbinned 640x576, Azure Kinect Sensor SDK calibration"),

@@ -8,6 +8,11 @@ Whole machine (``--workers N``): the same two rates with N processes, measured i
 
     python benchmarks/generation.py                      # all classes, 48 objects each, workers 1 and 2
     python benchmarks/generation.py --objects 128 --workers 2
+    python benchmarks/generation.py --objects 8 --workers --option-objects 24   # + options only
+
+Generation options beside the default (issue 18, one process, ``--option-objects`` per class):
+end-to-end images/s with ``--camera head`` and with ``--intrinsics kinect2`` at the default
+size, each next to the paper's setting measured in the same run (a figure, not a target).
 
 Targets (issue 2/3): end to end >= 60% of the bare rate; < 4 KB per image; whole machine
 >= 1,000 images/s on 2 cores.
@@ -78,13 +83,21 @@ def _one_raster_thread() -> None:
     os.environ.setdefault("LP_NUM_THREADS", "1")
 
 
-def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: Path) -> tuple[int, float, int, float]:
-    """(images, seconds, bytes, mean pose draws per object) of one generate_split run."""
+#: Generation options timed beside the default: name -> CameraConfig keyword arguments.
+OPTIONS = {"default": {}, "--camera head": {"mount": "head"}, "--intrinsics kinect2": {"intrinsics": "kinect2"}}
+
+
+def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: Path,
+                camera: dict | None = None) -> tuple[int, float, int, float]:
+    """(images, seconds, bytes, mean pose draws per object) of one generate_split run
+    (``camera``: CameraConfig keyword arguments besides the default image size)."""
+    from articulated_dataset.camera import CameraConfig
     from articulated_dataset.pipeline import DEFAULT_OBJECTS_PER_SHARD, GenerationConfig, generate_split
     from articulated_dataset.shards import read_manifest
 
     per_shard = min(DEFAULT_OBJECTS_PER_SHARD, max(1, n_objects // max(workers, 1) // 2))
-    config = GenerationConfig(class_name, n_objects=n_objects, seed=seed, objects_per_shard=per_shard)
+    config = GenerationConfig(class_name, n_objects=n_objects, seed=seed, objects_per_shard=per_shard,
+                              camera=CameraConfig(**(camera or {})))
     t0 = time.perf_counter()
     split = generate_split(config, out, workers=workers, overwrite=True)
     seconds = time.perf_counter() - t0
@@ -104,6 +117,8 @@ def main() -> None:
     ap.add_argument("--workers", type=int, nargs="*", default=[2], help="whole-machine runs with these worker counts")
     ap.add_argument("--machine-objects", type=int, default=256,
                     help="objects per class in the whole-machine runs (start-up of the worker processes included)")
+    ap.add_argument("--option-objects", type=int, default=24,
+                    help="objects per class for the generation options beside the default (0: skip)")
     ap.add_argument("--seed", type=int, default=1234)
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = ap.parse_args()
@@ -120,6 +135,19 @@ def main() -> None:
             results["per_class"][name] = {"e2e_img_s": e2e, "bare_img_s": bare, "ratio": e2e / bare,
                                           "bytes_per_img": nbytes / n, "pose_draws_per_object": attempts}
             print(f"{name:14s} {e2e:10.0f} {bare:11.0f} {e2e / bare:6.2f} {nbytes / n:10.0f} {attempts:15.2f}")
+        if args.option_objects > 0:
+            results["options"] = {}
+            print(f"\nend to end, 1 process, {args.option_objects} objects per class (img/s; pose draws/object):")
+            print(f"{'class':14s} " + " ".join(f"{k:>24s}" for k in OPTIONS))
+            for name in classes:
+                row = {}
+                for label, camera in OPTIONS.items():
+                    n, sec, nbytes, attempts = _end_to_end(name, args.option_objects, args.seed, 1, Path(tmp) / "options",
+                                                           camera)
+                    row[label] = {"e2e_img_s": n / sec, "bytes_per_img": nbytes / n, "pose_draws_per_object": attempts}
+                results["options"][name] = row
+                print(f"{name:14s} " + " ".join(f"{v['e2e_img_s']:>16.0f} ({v['pose_draws_per_object']:4.2f})"
+                                                 for v in row.values()))
         for w in args.workers:
             ctx = mp.get_context("spawn")
             tot_n = tot_sec = 0.0
