@@ -33,6 +33,7 @@ from .format.schema import MASK_BACKGROUND, MASK_BODY, MASK_FIRST_PART, visible_
 from .registry import PRISMATIC, ObjectClass
 from .rotations import matrix_to_quat
 from .scene import OBJECT_PREFIX, object_joint_ids, set_configuration
+from .units import normalise
 
 HANDLE_SUFFIX = "_handle"
 
@@ -123,11 +124,9 @@ def _box_in_frame(points_world: np.ndarray, pos: np.ndarray, rot: np.ndarray) ->
     return local.min(axis=0), local.max(axis=0)
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v)
-    if n < 1e-12:
-        raise ValueError("degenerate axis frame: zero-length vector")
-    return v / n
+def _frame_unit(v: np.ndarray) -> np.ndarray:
+    """An axis-frame vector normalised; zero length is a bug (a degenerate model), not the user's."""
+    return normalise(v, min_norm=1e-12, what="degenerate axis frame: a vector", error=ValueError)
 
 
 mat_to_quat = matrix_to_quat  # quaternion (w, x, y, z), w >= 0, of a rotation matrix
@@ -152,16 +151,16 @@ def read_object_labels(model: mujoco.MjModel, data: mujoco.MjData, info: ModelIn
         pos, rot = data.xpos[part], data.xmat[part].reshape(3, 3)
         lo, hi = _box_in_frame(_geom_corners_world(model, data, geoms), pos, rot)
         centre = pos + rot @ (0.5 * (lo + hi))
-        anchor, a = data.xanchor[jid].copy(), _unit(data.xaxis[jid].copy())
+        anchor, a = data.xanchor[jid].copy(), _frame_unit(data.xaxis[jid].copy())
         if info.joint_types[j] == PRISMATIC:
             # leading face: extreme of the part's box along +a (axis expressed in part frame)
             a_local = rot.T @ a
             half = 0.5 * (hi - lo)
             origin = centre + a * float(np.abs(a_local) @ half)
-            x = _unit(up - (up @ a) * a)
+            x = _frame_unit(up - (up @ a) * a)
         else:
             origin = anchor + ((centre - anchor) @ a) * a
-            x = _unit(centre - origin)
+            x = _frame_unit(centre - origin)
         y = np.cross(a, x)
         r_axis = np.stack([x, y, a], axis=1)
         axis_origin[j], axis_direction[j] = origin, a

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import logging
 import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,6 +40,7 @@ from .labels import HANDLE_SUFFIX, ModelInfo, mat_to_quat, model_info, read_obje
 from .registry import JOINT_TYPES, PRISMATIC, REVOLUTE
 from .rotations import axis_angle_quat, quat_multiply, quat_to_matrix  # noqa: F401  (re-exported)
 from .scene import build_model, set_configuration
+from .units import format_q, normalise
 
 log = logging.getLogger(__name__)
 
@@ -183,12 +183,9 @@ def _vec(name: str, v, n: int) -> np.ndarray:
     return a
 
 
-def _unit(name: str, v) -> np.ndarray:
-    a = _vec(name, v, 3)
-    n = np.linalg.norm(a)
-    if n < ZERO_LENGTH:
-        raise UserError(f"{name} has zero length")
-    return a / n
+def _given_unit(name: str, v) -> np.ndarray:
+    """A 3-vector given by the user, finite and of nonzero length, normalised."""
+    return normalise(_vec(name, v, 3), min_norm=ZERO_LENGTH, what=name)
 
 
 def axis_frame(axis_pose) -> tuple[np.ndarray, np.ndarray]:
@@ -197,23 +194,6 @@ def axis_frame(axis_pose) -> tuple[np.ndarray, np.ndarray]:
     if np.linalg.norm(pose[3:]) < ZERO_LENGTH:
         raise UserError("axis_pose has a zero-length quaternion")
     return pose[:3].copy(), quat_to_matrix(pose[3:])
-
-
-def parse_quantity(text: str) -> tuple[float, str]:
-    """Parse ``"60deg"``, ``"1.2rad"``, ``"0.2m"``, ``"20cm"``, ``"150mm"``.
-
-    Returns ``(value in rad or m, joint type it applies to)``.  A malformed string is a
-    :class:`UserError`.
-    """
-    m = re.fullmatch(r"\s*([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)\s*(deg|rad|m|cm|mm)\s*", str(text))
-    if m is None:
-        raise UserError(f"cannot parse {text!r}: expected a number with a unit, e.g. 60deg, 1.0rad, 0.2m, 20cm")
-    value, unit = float(m.group(1)), m.group(2)
-    if not math.isfinite(value):
-        raise UserError(f"cannot use {text!r}: the number is too large to represent")
-    scale = {"deg": (math.pi / 180.0, REVOLUTE), "rad": (1.0, REVOLUTE),
-             "m": (1.0, PRISMATIC), "cm": (0.01, PRISMATIC), "mm": (0.001, PRISMATIC)}[unit]
-    return value * scale[0], scale[1]
 
 
 def default_target(joint_type: str) -> float:
@@ -226,11 +206,6 @@ def success_tolerance(joint_type: str) -> float:
     """Allowed |q_reached - q_target|: 5 deg in rad (revolute) or 0.02 m (prismatic)."""
     _check_joint_type(joint_type)
     return SUCCESS_TOL_RAD if joint_type == REVOLUTE else SUCCESS_TOL_M
-
-
-def format_q(value: float, joint_type: str) -> str:
-    """A configuration in display units: degrees (revolute) or centimetres (prismatic)."""
-    return f"{math.degrees(value):.2f} deg" if joint_type == REVOLUTE else f"{100.0 * value:.2f} cm"
 
 
 # --------------------------------------------------------------------------------------
@@ -280,7 +255,7 @@ def part_offset_from_geometry(geometry, axis_direction, joint_type: str) -> np.n
     """
     _check_joint_type(joint_type)
     g = _vec("geometry", geometry, 4)
-    a = _unit("axis_direction", axis_direction)
+    a = _given_unit("axis_direction", axis_direction)
     if joint_type == PRISMATIC:
         return np.array([0.0, 0.0, -0.5 * g[0]])
     vertical = abs(a[2]) >= math.cos(math.pi / 4)
@@ -297,7 +272,7 @@ def move_pose(pose, joint_type: str, axis_origin, axis_direction, delta: float) 
     _check_joint_type(joint_type)
     pose = _vec("pose", pose, 7)
     o = _vec("axis_origin", axis_origin, 3)
-    a = _unit("axis_direction", axis_direction)
+    a = _given_unit("axis_direction", axis_direction)
     out = pose.copy()
     if joint_type == PRISMATIC:
         out[:3] = pose[:3] + delta * a
@@ -369,7 +344,7 @@ def plan_waypoints(joint_type: str, axis_origin, axis_direction, q_current: floa
     """
     _check_joint_type(joint_type)
     o = _vec("axis_origin", axis_origin, 3)
-    a = _unit("axis_direction", axis_direction)
+    a = _given_unit("axis_direction", axis_direction)
     pose = _vec("grasp_pose", grasp_pose, 7)
     if np.linalg.norm(pose[3:]) < ZERO_LENGTH:
         raise UserError("grasp_pose has a zero-length quaternion")
@@ -635,7 +610,7 @@ class ExecutionResult:
             return f"missed the handle by {100 * self.grasp_error_m:.1f} cm"
         reasons = []
         if not self.reached:
-            reasons.append(f"reached {format_q(self.q_reached, self.joint_type)}, target {format_q(self.q_target, self.joint_type)}")
+            reasons.append(f"reached {format_q(self.q_reached, self.joint_type, 2)}, target {format_q(self.q_target, self.joint_type, 2)}")
         if self.max_force_n > MAX_FORCE_N:
             reasons.append(f"force {self.max_force_n:.0f} N > {MAX_FORCE_N:.0f} N")
         if self.max_torque_nm > MAX_TORQUE_NM:
@@ -1128,7 +1103,7 @@ def fuse_estimates(estimates: list[Estimate], source: str | None = None) -> Esti
 def joint_displacement(joint_type: str, axis_origin, axis_direction, p_from, p_to) -> float:
     """How far a point carried by the part moved from ``p_from`` to ``p_to`` in joint units:
     the signed angle about the axis line (revolute) or the distance along it (prismatic)."""
-    a = _unit("axis_direction", axis_direction)
+    a = _given_unit("axis_direction", axis_direction)
     if joint_type == PRISMATIC:
         return float((np.asarray(p_to) - np.asarray(p_from)) @ a)
     o = np.asarray(axis_origin, np.float64)
@@ -1169,7 +1144,7 @@ def look_at_viewpoint(point, normal, distance_m: float = HANDLE_LOOK_DISTANCE_M)
     """Camera pose ``(rot, trans)`` (camera -> reference frame; camera x forward, z up) at
     ``point + distance_m * normal`` looking back along ``-normal`` at ``point``, its up as close
     to the reference z (or, for a vertical normal, the reference x) as possible."""
-    n = _unit("normal", normal)
+    n = _given_unit("normal", normal)
     fwd = -n
     up = np.array([0.0, 0.0, 1.0]) if abs(fwd[2]) < math.cos(math.radians(10.0)) else np.array([1.0, 0.0, 0.0])
     up = up - (up @ fwd) * fwd

@@ -20,16 +20,13 @@ from __future__ import annotations
 import numpy as np
 
 from .rotations import quat_multiply, quat_to_matrix
+from .units import CM_PER_M, DEG_PER_RAD, normalise
 
 #: Version of the metric definitions, reported with every score (JSON ``metric_version``, CSV,
 #: table).  2: axis rotation error by headings (v1: twist of ``R_pred R_true^T``, which scored a
 #: mirrored door 0), mechanism side accuracy, OPD success requires the mechanism side, chirality
 #: accuracy excludes undefined truth, infinite NLL counted (issue 19).
 METRIC_VERSION = 2
-#: Centimetres per metre (errors are reported in cm).
-CM_PER_M = 100.0
-#: Degrees per radian.
-DEG_PER_RAD = 180.0 / np.pi
 #: OPD-style success thresholds (Jiang et al., "OPD", 2022): axis direction within 10 degrees ...
 OPD_MAX_DIRECTION_ERROR_DEG = 10.0
 #: ... and the predicted origin within 0.25 object diagonals of the true axis line.
@@ -162,12 +159,6 @@ def configuration_error(q_pred: np.ndarray, q_true: np.ndarray, prismatic: np.nd
 # Standard metrics of later work
 # --------------------------------------------------------------------------------------
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    v = np.asarray(v, np.float64)
-    n = np.sqrt(np.einsum("...i,...i->...", v, v))[..., None]
-    return v / np.where(n > 0, n, 1.0)
-
-
 def axis_direction_error_deg(dir_pred: np.ndarray, dir_true: np.ndarray) -> np.ndarray:
     """Folded axis direction angle ``min(theta, 180 - theta)`` in degrees, in ``[0, 90]``.
 
@@ -175,7 +166,7 @@ def axis_direction_error_deg(dir_pred: np.ndarray, dir_true: np.ndarray) -> np.n
     a flipped axis scores 0.  Computed as ``atan2(||d_pred x d_true||, |d_pred . d_true|)``
     (directions need not be unit), which is accurate near 0 and 90 degrees.
     """
-    a, b = _unit(dir_pred), _unit(dir_true)
+    a, b = normalise(dir_pred), normalise(dir_true)
     cross = np.cross(a, b)
     sin = np.sqrt(np.einsum("...i,...i->...", cross, cross))
     cos = np.abs(np.einsum("...i,...i->...", a, b))
@@ -185,7 +176,7 @@ def axis_direction_error_deg(dir_pred: np.ndarray, dir_true: np.ndarray) -> np.n
 def point_to_line_distance_cm(point_m: np.ndarray, origin_m: np.ndarray, direction: np.ndarray) -> np.ndarray:
     """Distance (cm) from ``point`` to the line ``origin + t * direction``: ``100 ||(p - o) x d_hat||``."""
     w = np.asarray(point_m, np.float64) - np.asarray(origin_m, np.float64)
-    c = np.cross(w, _unit(direction))
+    c = np.cross(w, normalise(direction))
     return CM_PER_M * np.sqrt(np.einsum("...i,...i->...", c, c))
 
 
@@ -196,7 +187,7 @@ def line_distance_cm(origin1_m: np.ndarray, dir1: np.ndarray, origin2_m: np.ndar
     perpendicular).  Parallel lines (``||d1_hat x d2_hat|| < PARALLEL_SIN_TOL``): the distance
     from a point of one line to the other, ``||(o2 - o1) x d1_hat||`` -- their separation, not 0.
     """
-    d1, d2 = _unit(dir1), _unit(dir2)
+    d1, d2 = normalise(dir1), normalise(dir2)
     w = np.asarray(origin2_m, np.float64) - np.asarray(origin1_m, np.float64)
     n = np.cross(d1, d2)
     n_norm = np.sqrt(np.einsum("...i,...i->...", n, n))

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import UserError
+from .units import MM_PER_M
 
 # --------------------------------------------------------------------------------------
 # Kinect v2 constants
@@ -75,8 +76,6 @@ KINECT2_RANDOM_HOLE_P = 0.01
 #: A jump between neighbouring pixels counts as a depth discontinuity when it exceeds what a
 #: surface seen at this incidence angle would give: |dz| > (z / f) tan(angle) (per pixel).
 EDGE_MAX_SURFACE_ANGLE_DEG = 85.0
-
-MM_PER_M = 1000.0
 
 
 def kinect2_axial_sigma_m(z_m: np.ndarray, theta_rad: np.ndarray | float = 0.0) -> np.ndarray:

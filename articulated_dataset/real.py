@@ -43,6 +43,7 @@ from .format import FIELDS, MASK_BODY, MASK_FIRST_PART, SplitConfig, visible_pix
 from .registry import get_class
 from .rotations import matrix_to_quat as mat_to_quat
 from .rotations import quat_to_matrix
+from .units import MM_PER_M, normalise
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +54,6 @@ MASK_SUFFIX = ".mask.png"
 LABELS_SUFFIX = ".labels.json"
 CAMERA_SUFFIX = ".camera"  # <stem>.camera.json / .yaml: per-capture intrinsics
 CAMERA_FILES = ("camera.json", "camera.yaml", "camera.yml")
-MM_PER_M = 1000.0
 #: Depths beyond this (m) are not plausible for an indoor sensor: a float image in metres with
 #: larger values is most likely in millimetres (refused; pass the units).
 MAX_PLAUSIBLE_DEPTH_M = 20.0
@@ -568,16 +568,16 @@ def _array(d: dict, key: str, shape: tuple, path: Path) -> np.ndarray | None:
     return a
 
 
-def _unit(v: np.ndarray, what: str, path: Path, tol: float | None = None) -> np.ndarray:
-    """``v`` (..., n) normalised; zero length (or, with ``tol``, a norm farther than ``tol``
-    from 1) is a :class:`UserError`."""
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    if (n < 1e-9).any():
-        raise UserError(f"{path}: {what} has a zero-length vector")
-    if tol is not None and (np.abs(n - 1.0) > tol).any():
-        raise UserError(f"{path}: {what} has norm {float(n.reshape(-1)[np.argmax(np.abs(n - 1.0))]):.4g}, "
-                        f"expected a unit quaternion (w, x, y, z)")
-    return v / n
+def _label_unit(v: np.ndarray, what: str, path: Path, tol: float | None = None) -> np.ndarray:
+    """``v`` (..., n) of a label file normalised row by row; zero length (or, with ``tol``, a
+    norm farther than ``tol`` from 1) is a :class:`UserError`."""
+    rows = normalise(v.reshape(-1, v.shape[-1]), min_norm=1e-9, what=f"{path}: {what}")
+    if tol is not None:
+        n = np.linalg.norm(v, axis=-1)
+        if (np.abs(n - 1.0) > tol).any():
+            raise UserError(f"{path}: {what} has norm {float(n.reshape(-1)[np.argmax(np.abs(n - 1.0))]):.4g}, "
+                            f"expected a unit quaternion (w, x, y, z)")
+    return rows.reshape(v.shape)
 
 
 def _wrap_angle(a: float) -> float:
@@ -700,12 +700,12 @@ def load_ground_truth(path: str | Path, n_joints: int, class_name: str | None = 
     origin = _array(d, "axis_origin", (J, 3), path)
     direction = _array(d, "axis_direction", (J, 3), path)
     if pose is not None:
-        quat = _unit(pose[:, 3:], "axis_pose quaternion", path, QUAT_NORM_TOL)
+        quat = _label_unit(pose[:, 3:], "axis_pose quaternion", path, QUAT_NORM_TOL)
         rots = np.stack([Rt @ quat_to_matrix(qq) for qq in quat])
         pos = pose[:, :3] @ Rt.T
         if origin is not None and np.abs(origin @ Rt.T - pos).max() > 1e-4:
             raise UserError(f"{path}: axis_origin disagrees with the position of axis_pose")
-        if direction is not None and np.abs(_unit(direction, "axis_direction", path) @ Rt.T - rots[:, :, 2]).max() > 1e-4:
+        if direction is not None and np.abs(_label_unit(direction, "axis_direction", path) @ Rt.T - rots[:, :, 2]).max() > 1e-4:
             raise UserError(f"{path}: axis_direction disagrees with the z axis of axis_pose")
         out["axis_pose"] = np.concatenate([pos, np.stack([mat_to_quat(r) for r in rots])], axis=1)
         out["axis_origin"], out["axis_direction"] = pos, rots[:, :, 2]
@@ -714,7 +714,7 @@ def load_ground_truth(path: str | Path, n_joints: int, class_name: str | None = 
             out["axis_origin"] = origin @ Rt.T
             out["axis_pose"][:, :3] = out["axis_origin"]
         if direction is not None:
-            a = _unit(direction, "axis_direction", path) @ Rt.T
+            a = _label_unit(direction, "axis_direction", path) @ Rt.T
             out["axis_direction"] = a
             out["axis_pose"][:, 3:] = np.stack([mat_to_quat(axis_frame_from_direction(aj)) for aj in a])
     offset = _array(d, "part_offset", (J, 3), path)
@@ -725,7 +725,7 @@ def load_ground_truth(path: str | Path, n_joints: int, class_name: str | None = 
         out["geometry"] = geometry
     obj_pose = _array(d, "object_pose", (7,), path)
     if obj_pose is not None:
-        r = Rt @ quat_to_matrix(_unit(obj_pose[3:], "object_pose quaternion", path, QUAT_NORM_TOL))
+        r = Rt @ quat_to_matrix(_label_unit(obj_pose[3:], "object_pose quaternion", path, QUAT_NORM_TOL))
         out["object_pose"] = np.concatenate([Rt @ obj_pose[:3], mat_to_quat(r)])
         out["object_yaw"] = np.array(math.atan2(r[1, 0], r[0, 0]))
     yaw = _array(d, "object_yaw", (), path)

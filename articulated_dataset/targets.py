@@ -35,6 +35,7 @@ import numpy as np
 
 from .errors import DataFormatError, UserError
 from .rotations import matrix_to_quat, quat_to_matrix
+from .units import normalise
 
 log = logging.getLogger(__name__)
 
@@ -58,11 +59,6 @@ _EPS = 1e-9
 # Rotation helpers (pure, vectorised over leading axes)
 # --------------------------------------------------------------------------------------
 
-def _normalise(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return v / np.maximum(n, _EPS), n[..., 0]
-
-
 def gram_schmidt(axis: np.ndarray, xaxis: np.ndarray) -> np.ndarray:
     """Rotation matrices (..., 3, 3) ``[x y z]`` from the 6-D representation (axis, xaxis).
 
@@ -72,15 +68,15 @@ def gram_schmidt(axis: np.ndarray, xaxis: np.ndarray) -> np.ndarray:
     """
     a = np.asarray(axis, dtype=np.float64)
     b = np.asarray(xaxis, dtype=np.float64)
-    z, nz = _normalise(a)
+    z, nz = normalise(a, min_norm=_EPS), np.linalg.norm(a, axis=-1)
     z = np.where((nz < _EPS)[..., None], np.array([0.0, 0.0, 1.0]), z)
     x_raw = b - np.sum(b * z, axis=-1, keepdims=True) * z
-    x, nx = _normalise(x_raw)
+    x, nx = normalise(x_raw, min_norm=_EPS), np.linalg.norm(x_raw, axis=-1)
     degenerate = nx < _EPS
     if np.any(degenerate):
         fallback = np.eye(3)[np.argmin(np.abs(z), axis=-1)]
         fb = fallback - np.sum(fallback * z, axis=-1, keepdims=True) * z
-        x = np.where(degenerate[..., None], _normalise(fb)[0], x)
+        x = np.where(degenerate[..., None], normalise(fb), x)
     y = np.cross(z, x)
     return np.stack([x, y, z], axis=-1)
 

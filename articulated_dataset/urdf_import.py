@@ -69,6 +69,7 @@ from .errors import UserError
 from .registry import PRISMATIC, REVOLUTE, JointSpec, ObjectClass, class_names
 from .format import MAX_CLASS_NAME_CHARS, is_class_name
 from .tables import SamplingTable
+from .units import normalise
 
 log = logging.getLogger(__name__)
 
@@ -653,10 +654,7 @@ MIN_AXIS_NORM = 1e-9
 def _unit_axis(joint, path: Path) -> np.ndarray:
     """The joint's unit axis (URDF default ``1 0 0``)."""
     axis = np.array([1.0, 0.0, 0.0]) if joint.axis is None else np.asarray(joint.axis, float)
-    norm = float(np.linalg.norm(axis))
-    if not np.isfinite(norm) or norm < MIN_AXIS_NORM:
-        raise UserError(f"joint {joint.name!r} of {path} has a zero or invalid <axis xyz>")
-    return axis / norm
+    return normalise(axis, min_norm=MIN_AXIS_NORM, what=f"{path}: <axis xyz> of joint {joint.name!r}")
 
 
 def _processed_robot(parsed: _Parsed, plans: list[_JointPlan], mesh_files: dict):

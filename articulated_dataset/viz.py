@@ -43,6 +43,7 @@ import numpy as np
 from .camera import backproject, project
 from .errors import DataFormatError, UserError
 from .format import MASK_BACKGROUND, MASK_FIRST_PART, PRISMATIC, Shard, Split
+from .units import format_q
 
 log = logging.getLogger(__name__)
 
@@ -112,9 +113,6 @@ CAPTION_GAP_IN = 0.03
 #: colours are mixed with.
 BODY_RGBA = (0.72, 0.70, 0.66, 1.0)
 PART_TINT_WHITE = 0.35
-#: Radians to degrees / metres to centimetres for the q read-out.
-DEG_PER_RAD = 180.0 / math.pi
-CM_PER_M = 100.0
 
 
 def joint_colour(j: int) -> str:
@@ -200,18 +198,6 @@ def axis_segment_m(joint_type: str, origin: np.ndarray, direction: np.ndarray, *
             return np.stack([origin + (lo - margin) * a, origin + (hi + margin) * a]), origin[None]
     length = AXIS_LENGTH_FRACTION * body_extent_m if math.isfinite(body_extent_m) else DEFAULT_AXIS_LENGTH_M
     return np.stack([origin - 0.5 * length * a, origin + 0.5 * length * a]), origin[None]
-
-
-#: Caption of a q that is not labelled (NaN: a real capture without it).
-NO_LABEL_TEXT = "no label"
-
-
-def format_q(joint_type: str, q: float) -> str:
-    """q for people: degrees for revolute joints, centimetres for prismatic ones
-    (:data:`NO_LABEL_TEXT` for NaN, a real capture without it)."""
-    if not math.isfinite(q):
-        return NO_LABEL_TEXT
-    return f"{q * CM_PER_M:.1f} cm" if joint_type == PRISMATIC else f"{q * DEG_PER_RAD:.1f}\u00b0"
 
 
 # --------------------------------------------------------------------------------------
@@ -547,12 +533,12 @@ def _fig_text(fig, x, y, text, **kw):
 
 def _draw_caption(fig, s: dict, view: SplitView, fit: TextFitter, *, left_in, top_in, fig_w_in, fig_h_in) -> None:
     """q of each joint, one line per joint below the panel: a bullet in the joint's colour,
-    the joint name and q (degrees or centimetres; :data:`NO_LABEL_TEXT` where not labelled).
+    the joint name and q (degrees or centimetres; :data:`~.units.NO_LABEL_TEXT` where not labelled).
     A name too long for the room left of q is drawn smaller (down to :data:`MIN_CAPTION_PT`),
     then shortened with an ellipsis."""
     for j, (name, jtype) in enumerate(zip(view.joint_names, view.joint_types)):
         y = (top_in - (j + 0.5) * CAPTION_LINE_IN) / fig_h_in
-        q_text = format_q(jtype, float(s["q"][j]))
+        q_text = format_q(float(s["q"][j]), jtype)
         room = PANEL_WIDTH_IN - CAPTION_NAME_IN - CAPTION_GAP_NAME_Q_IN - fit.width_in(q_text, CAPTION_PT, "bold")
         size = max(fit.fit_size(name, CAPTION_PT, room), MIN_CAPTION_PT)
         while len(name) > 1 and fit.width_in(name, size) > TEXT_FIT_FRACTION * room:

@@ -444,7 +444,7 @@ INGEST_CASES: dict[str, tuple[Callable[[Env], list], str]] = {
            ("chirality", lambda e: {"geometry": [0.5, 0.6, 0.7, 0.5]}, "chirality"),
            ("object-far", lambda e: {"object_pose": [500.0, 0, 0, 1, 0, 0, 0]}, "20 m"),
            ("quaternion-norm", lambda e: {"object_pose": [1.5, 0, 0, 5, 0, 0, 0]}, "unit quaternion"),
-           ("quaternion-zero", lambda e: {"axis_pose": [[1.5, 0, 0, 0, 0, 0, 0]]}, "zero-length"),
+           ("quaternion-zero", lambda e: {"axis_pose": [[1.5, 0, 0, 0, 0, 0, 0]]}, "zero length"),
            ("yaw-text", lambda e: {"object_yaw": "abc"}, "numbers"),
            ("yaw-disagrees", lambda e: {"object_pose": [1.5, 0, 0, 1, 0, 0, 0], "object_yaw": 1.0}, "disagrees"),
            ("origin-far", lambda e: {"axis_origin": [[0, 0, 1e6]]}, "20 m"),

@@ -16,6 +16,7 @@ from articulated_dataset import manipulation as M
 from articulated_dataset.cli import main
 from articulated_dataset.errors import UserError
 from articulated_dataset.registry import PRISMATIC, REVOLUTE, all_classes
+from articulated_dataset.units import parse_quantity
 from articulated_dataset.rotations import quat_to_matrix
 from articulated_dataset.scene import set_configuration
 
@@ -120,14 +121,14 @@ def test_plan_waypoints_bad_inputs(kwargs, match):
     ("20cm", 0.2, PRISMATIC), (" 150 mm ", 0.15, PRISMATIC), ("-5deg", math.radians(-5), REVOLUTE),
 ])
 def test_parse_quantity(text, value, kind):
-    v, k = M.parse_quantity(text)
+    v, k = parse_quantity(text)
     assert v == pytest.approx(value) and k == kind
 
 
 @pytest.mark.parametrize("text", ["60", "deg", "60 degrees", "1e", "20 cm cm"])
 def test_parse_quantity_rejects(text):
     with pytest.raises(UserError, match="cannot parse"):
-        M.parse_quantity(text)
+        parse_quantity(text)
 
 
 # --------------------------------------------------------------------------------------

@@ -15,8 +15,9 @@ from articulated_dataset.camera import project
 from articulated_dataset.cli import main
 from articulated_dataset.registry import PRISMATIC, REVOLUTE
 from articulated_dataset.viz import (BACKGROUND_RGB, DEFAULT_DPI, SplitView, axis_segment_m, depth_to_rgb,
-                                     extent_along, format_q, gallery_size_px, joint_colour, make_gallery,
+                                     extent_along, gallery_size_px, joint_colour, make_gallery,
                                      legend_lines, preview_rgb, select_samples)
+from articulated_dataset.units import format_q
 from helpers_real import ingest_uneven_cabinet2
 
 #: Max per-channel difference between a drawn colour and the PNG's pixel (8-bit rounding
@@ -132,7 +133,7 @@ def test_axis_geometry_hand_worked():
     yaw90 = np.array([np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)])
     assert extent_along(np.array([1.0, 0, 0]), yaw90, np.array([0.5, 1.0, 2.0])) == pytest.approx(1.0)
     assert extent_along(np.array([0, 0, 1.0]), yaw90, np.array([0.5, 1.0, 2.0])) == pytest.approx(2.0)
-    assert format_q(REVOLUTE, np.pi / 4) == "45.0\u00b0" and format_q(PRISMATIC, 0.234) == "23.4 cm"
+    assert format_q(np.pi / 4, REVOLUTE) == "45.0 deg" and format_q(0.234, PRISMATIC) == "23.4 cm"
 
 
 def test_depth_colours():

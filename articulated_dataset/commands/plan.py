@@ -10,6 +10,7 @@ import click
 import numpy as np
 
 from ..errors import UserError
+from ..units import format_q, parse_quantity
 
 
 def _fmt_vec(v, digits: int = 4) -> str:
@@ -122,7 +123,7 @@ def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, no_to
     joint_type = obj.joint_types[joint]
 
     def _quantity(text: str, option: str) -> float:
-        value, kind = M.parse_quantity(text)
+        value, kind = parse_quantity(text)
         if kind != joint_type:
             raise UserError(f"{option} {text!r} is a {kind} quantity but joint {joint} of {obj.class_name} is {joint_type}")
         return value
@@ -165,7 +166,7 @@ def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, no_to
 
     plan = M.plan_from_estimate(estimate, joint, joint_type, clipped,
                                 step_rad=step_value, step_m=step_value)
-    fq = lambda v: M.format_q(v, joint_type)  # noqa: E731
+    fq = lambda v: format_q(v, joint_type, 2)  # noqa: E731
     click.echo(f"{obj.class_name}/{manifest['split']} image {index} (object {int(labels['object_index'])}, "
                f"view {int(labels['image_index'])}, sample_id {sample_id}), joint {joint} ({joint_type}); "
                f"kinematics: {plan.source}")
