@@ -538,7 +538,7 @@ class _JointPlan:
 
 
 def _plan_joint(parsed: _Parsed, name: str) -> _JointPlan:
-    from .generators._common import REVOLUTE_Q_RAD
+    from .generators.common import REVOLUTE_Q_RAD
 
     joints = {j.name: j for j in parsed.robot.joints}
     if name not in joints:
@@ -780,7 +780,7 @@ def _geom_points(model, data, g: int) -> np.ndarray:
 def _build_class(definition: dict) -> tuple[ObjectClass, tuple[str, ...]]:
     import mujoco
 
-    from .generators._common import YAW_RAD
+    from .generators.common import YAW_RAD
     from .labels import MASK_BODY, MASK_FIRST_PART, model_info, read_object_labels
     from .scene import build_model
 

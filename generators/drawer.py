@@ -3,7 +3,7 @@
 from articulated_dataset.registry import PRISMATIC, JointSpec, ObjectClass, register
 from articulated_dataset.tables import SamplingTable
 
-from ._common import YAW_RAD
+from .common import YAW_RAD
 
 TABLE = SamplingTable(
     geometry={"depth_m": (0.45, 0.60), "width_m": (0.30, 0.76), "height_m": (0.10, 0.30)},

@@ -8,7 +8,7 @@ DATASHEET.md), and a table file can override it.
 from articulated_dataset.registry import REVOLUTE, JointSpec, ObjectClass, register
 from articulated_dataset.tables import SamplingTable
 
-from ._common import REVOLUTE_Q_RAD, YAW_RAD
+from .common import REVOLUTE_Q_RAD, YAW_RAD
 
 TABLE = SamplingTable(
     geometry={"depth_m": (0.60, 0.80), "width_m": (0.60, 0.90), "height_m": (0.82, 0.88)},

@@ -3,7 +3,7 @@
 from articulated_dataset.registry import REVOLUTE, JointSpec, ObjectClass, register
 from articulated_dataset.tables import SamplingTable
 
-from ._common import NEAR_POSE_M, REVOLUTE_Q_RAD, YAW_RAD
+from .common import NEAR_POSE_M, REVOLUTE_Q_RAD, YAW_RAD
 
 TABLE = SamplingTable(
     geometry={"depth_m": (0.20, 0.50), "width_m": (0.40, 0.60), "height_m": (0.20, 0.50)},

@@ -8,13 +8,12 @@ from pathlib import Path
 import click
 
 from ..errors import UserError
-from .generate import _ClassChoice
-from .train import _prepare_torch
+from .options import ClassChoice, prepare_torch
 
 
 @click.command("estimate")
 @click.argument("depth", type=click.Path(dir_okay=False))
-@click.option("--class", "class_name", type=_ClassChoice(), required=True, help="Object class of the object in view.")
+@click.option("--class", "class_name", type=ClassChoice(), required=True, help="Object class of the object in view.")
 @click.option("--camera", "camera_path", type=click.Path(dir_okay=False), default=None,
               help="Camera-info JSON/YAML (fx, fy, cx, cy or K; as 'artdata ingest' reads it). "
                    "Default: DEPTH's NAME.camera.json or camera.json next to it.")
@@ -52,7 +51,7 @@ def estimate_cmd(depth, class_name, camera_path, mask_path, depth_units, model, 
     mask = None
     if mask_path is not None:
         mask = load_mask(mask_path, d.shape, get_class(class_name).n_joints) > 0
-    _prepare_torch(threads)
+    prepare_torch(threads)
     from ..estimation import estimate
 
     est = estimate(d, K, class_name, mask=mask, model=model)

@@ -13,9 +13,10 @@ from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, INTRINSICS_PRESETS, KI
 from ..errors import UserError
 from ..executors import EXECUTORS, get_executor
 from ..pipeline import DEFAULT_IMAGES_PER_OBJECT, DEFAULT_OBJECTS_PER_SHARD, DEFAULT_SEED, GenerationConfig, generate_split
-from ..registry import class_names, get_class
+from ..registry import get_class
 from ..tables import load_table_file
 from ..viewpoint import CAMERA_MOUNTS
+from .options import ClassChoice
 
 
 class _NoiseChoice(click.ParamType):
@@ -86,23 +87,8 @@ def camera_from_options(width: int | None, height: int | None, resolution: str |
         raise UserError(str(exc)) from None
 
 
-class _ClassChoice(click.ParamType):
-    """Class names from the registry (validated lazily so --help lists them)."""
-
-    name = "class"
-
-    def get_metavar(self, param, ctx=None):
-        return "[" + "|".join(class_names()) + "]"
-
-    def convert(self, value, param, ctx):
-        try:
-            return get_class(value).name
-        except UserError as exc:
-            self.fail(str(exc), param, ctx)
-
-
 @click.command("generate")
-@click.option("--class", "class_name", type=_ClassChoice(), default=None, help="Object class to generate (or --urdf).")
+@click.option("--class", "class_name", type=ClassChoice(), default=None, help="Object class to generate (or --urdf).")
 @click.option("--urdf", "urdf_path", type=click.Path(dir_okay=False), default=None,
               help="Generate a third-party articulated object from this URDF file instead of a --class (docs/third_party_urdf.md).")
 @click.option("--joints", "joint_names", default=None, metavar="NAME,...",

@@ -140,9 +140,9 @@ def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, no_to
     sample_id = int(labels["sample_id"])
     estimator = depth = K = None
     if model is not None:
-        from .train import _prepare_torch
+        from .options import prepare_torch
 
-        _prepare_torch(threads)
+        prepare_torch(threads)
         estimator = M.make_estimator(model, obj.class_name)
         depth, K, mask = M.stored_image(data_dir, index)
         if real:

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from ..errors import UserError
-from .train import _prepare_torch
+from .options import prepare_torch
 
 
 @click.command("predict")
@@ -34,7 +34,7 @@ def predict_cmd(model_path, data, out, estimate, snap_to_cloud, method, batch_si
         raise UserError(f"{out} exists; pass --overwrite to replace it")
     if out.is_dir():
         raise UserError(f"--out {out} is a directory; give a file name such as predictions.h5")
-    _prepare_torch(threads)
+    prepare_torch(threads)
     from ..mdn.train import resolve_split_dir, split_class
     from ..models import resolve_model
     from ..predictions import write_predictions

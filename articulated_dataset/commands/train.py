@@ -3,35 +3,19 @@ or the paper's ResNet-18 mixture density network (``--model mdn``, the default).
 
 from __future__ import annotations
 
-import os
 import time
 
 import click
 
 from ..errors import UserError
-from .generate import _ClassChoice
-
-
-def _prepare_torch(threads: int | None) -> int:
-    """Import torch once for the command (with passive OpenMP waiting unless the user chose
-    a policy: spinning threads slow a busy 2-core machine ten-fold) and set its threads."""
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    try:
-        import torch  # noqa: F401
-    except ImportError:
-        raise UserError("PyTorch is not installed; install it with: pip install torch==2.13.0") from None
-    from ..mdn.train import configure_threads
-
-    if threads is not None and threads <= 0:
-        raise UserError(f"--threads must be positive, got {threads}")
-    return configure_threads(threads)
+from .options import ClassChoice, prepare_torch
 
 
 @click.command("train")
 @click.option("--model", "model_kind", type=click.Choice(["mdn", "dense"]), default="mdn", show_default=True,
               help="mdn: the paper's ResNet-18 mixture density network; dense: the per-pixel voting network "
                    "(docs/model.md).")
-@click.option("--class", "class_name", type=_ClassChoice(), required=True, help="Object class (one network per class).")
+@click.option("--class", "class_name", type=ClassChoice(), required=True, help="Object class (one network per class).")
 @click.option("--data", type=click.Path(), required=True, help="The class's TRAINING split folder, e.g. data/cabinet/train.")
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="Checkpoint file (written after every epoch).")
 @click.option("--small", is_flag=True, help="mdn: reduced network at 96x54 input: minutes per class on a 2-core CPU.")
@@ -53,7 +37,7 @@ def _prepare_torch(threads: int | None) -> int:
 def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, components, width, init_from, val_fraction,
               max_objects, seed, device, threads, resume, quiet):
     """Train one class's estimator on its training split (checkpoints after every epoch; --resume continues)."""
-    _prepare_torch(threads)
+    prepare_torch(threads)
     if max_objects is not None and max_objects <= 0:
         raise UserError(f"--max-objects must be positive, got {max_objects}")
     if model_kind == "dense":
