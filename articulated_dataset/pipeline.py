@@ -31,7 +31,7 @@ from .format.manifest import (  # noqa: F401  (re-exported: the generator's defa
     SplitConfig,
 )
 from .labels import model_info, read_configuration, read_object_labels, visible_pixels
-from .registry import JOINT_TYPES, MAX_REVOLUTE_Q_RAD, ObjectClass, check_table, get_class  # noqa: F401
+from .registry import JOINT_TYPES, MAX_REVOLUTE_Q_RAD, ObjectClass, check_table, get_class, resolve  # noqa: F401
 from .render import DepthRenderer, process_renderer
 from .safeio import (FULL_HINT, TMP_SUFFIX, WriteError, available_memory_bytes, check_free_space, ensure_dir, format_bytes,
                      fsync_dir, remove_created_dirs, translated)
@@ -66,11 +66,7 @@ class GenerationConfig(SplitConfig):
 
     @property
     def obj_class(self) -> ObjectClass:
-        if self.third_party is not None:
-            from .urdf_import import class_from_definition
-
-            return class_from_definition(self.third_party)
-        return get_class(self.class_name)
+        return resolve(self.class_name, self.third_party)
 
 
 def render_object(sample: ObjectSample, config: GenerationConfig, renderer: DepthRenderer, *, check_visibility: bool = True,

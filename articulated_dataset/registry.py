@@ -1,19 +1,22 @@
-"""Registry of object classes.
+"""Registry of object classes: the one place a class name resolves.
 
-One object class = one Xacro template (``urdf_templates/<name>.urdf.xacro``) + one sampling
-table + one :func:`register` call (``generators/<name>.py``).  Everything else (sampling,
-rendering, labelling, CLI choices, docs tables, contract tests) iterates over this registry.
+One built-in object class = one Xacro template (``urdf_templates/<name>.urdf.xacro``) + one
+module ``generators/<name>.py`` defining ``CLASS``, an :class:`ObjectClass` (template name,
+sampling table, joints: data, importing no registry) + its name in :data:`BUILTIN_GENERATORS`,
+from which the registry loads the built-ins on first use.  A third-party URDF class is
+registered the same way (:func:`register`) when a split config that defines it is resolved
+(:func:`resolve`), built from its definition by :mod:`articulated_dataset.urdf_import`.
+Everything else (sampling, rendering, labelling, CLI choices, docs tables, contract tests)
+iterates over this registry.
 """
 
 from __future__ import annotations
 
 import importlib
+import json
 import math
-import pkgutil
-from dataclasses import dataclass
-from importlib import resources
-from pathlib import Path
 
+from .classes import JointSpec, ObjectClass  # noqa: F401  (re-exported: the registry's types)
 from .errors import UserError
 from .format.schema import JOINT_TYPES, PRISMATIC, REVOLUTE  # noqa: F401  (declared with the format)
 from .tables import SamplingTable
@@ -22,97 +25,72 @@ from .tables import SamplingTable
 MAX_REVOLUTE_Q_RAD = 2.0 * math.pi
 #: Integer codes of joint types as stored in shards (``joint_type`` attribute / dataset).
 JOINT_TYPE_CODES = {REVOLUTE: 0, PRISMATIC: 1}
-
-
-@dataclass(frozen=True)
-class JointSpec:
-    """One articulated joint of a class, in label order.
-
-    ``name`` is the joint's name in the URDF template; ``part`` the child link (moving part).
-    """
-
-    name: str
-    type: str
-    part: str
-
-    def __post_init__(self) -> None:
-        if self.type not in JOINT_TYPES:
-            raise ValueError(f"joint type must be one of {JOINT_TYPES}, got {self.type!r}")
-
-
-@dataclass(frozen=True)
-class ObjectClass:
-    """Everything the pipeline needs to know about one object class.
-
-    Attributes
-    ----------
-    name: registry key (``artdata generate --class NAME``).
-    template: file name of the Xacro template in ``urdf_templates/`` (or an absolute path to
-        a URDF/Xacro file elsewhere, e.g. a third-party object).
-    table: default sampling table (the paper's Appendix A for the built-in classes).
-    joints: articulated joints in label order (J = len(joints)).
-    base_link: the URDF root link (its frame is the centre of the object's base).
-    sided: True if the class has a chirality (hinge side) that the labeller reads from the
-        model; False for classes whose chirality label is always 0.
-    description: one line for docs and ``artdata classes``.
-    order: listing order (the paper's order for the built-ins); ties broken by name.
-    """
-
-    name: str
-    template: str
-    table: SamplingTable
-    joints: tuple[JointSpec, ...]
-    base_link: str = "base"
-    sided: bool = False
-    description: str = ""
-    order: int = 100
-
-    @property
-    def n_joints(self) -> int:
-        return len(self.joints)
-
-    @property
-    def joint_types(self) -> tuple[str, ...]:
-        return tuple(j.type for j in self.joints)
-
-    def template_path(self) -> Path:
-        """The template file: ``template`` itself if absolute, else a file of ``urdf_templates/``."""
-        if Path(self.template).is_absolute():
-            return Path(self.template)
-        path = resources.files("articulated_dataset.urdf_templates").joinpath(self.template)
-        return Path(str(path))
-
+#: The built-in classes: modules of :mod:`articulated_dataset.generators` (each defines
+#: ``CLASS``, named like its module), listed in the paper's order.
+BUILTIN_GENERATORS = ("cabinet", "drawer", "microwave", "toaster", "cabinet2", "refrigerator")
+#: Package of the built-in generator modules.
+GENERATORS_PACKAGE = "articulated_dataset.generators"
 
 _REGISTRY: dict[str, ObjectClass] = {}
+#: Third-party URDF classes by their definition (one name may be defined twice in a process,
+#: e.g. one file imported at two scales: each definition keeps its own class).
+_THIRD_PARTY: dict[str, ObjectClass] = {}
 _BUILTINS_LOADED = False
 
 
-def register(obj_class: ObjectClass) -> ObjectClass:
-    """Add a class to the registry (name must be new)."""
-    if obj_class.name in _REGISTRY and _REGISTRY[obj_class.name] != obj_class:
-        raise ValueError(f"object class {obj_class.name!r} is already registered")
+def _definition_key(definition: dict) -> str:
+    return json.dumps(definition, sort_keys=True)
+
+
+def register(obj_class: ObjectClass, *, definition: dict | None = None) -> ObjectClass:
+    """Add a class to the registry: a built-in's (``definition`` None; its name must be new)
+    or a third-party URDF class's, under its ``definition`` (a built-in's name is refused)."""
     if len(obj_class.table.q) != obj_class.n_joints:
         raise ValueError(f"{obj_class.name}: table has {len(obj_class.table.q)} q ranges for {obj_class.n_joints} joints")
+    if definition is not None:
+        _load_builtins()
+        if obj_class.name in _REGISTRY:
+            raise UserError(f"class name {obj_class.name!r} is a built-in class; pass another --class-name")
+        _THIRD_PARTY[_definition_key(definition)] = obj_class
+        return obj_class
+    if obj_class.name in _REGISTRY and _REGISTRY[obj_class.name] != obj_class:
+        raise ValueError(f"object class {obj_class.name!r} is already registered")
     _REGISTRY[obj_class.name] = obj_class
     return obj_class
 
 
 def _load_builtins() -> None:
+    """Register the ``CLASS`` of every module of :data:`BUILTIN_GENERATORS` (once)."""
     global _BUILTINS_LOADED
     if _BUILTINS_LOADED:
         return
     _BUILTINS_LOADED = True
-    pkg = importlib.import_module("articulated_dataset.generators")
-    for info in pkgutil.iter_modules(pkg.__path__):
-        if not info.name.startswith("_"):
-            importlib.import_module(f"{pkg.__name__}.{info.name}")
-    ordered = sorted(_REGISTRY.values(), key=lambda c: (c.order, c.name))
-    _REGISTRY.clear()
-    _REGISTRY.update((c.name, c) for c in ordered)
+    classes = []
+    for name in BUILTIN_GENERATORS:
+        obj_class = importlib.import_module(f"{GENERATORS_PACKAGE}.{name}").CLASS
+        if not isinstance(obj_class, ObjectClass) or obj_class.name != name:
+            raise ValueError(f"{GENERATORS_PACKAGE}.{name}: CLASS must be the ObjectClass named {name!r}")
+        classes.append(obj_class)
+    for obj_class in sorted(classes, key=lambda c: (c.order, c.name)):
+        register(obj_class)
+
+
+def resolve(class_name: str, third_party: dict | None = None) -> ObjectClass:
+    """The class of a split config: the registered class ``class_name``, or the third-party
+    URDF class that ``third_party`` (its definition, as ``artdata generate --urdf`` writes it)
+    defines, built once per process and registered (:func:`register`)."""
+    if third_party is None:
+        return get_class(class_name)
+    found = _THIRD_PARTY.get(_definition_key(third_party))
+    if found is None:
+        from .urdf_import import class_from_definition
+
+        found = register(class_from_definition(third_party), definition=third_party)
+    return found
 
 
 def class_names() -> list[str]:
-    """Registered class names, in registration order (built-ins sorted by module name)."""
+    """The built-in class names, in the paper's order."""
     _load_builtins()
     return list(_REGISTRY)
 

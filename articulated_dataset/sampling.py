@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .registry import ObjectClass
+from .classes import ObjectClass
 from .tables import GEOMETRY_KEYS, POSE_KEYS, SamplingTable
 
 SPLITS = ("train", "val", "test", "real")

@@ -66,7 +66,7 @@ import numpy as np
 
 from .camera import CameraConfig
 from .errors import UserError
-from .registry import PRISMATIC, REVOLUTE, JointSpec, ObjectClass, class_names
+from .classes import PRISMATIC, REVOLUTE, JointSpec, ObjectClass
 from .format import MAX_CLASS_NAME_CHARS, is_class_name
 from .tables import SamplingTable
 from .units import normalise
@@ -220,14 +220,13 @@ def default_class_name(urdf_path: str | Path) -> str:
 
 
 def check_class_name(name: str) -> str:
-    """A valid, new class name (:func:`articulated_dataset.shards.is_class_name`, not a built-in class)."""
+    """A valid class name (:func:`articulated_dataset.format.is_class_name`); the registry
+    refuses a built-in's name when the class is registered (:func:`articulated_dataset.registry.register`)."""
     if not is_class_name(name):
         raise UserError(
             f"invalid class name {str(name)[:80]!r}: use 1-{MAX_CLASS_NAME_CHARS} characters from A-Z a-z 0-9 _ . -, "
             "not starting with . or - (pass --class-name)"
         )
-    if name in class_names():
-        raise UserError(f"class name {name!r} is a built-in class; pass another --class-name")
     return name
 
 

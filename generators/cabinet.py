@@ -1,6 +1,6 @@
 """Cabinet: one revolute door, hinged left or right with equal probability."""
 
-from articulated_dataset.registry import REVOLUTE, JointSpec, ObjectClass, register
+from articulated_dataset.classes import REVOLUTE, JointSpec, ObjectClass
 from articulated_dataset.tables import SamplingTable
 
 from .common import NEAR_POSE_M, REVOLUTE_Q_RAD, YAW_RAD
@@ -12,7 +12,7 @@ TABLE = SamplingTable(
     chirality_p=0.5,  # "Cabinets that open clockwise/counterclockwise ... with equal probability"
 )
 
-CLASS = register(ObjectClass(
+CLASS = ObjectClass(
     name="cabinet",
     template="cabinet.urdf.xacro",
     table=TABLE,
@@ -20,4 +20,4 @@ CLASS = register(ObjectClass(
     sided=True,
     description="1 revolute door, hinged on the left or right front edge",
     order=0,
-))
+)

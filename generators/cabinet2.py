@@ -1,6 +1,6 @@
 """Two-door cabinet: a left and a right revolute door (2 DoF)."""
 
-from articulated_dataset.registry import REVOLUTE, JointSpec, ObjectClass, register
+from articulated_dataset.classes import REVOLUTE, JointSpec, ObjectClass
 from articulated_dataset.tables import SamplingTable
 
 from .common import NEAR_POSE_M, REVOLUTE_Q_RAD, YAW_RAD
@@ -11,11 +11,11 @@ TABLE = SamplingTable(
     q=(REVOLUTE_Q_RAD, REVOLUTE_Q_RAD),
 )
 
-CLASS = register(ObjectClass(
+CLASS = ObjectClass(
     name="cabinet2",
     template="cabinet2.urdf.xacro",
     table=TABLE,
     joints=(JointSpec("left_door_hinge", REVOLUTE, "left_door"), JointSpec("right_door_hinge", REVOLUTE, "right_door")),
     description="two-door cabinet: left door (joint 0) and right door (joint 1)",
     order=4,
-))
+)

@@ -1,6 +1,6 @@
 """Drawer: one prismatic drawer sliding out of a shell."""
 
-from articulated_dataset.registry import PRISMATIC, JointSpec, ObjectClass, register
+from articulated_dataset.classes import PRISMATIC, JointSpec, ObjectClass
 from articulated_dataset.tables import SamplingTable
 
 from .common import YAW_RAD
@@ -11,11 +11,11 @@ TABLE = SamplingTable(
     q=((0.0, 0.40),),  # the paper's 0-40 cm
 )
 
-CLASS = register(ObjectClass(
+CLASS = ObjectClass(
     name="drawer",
     template="drawer.urdf.xacro",
     table=TABLE,
     joints=(JointSpec("drawer_slide", PRISMATIC, "drawer"),),
     description="1 prismatic drawer sliding out of a hollow shell",
     order=1,
-))
+)

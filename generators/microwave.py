@@ -1,6 +1,6 @@
 """Microwave: one side-hinged revolute door (hinged on the left, as most microwaves)."""
 
-from articulated_dataset.registry import REVOLUTE, JointSpec, ObjectClass, register
+from articulated_dataset.classes import REVOLUTE, JointSpec, ObjectClass
 from articulated_dataset.tables import SamplingTable
 
 from .common import NEAR_POSE_M, REVOLUTE_Q_RAD, YAW_RAD
@@ -12,7 +12,7 @@ TABLE = SamplingTable(
     chirality_p=0.0,  # the paper gives no mirrored microwaves; override to mirror some
 )
 
-CLASS = register(ObjectClass(
+CLASS = ObjectClass(
     name="microwave",
     template="microwave.urdf.xacro",
     table=TABLE,
@@ -20,4 +20,4 @@ CLASS = register(ObjectClass(
     sided=True,
     description="1 revolute side-hinged door beside a control panel",
     order=2,
-))
+)

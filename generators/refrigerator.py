@@ -5,7 +5,7 @@ full-size one; it is kept as published so the benchmark reproduces the paper (se
 DATASHEET.md), and a table file can override it.
 """
 
-from articulated_dataset.registry import REVOLUTE, JointSpec, ObjectClass, register
+from articulated_dataset.classes import REVOLUTE, JointSpec, ObjectClass
 from articulated_dataset.tables import SamplingTable
 
 from .common import REVOLUTE_Q_RAD, YAW_RAD
@@ -17,7 +17,7 @@ TABLE = SamplingTable(
     chirality_p=0.0,
 )
 
-CLASS = register(ObjectClass(
+CLASS = ObjectClass(
     name="refrigerator",
     template="refrigerator.urdf.xacro",
     table=TABLE,
@@ -25,4 +25,4 @@ CLASS = register(ObjectClass(
     sided=True,
     description="2 revolute doors stacked vertically (joint 0 lower, joint 1 upper), hinged on the same side",
     order=5,
-))
+)

@@ -1,6 +1,6 @@
 """Toaster oven: one revolute door hinged at its bottom edge, opening downwards."""
 
-from articulated_dataset.registry import REVOLUTE, JointSpec, ObjectClass, register
+from articulated_dataset.classes import REVOLUTE, JointSpec, ObjectClass
 from articulated_dataset.tables import SamplingTable
 
 from .common import NEAR_POSE_M, REVOLUTE_Q_RAD, YAW_RAD
@@ -11,11 +11,11 @@ TABLE = SamplingTable(
     q=(REVOLUTE_Q_RAD,),
 )
 
-CLASS = register(ObjectClass(
+CLASS = ObjectClass(
     name="toaster",
     template="toaster.urdf.xacro",
     table=TABLE,
     joints=(JointSpec("door_hinge", REVOLUTE, "door"),),
     description="toaster oven: 1 revolute door hinged at the bottom, opening downwards",
     order=3,
-))
+)

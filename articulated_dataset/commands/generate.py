@@ -13,7 +13,7 @@ from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, INTRINSICS_PRESETS, KI
 from ..errors import UserError
 from ..executors import EXECUTORS, get_executor
 from ..pipeline import DEFAULT_IMAGES_PER_OBJECT, DEFAULT_OBJECTS_PER_SHARD, DEFAULT_SEED, GenerationConfig, generate_split
-from ..registry import get_class
+from ..registry import get_class, register
 from ..tables import load_table_file
 from ..viewpoint import CAMERA_MOUNTS
 from .options import ClassChoice
@@ -141,7 +141,7 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
         imported = import_urdf(urdf_path, joints=_split_names(joint_names), class_name=urdf_class_name,
                                skip_missing_meshes=skip_missing_meshes, camera=camera,
                                scale=1.0 if urdf_scale is None else urdf_scale, mesh_root=urdf_mesh_root)
-        obj_class, third_party = imported.obj_class, imported.definition
+        obj_class, third_party = register(imported.obj_class, definition=imported.definition), imported.definition
         if not quiet:
             for line in imported.summary():
                 click.echo(line)

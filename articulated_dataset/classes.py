@@ -1,0 +1,79 @@
+"""What an object class is, as data: its joints (:class:`JointSpec`) and its record
+(:class:`ObjectClass`: template name, sampling table, joints).
+
+The built-in classes are modules of :mod:`articulated_dataset.generators` that define one
+``CLASS`` each from these types; :mod:`articulated_dataset.registry` lists and loads them,
+and registers third-party URDF classes the same way.  This module imports no registry, so
+neither do the generators.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+from .format.schema import JOINT_TYPES, PRISMATIC, REVOLUTE  # noqa: F401  (declared with the format)
+from .tables import SamplingTable
+
+
+@dataclass(frozen=True)
+class JointSpec:
+    """One articulated joint of a class, in label order.
+
+    ``name`` is the joint's name in the URDF template; ``part`` the child link (moving part).
+    """
+
+    name: str
+    type: str
+    part: str
+
+    def __post_init__(self) -> None:
+        if self.type not in JOINT_TYPES:
+            raise ValueError(f"joint type must be one of {JOINT_TYPES}, got {self.type!r}")
+
+
+@dataclass(frozen=True)
+class ObjectClass:
+    """Everything the pipeline needs to know about one object class.
+
+    Attributes
+    ----------
+    name: registry key (``artdata generate --class NAME``).
+    template: file name of the Xacro template in ``urdf_templates/`` (or an absolute path to
+        a URDF/Xacro file elsewhere, e.g. a third-party object).
+    table: default sampling table (the paper's Appendix A for the built-in classes).
+    joints: articulated joints in label order (J = len(joints)).
+    base_link: the URDF root link (its frame is the centre of the object's base).
+    sided: True if the class has a chirality (hinge side) that the labeller reads from the
+        model; False for classes whose chirality label is always 0.
+    description: one line for docs and ``artdata classes``.
+    order: listing order (the paper's order for the built-ins); ties broken by name.
+    """
+
+    name: str
+    template: str
+    table: SamplingTable
+    joints: tuple[JointSpec, ...]
+    base_link: str = "base"
+    sided: bool = False
+    description: str = ""
+    order: int = 100
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joints)
+
+    @property
+    def joint_types(self) -> tuple[str, ...]:
+        return tuple(j.type for j in self.joints)
+
+    def template_path(self) -> Path:
+        """The template file: ``template`` itself if absolute, else a file of ``urdf_templates/``."""
+        if Path(self.template).is_absolute():
+            return Path(self.template)
+        path = resources.files("articulated_dataset.urdf_templates").joinpath(self.template)
+        return Path(str(path))
+
+
+__all__ = ["JOINT_TYPES", "PRISMATIC", "REVOLUTE", "JointSpec", "ObjectClass"]

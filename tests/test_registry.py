@@ -1,0 +1,93 @@
+"""The registry is the one place a class name resolves: the built-in generators are data it
+lists and loads (they import no registry, so nothing it loads imports it back), and a
+third-party URDF class is registered by its definition like a built-in."""
+
+from __future__ import annotations
+
+import pkgutil
+import subprocess
+import sys
+
+import pytest
+from click.testing import CliRunner
+
+from articulated_dataset import generators, registry
+from articulated_dataset.classes import ObjectClass
+from articulated_dataset.cli import main
+from articulated_dataset.errors import UserError
+from articulated_dataset.pipeline import GenerationConfig
+from articulated_dataset.urdf_import import import_urdf
+
+#: Modules of articulated_dataset.generators that are not classes.
+NOT_CLASSES = {"common"}
+
+
+def test_every_generator_module_is_listed_and_is_data():
+    modules = {m.name for m in pkgutil.iter_modules(generators.__path__)} - NOT_CLASSES
+    assert set(registry.BUILTIN_GENERATORS) == modules
+    for name in registry.BUILTIN_GENERATORS:
+        obj_class = getattr(__import__(f"articulated_dataset.generators.{name}", fromlist=["CLASS"]), "CLASS")
+        assert isinstance(obj_class, ObjectClass) and obj_class.name == name
+        assert registry.get_class(name) is obj_class
+    assert registry.class_names() == ["cabinet", "drawer", "microwave", "toaster", "cabinet2", "refrigerator"]
+
+
+def test_what_the_registry_loads_never_imports_it_back():
+    """No cycle: the generators, urdf_import (the third-party builder) and the stages it uses
+    load without the registry, which imports them (a generator that registered itself by
+    importing the registry would fail this)."""
+    loaded = ["articulated_dataset.generators." + n for n in registry.BUILTIN_GENERATORS] + [
+        "articulated_dataset.urdf_import", "articulated_dataset.labels", "articulated_dataset.scene",
+        "articulated_dataset.sampling", "articulated_dataset.classes"]
+    code = "import sys\n" + "".join(f"import {m}\n" for m in loaded) + "print('articulated_dataset.registry' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+    check = subprocess.run([sys.executable, "-c", "import sys, articulated_dataset.pipeline\n"
+                            "print('articulated_dataset.registry' in sys.modules)"], capture_output=True, text=True)
+    assert check.stdout.strip() == "True"  # the check can fail: the generator does import the registry
+
+
+def _write_simple_urdf(folder):
+    """A box with a flap: one revolute joint, primitive geometry only."""
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "flap.urdf"
+    box = '<geometry><box size="{}"/></geometry>'
+    path.write_text(f"""<robot name="flap">
+  <link name="base"><visual><origin xyz="0 0 0.2"/>{box.format("0.4 0.4 0.4")}</visual></link>
+  <link name="flap"><visual><origin xyz="0.01 -0.2 0.2"/>{box.format("0.02 0.4 0.4")}</visual></link>
+  <joint name="hinge" type="revolute"><parent link="base"/><child link="flap"/><origin xyz="-0.2 0.2 0"/>
+    <axis xyz="0 0 1"/><limit lower="0" upper="1.5" effort="1" velocity="1"/></joint>
+</robot>""")
+    return path
+
+
+def test_third_party_classes_register_by_definition(tmp_path, monkeypatch):
+    from articulated_dataset import urdf_import
+
+    monkeypatch.setenv(urdf_import.CACHE_ENV, str(tmp_path / "cache"))
+    path = _write_simple_urdf(tmp_path / "flap")
+    small = import_urdf(path, class_name="flap")
+    big = import_urdf(path, class_name="flap", scale=2.0)
+    assert small.definition != big.definition
+    resolved = registry.resolve("flap", small.definition)
+    assert resolved == small.obj_class and registry.resolve("flap", small.definition) is resolved
+    assert registry.resolve("flap", big.definition) == big.obj_class != resolved  # one name, two definitions
+    config = GenerationConfig("flap", n_objects=1, third_party=small.definition)
+    assert config.obj_class is resolved and config.table == resolved.table
+    assert "flap" not in registry.class_names()  # the built-in listing stays the paper's classes
+    with pytest.raises(UserError, match="unknown object class 'flap'"):
+        registry.get_class("flap")  # a third-party class resolves by its definition, not its name alone
+
+
+def test_a_third_party_class_cannot_take_a_builtin_name(tmp_path, monkeypatch):
+    from articulated_dataset import urdf_import
+
+    monkeypatch.setenv(urdf_import.CACHE_ENV, str(tmp_path / "cache"))
+    path = _write_simple_urdf(tmp_path / "flap")
+    imported = import_urdf(path, class_name="drawer")
+    with pytest.raises(UserError, match="'drawer' is a built-in class; pass another --class-name"):
+        registry.resolve("drawer", imported.definition)
+    res = CliRunner().invoke(main, ["generate", "--urdf", str(path), "--class-name", "drawer", "--n", "1",
+                                    "--out", str(tmp_path / "out"), "-q"])
+    assert res.exit_code == 2 and "is a built-in class" in res.output, res.output
+    assert not (tmp_path / "out").exists()
