@@ -14,7 +14,8 @@ from importlib import resources
 from pathlib import Path
 
 from .format.schema import JOINT_TYPES, PRISMATIC, REVOLUTE  # noqa: F401  (declared with the format)
-from .tables import SamplingTable
+from .errors import UserError
+from .tables import TABLE_NAMES, SamplingTable
 
 
 @dataclass(frozen=True)
@@ -49,6 +50,8 @@ class ObjectClass:
         model; False for classes whose chirality label is always 0.
     description: one line for docs and ``artdata classes``.
     order: listing order (the paper's order for the built-ins); ties broken by name.
+    realistic_table: the joint size distribution of ``--table realistic`` (same pose, q
+        and chirality as ``table``), or None where the class has none (third-party classes).
     """
 
     name: str
@@ -59,6 +62,20 @@ class ObjectClass:
     sided: bool = False
     description: str = ""
     order: int = 100
+    realistic_table: SamplingTable | None = None
+
+    def named_table(self, name: str) -> SamplingTable:
+        """The table ``artdata generate --table NAME`` picks: ``paper`` (the class's default
+        table) or ``realistic``; anything else is a one-line :class:`UserError`."""
+        if name == "paper":
+            return self.table
+        if name == "realistic":
+            if self.realistic_table is None:
+                raise UserError(f"class {self.name!r} has no realistic table (the built-in classes have one); "
+                                f"give --table paper or a table file")
+            return self.realistic_table
+        raise UserError(f"unknown sampling table {name!r}; choose from: {', '.join(TABLE_NAMES)} "
+                        f"(or a .json/.toml table file)")
 
     @property
     def n_joints(self) -> int:

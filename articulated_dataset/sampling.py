@@ -114,7 +114,10 @@ def sample_object(
     """
     if rng is None:
         rng = object_rng(seed, obj_class.name, split, object_index)
-    geometry = {k: float(rng.uniform(*table.geometry[k])) for k in GEOMETRY_KEYS}
+    if table.shape is None:  # the paper's independent uniform sizes
+        geometry = {k: float(rng.uniform(*table.geometry[k])) for k in GEOMETRY_KEYS}
+    else:  # a joint distribution of the sizes (--table realistic), from the same stream
+        geometry, _ = table.shape.sample(rng, table.geometry)
     chirality = int(rng.random() < table.chirality_p)
     q = stratified_configurations(rng, table.q, n_images)
     pose = sample_pose(rng, table)
@@ -123,9 +126,13 @@ def sample_object(
 
 
 def mean_object(obj_class: ObjectClass, table: SamplingTable, *, split: str, n_images: int) -> ObjectSample:
-    """The class's mean object: every geometry and pose parameter at the centre of its range,
-    chirality 0, configurations evenly spread (stratum centres / grid-cell centres)."""
+    """The class's mean object: every geometry and pose parameter at the centre of its range
+    (a joint size distribution: its mean, within the bounds), chirality 0, configurations
+    evenly spread (stratum centres / grid-cell centres)."""
     geometry = {k: 0.5 * (lo + hi) for k, (lo, hi) in table.geometry.items()}
+    if table.shape is not None:
+        geometry = {k: float(min(max(m, table.geometry[k][0]), table.geometry[k][1]))
+                    for k, m in zip(GEOMETRY_KEYS, table.shape.mean_m())}
     pose = {k: 0.5 * (lo + hi) for k, (lo, hi) in table.pose.items()}
 
     class _Centre:  # a "generator" whose uniform draws are all 0.5: stratum/cell centres

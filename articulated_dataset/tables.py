@@ -4,6 +4,11 @@ Every range is a closed interval ``(low, high)`` in SI units (metres, radians) s
 uniformly and independently, as in the paper's Appendix A (Tables 3 and 4; the paper
 gives geometry in cm and prismatic configuration in cm, converted here).
 
+A table may instead give its geometry a joint distribution (``shape``, a
+:class:`ShapeMixture` of correlated size classes): the realistic tables of
+``artdata generate --table realistic`` (:mod:`articulated_dataset.generators.realistic`);
+its ``geometry`` ranges are then the bounds that truncate the mixture.
+
 A table can be overridden from a JSON or TOML file holding any subset of the keys of
 :meth:`SamplingTable.to_dict`, e.g. ``{"geometry": {"height_m": [1.5, 1.8]}}``.
 """
@@ -13,9 +18,12 @@ from __future__ import annotations
 import json
 import math
 import numbers
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+
+import numpy as np
 
 from .errors import UserError
 
@@ -23,7 +31,10 @@ Range = tuple[float, float]
 
 GEOMETRY_KEYS = ("depth_m", "width_m", "height_m")
 POSE_KEYS = ("x_m", "y_m", "z_m", "yaw_rad")
-TABLE_KEYS = ("geometry", "pose", "q", "chirality_p", "extra")
+TABLE_KEYS = ("geometry", "pose", "q", "chirality_p", "extra", "shape")
+#: Named tables of a built-in class (``artdata generate --table NAME``): the paper's
+#: Appendix A (independent uniform ranges) and realistic joint distributions of the sizes.
+TABLE_NAMES = ("paper", "realistic")
 
 #: Sanity bounds of a table (not physics: they keep absurd values from reaching MuJoCo and
 #: the renderer).  Object sides in metres: 1 mm (the smallest a third-party object is given,
@@ -38,6 +49,18 @@ MAX_YAW_RAD = 2.0 * math.pi
 MAX_Q = 100.0
 #: Largest table file read (bytes); tables are a few hundred bytes.
 MAX_TABLE_FILE_BYTES = 1 << 20
+#: Limits of a shape mixture: components, standard values per dimension and per component,
+#: jitter standard deviation (m), and draws of the jitter before a sample is clipped into the
+#: table's geometry bounds (the realistic tables' components lie >= 3 sigma inside them).
+MAX_SHAPE_COMPONENTS = 64
+MAX_SHAPE_SIZES = 64
+MAX_SHAPE_STD_M = 1.0
+MAX_SHAPE_DRAWS = 32
+#: Smallest eigenvalue of a component's jitter correlation (positive definite: a Cholesky
+#: factor exists, so sampling is one well-defined linear map on every platform).
+MIN_CORRELATION_EIGENVALUE = 1e-6
+_COMPONENT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9 _.,()/+-]{0,59}$")
+_COMPONENT_KEYS = ("name", "weight", "sizes_m", "std_m", "corr")
 
 
 def _number(name: str, v) -> float:
@@ -73,6 +96,159 @@ def _mapping(name: str, v) -> Mapping:
 
 
 @dataclass(frozen=True)
+class ShapeComponent:
+    """One size class of a :class:`ShapeMixture`.
+
+    An object of this class takes, for each dimension, one of the standard values of
+    ``sizes_m`` (uniformly, e.g. the 3-inch steps of cabinet widths), plus a jitter drawn
+    from a normal with standard deviations ``std_m`` and correlation matrix ``corr`` (rows
+    and columns in :data:`GEOMETRY_KEYS` order: depth, width, height).
+    """
+
+    name: str
+    weight: float
+    sizes_m: Mapping[str, tuple[float, ...]]
+    std_m: Mapping[str, float]
+    corr: tuple[tuple[float, ...], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not _COMPONENT_NAME.match(self.name):
+            raise UserError(f"sampling table: shape component name must be 1-60 letters, digits or "
+                            f"' _.,()/+-', got {_show(self.name)}")
+        where = f"shape component {self.name!r}"
+        weight = _number(f"{where} weight", self.weight)
+        if not 0.0 < weight <= 1e6:
+            raise UserError(f"sampling table: {where} weight must be in (0, 1e6], got {weight}")
+        sizes, std = _mapping(f"{where} sizes_m", self.sizes_m), _mapping(f"{where} std_m", self.std_m)
+        for part, given in (("sizes_m", sizes), ("std_m", std)):
+            unknown = sorted(set(given) - set(GEOMETRY_KEYS))
+            missing = [k for k in GEOMETRY_KEYS if k not in given]
+            if unknown or missing:
+                raise UserError(f"sampling table: {where} {part} needs exactly the keys {', '.join(GEOMETRY_KEYS)}")
+        checked = {}
+        for k in GEOMETRY_KEYS:
+            values = sizes[k]
+            if (isinstance(values, (str, bytes, Mapping)) or not isinstance(values, Sequence)
+                    or not 1 <= len(values) <= MAX_SHAPE_SIZES):
+                raise UserError(f"sampling table: {where} sizes_m.{k} must be a list of 1-{MAX_SHAPE_SIZES} sizes, "
+                                f"got {_show(values)}")
+            checked[k] = tuple(_number(f"{where} sizes_m.{k}", v) for v in values)
+            if min(checked[k]) < MIN_SIZE_M or max(checked[k]) > MAX_SIZE_M:
+                raise UserError(f"sampling table: {where} sizes_m.{k} must lie in [{MIN_SIZE_M}, {MAX_SIZE_M}] m")
+        sd = {k: _number(f"{where} std_m.{k}", std[k]) for k in GEOMETRY_KEYS}
+        if not all(0.0 <= v <= MAX_SHAPE_STD_M for v in sd.values()):
+            raise UserError(f"sampling table: {where} std_m must lie in [0, {MAX_SHAPE_STD_M}] m, got {sd}")
+        corr = self.corr
+        n = len(GEOMETRY_KEYS)
+        if (isinstance(corr, (str, bytes, Mapping)) or not isinstance(corr, Sequence) or len(corr) != n
+                or any(isinstance(r, (str, bytes, Mapping)) or not isinstance(r, Sequence) or len(r) != n for r in corr)):
+            raise UserError(f"sampling table: {where} corr must be a {n}x{n} matrix, got {_show(corr)}")
+        c = np.array([[_number(f"{where} corr", v) for v in row] for row in corr])
+        if not (np.allclose(np.diag(c), 1.0) and np.array_equal(c, c.T) and np.all(np.abs(c) <= 1.0)):
+            raise UserError(f"sampling table: {where} corr must be symmetric with a unit diagonal and entries in [-1, 1]")
+        if np.linalg.eigvalsh(c).min() < MIN_CORRELATION_EIGENVALUE:
+            raise UserError(f"sampling table: {where} corr must be positive definite")
+        object.__setattr__(self, "weight", weight)
+        object.__setattr__(self, "sizes_m", checked)
+        object.__setattr__(self, "std_m", sd)
+        object.__setattr__(self, "corr", tuple(tuple(float(v) for v in row) for row in c))
+
+    @property
+    def mean_m(self) -> np.ndarray:
+        """Mean (depth, width, height) of the class (m): the mean of its standard values."""
+        return np.array([np.mean(self.sizes_m[k]) for k in GEOMETRY_KEYS])
+
+    def jitter_factor(self) -> np.ndarray:
+        """``L`` with ``L @ z`` (z standard normal) the class's jitter: diag(std) x Cholesky(corr)."""
+        return np.diag([self.std_m[k] for k in GEOMETRY_KEYS]) @ np.linalg.cholesky(np.array(self.corr))
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "weight": self.weight, "sizes_m": {k: list(v) for k, v in self.sizes_m.items()},
+                "std_m": dict(self.std_m), "corr": [list(r) for r in self.corr]}
+
+    @classmethod
+    def from_dict(cls, d) -> "ShapeComponent":
+        d = _mapping("shape component", d)
+        unknown = sorted(set(d) - set(_COMPONENT_KEYS))
+        missing = [k for k in _COMPONENT_KEYS if k not in d]
+        if unknown or missing:
+            raise UserError(f"sampling table: a shape component needs exactly the keys {', '.join(_COMPONENT_KEYS)}"
+                            f" ({'unknown ' + unknown[0] if unknown else 'missing ' + missing[0]})")
+        return cls(d["name"], d["weight"], d["sizes_m"], d["std_m"], d["corr"])
+
+
+@dataclass(frozen=True)
+class ShapeMixture:
+    """Joint distribution of an object's (depth, width, height): a mixture of size classes
+    (:class:`ShapeComponent`), chosen with probability proportional to their weights."""
+
+    components: tuple[ShapeComponent, ...]
+
+    def __post_init__(self) -> None:
+        comps = self.components
+        if (isinstance(comps, (str, bytes, Mapping)) or not isinstance(comps, Sequence)
+                or not 1 <= len(comps) <= MAX_SHAPE_COMPONENTS):
+            raise UserError(f"sampling table: shape.components must be a list of 1-{MAX_SHAPE_COMPONENTS} components")
+        comps = tuple(c if isinstance(c, ShapeComponent) else ShapeComponent.from_dict(c) for c in comps)
+        names = [c.name for c in comps]
+        if len(set(names)) != len(names):
+            raise UserError("sampling table: shape component names must be distinct")
+        object.__setattr__(self, "components", comps)
+
+    @property
+    def probabilities(self) -> np.ndarray:
+        w = np.array([c.weight for c in self.components])
+        return w / w.sum()
+
+    def mean_m(self) -> np.ndarray:
+        """Mean (depth, width, height) of the mixture before truncation (m)."""
+        return self.probabilities @ np.array([c.mean_m for c in self.components])
+
+    def sample(self, rng: np.random.Generator, bounds: Mapping[str, Range]) -> tuple[dict, int]:
+        """One object's geometry (``{depth_m, width_m, height_m}``) and its component index.
+
+        Draws, from ``rng`` only: a component, one standard value per dimension, then the
+        jitter until the sizes lie within ``bounds`` (at most :data:`MAX_SHAPE_DRAWS` times,
+        then clipped into them).
+        """
+        cdf = np.cumsum(self.probabilities)
+        index = min(int(np.searchsorted(cdf, rng.random() * cdf[-1], side="right")), len(cdf) - 1)
+        comp = self.components[index]
+        nominal = np.array([v[min(int(rng.random() * len(v)), len(v) - 1)]
+                            for v in (comp.sizes_m[k] for k in GEOMETRY_KEYS)])
+        lo = np.array([bounds[k][0] for k in GEOMETRY_KEYS])
+        hi = np.array([bounds[k][1] for k in GEOMETRY_KEYS])
+        factor = comp.jitter_factor()
+        for _ in range(MAX_SHAPE_DRAWS):
+            x = nominal + factor @ rng.standard_normal(len(GEOMETRY_KEYS))
+            if np.all((x >= lo) & (x <= hi)):
+                break
+        x = np.clip(x, lo, hi)
+        return {k: float(v) for k, v in zip(GEOMETRY_KEYS, x)}, index
+
+    def component_of(self, sizes_m, *, n_sd: float = 6.0, tol_m: float = 0.0) -> int | None:
+        """The first size class explaining ``sizes_m`` (depth, width, height): each size within
+        ``n_sd`` jitter standard deviations (+ ``tol_m``) of one of the class's standard
+        values; None if no class does."""
+        x = np.asarray(sizes_m, dtype=np.float64)
+        for index, c in enumerate(self.components):
+            if all(np.min(np.abs(np.array(c.sizes_m[k]) - x[i])) <= n_sd * c.std_m[k] + tol_m
+                   for i, k in enumerate(GEOMETRY_KEYS)):
+                return index
+        return None
+
+    def to_dict(self) -> dict:
+        return {"components": [c.to_dict() for c in self.components]}
+
+    @classmethod
+    def from_dict(cls, d) -> "ShapeMixture":
+        d = _mapping("shape", d)
+        if set(d) != {"components"}:
+            raise UserError("sampling table: shape must hold exactly one key, components")
+        return cls(d["components"])
+
+
+@dataclass(frozen=True)
 class SamplingTable:
     """Uniform sampling ranges for one object class.
 
@@ -83,6 +259,9 @@ class SamplingTable:
         (metres) and ``yaw_rad``, the rotation about z (0 = front faces the camera).
     q: one configuration range per joint (radians for revolute, metres for prismatic).
     chirality_p: probability that an object is mirrored (hinge on its right, see docs).
+    shape: None (the paper's tables: each geometry range sampled uniformly and independently)
+        or a :class:`ShapeMixture`, the joint distribution of the three sizes, truncated to
+        the ``geometry`` ranges (``--table realistic``).
     """
 
     geometry: Mapping[str, Range]
@@ -90,6 +269,7 @@ class SamplingTable:
     q: tuple[Range, ...]
     chirality_p: float = 0.0
     extra: Mapping[str, float] = field(default_factory=dict)
+    shape: ShapeMixture | None = None
 
     def __post_init__(self) -> None:
         geometry, pose = _mapping("geometry", self.geometry), _mapping("pose", self.pose)
@@ -111,6 +291,16 @@ class SamplingTable:
         if not 0.0 <= chirality_p <= 1.0:
             raise UserError(f"sampling table: chirality_p must be in [0, 1], got {chirality_p}")
         extra = {k: _number(f"extra.{k}", v) for k, v in _mapping("extra", self.extra).items()}
+        shape = self.shape
+        if shape is not None:
+            shape = shape if isinstance(shape, ShapeMixture) else ShapeMixture.from_dict(shape)
+            for c in shape.components:
+                for k in GEOMETRY_KEYS:
+                    lo, hi = geometry[k]
+                    if not all(lo <= v <= hi for v in c.sizes_m[k]):
+                        raise UserError(f"sampling table: shape component {c.name!r} sizes_m.{k} must lie within "
+                                        f"geometry.{k} [{lo}, {hi}]")
+        object.__setattr__(self, "shape", shape)
         object.__setattr__(self, "geometry", geometry)
         object.__setattr__(self, "pose", pose)
         object.__setattr__(self, "q", q)
@@ -124,6 +314,8 @@ class SamplingTable:
             "q": [list(r) for r in self.q],
             "chirality_p": self.chirality_p,
             "extra": dict(self.extra),
+            # only a joint table stores one (the paper's tables, and their bytes, are unchanged)
+            **({} if self.shape is None else {"shape": self.shape.to_dict()}),
         }
 
     def to_json(self) -> str:
@@ -140,8 +332,13 @@ class SamplingTable:
         q = d["q"]
         return cls(
             geometry=d["geometry"], pose=d["pose"], q=tuple(q) if isinstance(q, list) else q,
-            chirality_p=d.get("chirality_p", 0.0), extra=d.get("extra", {}),
+            chirality_p=d.get("chirality_p", 0.0), extra=d.get("extra", {}), shape=d.get("shape"),
         )
+
+    @property
+    def kind(self) -> str:
+        """``"realistic"`` for a joint distribution of the sizes, else ``"uniform"``."""
+        return "uniform" if self.shape is None else "realistic"
 
     def override(self, changes: Mapping) -> "SamplingTable":
         """Return a copy with the keys in ``changes`` (same layout as :meth:`to_dict`) replaced.
@@ -172,6 +369,8 @@ class SamplingTable:
             kwargs["q"] = tuple(q)
         if "chirality_p" in changes:
             kwargs["chirality_p"] = changes["chirality_p"]
+        if "shape" in changes:  # a whole mixture, or null for independent uniform sizes
+            kwargs["shape"] = changes["shape"]
         return replace(self, **kwargs)
 
 

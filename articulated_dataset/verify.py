@@ -68,6 +68,9 @@ log = logging.getLogger(__name__)
 #: float64 and stored as float32 (relative rounding 6e-8 per component), so a correct
 #: file is within ~2e-7; 1e-4 leaves a wide margin while catching any real scaling error.
 UNIT_TOL = 1e-4
+#: A realistic split's sizes lie within this many jitter standard deviations of a standard
+#: size of some size class (the chance of a sample beyond it is ~2e-9 per dimension).
+SHAPE_SD = 6.0
 #: Allowed excess (rad or m) of a stored float32 value over a float64 table limit: half an
 #: ulp of float32 at 16 is 1e-6; 1e-5 covers every range in the built-in tables.
 LIMIT_TOL = 1e-5
@@ -775,6 +778,8 @@ def _check_limits(f64: dict, table, J: int, attrs: dict, p: list) -> None:
                 p.append(f"q[{j}]: outside the table's limits [{table.q[j][0]:.6g}, {table.q[j][1]:.6g}] in {_where(bad)}")
     elif "q" in f64:
         p.append(f"sampling_table has {len(table.q)} q ranges for {J} joints")
+    if "geometry" in f64 and table.shape is not None:
+        _check_shape(f64["geometry"], table, p)
     if "object_pose" in f64 and is_head_mount(attrs):
         _check_head_limits(f64["object_pose"], table, p)
         return
@@ -791,6 +796,27 @@ def _check_limits(f64: dict, table, J: int, attrs: dict, p: list) -> None:
         bad = (v < lo - LIMIT_TOL) | (v > hi + LIMIT_TOL)
         if bad.any():
             p.append(f"object_yaw: outside the table's [{lo:.6g}, {hi:.6g}] rad in {_where(bad)}")
+
+
+def _check_shape(geometry: np.ndarray, table, p: list) -> None:
+    """A joint size table (``--table realistic``): every (depth, width, height) within the
+    table's geometry bounds and explained by one of its size classes
+    (:meth:`~articulated_dataset.tables.ShapeMixture.component_of`)."""
+    from .tables import GEOMETRY_KEYS
+
+    if geometry.ndim != 2 or geometry.shape[1] < len(GEOMETRY_KEYS):
+        return  # the shape check of the schema reports it
+    sizes = geometry[:, :len(GEOMETRY_KEYS)]
+    for axis, key in enumerate(GEOMETRY_KEYS):
+        lo, hi = table.geometry[key]
+        bad = (sizes[:, axis] < lo - LIMIT_TOL) | (sizes[:, axis] > hi + LIMIT_TOL)
+        if bad.any():
+            p.append(f"geometry: {key} outside the table's [{lo:g}, {hi:g}] m in {_where(bad)}")
+    unique, inverse = np.unique(sizes, axis=0, return_inverse=True)  # one row per object
+    explained = np.array([table.shape.component_of(x, n_sd=SHAPE_SD, tol_m=LIMIT_TOL) is not None for x in unique])
+    bad = ~explained[inverse.reshape(-1)]
+    if bad.any():
+        p.append(f"geometry: sizes no size class of the table explains (beyond {SHAPE_SD:g} sd of every class) in {_where(bad)}")
 
 
 def _check_head_limits(object_pose: np.ndarray, table, p: list) -> None:

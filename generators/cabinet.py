@@ -4,6 +4,7 @@ from articulated_dataset.classes import REVOLUTE, JointSpec, ObjectClass
 from articulated_dataset.tables import SamplingTable
 
 from .common import NEAR_POSE_M, REVOLUTE_Q_RAD, YAW_RAD
+from .realistic import CABINET, realistic_table
 
 TABLE = SamplingTable(
     geometry={"depth_m": (0.56, 0.64), "width_m": (0.60, 1.40), "height_m": (0.60, 1.40)},
@@ -11,6 +12,9 @@ TABLE = SamplingTable(
     q=(REVOLUTE_Q_RAD,),
     chirality_p=0.5,  # "Cabinets that open clockwise/counterclockwise ... with equal probability"
 )
+
+#: ``--table realistic``: sizes from standard dimensions (generators/realistic.py).
+REALISTIC_TABLE = realistic_table(TABLE, *CABINET)
 
 CLASS = ObjectClass(
     name="cabinet",
@@ -20,4 +24,5 @@ CLASS = ObjectClass(
     sided=True,
     description="1 revolute door, hinged on the left or right front edge",
     order=0,
+    realistic_table=REALISTIC_TABLE,
 )

@@ -4,12 +4,16 @@ from articulated_dataset.classes import REVOLUTE, JointSpec, ObjectClass
 from articulated_dataset.tables import SamplingTable
 
 from .common import NEAR_POSE_M, REVOLUTE_Q_RAD, YAW_RAD
+from .realistic import CABINET2, realistic_table
 
 TABLE = SamplingTable(
     geometry={"depth_m": (0.56, 0.64), "width_m": (0.60, 1.40), "height_m": (0.60, 1.40)},
     pose={**NEAR_POSE_M, "yaw_rad": YAW_RAD},
     q=(REVOLUTE_Q_RAD, REVOLUTE_Q_RAD),
 )
+
+#: ``--table realistic``: sizes from standard dimensions (generators/realistic.py).
+REALISTIC_TABLE = realistic_table(TABLE, *CABINET2)
 
 CLASS = ObjectClass(
     name="cabinet2",
@@ -18,4 +22,5 @@ CLASS = ObjectClass(
     joints=(JointSpec("left_door_hinge", REVOLUTE, "left_door"), JointSpec("right_door_hinge", REVOLUTE, "right_door")),
     description="two-door cabinet: left door (joint 0) and right door (joint 1)",
     order=4,
+    realistic_table=REALISTIC_TABLE,
 )

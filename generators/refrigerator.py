@@ -9,6 +9,7 @@ from articulated_dataset.classes import REVOLUTE, JointSpec, ObjectClass
 from articulated_dataset.tables import SamplingTable
 
 from .common import REVOLUTE_Q_RAD, YAW_RAD
+from .realistic import REFRIGERATOR, realistic_table
 
 TABLE = SamplingTable(
     geometry={"depth_m": (0.60, 0.80), "width_m": (0.60, 0.90), "height_m": (0.82, 0.88)},
@@ -16,6 +17,9 @@ TABLE = SamplingTable(
     q=(REVOLUTE_Q_RAD, REVOLUTE_Q_RAD),
     chirality_p=0.0,
 )
+
+#: ``--table realistic``: sizes from standard dimensions (generators/realistic.py).
+REALISTIC_TABLE = realistic_table(TABLE, *REFRIGERATOR)
 
 CLASS = ObjectClass(
     name="refrigerator",
@@ -25,4 +29,5 @@ CLASS = ObjectClass(
     sided=True,
     description="2 revolute doors stacked vertically (joint 0 lower, joint 1 upper), hinged on the same side",
     order=5,
+    realistic_table=REALISTIC_TABLE,
 )

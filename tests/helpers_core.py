@@ -8,17 +8,20 @@ import mujoco
 import numpy as np
 
 from articulated_dataset.camera import CameraConfig, backproject
-from articulated_dataset.labels import MASK_FIRST_PART, model_info, read_object_labels
+from articulated_dataset.classes import PRISMATIC
+from articulated_dataset.labels import MASK_BODY, MASK_FIRST_PART, model_info, read_object_labels
 from articulated_dataset.pipeline import GenerationConfig, object_sample, render_object
 from articulated_dataset.render import process_renderer
+from articulated_dataset.rotations import quat_to_matrix
 from articulated_dataset.scene import ORIGIN_POSE, ObjectPlacer, build_model, set_configuration
 from articulated_dataset.templating import render_urdf
 from articulated_dataset.viewpoint import object_in_camera
 
 
-def final_object(class_name: str, index: int = 0, camera: CameraConfig | None = None, split: str = "train"):
-    """(config, sample) of a visible object, its pose as finally used by the pipeline."""
-    config = GenerationConfig(class_name, split=split, n_objects=index + 1, camera=camera or CameraConfig())
+def final_object(class_name: str, index: int = 0, camera: CameraConfig | None = None, split: str = "train", table=None):
+    """(config, sample) of a visible object, its pose as finally used by the pipeline
+    (``table``: a sampling table other than the class's default, e.g. its realistic one)."""
+    config = GenerationConfig(class_name, split=split, n_objects=index + 1, camera=camera or CameraConfig(), table=table)
     renderer = process_renderer(config.camera)
     _, sample, _ = render_object(object_sample(config, index), config, renderer)
     return config, sample
@@ -107,3 +110,48 @@ def surface_distances(points, depth, mask_sel, K):
     inv = [1.0 / np.where(depth[v, u] > 0, depth[v, u], np.inf) for v, u in quad]
     inv_z = inv[0] * (1 - fu) * (1 - fv) + inv[1] * fu * (1 - fv) + inv[2] * (1 - fu) * fv + inv[3] * fu * fv
     return np.abs(z[inside] - 1.0 / inv_z[inside])
+
+
+#: Template constants (urdf_templates/common.xacro): panel thickness and handle standoff (m),
+#: and the tolerance of a pixel's point against the object's box.
+PANEL_M = 0.02
+HANDLE_STANDOFF_M = 0.03
+BOX_TOL_M = 0.003
+#: Stored fields :func:`check_stored_images` reads.
+IMAGE_CHECK_FIELDS = ("depth", "mask", "q", "axis_origin", "axis_direction", "object_pose", "geometry")
+
+
+def unmove(points, origin, direction, joint_type, q):
+    """Points of a part at configuration ``q`` moved back to the closed configuration."""
+    if joint_type == PRISMATIC:
+        return points - q * direction
+    return rotate_about_axis(points, origin, direction, -q)
+
+
+def check_stored_images(obj_class, a: dict, K) -> tuple[int, int, int]:
+    """The stored labels ``a`` (:data:`IMAGE_CHECK_FIELDS`) against their own pixels, image
+    by image: body pixels lie in the object's box (object_pose, geometry); each moving part's
+    pixels, moved back by -q about the labelled axis, lie in the closed object's box (+
+    handle).  Returns (parts open >= 30% checked, those whose pixels *not* moved back leave
+    the box: the negative control, body pixels seen)."""
+    detected = checked = n_body = 0
+    for i in range(len(a["q"])):
+        pose = a["object_pose"][i].astype(np.float64)
+        R, t = quat_to_matrix(pose[3:]), pose[:3]
+        d, w, h = a["geometry"][i, :3].astype(np.float64)
+        lo = np.array([-d / 2 - PANEL_M - HANDLE_STANDOFF_M, -w / 2, 0.0]) - BOX_TOL_M
+        hi = np.array([d / 2, w / 2, h]) + BOX_TOL_M
+        inside = lambda p: np.all((p >= lo) & (p <= hi), axis=1)  # noqa: E731
+        body = (backproject(a["depth"][i], K, a["mask"][i] == MASK_BODY) - t) @ R
+        assert len(body) == 0 or inside(body).mean() > 0.995  # doors may hide most of the body
+        n_body += len(body)
+        for j, spec in enumerate(obj_class.joints):
+            pts = backproject(a["depth"][i], K, a["mask"][i] == MASK_FIRST_PART + j)
+            o, u, q = (a[k][i, j].astype(np.float64) for k in ("axis_origin", "axis_direction", "q"))
+            closed = (unmove(pts, o, u, spec.type, q) - t) @ R
+            assert inside(closed).mean() > 0.995, (obj_class.name, i, j)
+            lo_q, hi_q = obj_class.table.q[j]
+            if q >= lo_q + 0.3 * (hi_q - lo_q):
+                checked += 1
+                detected += inside((pts - t) @ R).mean() < 0.9
+    return checked, detected, n_body

@@ -3,7 +3,8 @@
 Every test runs over every registered class (and every joint of 2-DoF classes), and with
 each camera of :data:`CAMERAS`: the paper's, a head camera with the D435 preset (tilted and
 rolled view, off-centre principal point) and the Azure Kinect preset squeezed to 192x108
-(non-square pixels, fx != fy).
+(non-square pixels, fx != fy); and with the paper's camera and each table of :data:`TABLES`
+(``--table realistic``: sizes from standard dimensions).
 """
 
 import json
@@ -14,7 +15,7 @@ import yourdfpy
 
 from articulated_dataset.camera import CameraConfig, project
 from articulated_dataset.labels import MASK_BODY, MASK_FIRST_PART
-from articulated_dataset.registry import PRISMATIC, all_classes
+from articulated_dataset.registry import PRISMATIC, all_classes, get_class
 from articulated_dataset.rotations import matrix_to_quat
 from articulated_dataset.shards import open_split
 from helpers_core import (compile_object, final_object, object_transform, part_points, render_at, rotate_about_axis,
@@ -45,14 +46,19 @@ def _object_cache():
     return {}
 
 
-@pytest.fixture(params=list(CAMERAS))
+#: Sampling tables beside the paper's, with the paper's camera: ``--table realistic``.
+TABLES = ("realistic",)
+
+
+@pytest.fixture(params=list(CAMERAS) + list(TABLES))
 def objects(request, _object_cache):
     camera_key = request.param
 
     def get(name):
         key = (name, camera_key)
         if key not in _object_cache:
-            config, sample = final_object(name, index=1, camera=CAMERAS[camera_key])
+            table = get_class(name).named_table(camera_key) if camera_key in TABLES else None
+            config, sample = final_object(name, index=1, camera=CAMERAS.get(camera_key, CameraConfig()), table=table)
             _object_cache[key] = (config, sample) + compile_object(config, sample)
         return _object_cache[key]
 
@@ -95,14 +101,19 @@ def test_labelled_joint_motion_maps_q1_pixels_onto_q2_surface(objects, case):
     assert np.quantile(residual, 0.4) < EXACT_TOL_M
     if config.camera == CameraConfig():
         assert np.median(residual) < MOTION_TOL_M
-    # Negative controls (the check can fail): an axis shifted by 10 cm, or moved twice as far.
+    # Negative controls (the check can fail): an axis shifted by 10 cm, or moved twice as far,
+    # fails the checks above.  (A shift along the door's normal slides the door within its own
+    # plane: a large door, e.g. a realistic 24-in base cabinet's, stays within 5 mm of the
+    # surface at the median, but no longer lands exactly.)
     normal = np.cross(a, [0.3, 0.4, 0.5])
     wrong_motions = [_move(p1, o, a, jtype, 2 * dq)]
     if jtype != PRISMATIC:
         wrong_motions.append(_move(p1, o + 0.10 * normal / np.linalg.norm(normal), a, jtype, dq))
     for wrong in wrong_motions:
         r = surface_distances(wrong, d2, sel, K)
-        assert len(r) < 0.5 * len(p1) or (np.median(r) > MOTION_TOL_M and np.quantile(r, 0.4) > EXACT_TOL_M)
+        assert len(r) < 0.5 * len(p1) or np.quantile(r, 0.4) > EXACT_TOL_M
+        if config.table == obj_class.table:  # the paper's tables: the median fails too
+            assert len(r) < 0.5 * len(p1) or np.median(r) > MOTION_TOL_M
 
 
 @pytest.mark.parametrize("obj_class", CLASSES, ids=lambda c: c.name)
@@ -173,11 +184,19 @@ def test_axis_origin_lies_on_hinge_edge_or_front_face(objects, case):
                  if abs(abs((corners[k] - corners[i]) @ a) - np.linalg.norm(corners[k] - corners[i])) < 1e-9]
         mids = [0.5 * (p + q) for p, q in edges]
         assert min(np.linalg.norm(m - o) for m in mids) < 1e-6
-    # Pixel check: the origin projects onto (or within 2 px of) the rendered part.
+    # Pixel check: the origin projects onto (or within 2 px of) the rendered part; an origin
+    # beyond the image (a realistic 2.4 m tall cabinet's hinge midpoint above it) lies beyond
+    # the image edge the part is cut by.
     depth, mask = render_at(config, model, data, info, np.zeros(obj_class.n_joints))
     (u, v), = project(o[None], config.camera.K)[0]
     vv, uu = np.nonzero(mask == MASK_FIRST_PART + j)
-    assert np.min(np.hypot(uu - u, vv - v)) <= 2.0
+    H, W = mask.shape
+    if -0.5 <= u <= W - 0.5 and -0.5 <= v <= H - 0.5:
+        assert np.min(np.hypot(uu - u, vv - v)) <= 2.0
+    else:
+        assert config.table != obj_class.table  # the paper's objects: origins in view
+        assert (v >= -0.5 or vv.min() == 0) and (v <= H - 0.5 or vv.max() == H - 1)
+        assert (u >= -0.5 or uu.min() == 0) and (u <= W - 0.5 or uu.max() == W - 1)
 
 
 @pytest.mark.parametrize("obj_class", CLASSES, ids=lambda c: c.name)

@@ -15,22 +15,16 @@ from click.testing import CliRunner
 
 from articulated_dataset.camera import INTRINSICS_PRESETS, CameraConfig, backproject, project
 from articulated_dataset.cli import main
-from articulated_dataset.labels import MASK_BODY, MASK_FIRST_PART
 from articulated_dataset.pipeline import GenerationConfig, generate_split
-from articulated_dataset.registry import PRISMATIC, all_classes, get_class
+from articulated_dataset.registry import all_classes, get_class
 from articulated_dataset.render import DepthRenderer
-from articulated_dataset.rotations import quat_to_matrix
 from articulated_dataset.scene import _set_intrinsics
 from articulated_dataset.shards import open_split, read_manifest
 from articulated_dataset.viewpoint import (HEAD_AIM_JITTER_DEG, HEAD_HEIGHT_M, HEAD_PITCH_DEG, HEAD_ROLL_DEG,
                                            aim_pitch_rad, head_views, level_pose_from_camera, object_in_camera)
 from articulated_dataset.verify import verify_split
-from helpers_core import rotate_about_axis
+from helpers_core import IMAGE_CHECK_FIELDS, check_stored_images
 
-#: Template constants (urdf_templates/common.xacro): panel thickness and handle standoff (m).
-PANEL_M = 0.02
-HANDLE_STANDOFF_M = 0.03
-TOL_M = 0.003
 PRESETS = list(INTRINSICS_PRESETS)
 
 
@@ -155,12 +149,6 @@ def head_root(tmp_path_factory):
     return root
 
 
-def _unmove(points, origin, direction, joint_type, q):
-    if joint_type == PRISMATIC:
-        return points - q * direction
-    return rotate_about_axis(points, origin, direction, -q)
-
-
 @pytest.mark.parametrize("obj_class", CLASSES, ids=lambda c: c.name)
 def test_head_camera_labels_explain_every_image(head_root, obj_class):
     """In every image: body pixels lie in the object's box (object_pose, geometry); each
@@ -173,28 +161,11 @@ def test_head_camera_labels_explain_every_image(head_root, obj_class):
     detected = checked = n_body = 0
     pitches = []
     for sh in shards:
-        a = {k: sh.read(k) for k in ("depth", "mask", "q", "axis_origin", "axis_direction", "object_pose", "geometry")}
+        a = {k: sh.read(k) for k in IMAGE_CHECK_FIELDS}
         sh.close()
         pitches += list(level_pose_from_camera(a["object_pose"].astype(np.float64))["pitch_rad"])
-        for i in range(len(a["q"])):
-            pose = a["object_pose"][i].astype(np.float64)
-            R, t = quat_to_matrix(pose[3:]), pose[:3]
-            d, w, h = a["geometry"][i, :3].astype(np.float64)
-            lo = np.array([-d / 2 - PANEL_M - HANDLE_STANDOFF_M, -w / 2, 0.0]) - TOL_M
-            hi = np.array([d / 2, w / 2, h]) + TOL_M
-            inside = lambda p: np.all((p >= lo) & (p <= hi), axis=1)  # noqa: E731
-            body = (backproject(a["depth"][i], K, a["mask"][i] == MASK_BODY) - t) @ R
-            assert len(body) == 0 or inside(body).mean() > 0.995  # doors may hide most of the body
-            n_body += len(body)
-            for j, spec in enumerate(obj_class.joints):
-                pts = backproject(a["depth"][i], K, a["mask"][i] == MASK_FIRST_PART + j)
-                o, u, q = (a[k][i, j].astype(np.float64) for k in ("axis_origin", "axis_direction", "q"))
-                closed = (_unmove(pts, o, u, spec.type, q) - t) @ R
-                assert inside(closed).mean() > 0.995, (obj_class.name, i, j)
-                lo_q, hi_q = obj_class.table.q[j]
-                if q >= lo_q + 0.3 * (hi_q - lo_q):
-                    checked += 1
-                    detected += inside((pts - t) @ R).mean() < 0.9
+        counts = check_stored_images(obj_class, a, K)
+        checked, detected, n_body = checked + counts[0], detected + counts[1], n_body + counts[2]
     assert checked > 0 and detected >= 0.9 * checked and n_body > 1000
     assert np.degrees(np.ptp(pitches)) > 5  # the camera really moves between images
 

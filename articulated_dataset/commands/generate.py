@@ -6,6 +6,7 @@ import importlib.util
 import os
 import re
 import time
+from pathlib import Path
 
 import click
 
@@ -14,7 +15,7 @@ from ..errors import UserError
 from ..executors import EXECUTORS, get_executor
 from ..pipeline import DEFAULT_IMAGES_PER_OBJECT, DEFAULT_OBJECTS_PER_SHARD, DEFAULT_SEED, GenerationConfig, generate_split
 from ..registry import get_class, register
-from ..tables import load_table_file
+from ..tables import TABLE_NAMES, SamplingTable, load_table_file
 from ..viewpoint import CAMERA_MOUNTS
 from .options import ClassChoice
 
@@ -42,6 +43,8 @@ class _NoiseChoice(click.ParamType):
         return value
 
 
+#: Names ``--table`` reads as table files even when they do not exist (the error says so).
+TABLE_FILE_SUFFIXES = (".json", ".toml")
 #: Objects generated without --n.
 DEFAULT_N_OBJECTS = 100
 #: Largest image side: OpenGL drivers cap offscreen buffers (Mesa's llvmpipe at 16384 px);
@@ -87,6 +90,27 @@ def camera_from_options(width: int | None, height: int | None, resolution: str |
         raise UserError(str(exc)) from None
 
 
+def table_from_options(obj_class, values) -> SamplingTable:
+    """The table of ``--table`` values: at most one name of :data:`TABLE_NAMES` (default
+    ``paper``), then table files overriding it in order; a value that is neither a name nor
+    a file (an existing path or a ``.json``/``.toml`` name) is a one-line UserError."""
+    names = [v for v in values if v in TABLE_NAMES]
+    if len(names) > 1:
+        raise UserError(f"give one table name (--table {names[0]} or --table {names[1]}), not both")
+    table = obj_class.named_table(names[0] if names else "paper")
+    for value in values:
+        if value in TABLE_NAMES:
+            continue
+        if not (Path(value).suffix.lower() in TABLE_FILE_SUFFIXES or Path(value).exists()):
+            obj_class.named_table(value)  # the one-line "unknown sampling table" error
+        try:
+            table = table.override(load_table_file(value))
+        except UserError as exc:
+            message = str(exc)
+            raise UserError(message if str(value) in message else f"{value}: {message}") from None
+    return table
+
+
 @click.command("generate")
 @click.option("--class", "class_name", type=ClassChoice(), default=None, help="Object class to generate (or --urdf).")
 @click.option("--urdf", "urdf_path", type=click.Path(dir_okay=False), default=None,
@@ -115,7 +139,10 @@ def camera_from_options(width: int | None, height: int | None, resolution: str |
               help="A depth sensor's intrinsics (fx, fy, cx, cy), scaled to the image size (default: the paper's camera).")
 @click.option("--camera", "camera_mount", type=click.Choice(list(CAMERA_MOUNTS)), default="fixed", show_default=True,
               help="fixed: the paper's level camera; head: a mobile manipulator's head camera (height, pitch, roll per image).")
-@click.option("--table", "table_file", type=click.Path(dir_okay=False), default=None, help="JSON/TOML file overriding (part of) the class's sampling table.")
+@click.option("--table", "tables", multiple=True, metavar="paper|realistic|FILE",
+              help="Sampling table: paper (the paper's independent ranges; default), realistic (joint size distributions "
+                   "from standard dimensions, docs/generation.md) or a JSON/TOML file overriding part of it; "
+                   "repeat to combine a name with files (applied in order).")
 @click.option("--workers", type=int, default=None,
               help="Worker processes (default: all cores); with --executor ray: most shard tasks in flight (default: 1024).")
 @click.option("--executor", type=click.Choice(list(EXECUTORS)), default="local", show_default=True,
@@ -129,7 +156,7 @@ def camera_from_options(width: int | None, height: int | None, resolution: str |
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missing_meshes, urdf_scale, urdf_mesh_root,
                  n_objects, split, out_root, seed, images_per_object, objects_per_shard, width, height, resolution, vfov,
-                 intrinsics, camera_mount, table_file, workers, executor, address, noise, resume, overwrite, mean_object, quiet):
+                 intrinsics, camera_mount, tables, workers, executor, address, noise, resume, overwrite, mean_object, quiet):
     """Generate labelled depth images of one object class (or one URDF object) into HDF5 shards."""
     camera = camera_from_options(width, height, resolution, vfov, intrinsics, camera_mount)
     third_party = None
@@ -154,13 +181,7 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
         if unused:
             raise UserError(f"{unused[0]} is for --urdf objects")
         obj_class = get_class(class_name)
-    table = obj_class.table
-    if table_file:
-        try:
-            table = table.override(load_table_file(table_file))
-        except UserError as exc:
-            message = str(exc)
-            raise UserError(message if str(table_file) in message else f"{table_file}: {message}") from None
+    table = table_from_options(obj_class, tables)
     if mean_object:
         if n_objects not in (None, 1):
             raise UserError(f"--mean renders exactly one object (the class's mean object); drop --n {n_objects}")

@@ -81,8 +81,21 @@ def _manifest_summary(split_dir, manifest: dict) -> dict:
         "shards": len(manifest["shards"]),
         "bytes": int(sum(int(s["bytes"]) for s in manifest["shards"])),
         "image_size": [int(manifest["config"]["camera"]["width_px"]), int(manifest["config"]["camera"]["height_px"])],
+        **_table_summary(manifest["config"]),
         "labels": {},
     }
+
+
+def _table_summary(config: dict) -> dict:
+    """The sampling table's kind: ``paper`` (independent uniform sizes of a built-in class),
+    ``uniform`` (a third-party class's) or ``realistic`` (``--table realistic``: a joint size
+    distribution, whose size classes are listed)."""
+    table = config.get("table")
+    shape = table.get("shape") if isinstance(table, dict) else None
+    if isinstance(shape, dict) and isinstance(shape.get("components"), list):
+        names = [str(c.get("name", "?"))[:60] for c in shape["components"] if isinstance(c, dict)]
+        return {"table": "realistic", "size_classes": names}
+    return {"table": "uniform" if config.get("third_party") else "paper"}
 
 
 def _cell(x: float | None, unit: str) -> str:
@@ -105,6 +118,8 @@ def info_cmd(path, as_json):
         click.echo(f"{s['path']}: class {s['class']}, split {s['split']}, seed {s['seed']}, format {s['format_version']}, {state}")
         click.echo(f"  {s['objects']} objects, {s['images']} images, {s['shards']} shards, "
                    f"{s['bytes'] / max(s['images'], 1):.0f} bytes/image, {s['image_size'][0]}x{s['image_size'][1]} px")
+        if s["table"] == "realistic":
+            click.echo(f"  table realistic: {len(s['size_classes'])} size classes ({'; '.join(s['size_classes'])})")
         rows = [(f"{c['name']} ({c['unit']})" if c["unit"] else c["name"], c["unit"], v["min"][i], v["mean"][i], v["max"][i],
                  v["n_labelled"][i]) for v in s["labels"].values() for i, c in enumerate(v["columns"])]
         if rows:
