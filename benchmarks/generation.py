@@ -11,8 +11,9 @@ Whole machine (``--workers N``): the same two rates with N processes, measured i
     python benchmarks/generation.py --objects 8 --workers --option-objects 24   # + options only
 
 Generation options beside the default (issue 18, one process, ``--option-objects`` per class):
-end-to-end images/s with ``--camera head`` and with ``--intrinsics kinect2`` at the default
-size, each next to the paper's setting measured in the same run (a figure, not a target).
+end-to-end images/s with ``--camera head``, with ``--intrinsics kinect2`` at the default size
+and with ``--table realistic``, each next to the paper's setting measured in the same run (a
+figure, not a target).
 
 Targets (issue 2/3): end to end >= 60% of the bare rate; < 4 KB per image; whole machine
 >= 1,000 images/s on 2 cores.
@@ -83,21 +84,25 @@ def _one_raster_thread() -> None:
     os.environ.setdefault("LP_NUM_THREADS", "1")
 
 
-#: Generation options timed beside the default: name -> CameraConfig keyword arguments.
-OPTIONS = {"default": {}, "--camera head": {"mount": "head"}, "--intrinsics kinect2": {"intrinsics": "kinect2"}}
+#: Generation options timed beside the default: name -> keyword arguments of _end_to_end
+#: (``camera``: CameraConfig keyword arguments; ``table``: a table name, ``--table NAME``).
+OPTIONS = {"default": {}, "--camera head": {"camera": {"mount": "head"}},
+           "--intrinsics kinect2": {"camera": {"intrinsics": "kinect2"}}, "--table realistic": {"table": "realistic"}}
 
 
 def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: Path,
-                camera: dict | None = None) -> tuple[int, float, int, float]:
+                camera: dict | None = None, table: str = "paper") -> tuple[int, float, int, float]:
     """(images, seconds, bytes, mean pose draws per object) of one generate_split run
-    (``camera``: CameraConfig keyword arguments besides the default image size)."""
+    (``camera``: CameraConfig keyword arguments besides the default image size; ``table``:
+    the class's table of that name)."""
     from articulated_dataset.camera import CameraConfig
     from articulated_dataset.pipeline import DEFAULT_OBJECTS_PER_SHARD, GenerationConfig, generate_split
+    from articulated_dataset.registry import get_class
     from articulated_dataset.shards import read_manifest
 
     per_shard = min(DEFAULT_OBJECTS_PER_SHARD, max(1, n_objects // max(workers, 1) // 2))
     config = GenerationConfig(class_name, n_objects=n_objects, seed=seed, objects_per_shard=per_shard,
-                              camera=CameraConfig(**(camera or {})))
+                              camera=CameraConfig(**(camera or {})), table=get_class(class_name).named_table(table))
     t0 = time.perf_counter()
     split = generate_split(config, out, workers=workers, overwrite=True)
     seconds = time.perf_counter() - t0
@@ -141,9 +146,9 @@ def main() -> None:
             print(f"{'class':14s} " + " ".join(f"{k:>24s}" for k in OPTIONS))
             for name in classes:
                 row = {}
-                for label, camera in OPTIONS.items():
+                for label, option in OPTIONS.items():
                     n, sec, nbytes, attempts = _end_to_end(name, args.option_objects, args.seed, 1, Path(tmp) / "options",
-                                                           camera)
+                                                           **option)
                     row[label] = {"e2e_img_s": n / sec, "bytes_per_img": nbytes / n, "pose_draws_per_object": attempts}
                 results["options"][name] = row
                 print(f"{name:14s} " + " ".join(f"{v['e2e_img_s']:>16.0f} ({v['pose_draws_per_object']:4.2f})"

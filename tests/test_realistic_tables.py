@@ -276,3 +276,15 @@ def test_cli_refuses_bad_tables_in_one_line(tmp_path, args, needle):
     lines = [x for x in r.output.strip().splitlines() if x.strip()]
     assert len(lines) == 1 and lines[0].startswith("artdata: error:") and needle in lines[0], r.output
     assert not any(tmp_path.iterdir())
+
+
+def test_docs_show_every_realistic_table():
+    """docs/generation.md holds each table as ``python -m articulated_dataset.generators.realistic``
+    prints it (a changed table must change the docs)."""
+    from pathlib import Path
+
+    from articulated_dataset.generators.realistic import markdown_table
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "generation.md").read_text()
+    for c in CLASSES:
+        assert f"**{c.name}**\n\n{markdown_table(c.realistic_table)}\n" in text, c.name
