@@ -100,6 +100,9 @@ def main(argv=None) -> int:
     p.add_argument("--mdn-dir", type=Path, required=True)
     p.add_argument("--results", type=Path, default=None, help="benchmarks/shipped_models.py --json output")
     p.add_argument("--classes", nargs="+", default=None)
+    p.add_argument("--previous", type=Path, default=None,
+                   help="models.json of the weights shipped before (default: the current one); continuations "
+                        "and refits of those weights keep their training record from it")
     args = p.parse_args(argv)
     results = {}
     if args.results is not None:
@@ -108,7 +111,8 @@ def main(argv=None) -> int:
         metric_version = json.loads(args.results.read_text())["metric_version"]
     WEIGHTS_DIR.mkdir(exist_ok=True)
     entries = []
-    shipped = json.loads(MODELS_MANIFEST.read_text())["models"] if MODELS_MANIFEST.is_file() else []
+    prev_manifest = args.previous or MODELS_MANIFEST
+    shipped = json.loads(prev_manifest.read_text())["models"] if prev_manifest.is_file() else []
     for c in args.classes or class_names():
         for name, folder in (("dense", args.dense_dir), ("mdn-small", args.mdn_dir)):
             src = folder / FILES[name].format(c=c)
