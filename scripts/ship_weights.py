@@ -63,9 +63,12 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
     if refit is not None:  # shipped weights whose inference was refitted (scripts/fit_dense_inference.py)
         for e in shipped:
             if e["sha256"] == refit["sha256"]:
-                return {**e["training"], "refinement": ckpt["refinement"],
-                        "refinement_validation": ckpt.get("refinement_report"),
-                        "refit": "scripts/fit_dense_inference.py on the same validation objects"}
+                rec = {**e["training"], "refinement": ckpt["refinement"],
+                       "refinement_validation": ckpt.get("refinement_report"),
+                       "refit": "scripts/fit_dense_inference.py on the same validation objects"}
+                if ckpt.get("selection") is not None:
+                    rec["selection"] = ckpt["selection"]
+                return rec
     tc = ckpt.get("train_config", {})
     data_command, seed = _data_command(c, ckpt)
     data = data_command.split("--out ")[-1]
@@ -80,6 +83,8 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
     if ckpt.get("refinement") is not None:
         rec["refinement"] = ckpt["refinement"]
         rec["refinement_validation"] = ckpt.get("refinement_report")
+    if ckpt.get("selection") is not None:  # which candidate was shipped, chosen on validation objects
+        rec["selection"] = ckpt["selection"]
     if name == "dense" and tc.get("init_from"):
         rec["continued_from"] = previous if previous is not None else {"checkpoint": Path(tc["init_from"]).name}
     hist = ckpt.get("history", [])
