@@ -288,3 +288,17 @@ def test_docs_show_every_realistic_table():
     text = (Path(__file__).resolve().parents[1] / "docs" / "generation.md").read_text()
     for c in CLASSES:
         assert f"**{c.name}**\n\n{markdown_table(c.realistic_table)}\n" in text, c.name
+
+
+def test_datasheet_figures_are_the_tables_own():
+    """DATASHEET.md's size percentiles and correlations are reproduced by 10,000 draws."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "DATASHEET.md").read_text()
+    for c in CLASSES:
+        x, _ = _draws(c, 10_000)
+        p1, p50, p99 = np.percentile(x, [1, 50, 99], axis=0)
+        r = np.corrcoef(x, rowvar=False)
+        cells = " | ".join(f"{a:.2f}-{b:.2f} ({m:.2f})" for a, b, m in zip(p1, p99, p50))
+        row = f"{cells} | {r[0, 1]:+.2f} / {r[0, 2]:+.2f} / {r[1, 2]:+.2f} |"
+        assert f"| {c.name} | {len(c.realistic_table.shape.components)} (" in text and row in text, (c.name, row)
