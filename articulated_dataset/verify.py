@@ -779,7 +779,7 @@ def _check_limits(f64: dict, table, J: int, attrs: dict, p: list) -> None:
     elif "q" in f64:
         p.append(f"sampling_table has {len(table.q)} q ranges for {J} joints")
     if "geometry" in f64 and table.shape is not None:
-        _check_shape(f64["geometry"], table, p)
+        _check_shape(f64["geometry"], table, p, mean=bool(int(attrs.get("mean_object", 0))))
     if "object_pose" in f64 and is_head_mount(attrs):
         _check_head_limits(f64["object_pose"], table, p)
         return
@@ -798,10 +798,11 @@ def _check_limits(f64: dict, table, J: int, attrs: dict, p: list) -> None:
             p.append(f"object_yaw: outside the table's [{lo:.6g}, {hi:.6g}] rad in {_where(bad)}")
 
 
-def _check_shape(geometry: np.ndarray, table, p: list) -> None:
+def _check_shape(geometry: np.ndarray, table, p: list, *, mean: bool = False) -> None:
     """A joint size table (``--table realistic``): every (depth, width, height) within the
     table's geometry bounds and explained by one of its size classes
-    (:meth:`~articulated_dataset.tables.ShapeMixture.component_of`)."""
+    (:meth:`~articulated_dataset.tables.ShapeMixture.component_of`); a mean object's sizes
+    (the mixture's mean, between its size classes) are its mean."""
     from .tables import GEOMETRY_KEYS
 
     if geometry.ndim != 2 or geometry.shape[1] < len(GEOMETRY_KEYS):
@@ -812,6 +813,12 @@ def _check_shape(geometry: np.ndarray, table, p: list) -> None:
         bad = (sizes[:, axis] < lo - LIMIT_TOL) | (sizes[:, axis] > hi + LIMIT_TOL)
         if bad.any():
             p.append(f"geometry: {key} outside the table's [{lo:g}, {hi:g}] m in {_where(bad)}")
+    if mean:
+        lo, hi = (np.array([table.geometry[k][i] for k in GEOMETRY_KEYS]) for i in (0, 1))
+        bad = np.any(np.abs(sizes - np.clip(table.shape.mean_m(), lo, hi)) > LIMIT_TOL, axis=1)
+        if bad.any():
+            p.append(f"geometry: a mean object's sizes differ from the table's mean sizes in {_where(bad)}")
+        return
     unique, inverse = np.unique(sizes, axis=0, return_inverse=True)  # one row per object
     explained = np.array([table.shape.component_of(x, n_sd=SHAPE_SD, tol_m=LIMIT_TOL) is not None for x in unique])
     bad = ~explained[inverse.reshape(-1)]

@@ -302,3 +302,16 @@ def test_datasheet_figures_are_the_tables_own():
         cells = " | ".join(f"{a:.2f}-{b:.2f} ({m:.2f})" for a, b, m in zip(p1, p99, p50))
         row = f"{cells} | {r[0, 1]:+.2f} / {r[0, 2]:+.2f} / {r[1, 2]:+.2f} |"
         assert f"| {c.name} | {len(c.realistic_table.shape.components)} (" in text and row in text, (c.name, row)
+
+
+def test_a_realistic_mean_object_verifies(tmp_path):
+    """``--mean --table realistic``: the mixture's mean sizes (a cabinet between its size
+    classes), which verify checks as the mean rather than against the size classes."""
+    c = get_class("cabinet")
+    split = generate_split(GenerationConfig("cabinet", split="mean", n_objects=1, mean=True, table=c.realistic_table), tmp_path)
+    assert verify_split(split).ok
+    _, shards = open_split(split)
+    g = shards[0].read("geometry")[:, :3].astype(np.float64)
+    shards[0].close()
+    assert np.allclose(g, c.realistic_table.shape.mean_m(), atol=1e-6)
+    assert c.realistic_table.shape.component_of(g[0]) is None  # no size class explains it
