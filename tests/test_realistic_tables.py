@@ -315,3 +315,20 @@ def test_a_realistic_mean_object_verifies(tmp_path):
     shards[0].close()
     assert np.allclose(g, c.realistic_table.shape.mean_m(), atol=1e-6)
     assert c.realistic_table.shape.component_of(g[0]) is None  # no size class explains it
+
+
+def test_a_third_party_class_has_no_realistic_table(tmp_path):
+    urdf = tmp_path / "flap.urdf"
+    box = '<geometry><box size="{}"/></geometry>'
+    urdf.write_text(f"""<robot name="flap">
+  <link name="base"><visual><origin xyz="0 0 0.2"/>{box.format("0.4 0.4 0.4")}</visual></link>
+  <link name="flap"><visual><origin xyz="0.01 -0.2 0.2"/>{box.format("0.02 0.4 0.4")}</visual></link>
+  <joint name="hinge" type="revolute"><parent link="base"/><child link="flap"/><origin xyz="-0.2 0.2 0"/>
+    <axis xyz="0 0 1"/><limit lower="0" upper="1.5" effort="1" velocity="1"/></joint>
+</robot>""")
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["generate", "--urdf", str(urdf), "--class-name", "flap", "--table", "realistic", "--n", "1",
+                                  "--out", str(out), "-q"])
+    lines = [x for x in r.output.strip().splitlines() if x.strip()]
+    assert r.exit_code == 2 and len(lines) == 1 and "has no realistic table" in lines[0], r.output
+    assert not out.exists()
