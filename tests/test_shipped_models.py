@@ -24,12 +24,15 @@ pytestmark = pytest.mark.skipif(not SHIPPED, reason="this checkout ships no weig
 MAX_TOTAL_BYTES = 20_000_000
 #: Loose bounds on the shipped dense model's mean errors over the tiny test split (3 unseen
 #: objects x 16 images; seed 0 test split, never trained on): about 2x the figures measured on
-#: 1,000 test objects (docs/dense.md: position 14.2 / 4.6 / 2.8 / 2.7 / 7.7 / 3.7 cm), far
-#: below the Mean baseline (50-110 cm) and a model that learned nothing.
-DENSE_MAX_POSITION_CM = {"cabinet": 30.0, "drawer": 10.0, "microwave": 7.0, "toaster": 7.0, "cabinet2": 16.0,
-                         "refrigerator": 10.0}
-DENSE_MAX_CONFIG = {"cabinet": 28.0, "drawer": 10.0, "microwave": 9.0, "toaster": 9.0, "cabinet2": 38.0,
-                    "refrigerator": 38.0}
+#: 1,000 test objects (docs/dense.md), far below the Mean baseline (50-110 cm, 20-90 deg) and a
+#: model that learned nothing.  Rotation and configuration come from the geometric refinement
+#: (dense/refine.py), so their bounds also fail if the shipped models lose it.
+DENSE_MAX_POSITION_CM = {"cabinet": 30.0, "drawer": 10.0, "microwave": 7.0, "toaster": 6.0, "cabinet2": 14.0,
+                         "refrigerator": 7.0}
+DENSE_MAX_ROTATION_DEG = {"cabinet": 40.0, "drawer": 3.0, "microwave": 1.5, "toaster": 1.5, "cabinet2": 4.0,
+                          "refrigerator": 3.0}
+DENSE_MAX_CONFIG = {"cabinet": 28.0, "drawer": 10.0, "microwave": 5.0, "toaster": 8.0, "cabinet2": 8.0,
+                    "refrigerator": 8.0}
 
 
 def test_every_shipped_file_matches_its_checksum_and_the_budget():
@@ -74,8 +77,21 @@ def test_shipped_dense_model_predicts_a_fresh_split(tiny_root, tmp_path, cls):
     assert res.exit_code == 0, res.output
     m = json.loads((tmp_path / "s.json").read_text())["rows"][0]["metrics"]
     assert m["axis_position_error_cm"]["mean"] < DENSE_MAX_POSITION_CM[cls]
+    assert m["axis_rotation_error_deg"]["mean"] < DENSE_MAX_ROTATION_DEG[cls]
     assert m["configuration_error"]["mean"] < DENSE_MAX_CONFIG[cls]
     assert np.isfinite(m["nll"]["mean"])
+
+
+def test_every_shipped_dense_model_carries_its_refinement():
+    from articulated_dataset.dense.refine import REFINEMENT_VERSION, Refinement
+
+    dense = [m for m in SHIPPED if m["kind"] == "dense"]
+    assert dense
+    for m in dense:
+        ckpt = torch.load(M.WEIGHTS_DIR / m["file"], map_location="cpu", weights_only=True)
+        ref = Refinement.from_dict(ckpt["refinement"])
+        assert ref.version == REFINEMENT_VERSION and ckpt["calibration"] is not None
+        assert m["training"]["refinement"] == ckpt["refinement"]  # models.json says what the file does
 
 
 def test_shipped_mdn_small_predicts_and_models_lists_everything(tiny_root, tmp_path):
