@@ -29,3 +29,22 @@ def check_memory(need_bytes: float, what: str) -> None:
     if available is not None and need_bytes > available:
         raise UserError(f"{what} needs about {format_bytes(need_bytes)} of memory; this machine has "
                         f"{format_bytes(available)} available")
+
+
+#: How to install scipy, the optional dependency of ICP, the handle close-up and mixture scoring.
+SCIPY_INSTALL = 'pip install scipy (or pip install -e ".[baselines]" from the repository checkout)'
+
+
+def import_optional(module: str, needed_by: str, install: str = SCIPY_INSTALL):
+    """``importlib.import_module(module)``, or a one-line :class:`UserError` naming what needs it
+    and how to install it when its top-level package is missing (anything else missing inside an
+    installed package stays a real ImportError)."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        top = module.split(".")[0]
+        if exc.name is not None and exc.name.split(".")[0] != top:
+            raise
+        raise UserError(f"{needed_by} needs {top}, which is not installed: {install}") from None

@@ -1156,9 +1156,10 @@ def look_at_viewpoint(point, normal, distance_m: float = HANDLE_LOOK_DISTANCE_M)
 def find_handle(depth_m: np.ndarray, K: np.ndarray, rng: np.random.Generator) -> np.ndarray | None:
     """The handle bar's centre (m, in the frame of the camera that took ``depth_m``) near the
     image centre, or None; method and thresholds: ``HANDLE_*`` above."""
-    from scipy import ndimage
-
     from .camera import R_CAMERA_TO_OPTICAL
+    from .errors import import_optional
+
+    ndimage = import_optional("scipy.ndimage", "the handle close-up (manipulation.find_handle)")
 
     H, W = depth_m.shape
     v, u = np.mgrid[0:H, 0:W]

@@ -298,13 +298,9 @@ def mixture_nll(y: np.ndarray, weights: np.ndarray, means: np.ndarray, scales: n
 
 def _normal_cdf(x: np.ndarray) -> np.ndarray:
     """Standard normal CDF ``Phi(x)`` (scipy's ``ndtr``; scipy is needed only for mixtures)."""
-    try:
-        from scipy.special import ndtr
-    except ImportError:
-        from .errors import UserError
+    from .errors import import_optional
 
-        raise UserError("scoring mixture calibration needs scipy: pip install scipy") from None
-    return ndtr(x)
+    return import_optional("scipy.special", "scoring mixture calibration").ndtr(x)
 
 
 def mixture_marginal_cdf(y: np.ndarray, weights: np.ndarray, means: np.ndarray, scales: np.ndarray) -> np.ndarray:

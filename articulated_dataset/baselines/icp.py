@@ -230,7 +230,9 @@ class MeanObjectModel:
     def __init__(self, clouds: list[np.ndarray], normals: list[np.ndarray], labels: dict, base_centre_m: np.ndarray,
                  up: np.ndarray, yaw_range_rad: tuple[float, float], *, n_yaw: int = N_YAW_HYPOTHESES,
                  stages: tuple[Stage, ...] = STAGES):
-        from scipy.spatial import cKDTree
+        from ..errors import import_optional
+
+        cKDTree = import_optional("scipy.spatial", "the ICP baseline").cKDTree
 
         if not clouds or any(len(c) == 0 for c in clouds) or len(normals) != len(clouds):
             raise ValueError("every mean-model image needs points with normals")
