@@ -105,9 +105,9 @@ def main(argv=None) -> int:
     p.add_argument("--mdn-dir", type=Path, required=True)
     p.add_argument("--results", type=Path, default=None, help="benchmarks/shipped_models.py --json output")
     p.add_argument("--classes", nargs="+", default=None)
-    p.add_argument("--previous", type=Path, default=None,
-                   help="models.json of the weights shipped before (default: the current one); continuations "
-                        "and refits of those weights keep their training record from it")
+    p.add_argument("--previous", type=Path, action="append", default=None,
+                   help="models.json of weights shipped before (repeatable; default: the current one); "
+                        "continuations and refits of those weights keep their training record from it")
     args = p.parse_args(argv)
     results = {}
     if args.results is not None:
@@ -116,8 +116,8 @@ def main(argv=None) -> int:
         metric_version = json.loads(args.results.read_text())["metric_version"]
     WEIGHTS_DIR.mkdir(exist_ok=True)
     entries = []
-    prev_manifest = args.previous or MODELS_MANIFEST
-    shipped = json.loads(prev_manifest.read_text())["models"] if prev_manifest.is_file() else []
+    shipped = [e for path in (args.previous or [MODELS_MANIFEST]) if path.is_file()
+               for e in json.loads(path.read_text())["models"]]
     for c in args.classes or class_names():
         for name, folder in (("dense", args.dense_dir), ("mdn-small", args.mdn_dir)):
             src = folder / FILES[name].format(c=c)
