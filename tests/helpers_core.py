@@ -155,3 +155,18 @@ def check_stored_images(obj_class, a: dict, K) -> tuple[int, int, int]:
                 checked += 1
                 detected += inside((pts - t) @ R).mean() < 0.9
     return checked, detected, n_body
+
+
+def write_flap_urdf(folder):
+    """A third-party URDF for tests: a box with a flap, one revolute joint, primitive geometry
+    only.  Returns the file's path (``folder/flap.urdf``)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "flap.urdf"
+    box = '<geometry><box size="{}"/></geometry>'
+    path.write_text(f"""<robot name="flap">
+  <link name="base"><visual><origin xyz="0 0 0.2"/>{box.format("0.4 0.4 0.4")}</visual></link>
+  <link name="flap"><visual><origin xyz="0.01 -0.2 0.2"/>{box.format("0.02 0.4 0.4")}</visual></link>
+  <joint name="hinge" type="revolute"><parent link="base"/><child link="flap"/><origin xyz="-0.2 0.2 0"/>
+    <axis xyz="0 0 1"/><limit lower="0" upper="1.5" effort="1" velocity="1"/></joint>
+</robot>""")
+    return path

@@ -26,7 +26,7 @@ from articulated_dataset.sampling import object_rng, sample_object
 from articulated_dataset.shards import MANIFEST_NAME, open_split, read_manifest, sha256_file
 from articulated_dataset.tables import GEOMETRY_KEYS, SamplingTable, ShapeMixture
 from articulated_dataset.verify import verify_split
-from helpers_core import IMAGE_CHECK_FIELDS, check_stored_images
+from helpers_core import IMAGE_CHECK_FIELDS, check_stored_images, write_flap_urdf
 
 CLASSES = all_classes()
 N_DRAWS = 2000
@@ -318,14 +318,7 @@ def test_a_realistic_mean_object_verifies(tmp_path):
 
 
 def test_a_third_party_class_has_no_realistic_table(tmp_path):
-    urdf = tmp_path / "flap.urdf"
-    box = '<geometry><box size="{}"/></geometry>'
-    urdf.write_text(f"""<robot name="flap">
-  <link name="base"><visual><origin xyz="0 0 0.2"/>{box.format("0.4 0.4 0.4")}</visual></link>
-  <link name="flap"><visual><origin xyz="0.01 -0.2 0.2"/>{box.format("0.02 0.4 0.4")}</visual></link>
-  <joint name="hinge" type="revolute"><parent link="base"/><child link="flap"/><origin xyz="-0.2 0.2 0"/>
-    <axis xyz="0 0 1"/><limit lower="0" upper="1.5" effort="1" velocity="1"/></joint>
-</robot>""")
+    urdf = write_flap_urdf(tmp_path)
     out = tmp_path / "out"
     r = CliRunner().invoke(main, ["generate", "--urdf", str(urdf), "--class-name", "flap", "--table", "realistic", "--n", "1",
                                   "--out", str(out), "-q"])

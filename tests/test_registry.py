@@ -17,6 +17,7 @@ from articulated_dataset.cli import main
 from articulated_dataset.errors import UserError
 from articulated_dataset.pipeline import GenerationConfig
 from articulated_dataset.urdf_import import import_urdf
+from helpers_core import write_flap_urdf
 
 #: Modules of articulated_dataset.generators that are not classes.
 NOT_CLASSES = {"common", "realistic"}
@@ -47,25 +48,11 @@ def test_what_the_registry_loads_never_imports_it_back():
     assert check.stdout.strip() == "True"  # the check can fail: the generator does import the registry
 
 
-def _write_simple_urdf(folder):
-    """A box with a flap: one revolute joint, primitive geometry only."""
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / "flap.urdf"
-    box = '<geometry><box size="{}"/></geometry>'
-    path.write_text(f"""<robot name="flap">
-  <link name="base"><visual><origin xyz="0 0 0.2"/>{box.format("0.4 0.4 0.4")}</visual></link>
-  <link name="flap"><visual><origin xyz="0.01 -0.2 0.2"/>{box.format("0.02 0.4 0.4")}</visual></link>
-  <joint name="hinge" type="revolute"><parent link="base"/><child link="flap"/><origin xyz="-0.2 0.2 0"/>
-    <axis xyz="0 0 1"/><limit lower="0" upper="1.5" effort="1" velocity="1"/></joint>
-</robot>""")
-    return path
-
-
 def test_third_party_classes_register_by_definition(tmp_path, monkeypatch):
     from articulated_dataset import urdf_import
 
     monkeypatch.setenv(urdf_import.CACHE_ENV, str(tmp_path / "cache"))
-    path = _write_simple_urdf(tmp_path / "flap")
+    path = write_flap_urdf(tmp_path / "flap")
     small = import_urdf(path, class_name="flap")
     big = import_urdf(path, class_name="flap", scale=2.0)
     assert small.definition != big.definition
@@ -83,7 +70,7 @@ def test_a_third_party_class_cannot_take_a_builtin_name(tmp_path, monkeypatch):
     from articulated_dataset import urdf_import
 
     monkeypatch.setenv(urdf_import.CACHE_ENV, str(tmp_path / "cache"))
-    path = _write_simple_urdf(tmp_path / "flap")
+    path = write_flap_urdf(tmp_path / "flap")
     imported = import_urdf(path, class_name="drawer")
     with pytest.raises(UserError, match="'drawer' is a built-in class; pass another --class-name"):
         registry.resolve("drawer", imported.definition)
