@@ -150,7 +150,8 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     import torch
 
     from .camera import CameraConfig
-    from .dense.predict import as_refinement, batch_modes, modes_to_arrays, needs_refinement, refine_modes
+    from .dense.predict import batch_modes, modes_to_arrays
+    from .dense.refine import apply_refinement, as_refinement
     from .registry import get_class
     from .real import check_intrinsics, crop_intrinsics, mask_fraction_inside, resample_depth
 
@@ -180,8 +181,8 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     joint_types = list(obj_class.joint_types)
     modes, refined = batch_modes(net, torch.from_numpy(depth_r.astype(np.float32))[None],
                                  torch.from_numpy(K_dst.astype(np.float32))[None], joint_types=joint_types,
-                                 refine=needs_refinement(refinement))
-    arrays = modes_to_arrays(refine_modes(modes, refined, refinement, joint_types), np.zeros(1, np.int64), net,
+                                 refine=refinement is not None and refinement.needed)
+    arrays = modes_to_arrays(apply_refinement(modes, refined, refinement, joint_types), np.zeros(1, np.int64), net,
                              ckpt.get("calibration"))
     from .rotations import quat_to_matrix
 

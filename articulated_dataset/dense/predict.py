@@ -50,38 +50,16 @@ def predict_arrays(model, data, idx: np.ndarray, *, joint_types: list[str], cali
     ``q``, ``geometry``, ``part_offset``, ``mixture_*``, ``mixture_layout``) plus ``spread``
     (N, M, D), the raw vote spreads.
     """
-    import torch
-    from tqdm.auto import tqdm
+    from .refine import apply_refinement, as_refinement
 
     refinement = as_refinement(refinement)
-    chunks = []
-    for s in tqdm(range(0, len(idx), batch_size), desc="predicting", unit="batch", disable=not progress, leave=False):
-        b = idx[s : s + batch_size]
-        m, r = batch_modes(model, data.depth(b), torch.from_numpy(data.K[b]), joint_types=joint_types,
-                           refine=needs_refinement(refinement))
-        chunks.append(refine_modes(m, r, refinement, joint_types))
-    m = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
-    return modes_to_arrays(m, data.sample_id[idx], model, calibration)
-
-
-def as_refinement(refinement):
-    """A :class:`~.refine.Refinement` from one, its dict, or None."""
-    from .refine import Refinement
-
-    return Refinement.from_dict(refinement) if isinstance(refinement, dict) else refinement
-
-
-def needs_refinement(refinement) -> bool:
-    return refinement is not None and (refinement.frame or refinement.min_door_px is not None)
-
-
-def refine_modes(m: dict, r: dict | None, refinement, joint_types) -> dict:
-    from .refine import apply_refinement
-
-    return apply_refinement(m, r, refinement, joint_types) if needs_refinement(refinement) else m
+    m, r = predict_modes(model, data, idx, joint_types=joint_types, refine=refinement is not None and refinement.needed,
+                         batch_size=batch_size, progress=progress)
+    return modes_to_arrays(apply_refinement(m, r, refinement, joint_types), data.sample_id[idx], model, calibration)
 
 
 def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: dict | None) -> dict:
+    """Mode arrays of ``model`` (numpy) -> prediction arrays (:func:`mixture_from_modes`)."""
     from .aggregate import MAX_MODES
 
     return mixture_from_modes(m, sample_id, model.config.n_joints, MAX_MODES, calibration)
@@ -107,19 +85,21 @@ def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool) -> t
     return as_np(modes), (as_np(r) if r is not None else None)
 
 
-def predict_modes(model, data, idx: np.ndarray, *, joint_types: list[str], batch_size: int = PREDICT_BATCH,
-                  progress: bool = False) -> tuple[dict, dict]:
-    """Vote modes and refined quantities of the images ``idx`` (for :func:`~.refine.fit_refinement`)."""
+def predict_modes(model, data, idx: np.ndarray, *, joint_types: list[str], refine: bool = True,
+                  batch_size: int = PREDICT_BATCH, progress: bool = False) -> tuple[dict, dict | None]:
+    """:func:`batch_modes` over the images ``idx`` of a split in memory, batch by batch, concatenated
+    (the refined quantities are None without ``refine``)."""
     import torch
     from tqdm.auto import tqdm
 
     ms, rs = [], []
-    for s in tqdm(range(0, len(idx), batch_size), desc="refinement", unit="batch", disable=not progress, leave=False):
+    for s in tqdm(range(0, len(idx), batch_size), desc="predicting", unit="batch", disable=not progress, leave=False):
         b = idx[s : s + batch_size]
-        m, r = batch_modes(model, data.depth(b), torch.from_numpy(data.K[b]), joint_types=joint_types, refine=True)
+        m, r = batch_modes(model, data.depth(b), torch.from_numpy(data.K[b]), joint_types=joint_types, refine=refine)
         ms.append(m)
         rs.append(r)
-    return ({k: np.concatenate([c[k] for c in ms]) for k in ms[0]}, {k: np.concatenate([c[k] for c in rs]) for k in rs[0]})
+    cat = lambda chunks: {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}  # noqa: E731
+    return cat(ms), (cat(rs) if refine else None)
 
 
 def mixture_from_modes(m: dict, sample_id: np.ndarray, J: int, n_modes: int, calibration: dict | None) -> dict:
@@ -226,8 +206,8 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, progr
     from .refine import apply_refinement, fit_refinement
 
     m, r = predict_modes(model, data, idx, joint_types=joint_types, progress=progress)
-    truth = {"axis_pose": np.concatenate([data.origin[idx], _quat_from_rot6(data.rot6[idx])], -1).astype(np.float64),
-             "q": data.q[idx].astype(np.float64), "part_offset": data.part_offset[idx].astype(np.float64)}
+    truth = {"axis_pose": _true_pose(data, idx), "q": data.q[idx].astype(np.float64),
+             "part_offset": data.part_offset[idx].astype(np.float64)}
     refinement, report = fit_refinement(m, r, truth, joint_types)
     arrays = modes_to_arrays(apply_refinement(m, r, refinement, joint_types), data.sample_id[idx], model, None)
     return {"refinement": refinement.to_dict(), "calibration": fit_calibration(arrays, data, idx),
@@ -239,12 +219,17 @@ def quick_errors(arrays: dict, data, idx: np.ndarray, joint_types: list[str]) ->
     from .. import metrics as M
 
     pose = arrays["axis_pose"]
-    true_pose = np.concatenate([data.origin[idx], _quat_from_rot6(data.rot6[idx])], -1)
+    true_pose = _true_pose(data, idx)
     pos = M.axis_position_error_cm(pose[..., :3], true_pose[..., :3])
     rot = M.axis_rotation_error_deg(pose[..., 3:], true_pose[..., 3:])
     prismatic = np.array([t == "prismatic" for t in joint_types])
     cfg = M.configuration_error(arrays["q"], data.q[idx], prismatic)
     return {"pos_cm": float(np.mean(pos)), "rot_deg": float(np.mean(rot)), "config": float(np.mean(cfg))}
+
+
+def _true_pose(data, idx: np.ndarray) -> np.ndarray:
+    """The labelled axis poses (N, J, 7) of the images ``idx``: origin (m) + quaternion (w, x, y, z)."""
+    return np.concatenate([data.origin[idx], _quat_from_rot6(data.rot6[idx])], -1).astype(np.float64)
 
 
 def _quat_from_rot6(r6: np.ndarray) -> np.ndarray:

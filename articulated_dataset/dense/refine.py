@@ -77,6 +77,11 @@ class Refinement:
     min_door_px: int | None = None
     version: int = REFINEMENT_VERSION
 
+    @property
+    def needed(self) -> bool:
+        """Whether it changes anything (else the refined quantities need not be computed)."""
+        return self.frame or self.min_door_px is not None
+
     def to_dict(self) -> dict:
         return asdict(self)
 
@@ -87,6 +92,11 @@ class Refinement:
         return cls(frame=bool(d["frame"]), hinge_offset_m=float(d["hinge_offset_m"]),
                    min_door_px=None if d["min_door_px"] is None else int(d["min_door_px"]),
                    version=int(d.get("version", REFINEMENT_VERSION)))
+
+
+def as_refinement(refinement) -> "Refinement | None":
+    """A :class:`Refinement` from one, its dict (a checkpoint's ``"refinement"``), or None."""
+    return Refinement.from_dict(refinement) if isinstance(refinement, dict) else refinement
 
 
 def rotate_about(v: torch.Tensor, axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
@@ -185,8 +195,9 @@ def hinge_offset_angle(radius_m: np.ndarray, hinge_offset_m: float) -> np.ndarra
 
 def apply_refinement(m: dict, r: dict, refinement: "Refinement | None", joint_types) -> dict:
     """Mode arrays ``m`` (numpy, :func:`vote_modes` keys) with the refinement ``r`` (numpy,
-    :func:`refined_quantities`) applied as ``refinement`` says; returns a new dict."""
-    if refinement is None:
+    :func:`refined_quantities`; None when ``refinement`` is None or not :attr:`Refinement.needed`)
+    applied as ``refinement`` says; ``m`` itself when nothing changes."""
+    if refinement is None or not refinement.needed:
         return m
     out = dict(m)
     revolute = np.array([t == "revolute" for t in joint_types])
@@ -215,6 +226,8 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     :class:`Refinement` and the validation errors of every candidate.
     """
     from .. import metrics as M
+    from ..rotations import matrix_to_quat
+    from ..targets import gram_schmidt
 
     revolute = np.array([t == "revolute" for t in joint_types])
     prismatic = ~revolute
@@ -227,7 +240,8 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     offset = float(np.median((radius * np.tan(angle))[ok])) if ok.any() else 0.0
 
     def rot_err(mm):
-        return float(np.mean(M.axis_rotation_error_deg(_quat(mm["axis"][:, :, 0], mm["xaxis"][:, :, 0]), true_q)))
+        frames = gram_schmidt(mm["axis"][:, :, 0], mm["xaxis"][:, :, 0])
+        return float(np.mean(M.axis_rotation_error_deg(matrix_to_quat(frames), true_q)))
 
     def cfg_err(mm):
         return float(np.mean(M.configuration_error(mm["q"][:, :, 0], truth["q"], prismatic)))
@@ -245,13 +259,3 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
                 best_px, best_cfg = px, e
     refinement = Refinement(frame=bool(use_frame), hinge_offset_m=offset if use_frame else 0.0, min_door_px=best_px)
     return refinement, report
-
-
-def _quat(axis: np.ndarray, xaxis: np.ndarray) -> np.ndarray:
-    """Unit quaternions (w, x, y, z) (..., 4) of the frames with axis ``z`` and ``x`` (re-orthogonalised)."""
-    from ..rotations import matrix_to_quat
-
-    x = xaxis / np.linalg.norm(xaxis, axis=-1, keepdims=True)
-    z = axis - (axis * x).sum(-1, keepdims=True) * x
-    z /= np.linalg.norm(z, axis=-1, keepdims=True)
-    return matrix_to_quat(np.stack([x, np.cross(z, x), z], -1))
