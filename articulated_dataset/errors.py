@@ -35,16 +35,21 @@ def check_memory(need_bytes: float, what: str) -> None:
 SCIPY_INSTALL = 'pip install scipy (or pip install -e ".[baselines]" from the repository checkout)'
 
 
-def import_optional(module: str, needed_by: str, install: str = SCIPY_INSTALL):
-    """``importlib.import_module(module)``, or a one-line :class:`UserError` naming what needs it
-    and how to install it when its top-level package is missing (anything else missing inside an
-    installed package stays a real ImportError)."""
+def import_optional(module: str, needed_by: str, install: str = SCIPY_INSTALL, *, user_error: bool = True):
+    """``importlib.import_module(module)``; when its top-level package is not installed, one line
+    naming what needs it and how to install it: a :class:`UserError` (the CLI prints it, exit 2),
+    or with ``user_error=False`` a ModuleNotFoundError (Python APIs that promise that type).  A
+    package that is installed but fails to import (something inside it is missing) stays a real
+    error."""
     import importlib
 
     try:
         return importlib.import_module(module)
-    except ImportError as exc:
+    except ModuleNotFoundError as exc:
         top = module.split(".")[0]
-        if exc.name is not None and exc.name.split(".")[0] != top:
+        if exc.name is None or exc.name.split(".")[0] != top:
             raise
-        raise UserError(f"{needed_by} needs {top}, which is not installed: {install}") from None
+        message = f"{needed_by} needs {top}, which is not installed: {install}"
+        if user_error:
+            raise UserError(message) from None
+        raise ModuleNotFoundError(message, name=exc.name) from None

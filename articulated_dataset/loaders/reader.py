@@ -14,7 +14,6 @@ and the JAX loaders; :class:`BatchProcessor` the one definition of what is added
 
 from __future__ import annotations
 
-import importlib
 import logging
 import os
 from dataclasses import dataclass, field
@@ -23,7 +22,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from ..errors import DataFormatError, UserError
+from ..errors import DataFormatError, UserError, import_optional
 from ..format import (FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, Shard, Split, find_splits, open_h5, reading, resolve_shape,
                       shard_paths)
 
@@ -63,14 +62,9 @@ JAX_INSTALL = 'pip install -e ".[jax]" from the repository checkout (jax, jaxlib
 
 def require(module: str, needed_by: str, install: str):
     """``importlib.import_module(module)``; if it is not installed, a ModuleNotFoundError whose
-    message is one line naming what needs it and the command that installs it."""
-    try:
-        return importlib.import_module(module)
-    except ModuleNotFoundError as exc:
-        if exc.name is None or exc.name.split(".")[0] != module.split(".")[0]:
-            raise  # something inside the module is missing: a real error, keep it
-        raise ModuleNotFoundError(f"{needed_by} needs {module.split('.')[0]}, which is not installed: {install}",
-                                  name=exc.name) from None
+    message is one line naming what needs it and the command that installs it
+    (:func:`articulated_dataset.errors.import_optional`)."""
+    return import_optional(module, needed_by, install, user_error=False)
 
 
 def resolve_split_dirs(paths_or_split_dirs) -> list[Path]:
