@@ -868,7 +868,7 @@ def run_trial(obj: TrueObject, estimate: Estimate, joint: int, q_target: float |
 def load_prediction_estimates(path: str | Path, class_name: str) -> tuple[str, dict[int, Estimate]]:
     """``(method, {sample_id: Estimate})`` for one class of a predictions file
     (:func:`articulated_dataset.predictions.read_predictions`)."""
-    from .predictions import read_predictions
+    from .benchmark.predictions import read_predictions
 
     attrs, per_class = read_predictions(path)
     if class_name not in per_class:

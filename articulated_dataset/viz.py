@@ -766,7 +766,7 @@ def make_gallery(split_dirs, *, out: str | Path | None = None, per_sample_dir: s
 
 def _read_predicted_axes(path) -> dict:
     """class -> {sample_id: {"axis_pose": (J, 7), "q": (J,)}} of a predictions file."""
-    from .predictions import read_predictions
+    from .benchmark.predictions import read_predictions
 
     _, per_class = read_predictions(path)
     return {c: {int(i): {"axis_pose": a["axis_pose"][k], "q": a["q"][k]} for k, i in enumerate(a["sample_id"])}

@@ -182,7 +182,7 @@ _CLASSES_IN: dict[Path, tuple[str, dict]] = {}
 
 def classes_in(path: Path) -> list[str]:
     """Classes of a predictions file (read once)."""
-    from articulated_dataset.predictions import read_predictions
+    from articulated_dataset.benchmark.predictions import read_predictions
 
     if path not in _CLASSES_IN:
         attrs, per_class = read_predictions(path)

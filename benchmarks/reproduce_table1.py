@@ -9,7 +9,7 @@ For every class (default: all six), at a chosen scale:
    the reference MDN (``--mdn-model CLASS=CKPT`` / ``--mdn-dir DIR`` holding ``<class>.pt``,
    or ``--train-mdn`` to train ``artdata train --small`` per class first), each writing
    ``ROOT/table1-predictions/<class>-<method>.h5``;
-3. score everything with :func:`articulated_dataset.scoring.score` against the test splits;
+3. score everything with :func:`articulated_dataset.benchmark.score` against the test splits;
 4. print our Table 1 beside the paper's (mean +/- std; ratio = our mean / paper mean per
    cell) and write ``OUT/table1.md`` and ``OUT/table1.json`` (OUT defaults to ROOT).
 
@@ -240,7 +240,7 @@ def main(argv=None) -> int:
     from articulated_dataset.baselines import BASELINES, run_baseline
     from articulated_dataset.errors import UserError
     from articulated_dataset.registry import class_names
-    from articulated_dataset.scoring import score
+    from articulated_dataset.benchmark.scoring import score
 
     classes = args.classes or class_names()
     out_dir = args.out or args.root

@@ -2,7 +2,7 @@
 
 Builds synthetic truth shards with the real shard writer (labels only, 1x1 depth images) for
 every registered class, writes predictions (truth + noise, optionally with 5-component
-mixtures over the reference MDN target layout), then times :func:`articulated_dataset.scoring.score`
+mixtures over the reference MDN target layout), then times :func:`articulated_dataset.benchmark.score`
 end to end (reading and validating both sides, aligning by sample_id, all metrics, the table).
 
     python benchmarks/score_speed.py                 # 16,000 images per class, in a temp folder
@@ -25,10 +25,10 @@ import numpy as np
 from articulated_dataset import FORMAT_VERSION
 from articulated_dataset.camera import R_CAMERA_TO_OPTICAL, CameraConfig
 from articulated_dataset.rotations import quat_multiply
-from articulated_dataset.predictions import write_predictions
+from articulated_dataset.benchmark.predictions import write_predictions
 from articulated_dataset.registry import all_classes
 from articulated_dataset.schema import FIELDS
-from articulated_dataset.scoring import score, target_matrix
+from articulated_dataset.benchmark.scoring import score, target_matrix
 from articulated_dataset.shards import open_split, write_manifest, write_shard
 from articulated_dataset.targets import TargetLayout
 

@@ -3,7 +3,7 @@
 For every class (default: all six): generate (or reuse) ``ROOT/<class>/test`` with
 ``--test-objects`` objects from ``--seed`` (default 2026: not the training seed 0 of the
 shipped weights), predict it with each shipped model (``--models``, default ``dense
-mdn-small``), score with :func:`articulated_dataset.scoring.score`, and print one table:
+mdn-small``), score with :func:`articulated_dataset.benchmark.score`, and print one table:
 axis position (cm), axis rotation (deg), configuration (deg | cm), 90% interval coverage and
 inference speed (images/s, network + aggregation, the split already in memory for dense).
 ``--json`` writes every figure.
@@ -47,9 +47,9 @@ def main(argv=None) -> int:
     from articulated_dataset.mdn.train import configure_threads
     from articulated_dataset.models import resolve_model
     from articulated_dataset.pipeline import GenerationConfig, generate_split
-    from articulated_dataset.predictions import write_predictions
+    from articulated_dataset.benchmark.predictions import write_predictions
     from articulated_dataset.registry import class_names
-    from articulated_dataset.scoring import score
+    from articulated_dataset.benchmark.scoring import score
 
     configure_threads(None)
     classes = args.classes or class_names()
@@ -95,7 +95,7 @@ def main(argv=None) -> int:
             if not args.quiet:
                 print(json.dumps({k: (round(v, 3) if isinstance(v, float) else v) for k, v in rec.items() if k != "all_metrics"}),
                       flush=True)
-    from articulated_dataset.metrics import METRIC_VERSION
+    from articulated_dataset.benchmark.metrics import METRIC_VERSION
 
     print(f"\nTest: {args.test_objects} objects per class, seed {args.seed}; scorer metric version {METRIC_VERSION}")
     print(f"{'class':<13} {'model':<10} {'pos cm':>14} {'rot deg':>14} {'config':>14} {'cov90':>6} {'img/s':>7}")

@@ -10,7 +10,7 @@ the left), in a fixed configuration (closed; the open microwave at ``OPEN_Q_RAD`
 model (``--noise``).  Each viewpoint is one "object" of the split with one image.
 
 Methods, each scored with and without the point-likelihood estimate (Table 2 procedure,
-:mod:`articulated_dataset.pointlik`: the axis origin becomes the segmented cloud's most likely
+:mod:`articulated_dataset.benchmark.pointlik`: the axis origin becomes the segmented cloud's most likely
 point under the predicted mixture's marginal over it):
 
 * ``--models DIR``: trained MDN checkpoints (``DIR/<class>.pt``, ``DIR/<class>/*.pt``) via
@@ -129,7 +129,7 @@ def origin_layout(J: int) -> list[str]:
 def mean_predictions(train_dir: Path, test_dir: Path) -> tuple[dict, dict]:
     """Mean-baseline predictions and their point-likelihood-snapped version."""
     from articulated_dataset.baselines import mean as mean_baseline
-    from articulated_dataset.pointlik import snap_axis_poses, snap_batch
+    from articulated_dataset.benchmark.pointlik import snap_axis_poses, snap_batch
     from articulated_dataset.shards import open_split
 
     result = mean_baseline.predict(train_dir, test_dir)
@@ -162,7 +162,7 @@ def mdn_predictions(model: Path, test_dir: Path) -> tuple[dict, dict]:
 
 
 def score_rows(pred_files: list[Path], test_dir: Path, class_name: str, condition: str) -> list[Row]:
-    from articulated_dataset.scoring import score
+    from articulated_dataset.benchmark.scoring import score
 
     report = score([str(p) for p in pred_files], str(test_dir))
     return [Row(class_name, condition, r.method, r.n_scored, {k: r.metrics[k] for k in PAPER_METRICS}) for r in report.rows]
@@ -192,7 +192,7 @@ def format_table(rows: list[Row], title: str) -> str:
 
 
 def run_methods(test_dir: Path, class_name: str, condition: str, args, work: Path) -> list[Row]:
-    from articulated_dataset.predictions import write_predictions
+    from articulated_dataset.benchmark.predictions import write_predictions
 
     pred_dir = work / "predictions"
     pred_dir.mkdir(parents=True, exist_ok=True)

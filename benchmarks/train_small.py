@@ -66,9 +66,9 @@ def main() -> None:
     from articulated_dataset.baselines import run_baseline
     from articulated_dataset.mdn.predict import predict_split
     from articulated_dataset.mdn.train import TrainConfig, configure_threads, load_checkpoint, train
-    from articulated_dataset.predictions import write_predictions
+    from articulated_dataset.benchmark.predictions import write_predictions
     from articulated_dataset.registry import class_names
-    from articulated_dataset.scoring import score
+    from articulated_dataset.benchmark.scoring import score
 
     threads = configure_threads(args.threads)
     classes = args.classes.split(",") if args.classes else list(class_names())

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from articulated_dataset import metrics
+from articulated_dataset.benchmark import metrics
 from articulated_dataset import rotations
 from articulated_dataset.baselines import BASELINES, icp, mean, nn
 from articulated_dataset.baselines.common import open_split_checked
@@ -238,7 +238,7 @@ def _invoke(args):
 
 
 def test_cli_writes_predictions_the_scorer_accepts(tiny_root, tmp_path, icp_objects):
-    from articulated_dataset.scoring import score
+    from articulated_dataset.benchmark.scoring import score
 
     model_dir, _, _ = icp_objects
     runs = {

@@ -13,7 +13,7 @@ torch = pytest.importorskip("torch")
 
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from articulated_dataset import metrics as M  # noqa: E402
+from articulated_dataset.benchmark import metrics as M  # noqa: E402
 from articulated_dataset.dense import refine as R  # noqa: E402
 from articulated_dataset.dense.features import make_inputs  # noqa: E402
 from articulated_dataset.rotations import matrix_to_quat  # noqa: E402

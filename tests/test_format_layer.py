@@ -38,8 +38,8 @@ def heavy_modules_after_import(*modules: str) -> list[str]:
     return [m for m in out.stdout.strip().split(",") if m]
 
 
-@pytest.mark.parametrize("module", ["articulated_dataset.format", "articulated_dataset.scoring",
-                                    "articulated_dataset.loaders", "articulated_dataset.baselines.common",
+@pytest.mark.parametrize("module", ["articulated_dataset.format", "articulated_dataset.benchmark",
+                                    "articulated_dataset.benchmark.pointlik", "articulated_dataset.loaders", "articulated_dataset.baselines.common",
                                     "articulated_dataset.commands.info", "articulated_dataset.verify",
                                     "articulated_dataset.real", "articulated_dataset.viz"])
 def test_reading_imports_no_simulator_renderer_or_framework(module):
@@ -93,7 +93,7 @@ def test_every_consumer_reads_the_same_labels(generated):
     from articulated_dataset.commands.info import summarize_split
     from articulated_dataset.loaders import ShardReader
     from articulated_dataset.manipulation import read_split_labels
-    from articulated_dataset.scoring import load_truth_set
+    from articulated_dataset.benchmark.truth import load_truth_set
     from articulated_dataset.shards import open_split
 
     ref = raw_labels(generated)

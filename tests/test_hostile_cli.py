@@ -538,7 +538,7 @@ def test_real_split_is_test_data_for_the_baselines(env):
     res = CliRunner().invoke(main, ["baseline", "mean", "--train", env.split(split="train"), "--test", str(env.inputs.real),
                                     "--out", "p.h5", "-q"])
     assert res.exit_code == 0, res.output
-    from articulated_dataset.predictions import read_predictions
+    from articulated_dataset.benchmark.predictions import read_predictions
     from articulated_dataset.real import real_sample_id
 
     _, per_class = read_predictions(env.tmp / "p.h5")

@@ -19,7 +19,7 @@ import pytest
 from click.testing import CliRunner
 
 from articulated_dataset.cli import main
-from articulated_dataset.predictions import PREDICTIONS_FORMAT_VERSION
+from articulated_dataset.benchmark.predictions import PREDICTIONS_FORMAT_VERSION
 from articulated_dataset.shards import open_split
 from test_scoring import raw_write
 

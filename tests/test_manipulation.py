@@ -272,7 +272,7 @@ def test_fingers_must_hold_the_real_handle(tiny_root):
 
 def _oracle_predictions(root, cls, path, shift_m=0.0):
     """A predictions file holding the truth labels (axis shifted by shift_m along the axis frame's y)."""
-    from articulated_dataset.predictions import write_predictions
+    from articulated_dataset.benchmark.predictions import write_predictions
 
     _, _, labels = M.read_split_labels(root / cls / "test")
     pose = labels["axis_pose"].astype(np.float64).copy()

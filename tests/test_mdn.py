@@ -257,7 +257,7 @@ def test_cli_train_predict_score_round_trip(tiny_root, tmp_path):
     res = runner.invoke(main, ["predict", "--model", str(model), "--data", str(tiny_root / "cabinet" / "test"),
                                "--out", str(preds), "-q"])
     assert res.exit_code == 0, res.output
-    from articulated_dataset.predictions import read_predictions
+    from articulated_dataset.benchmark.predictions import read_predictions
     from articulated_dataset.shards import open_split
 
     attrs, per_class = read_predictions(preds)
@@ -281,7 +281,7 @@ def test_cli_train_predict_score_round_trip(tiny_root, tmp_path):
 def test_predict_two_joint_class_mode_and_snap_to_cloud(tiny_root, tmp_path):
     from articulated_dataset.errors import UserError
     from articulated_dataset.mdn.predict import predict_split
-    from articulated_dataset.pointlik import object_cloud
+    from articulated_dataset.benchmark.pointlik import object_cloud
 
     model = tmp_path / "cabinet2.pt"
     train(tiny_root / "cabinet2" / "train", model, TrainConfig(class_name="cabinet2", epochs=1, **TINY), progress=False)

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from articulated_dataset import metrics as M
+from articulated_dataset.benchmark import metrics as M
 from articulated_dataset import rotations
 from articulated_dataset.registry import PRISMATIC, REVOLUTE
-from articulated_dataset.scoring import image_metrics
+from articulated_dataset.benchmark.scoring import image_metrics
 
 
 def quat_about(axis, angle_deg):

@@ -40,7 +40,7 @@ def test_an_installed_package_that_fails_to_import_stays_a_real_error(tmp_path, 
 
 
 def test_mixture_scoring_without_scipy_is_one_line(no_scipy):
-    from articulated_dataset import metrics
+    from articulated_dataset.benchmark import metrics
 
     with pytest.raises(UserError) as e:
         metrics.mixture_marginal_cdf(np.zeros((1, 2)), np.ones((1, 1)), np.zeros((1, 1, 2)), np.ones((1, 1, 2)))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from articulated_dataset.errors import UserError
-from articulated_dataset.pointlik import (
+from articulated_dataset.benchmark.pointlik import (
     object_cloud,
     origin_log_likelihood,
     snap_axis_origins,

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from articulated_dataset import metrics as M
+from articulated_dataset.benchmark import metrics as M
 from articulated_dataset.cli import main
 from articulated_dataset.errors import UserError
-from articulated_dataset.predictions import PREDICTIONS_FORMAT_VERSION, read_predictions, write_predictions
-from articulated_dataset.scoring import score, target_matrix
+from articulated_dataset.benchmark.predictions import PREDICTIONS_FORMAT_VERSION, read_predictions, write_predictions
+from articulated_dataset.benchmark.scoring import score, target_matrix
 from articulated_dataset.shards import open_split
 
 FIELDS = ("sample_id", "axis_pose", "q", "geometry", "part_offset")
@@ -332,7 +332,7 @@ def test_non_unit_quaternions_are_normalised_with_a_warning(good, tiny_root, tmp
     pose = good["axis_pose"].astype(np.float64)
     pose[:, :, 3:] *= 2.0  # same rotation, norm 2
     p = raw_write(tmp_path / "q.h5", _with(good, axis_pose=pose))
-    with caplog.at_level(logging.WARNING, logger="articulated_dataset.predictions"):
+    with caplog.at_level(logging.WARNING, logger="articulated_dataset.benchmark.predictions"):
         report = score(p, tiny_root)
     assert any("non-unit quaternions" in r.getMessage() and "normalised" in r.getMessage() for r in caplog.records)
     assert report.rows[0].metrics["axis_rotation_error_deg"][0] == pytest.approx(0.0, abs=1e-4)
@@ -346,8 +346,8 @@ def test_truth_without_some_labels_is_averaged_where_defined(tiny_root, tmp_path
     import h5py
     import numpy as np
 
-    from articulated_dataset.predictions import write_predictions
-    from articulated_dataset.scoring import score
+    from articulated_dataset.benchmark.predictions import write_predictions
+    from articulated_dataset.benchmark.scoring import score
     from articulated_dataset.shards import open_split
 
     split = tmp_path / "drawer" / "test"
@@ -442,7 +442,7 @@ def test_tiny_mixture_scales_give_infinite_nll_never_dropped(good, tiny_root, tm
 
 def test_truth_reader_refuses_shards_outside_the_split(tiny_root, tmp_path, monkeypatch):
     """The split reader's own check on resolved shard paths (format.Split), independent of the manifest-name checks."""
-    from articulated_dataset import scoring
+    from articulated_dataset.benchmark import truth
     from articulated_dataset.errors import DataFormatError
     from articulated_dataset.format import split as split_module
 
@@ -452,4 +452,4 @@ def test_truth_reader_refuses_shards_outside_the_split(tiny_root, tmp_path, monk
     for path in (outside, split / ".." / "test" / ".." / ".." / "elsewhere.h5", split):
         monkeypatch.setattr(split_module, "shard_paths", lambda d, m, p=path: [p])
         with pytest.raises(DataFormatError, match="outside the split folder"):
-            scoring.load_truth_set(split)
+            truth.load_truth_set(split)

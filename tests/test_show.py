@@ -192,7 +192,7 @@ def real_split(tiny_root, tmp_path_factory):
 
 def _write_predictions(split, path, object_image_pairs):
     """Predictions for the given images: the true axes moved 5 cm along camera y."""
-    from articulated_dataset.predictions import write_predictions
+    from articulated_dataset.benchmark.predictions import write_predictions
 
     view = SplitView.open(split)
     ss = [view.sample(o, i) for o, i in object_image_pairs]

@@ -2,7 +2,7 @@
 
 Each baseline predicts, for every image of a class's test split, the axis pose, the
 configuration, the geometry and the part offset, and is written as a ``predictions.h5``
-(:mod:`articulated_dataset.predictions`) so that ``artdata score`` scores it like any other
+(:mod:`articulated_dataset.benchmark.predictions`) so that ``artdata score`` scores it like any other
 method.  See docs/baselines.md.
 
 ``run_baseline(name, train_dir, test_dir, out, ...)`` runs one of :data:`BASELINES` and

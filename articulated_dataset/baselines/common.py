@@ -9,7 +9,7 @@ Every baseline is a function ``predict(train_dir, test_dir, ...) -> BaselineResu
 * ``geometry`` (N, 4) -- depth, width, height (m), chirality;
 * ``part_offset`` (N, J, 3) -- part centre in the axis frame (m).
 
-:func:`write_result` stores it with :func:`articulated_dataset.predictions.write_predictions`
+:func:`write_result` stores it with :func:`articulated_dataset.benchmark.predictions.write_predictions`
 so that ``artdata score`` scores a baseline like any other submission.
 """
 
@@ -104,8 +104,8 @@ def broadcast_labels(labels: dict, n: int) -> dict:
 
 
 def write_result(result: BaselineResult, out_path, attrs: dict | None = None) -> Path:
-    """Write ``result`` as a predictions file (``articulated_dataset.predictions`` format)."""
-    from ..predictions import write_predictions
+    """Write ``result`` as a predictions file (``articulated_dataset.benchmark.predictions`` format)."""
+    from ..benchmark.predictions import write_predictions
 
     out_path = Path(out_path)
     if out_path.is_dir():

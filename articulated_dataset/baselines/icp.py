@@ -261,7 +261,7 @@ class MeanObjectModel:
     def from_split(cls, mean: SplitInfo, yaw_range_rad: tuple[float, float], *, model_points: int = MODEL_POINTS,
                    **kwargs) -> "MeanObjectModel":
         """Build the model from a mean-object split folder (all its images)."""
-        from ..metrics import quat_axis_z
+        from ..benchmark.metrics import quat_axis_z
 
         clouds, normals = [], []
         for sh in mean.shards:

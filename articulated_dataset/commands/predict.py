@@ -37,7 +37,7 @@ def predict_cmd(model_path, data, out, estimate, snap_to_cloud, method, batch_si
     prepare_torch(threads)
     from ..mdn.train import resolve_split_dir, split_class
     from ..models import resolve_model
-    from ..predictions import write_predictions
+    from ..benchmark.predictions import write_predictions
 
     t0 = time.perf_counter()
     ref = resolve_model(model_path, split_class(resolve_split_dir(data)))

@@ -61,7 +61,7 @@ def score_cmd(predictions, truth_path, split, json_path, csv_path, require_compl
     degrees, configuration error in degrees or cm, as mean +/- std over images, and the number
     of images scored) followed by the standard metrics.  See docs/scoring.md.
     """
-    from ..scoring import score
+    from ..benchmark.scoring import score
 
     _check_outputs(list(predictions), [json_path, csv_path])
     report = score(list(predictions), truth_path, split=split)

@@ -216,7 +216,7 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, progr
 
 def quick_errors(arrays: dict, data, idx: np.ndarray, joint_types: list[str]) -> dict:
     """Mean axis position (cm), axis rotation (deg) and configuration errors of point estimates."""
-    from .. import metrics as M
+    from ..benchmark import metrics as M
 
     pose = arrays["axis_pose"]
     true_pose = _true_pose(data, idx)

@@ -225,7 +225,7 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     of :data:`DOOR_PX_CANDIDATES`) when it lowers the mean configuration error.  Returns the
     :class:`Refinement` and the validation errors of every candidate.
     """
-    from .. import metrics as M
+    from ..benchmark import metrics as M
     from ..rotations import matrix_to_quat
     from ..targets import gram_schmidt
 

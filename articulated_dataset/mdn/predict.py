@@ -10,7 +10,7 @@ likelihood and calibration metrics.
 
 ``snap_to_cloud`` replaces each joint's axis origin by the segmented, back-projected point
 that is most likely under the mixture's marginal over that origin (the paper's Table 2
-procedure, :mod:`articulated_dataset.pointlik`).  Labels of the predicted split are never
+procedure, :mod:`articulated_dataset.benchmark.pointlik`).  Labels of the predicted split are never
 read.
 """
 
@@ -35,7 +35,7 @@ def predict_split(model_path: str | Path, data: str | Path, *, estimate: str = "
     """Run the checkpoint at ``model_path`` on the split at ``data``.
 
     Returns ``(class_name, arrays)`` with the datasets of
-    :func:`articulated_dataset.predictions.write_predictions` (``sample_id``, ``axis_pose``,
+    :func:`articulated_dataset.benchmark.predictions.write_predictions` (``sample_id``, ``axis_pose``,
     ``q``, ``geometry``, ``part_offset``, ``mixture_weights``, ``mixture_means``,
     ``mixture_scales``, ``mixture_layout``).
     """
@@ -118,7 +118,7 @@ def _snap(split_dir: Path, prepared, arrays: dict, names: list[str], progress: b
     from tqdm.auto import tqdm
 
     from ..format import Split
-    from ..pointlik import snap_axis_poses, snap_batch
+    from ..benchmark.pointlik import snap_axis_poses, snap_batch
 
     shards = Split(split_dir).shards
     pose = arrays["axis_pose"].copy()

@@ -2,7 +2,7 @@
 
 Every function takes arrays with arbitrary leading dimensions (images, joints...) and
 returns one value per element of those dimensions; none of them averages.  Averaging over
-joints (2-DoF objects) and over images is done by :mod:`articulated_dataset.scoring`.
+joints (2-DoF objects) and over images is done by :mod:`articulated_dataset.benchmark.scoring`.
 
 Conventions (see docs/format.md and docs/scoring.md):
 
@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .rotations import quat_multiply, quat_to_matrix
-from .units import CM_PER_M, DEG_PER_RAD, normalise
+from ..rotations import quat_multiply, quat_to_matrix
+from ..units import CM_PER_M, DEG_PER_RAD, normalise
 
 #: Version of the metric definitions, reported with every score (JSON ``metric_version``, CSV,
 #: table).  2: axis rotation error by headings (v1: twist of ``R_pred R_true^T``, which scored a
@@ -298,7 +298,7 @@ def mixture_nll(y: np.ndarray, weights: np.ndarray, means: np.ndarray, scales: n
 
 def _normal_cdf(x: np.ndarray) -> np.ndarray:
     """Standard normal CDF ``Phi(x)`` (scipy's ``ndtr``; scipy is needed only for mixtures)."""
-    from .errors import import_optional
+    from ..errors import import_optional
 
     return import_optional("scipy.special", "scoring mixture calibration").ndtr(x)
 

@@ -11,7 +11,7 @@ The marginal of a diagonal Gaussian mixture over a subset of its columns is the 
 the components' marginals over those columns (same weights), so only the three columns
 ``j{joint}.origin.x/y/z`` of the mixture are used.  The mixture is in label units (metres,
 camera frame), as stored in ``predictions.h5`` (``mixture_means``/``mixture_scales`` are
-means and standard deviations; see :mod:`articulated_dataset.predictions`).
+means and standard deviations; see :mod:`articulated_dataset.benchmark.predictions`).
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ import math
 
 import numpy as np
 
-from .camera import backproject
-from .errors import UserError
+from ..camera import backproject
+from ..errors import UserError
 
 log = logging.getLogger(__name__)
 

@@ -38,9 +38,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .errors import DataFormatError, UserError
-from .safeio import atomic_write_h5, available_memory_bytes, format_bytes
-from .format import attr_value, open_h5
+from ..errors import DataFormatError, UserError
+from ..safeio import atomic_write_h5, available_memory_bytes, format_bytes
+from ..format import attr_value, open_h5
 
 log = logging.getLogger(__name__)
 
