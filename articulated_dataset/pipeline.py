@@ -18,7 +18,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from . import FORMAT_VERSION, __version__
+from . import FORMAT_VERSION, __version__  # noqa: F401  (FORMAT_VERSION re-exported)
 from .camera import R_CAMERA_TO_OPTICAL
 from .errors import DataFormatError, UserError
 from .format.manifest import (  # noqa: F401  (re-exported: the generator's defaults are the format's)
@@ -37,7 +37,10 @@ from .safeio import (FULL_HINT, TMP_SUFFIX, WriteError, available_memory_bytes, 
                      fsync_dir, remove_created_dirs, translated)
 from .sampling import ObjectSample, mean_object, object_rng, sample_id, sample_object, sample_pose
 from .scene import ORIGIN_POSE, ObjectPlacer, build_model, set_configuration
-from .format.schema import FIELDS
+from .format.schema import FIELDS, OPTIONAL_FIELDS
+from .context_labels import visible_fraction
+from .occluders import OCCLUDER_STREAM, Context, add_occluder_slots, occluders_record
+from .scenes import SCENE_STREAM, add_scene, scene_layout, scene_record
 from .shards import shard_name, write_shard
 from .templating import render_urdf
 from .viewpoint import CAMERA_STREAM, head_ranges, head_views, object_in_camera
@@ -87,14 +90,24 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
     H, W = config.camera.height_px, config.camera.width_px
     head = config.camera.mount == "head"
     crng = camera_rng(config, sample.object_index) if head and not config.mean else None
+    srng, orng = context_rngs(config, sample.object_index)
+    alone = np.empty((n, 1 + J), np.int32) if config.has_context else None
     for attempt in range(1, MAX_POSE_ATTEMPTS + 1):
         if head:  # the object is built at the origin and placed in each image's camera frame
             sample = replace(sample, views=head_views(crng, sample.pose, sample.geometry, n))
             model = build_model(urdf, ORIGIN_POSE, config.camera, obj_class.base_link)
+        elif config.has_context:  # scene (its layout may redraw the base height) and occluder slots
+            sample, add_context = context_builder(config, sample, srng)
+            if add_context is None:  # no layout fits this pose: redraw it
+                rng = _redraw_pose(rng, obj_class, config, sample)
+                sample = replace(sample, pose=sample_pose(rng, config.table))
+                continue
+            model = build_model(urdf, sample.pose, config.camera, obj_class.base_link, add_context)
         else:
             model = build_model(urdf, sample.pose, config.camera, obj_class.base_link)
         data = mujoco.MjData(model)
         info = model_info(model, obj_class)
+        ctx = Context(model, info, config.occluders, orng) if config.has_context else None
         if head:
             placer = ObjectPlacer(model, info.base_body)
             per_image = [None] * n
@@ -113,18 +126,23 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
                 placer.place(object_in_camera(sample.pose, sample.views[i]))
                 per_image[i] = read_object_labels(model, data, info, obj_class)
             set_configuration(model, data, info.joint_ids, sample.q[i])
-            _, geom_id = renderer.render(data, depth_out=depth[i])
-            mask[i] = info.mask_from_geoms(geom_id)
-            vis[i] = visible_pixels(mask[i], J)
+            if ctx is not None:
+                counts = ctx.render(renderer, data, depth[i], mask[i], config.min_part_pixels)
+                if counts is None:  # no occluder draw leaves every moving part identifiable
+                    ok = False
+                    break
+                vis[i], alone[i] = counts
+            else:
+                _, geom_id = renderer.render(data, depth_out=depth[i])
+                mask[i] = info.mask_from_geoms(geom_id)
+                vis[i] = visible_pixels(mask[i], J)
             if check_visibility and vis[i, 1:].min() < config.min_part_pixels:
                 ok = False
                 break
             q[i] = read_configuration(data, info)
         if ok:
             break
-        if rng is None:
-            _, rng = sample_object(obj_class, config.table, seed=sample.seed, split=sample.split,
-                                   object_index=sample.object_index, n_images=n)
+        rng = _redraw_pose(rng, obj_class, config, sample)
         sample = replace(sample, pose=sample_pose(rng, config.table))
     else:
         raise UserError(
@@ -167,7 +185,18 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
         "sample_id": ids,
         "class": np.full(n, config.class_name.encode("ascii"), dtype="S32"),
     }
+    if alone is not None:  # format 1.1: occlusion labels
+        arrays["unoccluded_pixels"] = alone
+        arrays["visible_fraction"] = visible_fraction(vis, alone)
     return arrays, sample, attempt
+
+
+def _redraw_pose(rng, obj_class: ObjectClass, config: GenerationConfig, sample: ObjectSample) -> np.random.Generator:
+    """The object's generator positioned for its next pose draw (after its other draws)."""
+    if rng is None:
+        _, rng = sample_object(obj_class, config.table, seed=sample.seed, split=sample.split,
+                               object_index=sample.object_index, n_images=config.images_per_object)
+    return rng
 
 
 #: Extra SeedSequence word separating the noise stream from the object's sampling stream.
@@ -177,6 +206,34 @@ NOISE_STREAM = 1
 def noise_rng(config: GenerationConfig, object_index: int) -> np.random.Generator:
     """Generator of the sensor noise of one object, independent of its sampling stream."""
     return object_rng(config.seed, config.class_name, config.split, object_index, stream=NOISE_STREAM)
+
+
+def context_rngs(config: GenerationConfig, object_index: int):
+    """Generators of one object's scene layout and occluders (None where not used), each its
+    own stream: the object and its default images are the same with and without them."""
+    def stream(used: bool, word: int):
+        return object_rng(config.seed, config.class_name, config.split, object_index, stream=word) if used else None
+
+    return stream(config.scene != "none", SCENE_STREAM), stream(config.occluders > 0, OCCLUDER_STREAM)
+
+
+def context_builder(config: GenerationConfig, sample: ObjectSample, srng):
+    """``(sample, add_context)``: the sample placed in its scene (its base height redrawn
+    where the table's is impossible) and the spec hook adding scene and occluder slots;
+    ``add_context`` None when no scene layout fits the pose."""
+    boxes = None
+    if config.scene != "none":
+        placed = scene_layout(config.scene, config.class_name, sample.pose, sample.geometry, config.table.pose["z_m"], srng)
+        if placed is None:
+            return sample, None
+        sample, boxes = replace(sample, pose=placed[0]), placed[1]
+
+    def add_context(spec):
+        if boxes is not None:
+            add_scene(spec, sample.pose, boxes)
+        add_occluder_slots(spec, config.occluders)
+
+    return sample, add_context
 
 
 def camera_rng(config: GenerationConfig, object_index: int) -> np.random.Generator:
@@ -210,7 +267,7 @@ def shard_attrs(config: GenerationConfig, objects: range) -> dict:
     obj_class = config.obj_class
     assert set(obj_class.joint_types) <= set(JOINT_TYPES)
     attrs = {
-        "format_version": FORMAT_VERSION,
+        "format_version": config.format_version,
         "class_name": config.class_name,
         "split": config.split,
         "seed": config.seed,
@@ -237,6 +294,10 @@ def shard_attrs(config: GenerationConfig, objects: range) -> dict:
         attrs["intrinsics"] = config.camera.intrinsics
     if config.camera.mount != "fixed":
         attrs["camera_mount"] = json.dumps({"mount": config.camera.mount, **head_ranges()}, sort_keys=True)
+    if config.scene != "none":
+        attrs["scene"] = scene_record(config.scene, config.class_name)
+    if config.occluders:
+        attrs["occluders"] = occluders_record(config.occluders)
     return attrs
 
 
@@ -251,7 +312,8 @@ def generate_shard(config: GenerationConfig, shard_index: int, split_dir: str | 
     H, W = config.camera.height_px, config.camera.width_px
     # Images are rendered straight into the shard's buffers (no per-object copies).
     images = {"depth": np.empty((len(objects) * n, H, W), np.float32), "mask": np.empty((len(objects) * n, H, W), np.uint8)}
-    labels: dict[str, list] = {f.name: [] for f in FIELDS if f.name not in images}
+    stored = FIELDS + (OPTIONAL_FIELDS if config.has_context else ())
+    labels: dict[str, list] = {f.name: [] for f in stored if f.name not in images}
     attempts = 0
     for p, k in enumerate(objects):
         out = {name: buf[p * n:(p + 1) * n] for name, buf in images.items()}
@@ -282,7 +344,7 @@ def _manifest(config: GenerationConfig, records: dict[int, dict]) -> dict:
     shards = [records[i] for i in sorted(records)]
     complete = len(shards) == config.n_shards
     return {
-        "format_version": FORMAT_VERSION,
+        "format_version": config.format_version,
         "package_version": __version__,
         "class_name": config.class_name,
         "split": config.split,

@@ -21,6 +21,9 @@ import numpy as np
 from .camera import CameraConfig
 from .errors import RenderError
 
+#: MuJoCo geom group of scene and occluder geoms (articulated_dataset.scenes, .occluders).
+CONTEXT_GEOM_GROUP = 3
+
 log = logging.getLogger(__name__)
 
 _MISSING_GL_HELP = (
@@ -94,6 +97,10 @@ class DepthRenderer:
         self._depth = np.zeros((camera.height_px, camera.width_px), np.float32)
         self._viewport = mujoco.MjrRect(0, 0, camera.width_px, camera.height_px)
         self._opt = mujoco.MjvOption()
+        # The context render (``--scene``/``--occluders``) also draws their geom group; the
+        # default render draws MuJoCo's default groups 0-2 only, as it always has.
+        self._context_opt = mujoco.MjvOption()
+        self._context_opt.geomgroup[CONTEXT_GEOM_GROUP] = 1
         self._cam = mujoco.MjvCamera()
         self._cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
 
@@ -134,16 +141,19 @@ class DepthRenderer:
         self._near = model.vis.map.znear * extent
         self._far = model.vis.map.zfar * extent
 
-    def render(self, data: mujoco.MjData, depth_out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def render(self, data: mujoco.MjData, depth_out: np.ndarray | None = None, *,
+               context: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Render the bound model in state ``data`` (kinematics must be up to date).
 
         Returns ``(depth_m, geom_id)``: float32 z-depth along the optical axis in metres
         (0 where nothing was hit) and int32 MuJoCo geom ids (-1 for background), both
         (H, W) with row 0 at the top of the image.  ``depth_out`` (H, W) float32, if given,
-        receives the depth (and is returned).
+        receives the depth (and is returned).  ``context``: also draw the scene and occluder
+        geoms (group :data:`CONTEXT_GEOM_GROUP`); without it the object is rendered alone.
         """
         model = self._model
-        mujoco.mjv_updateScene(model, data, self._opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL, self._scn)
+        opt = self._context_opt if context else self._opt
+        mujoco.mjv_updateScene(model, data, opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL, self._scn)
         mujoco.mjr_render(self._viewport, self._scn, self._con)
         mujoco.mjr_readPixels(self._rgb, self._depth, self._viewport, self._con)
         # Segmentation colour encodes (index in scene geoms + 1) in R, G, B (low byte first);

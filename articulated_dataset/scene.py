@@ -25,10 +25,12 @@ FAR_CLIP_M = 12.0
 CAMERA_XYAXES = (0.0, -1.0, 0.0, 0.0, 0.0, 1.0)
 
 
-def build_model(urdf_xml: str, pose: dict, camera: CameraConfig, base_link: str = "base") -> mujoco.MjModel:
+def build_model(urdf_xml: str, pose: dict, camera: CameraConfig, base_link: str = "base", add_context=None) -> mujoco.MjModel:
     """Compile a scene holding the camera and the URDF object with its base at ``pose``.
 
     ``pose`` has ``x_m``, ``y_m``, ``z_m`` (base centre, camera frame) and ``yaw_rad``.
+    ``add_context(spec)``, if given, adds scene and occluder bodies before compiling
+    (:mod:`articulated_dataset.scenes`, :mod:`articulated_dataset.occluders`).
     """
     try:
         child = mujoco.MjSpec.from_string(urdf_xml)
@@ -54,6 +56,8 @@ def build_model(urdf_xml: str, pose: dict, camera: CameraConfig, base_link: str 
         pos=[pose["x_m"], pose["y_m"], pose["z_m"]], quat=list(yaw_quaternion(pose["yaw_rad"]))
     )
     frame.attach_body(base, OBJECT_PREFIX, "")
+    if add_context is not None:
+        add_context(spec)
     return spec.compile()
 
 

@@ -60,6 +60,7 @@ from .format import (FIELDS, K_DATASET, MANIFEST_NAME, MASK_BACKGROUND, MASK_FIR
                      check_h5_layout, check_version, find_split_dirs, resolve_shape, sha256_file, shard_name)
 from .format.discovery import SHARD_GLOB
 from .rotations import quat_to_matrix
+from .context_labels import context_mask_codes, occlusion_problems
 from .viewpoint import is_head_mount
 
 log = logging.getLogger(__name__)
@@ -450,6 +451,7 @@ def _check_open_shard(f: h5py.File, expect: ShardExpectation, res: ShardResult, 
     if msg:
         p.append(msg)
     _check_content(arrays, attrs, table, J=J, ipo=ipo, start=start, problems=p, capture_names=names)
+    p.extend(occlusion_problems(f, attrs, arrays, J=J, N=N, H=H, W=W))  # format 1.1 (--scene, --occluders)
     if "sample_id" in arrays:
         res.sample_ids = arrays["sample_id"]
 
@@ -593,7 +595,7 @@ def _check_content(a: dict, attrs: dict, table, *, J: int, ipo: int, start: int,
     if "mask" in a:
         m = a["mask"]
         top = MASK_FIRST_PART + J - 1
-        bad = _per_image(m > top)
+        bad = _per_image((m > top) & ~np.isin(m, context_mask_codes(attrs)))  # 254/255: occluders/scene (format 1.1)
         if bad.any():
             p.append(f"mask: values above {top} (1 + J) in {_where(bad)}")
         if "visible_pixels" in a:

@@ -42,6 +42,7 @@ import numpy as np
 
 from .camera import backproject, project
 from .errors import DataFormatError, UserError
+from .context_labels import context_details, object_depth, tint_context  # scene/occluder pixels: own colours
 from .format import MASK_BACKGROUND, MASK_FIRST_PART, PRISMATIC, Shard, Split
 from .units import format_q
 
@@ -568,7 +569,8 @@ def _draw_sample(fig, s: dict, view: SplitView, rgb_img, fit: TextFitter, *, lef
               ha="center", va="center", fontsize=fit.fit_size(title, TITLE_PT, cell_w), color="#222222")
     out = []
     ax = _panel_axes(fig, left_in, bottom_in, panel_w_in, panel_h_in, fig_w_in, fig_h_in)
-    ax.imshow(depth_to_rgb(s["depth"], float(s["K"][0, 0])), interpolation="nearest", extent=(-0.5, W - 0.5, H - 0.5, -0.5), aspect="auto")
+    depth_rgb = tint_context(depth_to_rgb(object_depth(s["depth"], s["mask"]), float(s["K"][0, 0])), s["mask"], s["depth"])
+    ax.imshow(depth_rgb, interpolation="nearest", extent=(-0.5, W - 0.5, H - 0.5, -0.5), aspect="auto")
     valid = s["depth"][s["depth"] > 0]
     if valid.size:
         ax.text(0.985, 0.975, f"{valid.min():.2f}\u2013{valid.max():.2f} m", transform=ax.transAxes, fontsize=6.5,
@@ -616,7 +618,8 @@ def split_header(view: SplitView, image_wh: tuple[int, int]) -> tuple[str, list[
     W, H = image_wh
     source = "real captures" if "real" in view.manifest else f"seed {view.manifest['seed']}"
     return view.name, [f"{view.manifest['n_objects']} objects", f"{view.manifest['n_images']} images",
-                       f"{cam.get('width_px', W)}\u00d7{cam.get('height_px', H)} px", source]
+                       f"{cam.get('width_px', W)}\u00d7{cam.get('height_px', H)} px", source,
+                       *context_details(view.manifest.get("config", {}))]
 
 
 def header_lines(name: str, details: list[str], width_in: float, fit: TextFitter) -> list[tuple[str, float, str]]:

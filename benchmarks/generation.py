@@ -11,9 +11,9 @@ Whole machine (``--workers N``): the same two rates with N processes, measured i
     python benchmarks/generation.py --objects 8 --workers --option-objects 24   # + options only
 
 Generation options beside the default (issue 18, one process, ``--option-objects`` per class):
-end-to-end images/s with ``--camera head``, with ``--intrinsics kinect2`` at the default size
-and with ``--table realistic``, each next to the paper's setting measured in the same run (a
-figure, not a target).
+end-to-end images/s with ``--camera head``, with ``--intrinsics kinect2`` at the default size,
+with ``--table realistic``, with ``--scene kitchen``/``room``, with ``--occluders 2`` and with
+both, each next to the paper's setting measured in the same run (a figure, not a target).
 
 Targets (issue 2/3): end to end >= 60% of the bare rate; < 4 KB per image; whole machine
 >= 1,000 images/s on 2 cores.
@@ -87,14 +87,17 @@ def _one_raster_thread() -> None:
 #: Generation options timed beside the default: name -> keyword arguments of _end_to_end
 #: (``camera``: CameraConfig keyword arguments; ``table``: a table name, ``--table NAME``).
 OPTIONS = {"default": {}, "--camera head": {"camera": {"mount": "head"}},
-           "--intrinsics kinect2": {"camera": {"intrinsics": "kinect2"}}, "--table realistic": {"table": "realistic"}}
+           "--intrinsics kinect2": {"camera": {"intrinsics": "kinect2"}}, "--table realistic": {"table": "realistic"},
+           "--scene kitchen": {"scene": "kitchen"}, "--scene room": {"scene": "room"}, "--occluders 2": {"occluders": 2},
+           "--scene kitchen --occluders 2": {"scene": "kitchen", "occluders": 2}}
 
 
 def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: Path,
-                camera: dict | None = None, table: str = "paper") -> tuple[int, float, int, float]:
+                camera: dict | None = None, table: str = "paper", scene: str = "none",
+                occluders: int = 0) -> tuple[int, float, int, float]:
     """(images, seconds, bytes, mean pose draws per object) of one generate_split run
     (``camera``: CameraConfig keyword arguments besides the default image size; ``table``:
-    the class's table of that name)."""
+    the class's table of that name; ``scene``, ``occluders``: --scene, --occluders)."""
     from articulated_dataset.camera import CameraConfig
     from articulated_dataset.pipeline import DEFAULT_OBJECTS_PER_SHARD, GenerationConfig, generate_split
     from articulated_dataset.registry import get_class
@@ -102,7 +105,8 @@ def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: P
 
     per_shard = min(DEFAULT_OBJECTS_PER_SHARD, max(1, n_objects // max(workers, 1) // 2))
     config = GenerationConfig(class_name, n_objects=n_objects, seed=seed, objects_per_shard=per_shard,
-                              camera=CameraConfig(**(camera or {})), table=get_class(class_name).named_table(table))
+                              camera=CameraConfig(**(camera or {})), table=get_class(class_name).named_table(table),
+                              scene=scene, occluders=occluders)
     t0 = time.perf_counter()
     split = generate_split(config, out, workers=workers, overwrite=True)
     seconds = time.perf_counter() - t0
@@ -143,7 +147,7 @@ def main() -> None:
         if args.option_objects > 0:
             results["options"] = {}
             print(f"\nend to end, 1 process, {args.option_objects} objects per class (img/s; pose draws/object):")
-            print(f"{'class':14s} " + " ".join(f"{k:>24s}" for k in OPTIONS))
+            print(f"{'class':14s} " + " ".join(f"{k:>30s}" for k in OPTIONS))
             for name in classes:
                 row = {}
                 for label, option in OPTIONS.items():
@@ -151,7 +155,7 @@ def main() -> None:
                                                            **option)
                     row[label] = {"e2e_img_s": n / sec, "bytes_per_img": nbytes / n, "pose_draws_per_object": attempts}
                 results["options"][name] = row
-                print(f"{name:14s} " + " ".join(f"{v['e2e_img_s']:>16.0f} ({v['pose_draws_per_object']:4.2f})"
+                print(f"{name:14s} " + " ".join(f"{v['e2e_img_s']:>22.0f} ({v['pose_draws_per_object']:4.2f})"
                                                  for v in row.values()))
         for w in args.workers:
             ctx = mp.get_context("spawn")

@@ -13,6 +13,7 @@ import click
 from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, INTRINSICS_PRESETS, KINECT_V2_VFOV_DEG, CameraConfig, parse_resolution
 from ..errors import UserError
 from ..executors import EXECUTORS, get_executor
+from ..format.manifest import MAX_OCCLUDERS, SCENE_NAMES
 from ..pipeline import DEFAULT_IMAGES_PER_OBJECT, DEFAULT_OBJECTS_PER_SHARD, DEFAULT_SEED, GenerationConfig, generate_split
 from ..registry import get_class, register
 from ..tables import TABLE_NAMES, SamplingTable, load_table_file
@@ -149,6 +150,12 @@ def table_from_options(obj_class, values) -> SamplingTable:
               help="local: processes on this machine; ray: one task per shard on a Ray cluster (docs/cluster.md).")
 @click.option("--address", default=None, metavar="auto|HOST:PORT",
               help="With --executor ray: the cluster to join (default: RAY_ADDRESS, else a local Ray instance).")
+@click.option("--scene", type=click.Choice(list(SCENE_NAMES)), default="none", show_default=True,
+              help="Scene context: none (the paper's isolated objects), room (floor, wall, a support for appliances and "
+                   "drawers) or kitchen (also counter tops and neighbouring units); docs/generation.md.")
+@click.option("--occluders", type=int, default=0, show_default=True,
+              help=f"Occluding shapes (boxes, cylinders, arm-like chains) between the camera and the object, per image "
+                   f"(0-{MAX_OCCLUDERS}); occlusion fractions are stored as labels.")
 @click.option("--noise", type=_NoiseChoice(), default="none", show_default=True, help="Depth sensor-noise model.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run of the same command.")
 @click.option("--overwrite", is_flag=True, help="Replace existing data of this class and split (the new split is built beside it and swapped in when complete).")
@@ -156,7 +163,8 @@ def table_from_options(obj_class, values) -> SamplingTable:
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missing_meshes, urdf_scale, urdf_mesh_root,
                  n_objects, split, out_root, seed, images_per_object, objects_per_shard, width, height, resolution, vfov,
-                 intrinsics, camera_mount, tables, workers, executor, address, noise, resume, overwrite, mean_object, quiet):
+                 intrinsics, camera_mount, tables, workers, executor, address, scene, occluders, noise, resume, overwrite,
+                 mean_object, quiet):
     """Generate labelled depth images of one object class (or one URDF object) into HDF5 shards."""
     camera = camera_from_options(width, height, resolution, vfov, intrinsics, camera_mount)
     third_party = None
@@ -198,7 +206,7 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
     config = GenerationConfig(
         class_name=obj_class.name, split=split, n_objects=n_objects, seed=seed, images_per_object=images_per_object,
         objects_per_shard=objects_per_shard, camera=camera, table=table, mean=mean_object, noise=noise,
-        third_party=third_party,
+        third_party=third_party, scene=scene, occluders=occluders,
     )
     t0 = time.perf_counter()
     try:

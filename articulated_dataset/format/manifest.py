@@ -14,7 +14,7 @@ import math
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-from .. import FORMAT_VERSION
+from .. import FORMAT_VERSION  # noqa: F401  (the default splits' version; schema.format_version_for)
 from ..camera import CameraConfig
 from ..errors import DataFormatError, UserError
 from ..tables import SamplingTable
@@ -34,6 +34,10 @@ DEFAULT_OBJECTS_PER_SHARD = 64
 DEFAULT_SEED = 0
 #: Largest seed: shards store it as a signed 64-bit integer attribute.
 MAX_SEED = 2**63 - 1
+#: Scene context around the object (``--scene``; articulated_dataset.scenes): none = the paper's isolated objects.
+SCENE_NAMES = ("none", "kitchen", "room")
+#: Most occluders per image (``--occluders``; articulated_dataset.occluders).
+MAX_OCCLUDERS = 8
 
 
 @dataclass(frozen=True)
@@ -59,6 +63,9 @@ class SplitConfig:
     # Definition of a third-party URDF class (articulated_dataset.urdf_import), rebuilt in
     # every worker process; None for registry classes.
     third_party: dict | None = None
+    # Options beyond the paper's dataset (issue 18): in the manifest only when used.
+    scene: str = "none"  # scene context around the object (SCENE_NAMES)
+    occluders: int = 0  # occluding shapes between the camera and the object, per image
 
     def __post_init__(self) -> None:
         self._validate()
@@ -80,6 +87,30 @@ class SplitConfig:
             raise UserError("--mean renders exactly one object (the class's mean object)")
         if not self.split or "/" in self.split or self.split.startswith("."):
             raise UserError(f"invalid split name {self.split!r}")
+        if self.scene not in SCENE_NAMES:
+            raise UserError(f"unknown scene {str(self.scene)[:40]!r}; choose from: {', '.join(SCENE_NAMES)}")
+        if isinstance(self.occluders, bool) or not isinstance(self.occluders, int) or not 0 <= self.occluders <= MAX_OCCLUDERS:
+            raise UserError(f"--occluders must be an integer in [0, {MAX_OCCLUDERS}], got {str(self.occluders)[:40]}")
+        if self.has_context:
+            option = "--scene" if self.scene != "none" else "--occluders"
+            if self.mean:
+                raise UserError(f"--mean renders the class's isolated mean object; drop {option}")
+            if self.camera.mount != "fixed":
+                raise UserError(f"{option} needs the fixed camera (--camera fixed); the head camera is not supported with it yet")
+            if self.third_party is not None and self.scene != "none":
+                raise UserError("--scene places the built-in classes (docs/generation.md); a --urdf object takes --occluders only")
+
+    @property
+    def has_context(self) -> bool:
+        """Whether anything besides the object is rendered (``--scene`` or ``--occluders``):
+        such splits store the occlusion fields (format version 1.1)."""
+        return self.scene != "none" or self.occluders > 0
+
+    @property
+    def format_version(self) -> str:
+        from .schema import format_version_for
+
+        return format_version_for(self.has_context)
 
     @property
     def n_shards(self) -> int:
@@ -93,7 +124,10 @@ class SplitConfig:
         d = asdict(self)
         d["camera"] = self.camera.to_dict()  # options beyond the paper's camera only when set
         d["table"] = self.table.to_dict()
-        d["format_version"] = FORMAT_VERSION
+        d["format_version"] = self.format_version
+        for key, default in (("scene", "none"), ("occluders", 0)):  # a default split's manifest is as it was
+            if d[key] == default:
+                del d[key]
         return d
 
     @classmethod

@@ -32,7 +32,8 @@ FIELDS: tuple[Field, ...] = (
           "z-depth along the optical axis; 0 where nothing was hit. Values are multiples of the "
           "root attribute depth_quantum_m."),
     Field("mask", "uint8", ("N", "H", "W"), "-", "image",
-          "0 background, 1 body, 2 + j moving part of joint j (handles belong to their part)."),
+          "0 background, 1 body, 2 + j moving part of joint j (handles belong to their part); "
+          "format 1.1 adds 254 occluder, 255 scene (--occluders, --scene)."),
     Field("q", "float32", ("N", "J"), "rad | m", "joint",
           "configuration per joint: radians (revolute) or metres (prismatic); 0 = closed, >= 0."),
     Field("axis_origin", "float32", ("N", "J", 3), "m", "camera",
@@ -59,6 +60,25 @@ FIELDS: tuple[Field, ...] = (
 )
 FIELDS_BY_NAME = {f.name: f for f in FIELDS}
 
+#: Fields stored only by splits generated with ``--scene`` or ``--occluders`` (format 1.1):
+#: readers of other splits never see them, and every loop over :data:`FIELDS` is unchanged.
+OPTIONAL_FIELDS: tuple[Field, ...] = (
+    Field("unoccluded_pixels", "int32", ("N", "P"), "px", "image",
+          "pixels of the body and of each moving part in a render of the object alone (no scene, no occluders)."),
+    Field("visible_fraction", "float32", ("N", "P"), "-", "image",
+          "visible_pixels / unoccluded_pixels per body and moving part (1 where the part alone covers no pixel); "
+          "the moving parts' values lie in the range of the shard attribute occluders (or scene)."),
+)
+OPTIONAL_FIELDS_BY_NAME = {f.name: f for f in OPTIONAL_FIELDS}
+#: Format version of splits that store :data:`OPTIONAL_FIELDS` (and mask codes
+#: :data:`MASK_SCENE`/:data:`MASK_OCCLUDER`); other splits keep FORMAT_VERSION (1.0).
+CONTEXT_FORMAT_VERSION = "1.1"
+
+
+def format_version_for(has_context: bool) -> str:
+    """The format version a split is written with: 1.1 with scene/occluders, else 1.0."""
+    return CONTEXT_FORMAT_VERSION if has_context else FORMAT_VERSION
+
 #: Joint types (the shards' ``joint_types`` attribute): ``q`` in radians or metres.
 REVOLUTE = "revolute"
 PRISMATIC = "prismatic"
@@ -68,6 +88,11 @@ JOINT_TYPES = (REVOLUTE, PRISMATIC)
 MASK_BACKGROUND = 0
 MASK_BODY = 1
 MASK_FIRST_PART = 2
+#: Format 1.1 (``--scene``, ``--occluders``): scene geometry (floor, wall, counter, neighbouring
+#: units) and occluding shapes; never a part code (at most 252 joints).
+MASK_SCENE = 255
+MASK_OCCLUDER = 254
+CONTEXT_MASK_CODES = (MASK_OCCLUDER, MASK_SCENE)
 
 
 def visible_pixels(mask: np.ndarray, n_joints: int) -> np.ndarray:
@@ -110,6 +135,12 @@ def validate_arrays(arrays: dict, *, N: int, J: int, H: int, W: int, where: str 
             raise DataFormatError(f"{prefix}dataset {f.name!r} has shape {tuple(a.shape)}, expected {expected}")
         if np.dtype(a.dtype) != np.dtype(f.dtype):
             raise DataFormatError(f"{prefix}dataset {f.name!r} has dtype {a.dtype}, expected {f.dtype}")
+    for f in OPTIONAL_FIELDS:  # only where present
+        if f.name in arrays:
+            a = arrays[f.name]
+            expected = resolve_shape(f.shape, N=N, J=J, H=H, W=W)
+            if tuple(a.shape) != expected or np.dtype(a.dtype) != np.dtype(f.dtype):
+                raise DataFormatError(f"{prefix}dataset {f.name!r} is {a.dtype} {tuple(a.shape)}, expected {f.dtype} {expected}")
 
 
 def check_version(version: str, where: str = "") -> None:
@@ -124,9 +155,10 @@ def check_version(version: str, where: str = "") -> None:
 def markdown_table() -> str:
     """The schema as a Markdown table (used to build docs/format.md)."""
     rows = ["| dataset | dtype | shape | units | frame | meaning |", "|---|---|---|---|---|---|"]
-    for f in FIELDS:
+    for f in FIELDS + OPTIONAL_FIELDS:
         shape = "(" + ", ".join(str(s) for s in f.shape) + ")"
-        cells = [f"`{f.name}`", f.dtype, shape, f.units, f.frame, f.description]
+        optional = " (format 1.1, splits with --scene or --occluders only)" if f in OPTIONAL_FIELDS else ""
+        cells = [f"`{f.name}`", f.dtype, shape, f.units, f.frame, f.description + optional]
         rows.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
     return "\n".join(rows)
 
