@@ -153,7 +153,8 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     from .dense.predict import batch_modes, modes_to_arrays
     from .dense.refine import apply_refinement, as_refinement
     from .registry import get_class
-    from .real import check_intrinsics, crop_intrinsics, mask_fraction_inside, resample_depth
+    from .real.intrinsics import check_intrinsics
+    from .real.resample import crop_intrinsics, mask_fraction_inside, resample_depth
 
     obj_class = get_class(class_name)
     depth = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)

@@ -1043,7 +1043,7 @@ class SceneCamera:
             model.cam_pos[self.cam_id] = self.cam_pos0
             model.cam_quat[self.cam_id] = self.cam_quat0
         if config.noise != "none":
-            from .noise import get_noise_model
+            from .real.noise import get_noise_model
 
             depth = get_noise_model(config.noise)(depth, self.K, self.rng)
         if config.depth_quantum_m > 0:

@@ -152,7 +152,7 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
                if config.third_party is not None else "")
         )
     if config.noise != "none":
-        from .noise import get_noise_model  # seeded per object: see noise_rng
+        from .real.noise import get_noise_model  # seeded per object: see noise_rng
 
         apply_noise = get_noise_model(config.noise)
         nrng = noise_rng(config, sample.object_index)

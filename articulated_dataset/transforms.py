@@ -238,7 +238,7 @@ class PixelDropout:
 
 
 class SensorNoise:
-    """A depth-sensor noise model of :mod:`articulated_dataset.noise` (``get_noise_model(name)``,
+    """A depth-sensor noise model of :mod:`articulated_dataset.real.noise` (``get_noise_model(name)``,
     looked up on first use) applied to ``depth`` with the sample's ``K``."""
 
     def __init__(self, model: str = "kinect2"):
@@ -247,7 +247,7 @@ class SensorNoise:
 
     def _get(self):
         if self._fn is None:
-            from .noise import get_noise_model
+            from .real.noise import get_noise_model
 
             self._fn = get_noise_model(self.model)
         return self._fn

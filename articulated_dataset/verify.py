@@ -33,9 +33,9 @@ or ``shard-NNNNN.h5``); nothing raises for bad data.  What is checked:
 
 **Real splits** (written by ``artdata ingest``: manifest key ``real``, shard attribute
 ``real = 1``) follow their own rules (docs/real_data.md): label values the capture does not
-give are NaN (checked by :func:`articulated_dataset.real.real_label_problems`: never infinite,
+give are NaN (checked by :func:`articulated_dataset.real.ground_truth.real_label_problems`: never infinite,
 NaN per group as a whole, q within the class's joint range, plausible positions and sizes);
-``sample_id`` is :func:`articulated_dataset.real.real_sample_id` of the shard's
+``sample_id`` is :func:`articulated_dataset.real.write.real_sample_id` of the shard's
 ``capture_names``; objects and images are numbered by capture, not by generation order, and a
 real object's pose differs between captures; the shard's K may be a crop's (it must be a
 pinhole matrix agreeing with ``vfov_deg``); the manifest's counts come from its ``real``
@@ -522,7 +522,7 @@ def _check_camera(f: h5py.File, attrs: dict, W: int, H: int, p: list, real: bool
 
 
 def _check_real_K(K: np.ndarray, attrs: dict, H: int, p: list) -> None:
-    from .real import vfov_deg_of
+    from .real.write import vfov_deg_of
 
     pinhole = (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0 and K[0, 1] == 0 and K[1, 0] == 0
                and np.array_equal(K[2], [0.0, 0.0, 1.0]))
@@ -570,7 +570,7 @@ def quat_rotate_z(quat_wxyz: np.ndarray) -> np.ndarray:
 def _check_content(a: dict, attrs: dict, table, *, J: int, ipo: int, start: int, problems: list,
                    capture_names: list | None = None) -> None:
     """Label invariants; ``capture_names`` (real shards only) switches to the real rules."""
-    from .real import REAL_LABEL_FIELDS
+    from .real.ground_truth import REAL_LABEL_FIELDS
 
     p = problems
     real = capture_names is not None
@@ -669,8 +669,8 @@ def _same(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def _check_real_labels(f64: dict, attrs: dict, table, J: int, p: list) -> None:
-    """:func:`articulated_dataset.real.real_label_problems` on the shard's label arrays."""
-    from .real import REAL_LABEL_FIELDS, real_label_problems
+    """:func:`articulated_dataset.real.ground_truth.real_label_problems` on the shard's label arrays."""
+    from .real.ground_truth import REAL_LABEL_FIELDS, real_label_problems
 
     if not all(k in f64 for k in REAL_LABEL_FIELDS):
         return  # already reported as missing or malformed datasets
@@ -714,7 +714,7 @@ def _check_class(a: dict, attrs: dict, p: list) -> str:
 
 def _check_real_order(a: dict, attrs: dict, capture_names: list, *, problems: list) -> None:
     """Real shards: objects and images numbered by capture; ``sample_id`` from the capture names."""
-    from .real import real_sample_id
+    from .real.write import real_sample_id
 
     p = problems
     n = len(capture_names)

@@ -220,7 +220,7 @@ def noise_cost(work: Path, class_name: str, n_images: int, seed: int) -> dict:
     """Generation time per image of the stand-in without and with the kinect2 noise model
     (one process, same run) and the bare cost of the model on those frames."""
     from articulated_dataset.camera import CameraConfig
-    from articulated_dataset.noise import get_noise_model
+    from articulated_dataset.real.noise import get_noise_model
     from articulated_dataset.shards import open_split
 
     out = {}

@@ -39,9 +39,10 @@ def heavy_modules_after_import(*modules: str) -> list[str]:
 
 
 @pytest.mark.parametrize("module", ["articulated_dataset.format", "articulated_dataset.benchmark",
-                                    "articulated_dataset.benchmark.pointlik", "articulated_dataset.loaders", "articulated_dataset.baselines.common",
-                                    "articulated_dataset.commands.info", "articulated_dataset.verify",
-                                    "articulated_dataset.real", "articulated_dataset.viz"])
+                                    "articulated_dataset.benchmark.pointlik", "articulated_dataset.loaders",
+                                    "articulated_dataset.baselines.common", "articulated_dataset.commands.info",
+                                    "articulated_dataset.verify", "articulated_dataset.real.ingest",
+                                    "articulated_dataset.real.write", "articulated_dataset.viz"])
 def test_reading_imports_no_simulator_renderer_or_framework(module):
     assert heavy_modules_after_import(module) == []
 

@@ -539,7 +539,7 @@ def test_real_split_is_test_data_for_the_baselines(env):
                                     "--out", "p.h5", "-q"])
     assert res.exit_code == 0, res.output
     from articulated_dataset.benchmark.predictions import read_predictions
-    from articulated_dataset.real import real_sample_id
+    from articulated_dataset.real.write import real_sample_id
 
     _, per_class = read_predictions(env.tmp / "p.h5")
     ids = per_class["cabinet"]["sample_id"].tolist()

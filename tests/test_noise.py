@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from articulated_dataset.errors import UserError
-from articulated_dataset.noise import (
+from articulated_dataset.real.noise import (
     KINECT2,
     KINECT2_DEPTH_STEP_M,
     KINECT2_RANDOM_HOLE_P,

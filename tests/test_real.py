@@ -14,13 +14,10 @@ from articulated_dataset.camera import R_CAMERA_TO_OPTICAL, CameraConfig, backpr
 from articulated_dataset.cli import main
 from articulated_dataset.errors import UserError
 from articulated_dataset.labels import mat_to_quat
-from articulated_dataset.real import (
-    DEPTH_QUANTUM_M,
-    crop_intrinsics,
-    load_depth,
-    real_sample_id,
-    resample_depth,
-)
+from articulated_dataset.real.ingest import DEPTH_QUANTUM_M
+from articulated_dataset.real.readers import load_depth
+from articulated_dataset.real.resample import crop_intrinsics, resample_depth
+from articulated_dataset.real.write import real_sample_id
 from articulated_dataset.schema import LABEL_FIELDS
 from articulated_dataset.shards import open_split
 
@@ -337,7 +334,7 @@ def test_load_depth_units(tmp_path):
 
 
 def test_intrinsics_plausibility_hand_worked():
-    from articulated_dataset.real import check_intrinsics, intrinsics_matrix
+    from articulated_dataset.real.intrinsics import check_intrinsics, intrinsics_matrix
 
     # Kinect v2 depth camera: 2 atan(256 / 365.456) = 70.02 deg wide, 2 atan(212 / 365.456) = 60.24 deg high
     kinect = intrinsics_matrix(365.456, 365.456, 254.878, 205.395)
@@ -365,7 +362,7 @@ def test_depth_units_are_checked_both_ways(tmp_path):
 
 
 def test_label_rules_accept_real_labels_and_wrap_yaw(tmp_path):
-    from articulated_dataset.real import load_ground_truth, real_label_problems
+    from articulated_dataset.real.ground_truth import load_ground_truth, real_label_problems
 
     path = tmp_path / "x.labels.json"
     # a cabinet opened 2 deg past its 90 deg range (labelling error), yaw given as 7 rad

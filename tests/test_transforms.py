@@ -102,10 +102,10 @@ def test_pixel_dropout():
         PixelDropout(1.5)
 
 
-@pytest.mark.skipif(importlib.util.find_spec("articulated_dataset.noise") is None,
-                    reason="articulated_dataset.noise (sensor-noise models) is not available")
+@pytest.mark.skipif(importlib.util.find_spec("articulated_dataset.real.noise") is None,
+                    reason="articulated_dataset.real.noise (sensor-noise models) is not available")
 def test_sensor_noise_wraps_the_noise_model():
-    from articulated_dataset.noise import get_noise_model
+    from articulated_dataset.real.noise import get_noise_model
 
     s = make_sample()
     out = SensorNoise("kinect2")(s, np.random.default_rng(5))

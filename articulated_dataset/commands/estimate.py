@@ -31,14 +31,16 @@ def estimate_cmd(depth, class_name, camera_path, mask_path, depth_units, model, 
     DEPTH is a 16-bit PNG in millimetres, an EXR or a .npy in metres.  Results are in the
     camera frame (x forward, y left, z up) in metres and radians.
     """
-    from ..real import _capture_files, load_depth, load_intrinsics, load_mask
+    from ..real.captures import capture_files
+    from ..real.intrinsics import load_intrinsics
+    from ..real.readers import load_depth, load_mask
     from ..registry import get_class
 
     depth_path = Path(depth)
     if not depth_path.is_file():
         raise UserError(f"depth file not found: {depth_path}")
     if camera_path is None:
-        camera = _capture_files(depth_path).camera
+        camera = capture_files(depth_path).camera
         if camera is None:
             raise UserError(f"{depth_path}: intrinsics missing; pass --camera FILE (fx, fy, cx, cy) or put "
                             f"camera.json next to it")

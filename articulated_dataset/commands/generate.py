@@ -28,9 +28,9 @@ class _NoiseChoice(click.ParamType):
 
     @staticmethod
     def choices() -> list[str]:
-        if importlib.util.find_spec("articulated_dataset.noise") is None:
+        if importlib.util.find_spec("articulated_dataset.real.noise") is None:
             return ["none"]
-        from ..noise import NOISE_MODELS
+        from ..real.noise import NOISE_MODELS
 
         names = list(NOISE_MODELS)
         return names if "none" in names else ["none", *names]

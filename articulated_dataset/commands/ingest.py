@@ -13,7 +13,7 @@ _BYTES_PER_PIXEL = 4 + 1 + 8 + 8
 
 
 def _parse_size(text: str | None) -> tuple[int, int] | None:
-    from ..real import check_source_size
+    from ..real.intrinsics import check_source_size
 
     if text is None:
         return None
@@ -92,7 +92,10 @@ def ingest_cmd(captures, class_name, out_root, split, mask_path, labels_path, in
 
     from tqdm import tqdm
 
-    from ..real import IngestOptions, check_intrinsics, find_captures, ingest_capture, intrinsics_matrix, load_intrinsics, write_real_split
+    from ..real.captures import find_captures
+    from ..real.ingest import IngestOptions, ingest_capture
+    from ..real.intrinsics import check_intrinsics, intrinsics_matrix, load_intrinsics
+    from ..real.write import write_real_split
     from ..registry import get_class
 
     get_class(class_name)

@@ -38,8 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import UserError
-from .units import MM_PER_M
+from ..errors import UserError
+from ..units import MM_PER_M
 
 # --------------------------------------------------------------------------------------
 # Kinect v2 constants
