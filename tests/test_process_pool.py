@@ -16,7 +16,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from articulated_dataset import executors, verify
+from articulated_dataset import executors
+from articulated_dataset.verify import split as verify_split_module
 from articulated_dataset.baselines import icp, nn
 from articulated_dataset.errors import UserError
 from articulated_dataset.executors import WORKER_DIED, ProcessExecutor, process_map
@@ -96,9 +97,9 @@ def test_generation_executor_says_resume():
 
 
 def test_verify_workers(monkeypatch):
-    monkeypatch.setattr(verify, "_check_shard_task", _die)
+    monkeypatch.setattr(verify_split_module, "_check_shard_task", _die)
     with deadline(), pytest.raises(UserError, match="worker process died"):
-        list(verify._map([1, 2, 3], 2, None))
+        list(verify_split_module._map([1, 2, 3], 2, None))
 
 
 def test_nn_feature_workers(monkeypatch, tmp_path):
