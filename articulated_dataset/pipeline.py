@@ -39,8 +39,8 @@ from .sampling import ObjectSample, mean_object, object_rng, sample_id, sample_o
 from .scene import ORIGIN_POSE, ObjectPlacer, build_model, set_configuration
 from .format.schema import FIELDS, OPTIONAL_FIELDS
 from .context_labels import visible_fraction
-from .occluders import OCCLUDER_STREAM, Context, add_occluder_slots, occluders_record
-from .scenes import SCENE_STREAM, add_scene, scene_layout, scene_record
+from .occluders import Context, occluders_record
+from .scenes import context_builder, context_rngs, scene_record
 from .shards import shard_name, write_shard
 from .templating import render_urdf
 from .viewpoint import CAMERA_STREAM, head_ranges, head_views, object_in_camera
@@ -206,34 +206,6 @@ NOISE_STREAM = 1
 def noise_rng(config: GenerationConfig, object_index: int) -> np.random.Generator:
     """Generator of the sensor noise of one object, independent of its sampling stream."""
     return object_rng(config.seed, config.class_name, config.split, object_index, stream=NOISE_STREAM)
-
-
-def context_rngs(config: GenerationConfig, object_index: int):
-    """Generators of one object's scene layout and occluders (None where not used), each its
-    own stream: the object and its default images are the same with and without them."""
-    def stream(used: bool, word: int):
-        return object_rng(config.seed, config.class_name, config.split, object_index, stream=word) if used else None
-
-    return stream(config.scene != "none", SCENE_STREAM), stream(config.occluders > 0, OCCLUDER_STREAM)
-
-
-def context_builder(config: GenerationConfig, sample: ObjectSample, srng):
-    """``(sample, add_context)``: the sample placed in its scene (its base height redrawn
-    where the table's is impossible) and the spec hook adding scene and occluder slots;
-    ``add_context`` None when no scene layout fits the pose."""
-    boxes = None
-    if config.scene != "none":
-        placed = scene_layout(config.scene, config.class_name, sample.pose, sample.geometry, config.table.pose["z_m"], srng)
-        if placed is None:
-            return sample, None
-        sample, boxes = replace(sample, pose=placed[0]), placed[1]
-
-    def add_context(spec):
-        if boxes is not None:
-            add_scene(spec, sample.pose, boxes)
-        add_occluder_slots(spec, config.occluders)
-
-    return sample, add_context
 
 
 def camera_rng(config: GenerationConfig, object_index: int) -> np.random.Generator:

@@ -40,13 +40,16 @@ if it is redrawn.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
+import mujoco
 import numpy as np
 
 from .context_labels import VISIBLE_FRACTION_RANGE
 from .format.manifest import SCENE_NAMES  # noqa: F401  (re-exported: declared with the split config)
+from .occluders import OCCLUDER_STREAM, add_occluder_slots
 from .render import CONTEXT_GEOM_GROUP
+from .sampling import object_rng, yaw_quaternion
 
 #: Extra SeedSequence word of an object's scene stream (noise 1, head camera 2).
 SCENE_STREAM = 3
@@ -198,12 +201,36 @@ SCENE_RGBA = (0.72, 0.70, 0.66, 1.0)
 def add_scene(spec, pose: dict, boxes: list[Box]) -> None:
     """Add the scene to a MuJoCo spec: one body at the object's pose holding a box geom per
     :class:`Box` (in :data:`CONTEXT_GEOM_GROUP`, no collisions)."""
-    import mujoco
-
-    from .sampling import yaw_quaternion
-
     body = spec.worldbody.add_body(name="scene", pos=[pose["x_m"], pose["y_m"], pose["z_m"]],
                                    quat=list(yaw_quaternion(pose["yaw_rad"])))
     for b in boxes:
         body.add_geom(name=b.name, type=mujoco.mjtGeom.mjGEOM_BOX, size=list(b.half), pos=list(b.centre),
                       group=CONTEXT_GEOM_GROUP, contype=0, conaffinity=0, rgba=list(SCENE_RGBA))
+
+
+def context_rngs(config, object_index: int):
+    """Generators of one object's scene layout and occluders (None where not used), each its
+    own stream: the object and its default images are the same with and without them."""
+    def stream(used: bool, word: int):
+        return object_rng(config.seed, config.class_name, config.split, object_index, stream=word) if used else None
+
+    return stream(config.scene != "none", SCENE_STREAM), stream(config.occluders > 0, OCCLUDER_STREAM)
+
+
+def context_builder(config, sample, srng):
+    """``(sample, add_context)``: the sample placed in its scene (its base height redrawn
+    where the table's is impossible) and the spec hook adding scene and occluder slots;
+    ``add_context`` None when no scene layout fits the pose."""
+    boxes = None
+    if config.scene != "none":
+        placed = scene_layout(config.scene, config.class_name, sample.pose, sample.geometry, config.table.pose["z_m"], srng)
+        if placed is None:
+            return sample, None
+        sample, boxes = replace(sample, pose=placed[0]), placed[1]
+
+    def add_context(spec):
+        if boxes is not None:
+            add_scene(spec, sample.pose, boxes)
+        add_occluder_slots(spec, config.occluders)
+
+    return sample, add_context

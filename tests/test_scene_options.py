@@ -258,3 +258,29 @@ def test_show_draws_scene_and_occluder_pixels_in_their_own_colours(context_root,
     r = CliRunner().invoke(main, ["show", str(context_root / "room+2" / "cabinet" / "train"), "--out", str(png)])
     assert r.exit_code == 0, r.output
     assert png.stat().st_size > 10_000
+
+
+def test_docs_state_the_ranges_the_code_uses():
+    """docs/generation.md and DATASHEET.md quote the scene and occluder ranges and the bound
+    as the modules define them, and hold the same counts table."""
+    from pathlib import Path
+
+    from articulated_dataset.format.manifest import MAX_OCCLUDERS
+    from articulated_dataset.occluders import OCCLUDER_TABLE
+    from articulated_dataset.scenes import CAMERA_CLEARANCE_M, MAX_LAYOUT_TRIES, SCENE_TABLE
+
+    root = Path(__file__).resolve().parents[1]
+    gen, sheet = (root / "docs" / "generation.md").read_text(), (root / "DATASHEET.md").read_text()
+    cm = lambda key: "{:g}-{:g} cm".format(*(round(100 * v, 1) for v in SCENE_TABLE[key]))  # noqa: E731
+    for key in ("counter_height_m", "sideboard_height_m", "chest_base_m", "counter_thickness_m", "counter_overhang_m",
+                "neighbour_width_m", "counter_depth_m", "wall_gap_m"):
+        assert cm(key) in gen, (key, cm(key))
+    occ = lambda key: "{:g}-{:g}".format(*(round(100 * v, 1) for v in OCCLUDER_TABLE[key]))  # noqa: E731
+    assert f"half sizes {occ('half_size_m')} cm" in gen and f"links {occ('arm_link_length_m')} cm" in gen
+    assert f"at {occ('depth_fraction')}% of the depth" in gen
+    assert f"at most {OCCLUDER_TABLE['max_tries']} draws" in gen and f"(0-{MAX_OCCLUDERS})" in gen
+    assert f"at least {VISIBLE_FRACTION_RANGE[0] * 100:g}% of its pixels" in gen and f">= {VISIBLE_FRACTION_RANGE[0]:g}" in sheet
+    assert f"{MIN_CAMERA_HEIGHT_M * 100:g} cm above the floor and {CAMERA_CLEARANCE_M * 100:g} cm clear" in gen
+    assert f"at most {MAX_LAYOUT_TRIES} times" in gen
+    table = [line for line in gen.splitlines() if line.startswith("| cabinet | 1.00 (")]
+    assert len(table) == 1 and table[0] in sheet
