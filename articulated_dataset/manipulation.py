@@ -367,10 +367,19 @@ class Estimate:
     part_offset: np.ndarray | None = None  # (J, 3)
     geometry: np.ndarray | None = None  # (4,)
     source: str = "truth"
+    #: this hypothesis's probability among the image's (1 for a point estimate)
+    weight: float = 1.0
+    #: the image's other hypotheses (e.g. the mixture's other components: a closed door hinged
+    #: on the other side), each an Estimate with its own ``weight``; empty for a point estimate
+    alternatives: list = field(default_factory=list)
 
     def axis(self, joint: int) -> tuple[np.ndarray, np.ndarray]:
         origin, rot = axis_frame(self.axis_pose[joint])
         return origin, rot[:, 2]
+
+    def hypotheses(self) -> list["Estimate"]:
+        """This estimate and its alternatives, heaviest first."""
+        return sorted([self, *self.alternatives], key=lambda e: -e.weight)
 
 
 @dataclass
@@ -917,12 +926,37 @@ def make_estimator(model: str, class_name: str) -> DepthEstimator:
         path = str(ref.path)  # resolved (and checksummed) once
 
         def fn(depth, K):
-            e = estimate(depth, K, class_name, model=path)
-            return Estimate(e.axis_pose.astype(np.float64), e.q.astype(np.float64), e.part_offset_m.astype(np.float64),
-                            e.geometry.astype(np.float64), source=name)
+            return estimate_with_alternatives(estimate(depth, K, class_name, model=path), name)
 
         return DepthEstimator(name, "dense", class_name, fn)
     return DepthEstimator(name, "mdn", class_name, _mdn_single_image(ref.path, class_name, name))
+
+
+#: Mixture components lighter than this (of the image's total weight) are not planning hypotheses.
+HYPOTHESIS_MIN_WEIGHT = 0.05
+
+
+def estimate_with_alternatives(e, source: str) -> Estimate:
+    """A planner's :class:`Estimate` from an :class:`articulated_dataset.estimation.Estimate`: the
+    heaviest mixture component, with every other component of at least
+    :data:`HYPOTHESIS_MIN_WEIGHT` as an alternative (decoded like the point estimate)."""
+    from .targets import TargetLayout
+
+    main = Estimate(e.axis_pose.astype(np.float64), e.q.astype(np.float64), e.part_offset_m.astype(np.float64),
+                    e.geometry.astype(np.float64), source=source)
+    w = e.mixture_weights
+    if w is None or len(w) < 2:
+        return main
+    best = int(np.argmax(w))
+    main.weight = float(w[best] / w.sum())
+    others = [k for k in np.argsort(-w) if k != best and w[k] / w.sum() >= HYPOTHESIS_MIN_WEIGHT]
+    if others:
+        d = TargetLayout.for_class(e.class_name).decode(e.mixture_means[others])
+        for i, k in enumerate(others):
+            main.alternatives.append(Estimate(d["axis_pose"][i].astype(np.float64), d["q"][i].astype(np.float64),
+                                              d["part_offset"][i].astype(np.float64), d["geometry"][i].astype(np.float64),
+                                              source=source, weight=float(w[k] / w.sum())))
+    return main
 
 
 def _mdn_single_image(path: Path, class_name: str, name: str):
@@ -985,7 +1019,8 @@ def transform_estimate(estimate: Estimate, rot: np.ndarray, trans: np.ndarray) -
         pose[j, 3:] = _canonical(quat_multiply(rq, pose[j, 3:]))
     return Estimate(pose, np.array(estimate.q, np.float64),
                     None if estimate.part_offset is None else np.array(estimate.part_offset, np.float64),
-                    None if estimate.geometry is None else np.array(estimate.geometry, np.float64), estimate.source)
+                    None if estimate.geometry is None else np.array(estimate.geometry, np.float64), estimate.source,
+                    estimate.weight, [transform_estimate(a, rot, trans) for a in estimate.alternatives])
 
 
 def orbit_viewpoint(centre, angle_rad: float) -> tuple[np.ndarray, np.ndarray]:
@@ -1098,6 +1133,127 @@ def fuse_estimates(estimates: list[Estimate], source: str | None = None) -> Esti
     geo = [e.geometry for e in estimates if e.geometry is not None]
     return Estimate(pose, np.median([e.q for e in estimates], axis=0), np.median(po, axis=0) if po else None,
                     np.median(geo, axis=0) if geo else None, source or estimates[0].source)
+
+
+#: Two hypotheses of a joint are the same axis when their directions (signed: a door hinged
+#: on the other side turns about the opposite direction) are within HYPOTHESIS_SAME_ANGLE_DEG
+#: and their origins within HYPOTHESIS_SAME_DISTANCE_M.
+HYPOTHESIS_SAME_ANGLE_DEG = 45.0
+HYPOTHESIS_SAME_DISTANCE_M = 0.3
+#: Closed loop: at most this many axis hypotheses are checked with the wrist camera before
+#: grasping, each only if its score (mean weight over the images) is at least HYPOTHESIS_MIN_SCORE.
+MAX_HANDLE_LOOKS = 2
+HYPOTHESIS_MIN_SCORE = 0.1
+
+
+def same_axis(a: Estimate, b: Estimate, joint: int) -> bool:
+    """Whether two hypotheses put joint ``joint``'s axis in the same place (see HYPOTHESIS_SAME_*)."""
+    (oa, da), (ob, db) = a.axis(joint), b.axis(joint)
+    return bool(da @ db >= math.cos(math.radians(HYPOTHESIS_SAME_ANGLE_DEG))
+                and np.linalg.norm(oa - ob) <= HYPOTHESIS_SAME_DISTANCE_M)
+
+
+def group_hypotheses(estimates: list[Estimate], joint: int) -> list[tuple[float, list[Estimate]]]:
+    """Axis hypotheses of several images of one object (same frame), grouped by :func:`same_axis`
+    with each group's heaviest member: ``[(score, members)]``, best first.  A group's score is the
+    mean over the images of the weight its members have in their image (weights normalised per
+    image), so it is the images' average belief in that axis."""
+    groups: list[list] = []  # [score, representative, members]
+    for e in estimates:
+        hyps = e.hypotheses()
+        total = sum(h.weight for h in hyps)
+        for h in hyps:
+            w = h.weight / total / len(estimates)
+            g = next((g for g in groups if same_axis(g[1], h, joint)), None)
+            if g is None:
+                groups.append([w, h, [h]])
+            else:
+                g[0] += w
+                g[2].append(h)
+    groups.sort(key=lambda g: -g[0])
+    return [(float(g[0]), g[2]) for g in groups]
+
+
+def mirrored_hypothesis(estimate: Estimate, joint: int) -> Estimate | None:
+    """The same door hinged on its other edge (revolute joints; None for prismatic ones): the
+    origin moves across the door to ``o + 2 r x`` (the label's ``x`` points from the hinge at
+    the part centre, ``r`` its distance, :attr:`Estimate.part_offset`), ``x`` and ``z`` reverse
+    (``y = z x x``, the door's outward normal, stays) and the part centre's height flips sign.
+    For a closed door this is the one ambiguity a depth image leaves when the handle is not
+    seen; the hypothesis has weight 0 (a last resort)."""
+    if estimate.part_offset is None or estimate.axis_pose.shape[0] <= joint:
+        return None
+    r = float(estimate.part_offset[joint][0])
+    if estimate.q.shape[0] <= joint or not r > 0 or abs(float(estimate.part_offset[joint][1])) > r:
+        return None
+    origin, rot = axis_frame(estimate.axis_pose[joint])
+    pose = np.array(estimate.axis_pose, np.float64)
+    pose[joint, :3] = origin + 2.0 * r * rot[:, 0]
+    pose[joint, 3:] = _canonical(mat_to_quat(np.column_stack([-rot[:, 0], rot[:, 1], -rot[:, 2]])))
+    po = np.array(estimate.part_offset, np.float64)
+    po[joint, 2] = -po[joint, 2]
+    return Estimate(pose, np.array(estimate.q, np.float64), po, estimate.geometry, estimate.source, weight=0.0)
+
+
+def consistent_hypothesis(estimate: Estimate, reference: Estimate, joint: int, joint_type: str = REVOLUTE) -> Estimate | None:
+    """The hypothesis of ``estimate`` (its own, or for a door their :func:`mirrored_hypothesis`)
+    whose joint-``joint`` axis is the same as ``reference``'s (:func:`same_axis`) with the
+    nearest origin; None when none is (the image says nothing consistent about this axis)."""
+    hyps = estimate.hypotheses()
+    if joint_type == REVOLUTE:
+        hyps += [m for m in (mirrored_hypothesis(h, joint) for h in hyps) if m is not None]
+    same = [h for h in hyps if same_axis(h, reference, joint)]
+    if not same:
+        return None
+    o_ref = reference.axis(joint)[0]
+    return min(same, key=lambda h: float(np.linalg.norm(h.axis(joint)[0] - o_ref)))
+
+
+#: Hand-path axis fit (closed loop, doors): the hand holds the part, so the positions it measures
+#: (its own kinematics) lie on the true arc.  The circle through them (centre and radius free;
+#: the plane across the estimated axis direction, which images give well) moves the axis line;
+#: the estimate's origin and radius are priors of HAND_FIT_PRIOR_STD_M each, the hand's positions
+#: have HAND_FIT_POINT_STD_M.  Fitted once the hand has moved HAND_FIT_MIN_TRAVEL_M.
+HAND_FIT_PRIOR_STD_M = 0.1
+HAND_FIT_POINT_STD_M = 0.002
+HAND_FIT_MIN_TRAVEL_M = 0.01
+HAND_FIT_ITERATIONS = 20
+#: Closed loop, doors: each segment is moved in sub-steps of at most this much rotation, the axis
+#: refitted to the hand's path before each (an axis 10 cm off turns the hand ~6 degrees off the
+#: door's arc: 1 cm of spring, 20 N, over 5 degrees of a 1.1 m door); SUBSTEP_SETTLE_S between them.
+CLOSED_LOOP_SUBSTEP_RAD = math.radians(5.0)
+CLOSED_LOOP_SUBSTEP_SETTLE_S = 0.05
+
+
+def fit_axis_to_path(points, axis_origin, axis_direction) -> np.ndarray:
+    """The axis origin (3,) moved onto the centre of the circle through ``points`` (K, 3), the
+    hand's positions on a door's arc, in the plane across ``axis_direction``:
+
+        min_{c, R}  sum_i ((|p_i - c| - R) / s_p)^2 + |c - c_0|^2 / s^2 + (R - R_0)^2 / s^2
+
+    with ``p_i`` and ``c`` in that plane, ``c_0`` = ``axis_origin``, ``R_0`` = the first point's
+    distance from it, ``s_p`` = :data:`HAND_FIT_POINT_STD_M`, ``s`` = :data:`HAND_FIT_PRIOR_STD_M`
+    (Gauss-Newton from ``(c_0, R_0)``).  The origin keeps its position along the axis.  Points
+    spanning less than :data:`HAND_FIT_MIN_TRAVEL_M` return ``axis_origin`` unchanged."""
+    d = _given_unit("axis_direction", axis_direction)
+    o = _vec("axis_origin", axis_origin, 3)
+    P = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(P) < 2 or np.linalg.norm(np.ptp(P, axis=0)) < HAND_FIT_MIN_TRAVEL_M:
+        return o
+    e1 = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(d, e1)
+    xy = np.stack([(P - o) @ e1, (P - o) @ e2], -1)
+    r0 = float(np.linalg.norm(xy[0]))
+    x = np.array([0.0, 0.0, r0])  # centre (2) and radius
+    sp, s = HAND_FIT_POINT_STD_M, HAND_FIT_PRIOR_STD_M
+    for _ in range(HAND_FIT_ITERATIONS):
+        diff = xy - x[:2]
+        dist = np.maximum(np.linalg.norm(diff, axis=1), ZERO_LENGTH)
+        J = np.concatenate([np.column_stack([-diff / dist[:, None], -np.ones(len(xy))]) / sp, np.eye(3) / s])
+        r = np.concatenate([(dist - x[2]) / sp, (x - [0.0, 0.0, r0]) / s])
+        x = x - np.linalg.solve(J.T @ J, J.T @ r)
+    return o + x[0] * e1 + x[1] * e2
 
 
 def joint_displacement(joint_type: str, axis_origin, axis_direction, p_from, p_to) -> float:
@@ -1238,18 +1394,24 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
                       rng: np.random.Generator, q_target: float | None = None, *,
                       view_angles_deg=CLOSED_LOOP_VIEW_ANGLES_DEG, segment: float | None = None,
                       step_rad: float = DEFAULT_STEP_RAD, step_m: float = DEFAULT_STEP_M, look_at_handle: bool = True,
-                      close_first: bool = True,
+                      close_first: bool = True, fit_hand_path: bool = True,
                       max_images: int = CLOSED_LOOP_MAX_IMAGES, record: bool = False) -> tuple[Plan, ExecutionResult]:
     """Open joint ``joint`` using depth images of the simulated scene, as a mobile robot would.
 
     1. **Before grasping**: the estimate of ``first_depth`` (the observation, 1 image) and of
        ``len(view_angles_deg)`` renders from viewpoints swung about the object's depth
-       centroid (:func:`orbit_viewpoint`) are mapped into the first camera's frame and fused
-       (:func:`fuse_estimates`).  The grasp is planned from the fused estimate; then a close-up
-       from a wrist camera :data:`HANDLE_LOOK_DISTANCE_M` out along the planned grasp's
-       outward normal (:func:`look_at_viewpoint`, 1 image, not given to the model) is searched
-       for the handle bar (:func:`find_handle`); if one is found the grasp moves onto it.  It
-       closes only if it lands within :data:`GRASP_CAPTURE_M` of the true handle (as open loop).
+       centroid (:func:`orbit_viewpoint`) are mapped into the first camera's frame.  Every
+       image's hypotheses (the estimate and its :attr:`Estimate.alternatives`, e.g. a closed
+       door hinged on the left or on the right) are grouped by axis (:func:`group_hypotheses`)
+       and each group fused (:func:`fuse_estimates`).  For the best groups in turn (at most
+       :data:`MAX_HANDLE_LOOKS`, score at least :data:`HYPOTHESIS_MIN_SCORE`) the grasp is
+       planned and a close-up from a wrist camera :data:`HANDLE_LOOK_DISTANCE_M` out along the
+       planned grasp's outward normal (:func:`look_at_viewpoint`, 1 image each, not given to
+       the model) is searched for the handle bar (:func:`find_handle`): the first hypothesis
+       whose handle is found is taken and the grasp moves onto the bar; if none is found the
+       best hypothesis's planned grasp is kept.  It closes only if it lands within
+       :data:`GRASP_CAPTURE_M` of the true handle (as open loop).  From then on every image's
+       estimate is its hypothesis consistent with the chosen axis (:func:`consistent_hypothesis`).
     2. **Finding "closed" by touch** (``close_first``): guarded closing segments
        (``CLOSE_SEGMENT_*``, stop at :data:`GUARD_FORCE_N` or when the hand stops following)
        until the closed stop; from then on q is the hand's motion since the stop.
@@ -1257,7 +1419,11 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
        joint motion along the arc / line about the current axis estimate, starting at its
        own measured hand pose (an arm knows its pose from its joint encoders); holds
        :data:`CLOSED_LOOP_LOOK_SETTLE_S`; takes a depth image from the first viewpoint and
-       re-estimates.  The axis is re-fused from every image so far; the current
+       re-estimates.  The axis is re-fused from every image so far; for a door
+       (``fit_hand_path``) the segment is moved in sub-steps of at most
+       :data:`CLOSED_LOOP_SUBSTEP_RAD`, before each of which the axis line is moved onto the
+       circle through the hand's measured path since the grasp (:func:`fit_axis_to_path`: the
+       hand holds the part, so its path is the true arc).  The current
        configuration is the hand's motion since the closed stop or, without it, the median
        over images of ``q_i + (the hand's rotation about / travel along the axis since
        image i)``.  It stops when the estimated remaining motion is below ``CLOSED_LOOP_DONE_FRACTION`` of the success tolerance or
@@ -1293,21 +1459,39 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
             continue
         estimates.append(e)
         views.append({"when": "before grasp", "viewpoint_deg": float(angle), "q_estimate": float(e.q[joint])})
-    fused = fuse_estimates(estimates, source=f"{estimator.name} closed loop")
-    plan = plan_from_estimate(fused, joint, jt, target, step_rad, step_m)
-    grasp = plan.grasp_pose.copy()
+    groups = group_hypotheses(estimates, joint)
+    source = f"{estimator.name} closed loop"
+    candidates = [(score, fuse_estimates(members, source=source))
+                  for score, members in [g for g in groups[:MAX_HANDLE_LOOKS] if g[0] >= HYPOTHESIS_MIN_SCORE] or groups[:1]]
+    mirror = mirrored_hypothesis(candidates[0][1], joint) if jt == REVOLUTE else None
+    if mirror is not None and not any(same_axis(mirror, c, joint) for _, c in candidates):
+        candidates.append((0.0, mirror))  # the door hinged on its other edge: looked at last
     n_images = len(views)
-    if look_at_handle and n_images < max_images:
+    chosen = None  # (fused estimate, plan) of the hypothesis the grasp goes to
+    for rank, (score, fused_k) in enumerate(candidates):
+        plan_k = plan_from_estimate(fused_k, joint, jt, target, step_rad, step_m)
+        if chosen is None:
+            chosen = (fused_k, plan_k)  # the best hypothesis unless a look finds another's handle
+        if not look_at_handle or n_images >= max_images:
+            break
+        grasp = plan_k.grasp_pose.copy()
         rot, trans = look_at_viewpoint(grasp[:3], outward_normal(grasp, jt))
         found = find_handle(camera.render(q_true0, (rot, trans)), camera.K, rng)
         n_images += 1
         if found is not None:
             grasp[:3] = rot @ found + trans
-        views.append({"when": "before grasp", "viewpoint_deg": None, "wrist": True, "handle_found": found is not None,
-                      "grasp_moved_m": float(np.linalg.norm(grasp[:3] - plan.grasp_pose[:3]))})
-        o, d = fused.axis(joint)
-        plan.grasp_pose = grasp
-        plan.waypoints = plan_waypoints(jt, o, d, plan.q_current, target, grasp, step_rad, step_m)
+        views.append({"when": "before grasp", "viewpoint_deg": None, "wrist": True, "hypothesis": rank,
+                      "hypothesis_score": score, "handle_found": found is not None,
+                      "grasp_moved_m": float(np.linalg.norm(grasp[:3] - plan_k.grasp_pose[:3]))})
+        if found is not None:
+            o, d = fused_k.axis(joint)
+            plan_k.grasp_pose = grasp
+            plan_k.waypoints = plan_waypoints(jt, o, d, plan_k.q_current, target, grasp, step_rad, step_m)
+            chosen = (fused_k, plan_k)
+            break
+    fused, plan = chosen
+    grasp = plan.grasp_pose
+    estimates = [c for c in (consistent_hypothesis(e, fused, joint, jt) for e in estimates) if c is not None] or [fused]
     ctl = GripperController(obj, joint, None, record)
     if not ctl.grasp(grasp):
         res = ctl.result(target)
@@ -1317,6 +1501,7 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
     # every image's (q estimate, hand position when it was taken): q now = q_i + hand motion since
     seen = [(float(e.q[joint]), hand[:3].copy()) for e in estimates]
     axis_estimates = list(estimates)
+    path = [hand[:3].copy()]  # the hand's measured positions while holding the part (doors: on the arc)
     closed_hand = None  # the hand's position with the part against its closed stop (q = 0), once felt
     if close_first:
         o, d = fused.axis(joint)
@@ -1325,6 +1510,7 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
             start = ctl.grasp_pose()
             wps = plan_waypoints(jt, o, d, 0.0, -close_seg, start, step_rad, step_m)
             stopped = ctl.track(wps, settle_s=CLOSED_LOOP_LOOK_SETTLE_S, stop_force_n=GUARD_FORCE_N)
+            path.append(ctl.grasp_pose()[:3].copy())
             moved = -joint_displacement(jt, o, d, start[:3], ctl.grasp_pose()[:3])
             if stopped or moved < 0.5 * close_seg:
                 closed_hand = ctl.grasp_pose()[:3].copy()
@@ -1332,9 +1518,14 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
         closed_found, closed_q_true = closed_hand is not None, float(ctl.q[joint])
     tol = success_tolerance(jt)
     last_cmd = hand
+
+    def motion_axis(vision: Estimate) -> tuple[np.ndarray, np.ndarray]:
+        o, d = vision.axis(joint)
+        return (fit_axis_to_path(path, o, d) if jt == REVOLUTE and fit_hand_path else o), d
+
     while True:
         axis = fuse_estimates(axis_estimates)
-        o, d = axis.axis(joint)
+        o, d = motion_axis(axis)
         hand = ctl.grasp_pose()
         if closed_hand is not None:  # felt: q is the hand's motion since the closed stop
             q_now = joint_displacement(jt, o, d, closed_hand, hand[:3])
@@ -1344,16 +1535,25 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
         if abs(remaining) <= CLOSED_LOOP_DONE_FRACTION * tol:
             break
         step = math.copysign(min(abs(remaining), seg), remaining)
-        wps = plan_waypoints(jt, o, d, 0.0, step, hand, step_rad, step_m)
-        ctl.track(wps, settle_s=CLOSED_LOOP_LOOK_SETTLE_S)
+        n_sub = max(1, math.ceil(abs(step) / CLOSED_LOOP_SUBSTEP_RAD - 1e-9)) if jt == REVOLUTE and fit_hand_path else 1
+        for i in range(n_sub):
+            if i:
+                o, d = motion_axis(axis)
+            wps = plan_waypoints(jt, o, d, 0.0, step / n_sub, ctl.grasp_pose(), step_rad, step_m)
+            ctl.track(wps, settle_s=CLOSED_LOOP_LOOK_SETTLE_S if i == n_sub - 1 else CLOSED_LOOP_SUBSTEP_SETTLE_S)
+            path.append(ctl.grasp_pose()[:3].copy())
         last_cmd = wps[-1]
         if n_images >= max_images:
             break
         n_images += 1
         try:
-            e = estimator(camera.render(ctl.q), camera.K)
+            e = consistent_hypothesis(estimator(camera.render(ctl.q), camera.K), axis, joint, jt)
         except UserError as exc:
             views.append({"when": "during motion", "viewpoint_deg": 0.0, "error": str(exc), "q_true": float(ctl.q[joint])})
+            continue
+        if e is None:  # no hypothesis of this image is the axis being moved about: nothing learnt
+            views.append({"when": "during motion", "viewpoint_deg": 0.0, "error": "no hypothesis agrees with the axis",
+                          "q_true": float(ctl.q[joint])})
             continue
         axis_estimates.append(e)
         seen.append((float(e.q[joint]), ctl.grasp_pose()[:3].copy()))
