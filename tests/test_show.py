@@ -14,9 +14,11 @@ from matplotlib.image import imread
 from articulated_dataset.camera import project
 from articulated_dataset.cli import main
 from articulated_dataset.registry import PRISMATIC, REVOLUTE
-from articulated_dataset.viz import (BACKGROUND_RGB, DEFAULT_DPI, SplitView, axis_segment_m, depth_to_rgb,
-                                     extent_along, gallery_size_px, joint_colour, make_gallery,
-                                     legend_lines, preview_rgb, select_samples)
+from articulated_dataset.viz.data import SplitView, preview_rgb, select_samples
+from articulated_dataset.viz.drawing import legend_lines
+from articulated_dataset.viz.gallery import gallery_size_px, make_gallery
+from articulated_dataset.viz.style import (BACKGROUND_RGB, DEFAULT_DPI, axis_segment_m, depth_to_rgb, extent_along,
+                                           joint_colour)
 from articulated_dataset.units import format_q
 from helpers_real import ingest_uneven_cabinet2
 
@@ -208,16 +210,16 @@ def _write_predictions(split, path, object_image_pairs):
 @pytest.fixture
 def saved_figures(monkeypatch):
     """Every figure make_gallery saves, drawn with Agg (for text extents)."""
-    from articulated_dataset import viz
+    from articulated_dataset.viz import gallery
 
     figs = []
-    real_save = viz._save
+    real_save = gallery._save
 
     def save(fig, path, dpi):
         real_save(fig, path, dpi)
         figs.append(fig)
 
-    monkeypatch.setattr(viz, "_save", save)
+    monkeypatch.setattr(gallery, "_save", save)
     return figs
 
 
@@ -337,7 +339,8 @@ def test_unlabelled_q_reads_no_label(real_split, tmp_path, saved_figures):
 
 
 def test_text_wrapping_fits_and_keeps_words():
-    from articulated_dataset.viz import LEGEND_ITEMS, LEGEND_SEP, TEXT_FIT_FRACTION, TextFitter
+    from articulated_dataset.viz.drawing import LEGEND_ITEMS, LEGEND_SEP, TextFitter
+    from articulated_dataset.viz.style import TEXT_FIT_FRACTION
 
     fit = TextFitter(DEFAULT_DPI)
     for width_in in (1.5, 3.2, 6.0, 40.0):

@@ -60,7 +60,8 @@ def show_cmd(path, out, per_sample_dir, n_samples, objects, images, cols, rgb, n
     printed in degrees (revolute) or centimetres (prismatic).
     """
     from ..format import find_split_dirs
-    from ..viz import DEFAULT_COLUMNS, DEFAULT_COLUMNS_RGB, make_gallery
+    from ..viz.gallery import make_gallery
+    from ..viz.style import DEFAULT_COLUMNS, DEFAULT_COLUMNS_RGB
 
     from ..safeio import check_can_create
 
