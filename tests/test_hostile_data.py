@@ -867,7 +867,7 @@ def urdf_split(tmp_path_factory):
 
 
 def _source_sha256(urdf: Path, meshes=("body.obj", "door.obj")) -> str:
-    """The sha256 a definition records (urdf_import._source_digest), computed independently."""
+    """The sha256 a definition records (urdf_import.parse.source_digest), computed independently."""
     import hashlib
 
     h = hashlib.sha256(urdf.read_bytes())

@@ -21,13 +21,10 @@ from articulated_dataset.errors import UserError
 from articulated_dataset.pipeline import GenerationConfig, generate_split
 from articulated_dataset.shards import open_split, read_manifest, sha256_file
 from articulated_dataset import urdf_import
-from articulated_dataset.urdf_import import (
-    FLAT_MESH_THICKNESS_M,
-    double_sided,
-    import_urdf,
-    reparametrize_range,
-    view_pose_ranges,
-)
+from articulated_dataset.urdf_import import import_urdf
+from articulated_dataset.urdf_import.build import _class_for_key
+from articulated_dataset.urdf_import.process import FLAT_MESH_THICKNESS_M, _thicken_if_flat, double_sided
+from articulated_dataset.urdf_import.ranges import VIEW_MARGIN, reparametrize_range, view_pose_ranges
 
 #: Tolerance (m) of label positions: float32 storage of ~2 m coordinates.
 POS_TOL_M = 1e-4
@@ -291,7 +288,7 @@ def test_changed_files_are_refused_by_workers(objects, tmp_path):
     shutil.copytree(objects["cabinet"].parent, folder)
     obj = import_urdf(folder / "cabinet.urdf", class_name="changed")
     _box_obj(folder / "meshes" / "door.obj", [PANEL, CAB_W, CAB_H / 2], [-PANEL / 2, -CAB_W / 2, CAB_H / 4])
-    urdf_import._class_for_key.cache_clear()  # as in a fresh worker process
+    _class_for_key.cache_clear()  # as in a fresh worker process
     with pytest.raises(UserError, match="differ from the files"):
         urdf_import.class_from_definition(obj.definition)
 
@@ -420,15 +417,15 @@ def test_default_pose_table_keeps_the_box_in_view():
     assert inside == 2 * 2 * 2 * 7
     # nearest distance: the bounding sphere fills 1 / VIEW_MARGIN of the vertical view
     r = np.linalg.norm(corners - [0, 0, 0.8], axis=1).max()
-    assert ranges["x_m"][0] == pytest.approx(urdf_import.VIEW_MARGIN * r / math.sin(math.radians(cam.vfov_deg) / 2))
+    assert ranges["x_m"][0] == pytest.approx(VIEW_MARGIN * r / math.sin(math.radians(cam.vfov_deg) / 2))
 
 
 def test_flat_meshes_are_thickened_and_all_faces_doubled():
     flat = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], [[0, 1, 2], [1, 3, 2]], process=False)
-    thick = urdf_import._thicken_if_flat(flat)
+    thick = _thicken_if_flat(flat)
     assert np.ptp(thick.vertices[:, 2]) == pytest.approx(FLAT_MESH_THICKNESS_M)
     box = trimesh.creation.box()
-    assert urdf_import._thicken_if_flat(box) is box
+    assert _thicken_if_flat(box) is box
     ds = double_sided(box)
     assert len(ds.faces) == 2 * len(box.faces)
     np.testing.assert_array_equal(ds.faces[len(box.faces):], box.faces[:, ::-1])

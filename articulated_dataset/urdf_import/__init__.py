@@ -1,0 +1,56 @@
+"""Third-party articulated objects from URDF files (e.g. PartNet-Mobility).
+
+``artdata generate --urdf FILE`` renders a user-supplied URDF with the dataset's camera,
+pose and configuration sampling and label definitions.  The URDF is turned into a
+*processed* URDF that the pipeline treats like any class template:
+
+* the file is data, never code: it is parsed as plain XML (lxml with entity expansion,
+  network access and DTDs off, no XInclude; a DOCTYPE is refused) and read into yourdfpy's
+  structures; it never goes through xacro (only our own ``*.xacro`` templates do), and link
+  and joint names must be plain identifiers (:data:`.parse.URDF_NAME_CHARS`);
+* mesh paths are resolved with yourdfpy relative to the URDF (``package://`` prefixes are
+  tried relative to the URDF's folder and its parents) and must lie inside the *mesh root*:
+  the URDF's folder, or the folder the user names (``--mesh-root``);
+* each link's geometry is its ``<visual>`` elements (its ``<collision>`` elements if it
+  has no visual).  Meshes are loaded with trimesh, scaled, placed by their ``<origin>`` and
+  merged into one binary STL per link (MuJoCo reads STL; a flat mesh gets a
+  :data:`.process.FLAT_MESH_THICKNESS_M` thickness because MuJoCo needs a 3-D convex hull), with
+  every triangle made double-sided (MuJoCo culls back faces; see :func:`.process.double_sided`);
+  primitive boxes, cylinders and spheres are kept as they are;
+* the joints to articulate (``--joints``, default: every revolute and prismatic joint with
+  a finite, non-empty range, in file order: the parts that open; ``continuous`` joints such
+  as knobs are articulated only when named) keep their type; every other joint is frozen
+  (``fixed``) at its URDF zero, the pose the meshes are modelled in;
+* ``--scale s`` multiplies every length (mesh vertices, primitive sizes, joint and element
+  origins, prismatic limits) by ``s``, for files in other units (PartNet-Mobility's are
+  normalised); labels are read from the scaled model, so they follow;
+* joint coordinates are re-parametrised so that q = 0 is a joint limit and positive q
+  moves towards the other limit (the dataset's "q = 0 is closed, positive q opens"):
+  limits ``[lo, hi]`` with ``lo >= 0`` are kept; ``hi <= 0`` flips the axis, giving
+  ``[-hi, -lo]``; ``lo < 0 < hi`` moves the zero to ``lo`` (the joint origin is turned /
+  shifted by ``lo`` along the axis), giving ``[0, hi - lo]``.  Continuous joints use the
+  built-in revolute range [0, pi/2] rad;
+* every link gets a fixed unit inertia: only kinematics is ever computed.
+
+The processed files live in a content-addressed cache folder (:func:`.ranges.cache_root`), rebuilt
+on demand by any process (spawned workers, Ray workers on other nodes) from the
+*definition*: a small JSON-able dict (source path, joints, options, sha256 of the URDF and
+its meshes) that :class:`articulated_dataset.pipeline.GenerationConfig` carries in its
+``third_party`` field.  A worker whose files differ from the driver's (changed file,
+different copy on another node) stops with an error instead of writing different data.
+
+Object frame and default pose table: the object frame is the URDF root link's frame; the
+pose table places that frame (x, y, z, yaw), like the ``base`` link of the built-in
+classes.  The default ranges keep the whole object (all links at q = 0) inside the image:
+see :func:`.ranges.view_pose_ranges`.  Third-party objects have no chirality (always 0) and a
+fixed geometry (the table's geometry ranges are the body's bounding box, for reference).
+
+The modules: :mod:`.ranges` (pose ranges, joint re-parametrisation, class names, the cache
+folder), :mod:`.parse` (the URDF read and checked as data, the joint plans), :mod:`.process`
+(the processed model in the cache) and :mod:`.build` (definition -> class, :func:`import_urdf`).
+"""
+
+from .build import UrdfObject, class_from_definition, import_urdf
+from .ranges import CACHE_ENV
+
+__all__ = ["CACHE_ENV", "UrdfObject", "class_from_definition", "import_urdf"]

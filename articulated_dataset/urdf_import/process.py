@@ -1,0 +1,189 @@
+"""The processed model: each link's meshes merged into one double-sided STL, the joints
+re-parametrised or frozen, unit inertias, written once into a content-addressed cache folder
+that any process can rebuild."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UserError
+from ..classes import REVOLUTE
+from .parse import JointPlan, MAX_FILE_LENGTH, Parsed, one_line, unit_axis
+from .ranges import CACHE_ENV, MOVABLE_TYPES, cache_root, joint_motion, sanitize_class_name
+
+
+PROCESSED_URDF_NAME = "model.urdf"
+#: Mass (kg) and principal inertia (kg m^2) given to every link: MuJoCo needs positive
+#: values to compile, and the pipeline only ever computes kinematics.
+LINK_MASS_KG = 1.0
+LINK_INERTIA_KG_M2 = 1e-2
+#: Effort (N or N m) and velocity (m/s or rad/s) written into re-parametrised <limit>s
+#: (required by URDF, unused by kinematics).
+LIMIT_EFFORT = 1.0
+LIMIT_VELOCITY = 1.0
+#: Thickness (m) given to a link mesh whose vertices are coplanar (0.1 mm: invisible at
+#: any depth-sensor resolution; MuJoCo cannot take a flat mesh's convex hull).
+FLAT_MESH_THICKNESS_M = 1e-4
+#: Most triangles MuJoCo's STL reader takes in one mesh file (its stl_decoder's limit).
+MUJOCO_MAX_STL_FACES = 200_000
+
+
+def _load_mesh(path: str):
+    import trimesh
+
+    try:
+        # trimesh reads the files a mesh refers to (materials, buffers) only inside the
+        # mesh's folder; materials are skipped anyway.
+        mesh = trimesh.load_mesh(path, process=False, skip_materials=True)
+    except Exception as exc:  # unreadable or unsupported file: the user's
+        raise UserError(f"cannot read mesh file {path}: {one_line(exc)}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise UserError(f"mesh file {path} holds no triangles")
+    if not np.all(np.isfinite(mesh.vertices)) or np.any(np.abs(mesh.vertices) > MAX_FILE_LENGTH):
+        raise UserError(f"mesh file {path} has vertices that are not finite numbers or beyond +-{MAX_FILE_LENGTH:g}")
+    return mesh
+
+
+def _link_mesh(elements: list, link: str = "", path: Path | None = None):
+    """The link's meshes (scaled, placed) merged into one trimesh in the link frame, or None."""
+    import trimesh
+
+    parts = []
+    for e in elements:
+        if e.mesh_file is None:
+            continue
+        m = _load_mesh(e.mesh_file).copy()
+        scale = e.geometry.mesh.scale
+        if scale is not None:
+            s = np.broadcast_to(np.asarray(scale, float), (3,))
+            m.apply_transform(np.diag([s[0], s[1], s[2], 1.0]))
+        if e.scale != 1.0:
+            m.apply_scale(e.scale)
+        m.apply_transform(e.origin)
+        parts.append(m)
+    if not parts:
+        return None
+    n_faces = sum(len(m.faces) for m in parts)
+    mesh = double_sided(_thicken_if_flat(trimesh.util.concatenate(parts) if len(parts) > 1 else parts[0]))
+    if len(mesh.faces) > MUJOCO_MAX_STL_FACES:
+        raise UserError(f"link {link!r} of {path}: its meshes have {n_faces} triangles, {len(mesh.faces)} once "
+                        f"double-sided, over MuJoCo's {MUJOCO_MAX_STL_FACES} per mesh; simplify them to under "
+                        f"{MUJOCO_MAX_STL_FACES // 2} triangles (e.g. trimesh's simplify_quadric_decimation)")
+    return mesh
+
+
+def double_sided(mesh):
+    """The mesh with every triangle also present with reversed winding.
+
+    MuJoCo's renderer culls back faces, and third-party meshes are often not consistently
+    wound (or not closed): a depth sensor sees a surface from either side, so both are kept.
+    """
+    import trimesh
+
+    faces = np.asarray(mesh.faces)
+    return trimesh.Trimesh(np.asarray(mesh.vertices), np.concatenate([faces, faces[:, ::-1]]), process=False)
+
+
+def _thicken_if_flat(mesh):
+    """Give a mesh whose vertices are (nearly) coplanar a :data:`FLAT_MESH_THICKNESS_M` thickness.
+
+    A second copy of the sheet, shifted along the plane's normal (the direction of least
+    spread of the vertices), with reversed faces, so both sides are surfaces.
+    """
+    import trimesh
+
+    v = np.asarray(mesh.vertices, float)
+    centred = v - v.mean(axis=0)
+    _, sv, vt = np.linalg.svd(centred, full_matrices=False)
+    if len(v) >= 4 and sv[-1] > FLAT_MESH_THICKNESS_M * max(sv[0], 1e-12):
+        return mesh
+    normal = vt[-1]
+    back = trimesh.Trimesh(v + FLAT_MESH_THICKNESS_M * normal, np.asarray(mesh.faces)[:, ::-1], process=False)
+    return trimesh.util.concatenate([mesh, back])
+
+
+def _processed_robot(parsed: Parsed, plans: list[JointPlan], mesh_files: dict):
+    """yourdfpy Robot of the processed model (meshes replaced by the per-link STL files)."""
+    import yourdfpy
+
+    by_name = {p.name: p for p in plans}
+    links = []
+    for i, link in enumerate(parsed.robot.links):
+        collisions = []
+        if link.name in mesh_files:
+            collisions.append(yourdfpy.Collision(
+                name=f"g{i}_mesh", origin=None, geometry=yourdfpy.Geometry(mesh=yourdfpy.Mesh(filename=mesh_files[link.name]))))
+        for k, e in enumerate(parsed.elements[link.name]):
+            if e.mesh_file is None:
+                collisions.append(yourdfpy.Collision(name=f"g{i}_{k}", origin=e.origin, geometry=e.geometry))
+        inertial = yourdfpy.Inertial(origin=np.eye(4), mass=LINK_MASS_KG, inertia=np.eye(3) * LINK_INERTIA_KG_M2)
+        links.append(yourdfpy.Link(name=link.name, inertial=inertial, visuals=[], collisions=collisions))
+    joints = []
+    for j in parsed.robot.joints:
+        origin = np.eye(4) if j.origin is None else np.asarray(j.origin, float)
+        plan = by_name.get(j.name)
+        if plan is None:
+            joints.append(yourdfpy.Joint(name=j.name, type="fixed", parent=j.parent, child=j.child, origin=origin))
+            continue
+        axis = unit_axis(j, parsed.path)
+        if plan.offset:
+            origin = origin @ joint_motion(j.type, axis, plan.offset)
+        if plan.flip:
+            axis = -axis
+        limit = yourdfpy.Limit(effort=LIMIT_EFFORT, velocity=LIMIT_VELOCITY, lower=plan.q_range[0], upper=plan.q_range[1])
+        jtype = "revolute" if MOVABLE_TYPES[j.type] == REVOLUTE else "prismatic"
+        joints.append(yourdfpy.Joint(name=j.name, type=jtype, parent=j.parent, child=j.child, origin=origin,
+                                     axis=axis, limit=limit))
+    return yourdfpy.Robot(name=sanitize_class_name(parsed.robot.name or "object"), links=links, joints=joints)
+
+
+def _write_processed(parsed: Parsed, plans: list[JointPlan], folder: Path, final: Path) -> None:
+    """Write the per-link STL files and the processed URDF into ``folder`` (paths point to ``final``)."""
+    import yourdfpy
+    from lxml import etree
+
+    mesh_files = {}
+    for i, link in enumerate(parsed.robot.links):
+        mesh = _link_mesh(parsed.elements[link.name], link.name, parsed.path)
+        if mesh is not None:
+            name = f"link_{i:04d}.stl"
+            mesh.export(str(folder / name), file_type="stl")
+            mesh_files[link.name] = str(final / name)
+    robot = _processed_robot(parsed, plans, mesh_files)
+    urdf = yourdfpy.URDF(robot=robot, build_scene_graph=False, load_meshes=False,
+                         filename_handler=yourdfpy.filename_handler_null)
+    tree = urdf.write_xml()
+    mj = etree.SubElement(tree.getroot(), "mujoco")
+    # Absolute mesh paths as written (MuJoCo strips folders from URDF mesh paths by default).
+    etree.SubElement(mj, "compiler", attrib={"strippath": "false", "fusestatic": "false"})
+    (folder / PROCESSED_URDF_NAME).write_bytes(etree.tostring(tree, xml_declaration=True, encoding="utf-8", pretty_print=True))
+
+
+def ensure_processed(parsed: Parsed, plans: list[JointPlan], key: str) -> Path:
+    """The processed URDF in the cache (built atomically: a temporary folder renamed)."""
+    root = cache_root() / "urdf"
+    final = root / key
+    target = final / PROCESSED_URDF_NAME
+    if target.is_file():
+        return target
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{key}-", dir=root))
+    except OSError as exc:
+        raise UserError(f"cannot write the model cache {root}: {exc.strerror or exc} (set {CACHE_ENV})") from None
+    try:
+        _write_processed(parsed, plans, tmp, final)
+        try:
+            os.rename(tmp, final)
+        except OSError:
+            if not target.is_file():  # not a concurrent build of the same key: a real failure
+                raise
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return target
