@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import mujoco
@@ -966,7 +966,8 @@ def _mdn_single_image(path: Path, class_name: str, name: str):
 
     from .mdn.loss import point_estimate
     from .mdn.preprocess import InputConfig, assemble_inputs, preprocess_depth
-    from .mdn.train import build_model_from_checkpoint, expand_active, load_checkpoint, shift_anchored
+    from .mdn.checkpoint import build_model_from_checkpoint, load_checkpoint
+    from .mdn.data import expand_active, shift_anchored
     from .targets import NormStats, TargetLayout
 
     ckpt = load_checkpoint(path)
@@ -1175,24 +1176,33 @@ def group_hypotheses(estimates: list[Estimate], joint: int) -> list[tuple[float,
 
 
 def mirrored_hypothesis(estimate: Estimate, joint: int) -> Estimate | None:
-    """The same door hinged on its other edge (revolute joints; None for prismatic ones): the
-    origin moves across the door to ``o + 2 r x`` (the label's ``x`` points from the hinge at
-    the part centre, ``r`` its distance, :attr:`Estimate.part_offset`), ``x`` and ``z`` reverse
-    (``y = z x x``, the door's outward normal, stays) and the part centre's height flips sign.
-    For a closed door this is the one ambiguity a depth image leaves when the handle is not
-    seen; the hypothesis has weight 0 (a last resort)."""
-    if estimate.part_offset is None or estimate.axis_pose.shape[0] <= joint:
+    """The door's panel where the estimate puts it now, hinged on its other edge and closed
+    (revolute joints; None for prismatic ones or without a part offset).
+
+    With the estimate's axis origin ``o``, frame ``(x, y, z)`` at q = 0, radius ``r`` (the part
+    centre's distance from the axis, :attr:`Estimate.part_offset`) and configuration ``q``, the
+    panel now runs along ``x_q = R_z(q) x``; the mirrored door has its origin at the other edge
+    ``o + 2 r x_q``, ``x' = -x_q``, ``z' = -z`` (so ``y' = z' x x'``, the panel's outward normal,
+    is the estimate's at ``q``), ``q' = 0`` and the part centre's height negated.  A closed
+    door seen at an angle looks much like a door on the other hinge opened by that angle, so
+    this is the one ambiguity a depth image leaves when the handle is not seen; the hypothesis
+    has weight 0 (a last resort, checked by looking at its handle)."""
+    if estimate.part_offset is None or estimate.axis_pose.shape[0] <= joint or estimate.q.shape[0] <= joint:
         return None
     r = float(estimate.part_offset[joint][0])
-    if estimate.q.shape[0] <= joint or not r > 0 or abs(float(estimate.part_offset[joint][1])) > r:
+    if not r > 0 or abs(float(estimate.part_offset[joint][1])) > r:
         return None
     origin, rot = axis_frame(estimate.axis_pose[joint])
+    turn = quat_to_matrix(axis_angle_quat(rot[:, 2], float(estimate.q[joint])))
+    x_q, y_q = turn @ rot[:, 0], turn @ rot[:, 1]
     pose = np.array(estimate.axis_pose, np.float64)
-    pose[joint, :3] = origin + 2.0 * r * rot[:, 0]
-    pose[joint, 3:] = _canonical(mat_to_quat(np.column_stack([-rot[:, 0], rot[:, 1], -rot[:, 2]])))
+    pose[joint, :3] = origin + 2.0 * r * x_q
+    pose[joint, 3:] = _canonical(mat_to_quat(np.column_stack([-x_q, y_q, -rot[:, 2]])))
     po = np.array(estimate.part_offset, np.float64)
     po[joint, 2] = -po[joint, 2]
-    return Estimate(pose, np.array(estimate.q, np.float64), po, estimate.geometry, estimate.source, weight=0.0)
+    q = np.array(estimate.q, np.float64)
+    q[joint] = 0.0
+    return Estimate(pose, q, po, estimate.geometry, estimate.source, weight=0.0)
 
 
 def consistent_hypothesis(estimate: Estimate, reference: Estimate, joint: int, joint_type: str = REVOLUTE) -> Estimate | None:
@@ -1271,7 +1281,8 @@ def joint_displacement(joint_type: str, axis_origin, axis_direction, p_from, p_t
 
 #: Looking at the handle before grasping (closed loop): a wrist camera (the dataset's
 #: intrinsics) HANDLE_LOOK_DISTANCE_M out along the estimated outward normal of the planned
-#: grasp, looking back at it (3.3 mm per pixel there).  Within HANDLE_SEARCH_RADIUS_M of the
+#: grasp, looking back at it (4.7 mm per pixel there; the search disc fits the 54 degree
+#: vertical field of view).  Within HANDLE_SEARCH_RADIUS_M of the
 #: view's centre the panel is the plane with most points within HANDLE_PLANE_TOL_M
 #: (RANSAC, HANDLE_RANSAC_ITERATIONS draws); handle candidates stand HANDLE_PROTRUSION_M
 #: (min, max) in front of it (the bar is a 3 cm deep block, urdf_templates/common.xacro).
@@ -1279,8 +1290,8 @@ def joint_displacement(joint_type: str, axis_origin, axis_direction, p_from, p_t
 #: HANDLE_MAX_EXTENT_M long and HANDLE_MAX_WIDTH_M wide, at least HANDLE_MIN_PIXELS pixels)
 #: is the handle; the grasp moves to its centroid, HANDLE_STANDOFF_M / 2 back towards the
 #: panel (the bar's centre, as in the grasp rule).  None found: the planned grasp is kept.
-HANDLE_LOOK_DISTANCE_M = 0.35
-HANDLE_SEARCH_RADIUS_M = 0.15
+HANDLE_LOOK_DISTANCE_M = 0.5
+HANDLE_SEARCH_RADIUS_M = 0.25
 HANDLE_PLANE_TOL_M = 0.005
 HANDLE_RANSAC_ITERATIONS = 200
 HANDLE_PROTRUSION_M = (0.01, 0.045)
@@ -1408,7 +1419,9 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
        planned and a close-up from a wrist camera :data:`HANDLE_LOOK_DISTANCE_M` out along the
        planned grasp's outward normal (:func:`look_at_viewpoint`, 1 image each, not given to
        the model) is searched for the handle bar (:func:`find_handle`): the first hypothesis
-       whose handle is found is taken and the grasp moves onto the bar; if none is found the
+       whose handle is found is taken, the grasp moves onto the bar and a door's axis moves
+       with the panel (by the grasp's move along the panel's outward normal: the direction
+       that turns the door's arc); if none is found the
        best hypothesis's planned grasp is kept.  It closes only if it lands within
        :data:`GRASP_CAPTURE_M` of the true handle (as open loop).  From then on every image's
        estimate is its hypothesis consistent with the chosen axis (:func:`consistent_hypothesis`).
@@ -1484,6 +1497,11 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
                       "hypothesis_score": score, "handle_found": found is not None,
                       "grasp_moved_m": float(np.linalg.norm(grasp[:3] - plan_k.grasp_pose[:3]))})
         if found is not None:
+            if jt == REVOLUTE:  # the door is where its handle is: move the axis with the panel's plane
+                n = outward_normal(plan_k.grasp_pose, jt)
+                fused_k = replace(fused_k, axis_pose=np.array(fused_k.axis_pose, np.float64))
+                fused_k.axis_pose[joint, :3] += ((grasp[:3] - plan_k.grasp_pose[:3]) @ n) * n
+                plan_k.axis_origin = fused_k.axis(joint)[0]
             o, d = fused_k.axis(joint)
             plan_k.grasp_pose = grasp
             plan_k.waypoints = plan_waypoints(jt, o, d, plan_k.q_current, target, grasp, step_rad, step_m)

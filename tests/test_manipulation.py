@@ -495,7 +495,7 @@ def test_closed_loop_with_true_estimates_opens_and_counts_every_image(tiny_root,
 
 @pytest.mark.parametrize("cls", ["cabinet", "drawer", "toaster"])
 def test_find_handle_in_a_close_up(tiny_root, cls):
-    """Looking from 35 cm at a grasp 5 cm off the handle (along the panel) finds the bar's centre."""
+    """Looking from HANDLE_LOOK_DISTANCE_M at a grasp 5 cm off the handle (along the panel) finds the bar's centre."""
     obj = _first_view_obj(tiny_root, cls)
     t, jt = obj.truth(), obj.joint_types[0]
     grasp = M.grasp_pose_from_estimate(t.axis_pose[0], t.part_offset[0], t.geometry, jt, t.q[0])
@@ -566,7 +566,8 @@ def test_cli_plan_with_an_mdn_checkpoint_matches_predict(tiny_root, tmp_path):
     import torch
 
     from articulated_dataset.mdn.predict import predict_split
-    from articulated_dataset.mdn.train import TrainConfig, train
+    from articulated_dataset.mdn.config import TrainConfig
+    from articulated_dataset.mdn.train import train
 
     torch.set_num_threads(1)
     model = tmp_path / "mdn.pt"
@@ -624,19 +625,6 @@ def test_closed_loop_survives_images_without_an_estimate(tiny_root, monkeypatch)
     assert failed.to_dict()["images_used"] == 1
 
 
-def _mirrored(e: M.Estimate) -> M.Estimate:
-    """The door of joint 0 hinged on its other edge: origin moved across the door (2 r along x),
-    axis and x reversed (a proper frame: y = z x x unchanged)."""
-    from articulated_dataset.rotations import matrix_to_quat
-
-    o, rot = M.axis_frame(e.axis_pose[0])
-    pose = e.axis_pose.copy()
-    pose[0, :3] = o + 2 * e.part_offset[0][0] * rot[:, 0]
-    pose[0, 3:] = matrix_to_quat(np.column_stack([-rot[:, 0], rot[:, 1], -rot[:, 2]]))
-    return M.Estimate(pose, e.q.copy(), e.part_offset.copy(), None if e.geometry is None else e.geometry.copy(),
-                      source=e.source)
-
-
 class _TwoSided(_Oracle):
     """Believes (weight 0.7) the door is hinged on the wrong edge; the truth is its alternative
     (weight 0.3) unless ``keep_truth`` is False."""
@@ -647,7 +635,7 @@ class _TwoSided(_Oracle):
 
     def __call__(self, depth, K):
         t = super().__call__(depth, K)
-        wrong = _mirrored(t)
+        wrong = M.mirrored_hypothesis(t, 0)  # the panel where it is, hinged on its other edge
         wrong.weight, t.weight = 0.7, 0.3
         wrong.alternatives = [t] if self.keep_truth else []
         return wrong
@@ -674,17 +662,28 @@ def test_closed_loop_checks_the_other_hinge_side(tiny_root, monkeypatch, keep_tr
     assert not res.grasped and res.grasp_error_m > 0.1
 
 
-def test_mirrored_hypothesis_is_an_involution():
-    e = M.Estimate(np.array([[0.1, 0.5, 0.2, 0.9, 0.1, 0.3, 0.2]]) / [[1, 1, 1, np.sqrt(0.95), np.sqrt(0.95),
-                                                                          np.sqrt(0.95), np.sqrt(0.95)]],
-                   np.array([0.1]), np.array([[0.45, 0.0, 0.1]]))
+def test_mirrored_hypothesis_hand_worked():
+    """A door hinged at (0, 0.5) (axis z, x = -y towards the centre, radius 0.45 m) opened 30
+    degrees: its panel now runs from the hinge along x turned 30 degrees, so the mirrored door is
+    hinged at the panel's other edge, 0.9 m along it, axis -z, closed, its outward normal the
+    panel's; mirroring that gives the first hinge back (closed, with the panel where it is)."""
+    c = math.sqrt(0.5)  # -90 deg about z
+    e = M.Estimate(np.array([[0.0, 0.5, 0.2, c, 0.0, 0.0, -c]]), np.array([math.radians(30.0)]),
+                   np.array([[0.45, 0.0, 0.1]]))
     m = M.mirrored_hypothesis(e, 0)
     (o, d), (om, dm) = e.axis(0), m.axis(0)
-    assert np.allclose(dm, -d) and np.isclose(np.linalg.norm(om - o), 0.9) and m.weight == 0.0
+    panel = np.array([math.sin(math.radians(30.0)), -math.cos(math.radians(30.0)), 0.0])  # R_z(30) (0, -1, 0)
+    assert np.allclose(om, o + 0.9 * panel) and np.allclose(dm, -d)
+    assert m.q[0] == 0.0 and m.weight == 0.0 and np.allclose(m.part_offset, [[0.45, 0.0, -0.1]])
+    rot_m = M.axis_frame(m.axis_pose[0])[1]
+    assert np.allclose(rot_m[:, 0], -panel)
+    normal_e = M.outward_normal(M.grasp_pose_from_estimate(e.axis_pose[0], e.part_offset[0], None, REVOLUTE, e.q[0]), REVOLUTE)
+    normal_m = M.outward_normal(M.grasp_pose_from_estimate(m.axis_pose[0], m.part_offset[0], None, REVOLUTE, 0.0), REVOLUTE)
+    assert np.allclose(normal_e, normal_m, atol=1e-9)
     assert not M.same_axis(e, m, 0)
     back = M.mirrored_hypothesis(m, 0)
     assert np.allclose(back.axis(0)[0], o) and np.allclose(back.axis(0)[1], d)
-    assert np.allclose(back.part_offset, e.part_offset)
+    assert np.allclose(M.axis_frame(back.axis_pose[0])[1][:, 0], panel) and np.allclose(back.part_offset, e.part_offset)
     assert M.mirrored_hypothesis(M.Estimate(e.axis_pose, e.q), 0) is None  # no part offset: no door to mirror
 
 
@@ -692,7 +691,7 @@ def test_hypotheses_group_by_axis():
     """Two images: hinge-left 0.8/0.4, hinge-right 0.2/0.6 -> left 0.6, right 0.4; a consistent
     hypothesis is picked by axis, not by weight."""
     c = math.sqrt(0.5)  # the frame turned -90 deg about z: x = -y (towards the door centre at y = 0)
-    left = M.Estimate(np.array([[0.0, 0.5, 0.0, c, 0.0, 0.0, -c]]), np.array([0.1]), np.array([[0.5, 0.0, 0.0]]))
+    left = M.Estimate(np.array([[0.0, 0.5, 0.0, c, 0.0, 0.0, -c]]), np.array([0.0]), np.array([[0.5, 0.0, 0.0]]))
     right = M.mirrored_hypothesis(left, 0)
     assert np.allclose(right.axis(0)[0], [0.0, -0.5, 0.0]) and np.allclose(right.axis(0)[1], [0.0, 0.0, -1.0])
     assert not M.same_axis(left, right, 0)
