@@ -101,7 +101,7 @@ def _resolve(spec: str, class_name: str | None) -> ModelRef:
     path = Path(spec)
     if not path.is_file():
         raise UserError(f"--model {spec!r}: neither a shipped model ({', '.join(SHIPPED)}) nor a checkpoint file")
-    from .mdn.train import read_checkpoint_file
+    from .mdn.checkpoint import read_checkpoint_file
 
     ckpt = read_checkpoint_file(path)
     kind = FORMATS.get(ckpt.get("format")) if isinstance(ckpt, dict) else None

@@ -65,7 +65,9 @@ def main() -> None:
 
     from articulated_dataset.baselines import run_baseline
     from articulated_dataset.mdn.predict import predict_split
-    from articulated_dataset.mdn.train import TrainConfig, configure_threads, load_checkpoint, train
+    from articulated_dataset.mdn.checkpoint import load_checkpoint
+    from articulated_dataset.mdn.config import TrainConfig
+    from articulated_dataset.mdn.train import configure_threads, train
     from articulated_dataset.benchmark.predictions import write_predictions
     from articulated_dataset.registry import class_names
     from articulated_dataset.benchmark.scoring import score

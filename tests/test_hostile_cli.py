@@ -49,7 +49,8 @@ class Inputs:
 
 @pytest.fixture(scope="module")
 def inputs(tiny_root, tmp_path_factory) -> Inputs:
-    from articulated_dataset.mdn.train import TrainConfig, train
+    from articulated_dataset.mdn.config import TrainConfig
+    from articulated_dataset.mdn.train import train
 
     root = tmp_path_factory.mktemp("hostile")
     _, shards = open_split(tiny_root / "cabinet" / "test")

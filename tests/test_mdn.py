@@ -16,7 +16,9 @@ from articulated_dataset.cli import main  # noqa: E402
 from articulated_dataset.mdn.loss import mean_of_best, mixture_log_prob, mixture_mode, mixture_nll, point_estimate  # noqa: E402
 from articulated_dataset.mdn.model import MixtureDensityNetwork, ModelConfig, ResNet, count_parameters  # noqa: E402
 from articulated_dataset.mdn.preprocess import InputConfig, assemble_inputs, preprocess_depth  # noqa: E402
-from articulated_dataset.mdn.train import TrainConfig, lr_factor, split_by_object, train  # noqa: E402
+from articulated_dataset.mdn.config import TrainConfig  # noqa: E402
+from articulated_dataset.mdn.data import split_by_object  # noqa: E402
+from articulated_dataset.mdn.train import lr_factor, train  # noqa: E402
 
 #: A network small enough for tests: 4 channels, two one-block stages, 3 components, 27x48 input.
 TINY = dict(preset="small", width=4, blocks=(1, 1), height_px=27, width_px=48, n_components=3, batch_size=16)
@@ -192,7 +194,7 @@ def test_validation_split_is_by_object_and_seeded():
 
 
 def test_anchored_columns_round_trip():
-    from articulated_dataset.mdn.train import anchored_columns, shift_anchored
+    from articulated_dataset.mdn.data import anchored_columns, shift_anchored
     from articulated_dataset.targets import TargetLayout
 
     names = TargetLayout.for_class("cabinet2").names

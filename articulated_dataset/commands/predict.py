@@ -35,7 +35,7 @@ def predict_cmd(model_path, data, out, estimate, snap_to_cloud, method, batch_si
     if out.is_dir():
         raise UserError(f"--out {out} is a directory; give a file name such as predictions.h5")
     prepare_torch(threads)
-    from ..mdn.train import resolve_split_dir, split_class
+    from ..mdn.data import resolve_split_dir, split_class
     from ..models import resolve_model
     from ..benchmark.predictions import write_predictions
 
@@ -53,7 +53,7 @@ def predict_cmd(model_path, data, out, estimate, snap_to_cloud, method, batch_si
         attrs = {"model": str(model_path), "estimate": "heaviest-mode", "steps": int(ckpt["step"])}
     else:
         from ..mdn.predict import predict_split
-        from ..mdn.train import load_checkpoint
+        from ..mdn.checkpoint import load_checkpoint
 
         ckpt = load_checkpoint(ref.path)
         preset = ckpt["train_config"].get("preset", "full")

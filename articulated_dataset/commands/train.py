@@ -48,7 +48,8 @@ def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, 
         return
     if width is not None or init_from is not None:
         raise UserError("--width and --init-from belong to --model dense")
-    from ..mdn.train import TrainConfig, train
+    from ..mdn.config import TrainConfig
+    from ..mdn.train import train
 
     val_fraction = 0.1 if val_fraction is None else val_fraction
     config = TrainConfig(class_name=class_name, preset="small" if small else "full", epochs=epochs, batch_size=batch_size,

@@ -242,7 +242,7 @@ def _quat_from_rot6(r6: np.ndarray) -> np.ndarray:
 def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BATCH, progress: bool = True) -> tuple[str, dict]:
     """Run a loaded dense checkpoint on the split at ``data``; ``(class_name, arrays)`` as
     :func:`articulated_dataset.predictions.write_predictions` takes them.  Labels are not read."""
-    from ..mdn.train import resolve_split_dir, split_class
+    from ..mdn.data import resolve_split_dir, split_class
     from .train import build_dense_model, load_dense_split
 
     if batch_size <= 0:

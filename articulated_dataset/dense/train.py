@@ -232,14 +232,14 @@ def dense_loss(model, out, inputs: dict, data: DenseData, idx: np.ndarray, q_sca
 
 
 def atomic_save(obj: dict, path: Path) -> None:
-    from ..mdn.train import atomic_torch_save
+    from ..mdn.checkpoint import atomic_torch_save
 
     atomic_torch_save(obj, path)
 
 
 def load_dense_checkpoint(path: str | Path) -> dict:
     """Load and check a dense checkpoint (``weights_only``); any problem is one UserError line."""
-    from ..mdn.train import read_checkpoint_file
+    from ..mdn.checkpoint import read_checkpoint_file
 
     path = Path(path)
     ckpt = read_checkpoint_file(path)
@@ -281,7 +281,8 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     import torch
     from tqdm.auto import tqdm
 
-    from ..mdn.train import prepare_training_output, resolve_split_dir, split_by_object
+    from ..mdn.checkpoint import prepare_training_output
+    from ..mdn.data import resolve_split_dir, split_by_object
     from ..registry import get_class
     from .features import make_inputs
     from .model import DenseConfig, DenseNet, count_parameters
@@ -422,7 +423,7 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     dense checkpoint on the validation objects of its training split ``data`` (the same objects
     training held out: its ``val_fraction``, ``seed`` and ``max_objects``), and write the result
     to ``out`` atomically.  For checkpoints trained before a refinement existed."""
-    from ..mdn.train import resolve_split_dir, split_by_object, split_class
+    from ..mdn.data import resolve_split_dir, split_by_object, split_class
     from .predict import fit_inference
 
     ckpt = load_dense_checkpoint(checkpoint)

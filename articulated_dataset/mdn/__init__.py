@@ -5,7 +5,10 @@
 * :mod:`.loss`: mixture log-likelihood (log-sum-exp), point estimates (mean of the best
   component, mixture mode).
 * :mod:`.preprocess`: depth image -> network input.
-* :mod:`.train`: training loop, presets (``full``, ``small``), checkpoints.
+* :mod:`.config`: presets (``full``, ``small``) and the training settings.
+* :mod:`.data`: the training split in memory, validation objects, anchored/active target columns.
+* :mod:`.checkpoint`: saving, reading and checking checkpoints; the model rebuilt from one.
+* :mod:`.train`: the training loop.
 * :mod:`.predict`: inference on a split -> ``predictions.h5`` arrays.
 
 These modules import torch; importing this package does not (torch is optional).
@@ -13,4 +16,4 @@ These modules import torch; importing this package does not (torch is optional).
 
 from __future__ import annotations
 
-__all__ = ["model", "loss", "preprocess", "train", "predict"]
+__all__ = ["model", "loss", "preprocess", "config", "data", "checkpoint", "train", "predict"]

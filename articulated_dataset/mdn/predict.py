@@ -44,7 +44,9 @@ def predict_split(model_path: str | Path, data: str | Path, *, estimate: str = "
     from ..targets import NormStats, TargetLayout
     from .loss import point_estimate
     from .preprocess import InputConfig, assemble_inputs
-    from .train import build_model_from_checkpoint, expand_active, load_checkpoint, shift_anchored, load_split, resolve_device, resolve_split_dir, split_class
+    from .checkpoint import build_model_from_checkpoint, load_checkpoint
+    from .data import expand_active, load_split, resolve_split_dir, shift_anchored, split_class
+    from .train import resolve_device
 
     if estimate not in ESTIMATES:
         raise UserError(f"unknown estimate {estimate!r}; expected one of {', '.join(ESTIMATES)}")

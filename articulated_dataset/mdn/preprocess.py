@@ -14,7 +14,7 @@ For a depth image ``d`` (metres, 0 = no return) with validity ``v = d > 0`` and 
   0)) / MEDIAN_SCALE_M`` are given to the heads, where the anchor ``a`` is the centroid of the
   back-projected valid pixels (camera frame, metres; :func:`image_anchor`), so the absolute
   distance removed from channel 0 is not lost.  The network predicts axis origins
-  relative to this anchor (see :mod:`articulated_dataset.mdn.train`): a convolutional
+  relative to this anchor (see :mod:`articulated_dataset.mdn.data`): a convolutional
   network with global pooling is good at shapes and poor at absolute image positions.
 
 Resizing to the model resolution is validity-weighted area averaging:

@@ -5,10 +5,10 @@
   (2 bytes x 2 planes x h x w per image: 13 GB for 160,000 images at 192x108, 0.2 GB for
   16,000 at the small preset's 96x54); targets are encoded by
   :class:`articulated_dataset.targets.TargetLayout`, axis origins made relative to the
-  image anchor (:func:`anchored_columns`), and normalised with
+  image anchor (:func:`.data.anchored_columns`), and normalised with
   :class:`articulated_dataset.targets.NormStats` computed from the training images (the
   validation objects excluded).  Columns constant in training are not modelled
-  (:func:`active_columns`).
+  (:func:`.data.active_columns`).
 * Validation: a held-out part of the TRAINING split, chosen by object index (a seeded
   permutation of the split's objects; ``val_fraction`` of them, all their images), so no
   object is both trained on and validated on.  The test split is never read.
@@ -20,6 +20,8 @@
   continues from the checkpoint to the identical state: the batch order of epoch ``e``
   depends only on ``(seed, e)``, so an interrupted and resumed run equals an
   uninterrupted one.
+
+Settings are in :mod:`.config`, the data in :mod:`.data`, checkpoints in :mod:`.checkpoint`.
 """
 
 from __future__ import annotations
@@ -28,23 +30,20 @@ import logging
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataFormatError, UserError, check_memory
-from ..format import Split, one_split_dir
+from ..errors import UserError, check_memory
+from .checkpoint import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, atomic_torch_save, load_checkpoint,
+                         prepare_training_output)
+from .config import MAX_THREADS_PER_CPU, TrainConfig
+from .data import (active_columns, anchored_columns, expand_active, load_split, resolve_split_dir, shift_anchored,
+                   split_by_object)
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = "artdata-mdn"
-CHECKPOINT_VERSION = 1
-#: Fraction of the training split's objects held out for validation.
-DEFAULT_VAL_FRACTION = 0.1
-DEFAULT_SEED = 0
-#: Images preprocessed per chunk while loading (bounds the float32 temporaries).
-LOAD_CHUNK = 512
+
 #: Warm-up length: this fraction of all steps, at most WARMUP_MAX_STEPS.
 WARMUP_FRACTION = 0.05
 WARMUP_MAX_STEPS = 500
@@ -55,395 +54,12 @@ GRAD_CLIP_NORM = 100.0
 WEIGHT_DECAY = 1e-4
 #: Final learning rate as a fraction of the peak (cosine schedule).
 FINAL_LR_FRACTION = 0.01
-#: A column is constant when its std is within this factor of the NormStats floor.
-CONSTANT_COLUMN_TOLERANCE = 1.0 + 1e-6
 #: Offset mixing the seed and the epoch into the shuffling generator's seed.
 EPOCH_SEED_STRIDE = 1_000_003
-#: Seeds are below 2**32: the per-epoch generator seed ``seed * EPOCH_SEED_STRIDE + epoch``
-#: must stay inside torch's 64-bit seed range.
-MAX_SEED = 2**32 - 1
-#: Most torch threads per logical CPU: more only adds context switches (and a huge count would
-#: make OpenMP try to start that many threads).
-MAX_THREADS_PER_CPU = 4
-#: Largest peak learning rate: AdamW's step is about lr per weight, so beyond 1 every step
-#: moves the weights by more than their own scale and training diverges (NaN losses).
-MAX_LR = 1.0
 #: Bytes held per mixture-head parameter while training: float32 weight, gradient and
 #: AdamW's two moments.
 BYTES_PER_TRAINED_PARAMETER = 4 * 4
 
-
-@dataclass(frozen=True)
-class Preset:
-    """Network size and input resolution; ``full`` is ResNet-18 at the native resolution."""
-
-    height_px: int
-    width_px: int
-    width: int
-    blocks: tuple[int, ...]
-    stem: str
-    head_hidden: int
-    epochs: int
-    batch_size: int
-    lr: float
-
-
-PRESETS = {
-    # ResNet-18 (64 channels, 2-2-2-2 blocks, ImageNet stem) on the 192x108 images.
-    "full": Preset(height_px=108, width_px=192, width=64, blocks=(2, 2, 2, 2), stem="imagenet",
-                   head_hidden=256, epochs=30, batch_size=128, lr=1e-3),
-    # A narrow one-block-per-stage ResNet on 96x54 images: a few minutes per class on 2 CPU cores
-    # for 16,000 images (docs/model.md has the measured time).
-    "small": Preset(height_px=54, width_px=96, width=16, blocks=(1, 1, 1, 1), stem="light",
-                    head_hidden=128, epochs=8, batch_size=64, lr=2e-3),
-}
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Everything that determines a training run (stored in the checkpoint)."""
-
-    class_name: str
-    preset: str = "full"
-    epochs: int | None = None
-    batch_size: int | None = None
-    lr: float | None = None
-    val_fraction: float = DEFAULT_VAL_FRACTION
-    seed: int = DEFAULT_SEED
-    n_components: int | None = None
-    # overrides of the preset (None = preset value)
-    height_px: int | None = None
-    width_px: int | None = None
-    width: int | None = None
-    blocks: tuple[int, ...] | None = None
-    max_objects: int | None = None  # use only the first N objects of the split (None = all)
-
-    def resolved(self) -> "TrainConfig":
-        """The config with every None filled from the preset."""
-        if self.preset not in PRESETS:
-            raise UserError(f"unknown preset {self.preset!r}; expected one of {', '.join(PRESETS)}")
-        p = PRESETS[self.preset]
-        from .model import DEFAULT_COMPONENTS
-
-        def pick(v, default):
-            return default if v is None else v
-
-        c = replace(
-            self, epochs=pick(self.epochs, p.epochs), batch_size=pick(self.batch_size, p.batch_size), lr=pick(self.lr, p.lr),
-            n_components=pick(self.n_components, DEFAULT_COMPONENTS), height_px=pick(self.height_px, p.height_px),
-            width_px=pick(self.width_px, p.width_px), width=pick(self.width, p.width),
-            blocks=tuple(pick(self.blocks, p.blocks)),
-        )
-        for name, v in (("--epochs", c.epochs), ("--batch-size", c.batch_size), ("--components", c.n_components),
-                        ("input height", c.height_px), ("input width", c.width_px), ("network width", c.width)):
-            if not _is_int(v) or v <= 0:
-                raise UserError(f"{name} must be a positive whole number, got {v!r}")
-        if not (isinstance(c.blocks, tuple) and c.blocks and all(_is_int(b) and b > 0 for b in c.blocks)):
-            raise UserError(f"network blocks must be positive whole numbers, got {c.blocks!r}")
-        if not _is_real_number(c.lr) or not 0.0 < c.lr <= MAX_LR:
-            raise UserError(f"--lr must be a number in (0, {MAX_LR:g}], got {c.lr!r}")
-        if not _is_real_number(c.val_fraction) or not 0.0 <= c.val_fraction < 1.0:
-            raise UserError(f"--val-fraction must be in [0, 1), got {c.val_fraction!r}")
-        if not _is_int(c.seed) or not 0 <= c.seed <= MAX_SEED:
-            raise UserError(f"--seed must be a whole number in [0, {MAX_SEED}], got {c.seed!r}")
-        if c.max_objects is not None and (not _is_int(c.max_objects) or c.max_objects <= 0):
-            raise UserError(f"--max-objects must be a positive whole number, got {c.max_objects!r}")
-        return c
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        if d["blocks"] is not None:
-            d["blocks"] = list(d["blocks"])
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "TrainConfig":
-        d = dict(d)
-        if isinstance(d.get("blocks"), list):
-            d["blocks"] = tuple(d["blocks"])
-        return cls(**d)
-
-    def input_config(self):
-        from .preprocess import InputConfig
-
-        return InputConfig(height_px=self.height_px, width_px=self.width_px)
-
-    def model_config(self, target_dim: int):
-        from .model import ModelConfig
-        from .preprocess import N_SCALARS
-
-        p = PRESETS[self.preset]
-        return ModelConfig(in_channels=self.input_config().channels, target_dim=target_dim, n_components=self.n_components,
-                           width=self.width, blocks=tuple(self.blocks), stem=p.stem, head_hidden=p.head_hidden,
-                           n_scalars=N_SCALARS)
-
-
-def _is_int(v) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _is_real_number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
-# --------------------------------------------------------------------------------------
-# Data
-# --------------------------------------------------------------------------------------
-
-@dataclass
-class PreparedSplit:
-    """A split reduced to model inputs, in memory (torch tensors, CPU)."""
-
-    planes: "object"  # torch.Tensor (N, 2, h, w) float16
-    scalars: "object"  # torch.Tensor (N, 1) float32
-    targets: np.ndarray  # (N, D) float32, label units (encoded, not normalised)
-    anchor: "object"  # torch.Tensor (N, 3) float32, metres: centroid of the valid pixels (preprocess.image_anchor)
-    object_index: np.ndarray  # (N,) int64
-    sample_id: np.ndarray  # (N,) int64
-    shard_of: np.ndarray = field(default=None)  # (N,) index of the shard each image came from
-
-
-def resolve_split_dir(data: str | Path) -> Path:
-    """The one split folder at ``data`` (a UserError if there is none or several)."""
-    return one_split_dir(data)
-
-
-def split_class(split_dir: Path) -> str:
-    return Split(split_dir).class_name
-
-
-def load_split(split_dir: Path, layout, input_config, *, max_objects: int | None = None, progress: bool = False,
-               with_targets: bool = True) -> PreparedSplit:
-    """Read every shard of ``split_dir`` and reduce it to model inputs (and encoded targets)."""
-    import torch
-    from tqdm.auto import tqdm
-
-    from .preprocess import preprocess_depth
-
-    split = Split(split_dir)
-    manifest, shards = split.manifest, split.shards
-    if not shards:
-        raise DataFormatError(f"{split_dir}: the split has no shards")
-    planes, scalars, anchors, targets, obj, sid, shard_of = [], [], [], [], [], [], []
-    total = int(manifest.get("n_images", 0)) or None
-    bar = tqdm(total=total, desc=f"loading {split_dir}", unit="img", disable=not progress, leave=False)
-    for s_idx, sh in enumerate(shards):
-        oi = sh.read("object_index")
-        keep = np.ones(len(oi), bool) if max_objects is None else oi < max_objects
-        if not keep.any():
-            sh.close()
-            continue
-        idx = np.nonzero(keep)[0]
-        K = sh.K
-        for start in range(0, len(idx), LOAD_CHUNK):
-            sel = idx[start : start + LOAD_CHUNK]
-            depth = sh.read("depth", slice(int(sel[0]), int(sel[-1]) + 1))[sel - sel[0]]
-            p, s, a = preprocess_depth(depth, input_config, K)
-            planes.append(p)
-            scalars.append(s)
-            anchors.append(a)
-            bar.update(len(sel))
-        if with_targets:
-            labels = sh.labels()
-            labels = {k: v[idx] for k, v in labels.items()}
-            targets.append(np.asarray(layout.encode(labels), np.float32))
-        obj.append(oi[idx].astype(np.int64))
-        sid.append(sh.read("sample_id")[idx].astype(np.int64))
-        shard_of.append(np.full(len(idx), s_idx))
-        sh.close()
-    bar.close()
-    if not planes:
-        raise UserError(f"{split_dir}: no images selected")
-    return PreparedSplit(
-        planes=torch.cat(planes), scalars=torch.cat(scalars), anchor=torch.cat(anchors),
-        targets=np.concatenate(targets) if with_targets else np.zeros((sum(len(o) for o in obj), 0), np.float32),
-        object_index=np.concatenate(obj), sample_id=np.concatenate(sid), shard_of=np.concatenate(shard_of),
-    )
-
-
-def split_by_object(object_index: np.ndarray, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Boolean masks (train, val) over images: ``round(val_fraction * n_objects)`` objects (at
-    least one when val_fraction > 0 and there are two objects or more), chosen by a
-    permutation seeded with ``seed``, go to validation with all their images."""
-    objects = np.unique(object_index)
-    n_val = int(round(val_fraction * len(objects)))
-    if val_fraction > 0 and len(objects) >= 2:
-        n_val = min(max(n_val, 1), len(objects) - 1)
-    else:
-        n_val = 0
-    perm = np.random.default_rng(seed).permutation(objects)
-    val = np.isin(object_index, perm[:n_val])
-    return ~val, val
-
-
-# --------------------------------------------------------------------------------------
-# Checkpoints
-# --------------------------------------------------------------------------------------
-
-def atomic_torch_save(obj: dict, path: Path) -> None:
-    import torch
-
-    tmp = path.with_name(path.name + ".partial")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
-def read_checkpoint_file(path: str | Path, map_location="cpu"):
-    """``torch.load(path, weights_only=True)`` (tensors and plain containers only: nothing in the
-    file is executed); a missing or unreadable file is a one-line UserError.  The contents are
-    the caller's to check (:func:`load_checkpoint`, the dense model's loader)."""
-    import torch
-
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"checkpoint not found: {path}")
-    try:
-        return torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - torch.load raises many types on a corrupt file (even IndexError)
-        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
-        raise UserError(f"{path}: not a readable model checkpoint ({first})") from None
-
-
-def prepare_training_output(split_dir: Path, class_name: str, out: Path, *, resume: bool, load, config,
-                            example_name: str) -> dict | None:
-    """Checks shared by every ``artdata train``: the split holds ``class_name`` and is generated
-    (not ingested real captures), ``out`` is a file, and ``--resume`` finds a checkpoint trained
-    with the same ``config`` (``load(out)`` reads it; its ``train_config`` is compared through
-    ``type(config).from_dict``).  Returns that checkpoint, or None for a new run."""
-    split = Split(split_dir)
-    if split.class_name != class_name:
-        raise UserError(f"{split_dir}: holds class {split.class_name!r}, not {class_name!r} (--class)")
-    if split.is_real:
-        raise UserError(f"{split_dir} holds ingested real captures (labels NaN where not given); train on a generated "
-                        f"split and use real splits with 'artdata predict'")
-    if out.exists() and out.is_dir():
-        raise UserError(f"--out {out} is a directory; give a file name such as {example_name}")
-    if not resume:
-        if out.exists():
-            raise UserError(f"{out} exists; pass --resume to continue its training or choose another --out")
-        return None
-    if not out.exists():
-        raise UserError(f"--resume: no checkpoint at {out} to resume from")
-    ckpt = load(out)
-    old = type(config).from_dict(ckpt["train_config"])
-    if old != config:
-        diff = [k for k in config.to_dict() if config.to_dict()[k] != old.to_dict().get(k)]
-        raise UserError(f"--resume: {out} was trained with different settings ({', '.join(diff)}); "
-                        f"repeat the original options")
-    return ckpt
-
-
-def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
-    """Load and check an ``artdata train`` checkpoint; any problem is a one-line UserError.
-
-    The file is read with ``torch.load(weights_only=True)`` (tensors and plain containers
-    only: nothing in it is executed) and every field the package reads is checked
-    (:func:`check_checkpoint`) before a network is built from it.
-    """
-    path = Path(path)
-    ckpt = read_checkpoint_file(path, map_location)
-    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
-        raise UserError(f"{path}: not an artdata MDN checkpoint (written by 'artdata train')")
-    if ckpt.get("version") != CHECKPOINT_VERSION:
-        raise UserError(f"{path}: checkpoint version {str(ckpt.get('version'))[:40]} is not readable "
-                        f"(expected {CHECKPOINT_VERSION})")
-    for key in ("class_name", "layout_names", "norm_stats", "model_config", "input_config", "train_config", "model_state"):
-        if key not in ckpt:
-            raise UserError(f"{path}: checkpoint is missing {key!r}")
-    check_checkpoint(ckpt, path)
-    return ckpt
-
-
-def check_checkpoint(ckpt: dict, path) -> None:
-    """Every field of a loaded checkpoint that the package reads has the type and value
-    ``artdata train`` writes: the class is registered and its target layout matches; the
-    training config is valid and implies the stored model and input configs (so no size read
-    from the file is allocated unchecked); the normalisation statistics fit the layout and are
-    finite; the column lists are in range; the weights are finite tensors; the epoch count is
-    a whole number.  Otherwise a one-line :class:`UserError` naming ``path``."""
-    import torch
-
-    from ..registry import get_class
-    from ..targets import NormStats, TargetLayout
-    from .model import ModelConfig
-    from .preprocess import InputConfig
-
-    def bad(what: str) -> UserError:
-        return UserError(f"{path}: corrupt checkpoint: {what}")
-
-    name = ckpt["class_name"]
-    if not isinstance(name, str):
-        raise bad("class_name is not a string")
-    try:
-        obj_class = get_class(name)
-    except UserError as exc:
-        raise UserError(f"{path}: {exc}") from None
-    layout = TargetLayout.for_class(obj_class.name)
-    if not isinstance(ckpt["layout_names"], list) or list(ckpt["layout_names"]) != list(layout.names):
-        raise UserError(f"{path}: the checkpoint's target layout differs from this version's {name!r} layout; retrain it")
-    for key in ("train_config", "model_config", "input_config", "norm_stats", "model_state"):
-        if not isinstance(ckpt[key], dict):
-            raise bad(f"{key} is not a mapping")
-    try:
-        config = TrainConfig.from_dict(ckpt["train_config"])
-    except TypeError as exc:
-        raise bad(f"train_config ({str(exc).splitlines()[0][:120]})") from None
-    try:
-        config = config.resolved()
-    except UserError as exc:
-        raise bad(f"train_config: {exc}") from None
-    if config.class_name != name:
-        raise bad(f"train_config is for class {str(config.class_name)[:40]!r}, the checkpoint for {name!r}")
-    D = len(layout.names)
-    active = ckpt.get("active_columns", list(range(D)))
-    if not (isinstance(active, list) and active and all(_is_int(i) and 0 <= i < D for i in active)
-            and active == sorted(set(active))):
-        raise bad(f"active_columns must be increasing column indices in [0, {D})")
-    anchored = ckpt.get("anchored_columns", [])
-    if not (isinstance(anchored, list) and all(isinstance(c, list) and len(c) == 2 and all(_is_int(i) and 0 <= i < D for i in c)
-                                                for c in anchored)):
-        raise bad(f"anchored_columns must be pairs of column indices in [0, {D})")
-    try:
-        model_config = ModelConfig.from_dict(ckpt["model_config"])
-        input_config = InputConfig.from_dict(ckpt["input_config"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise bad(f"model or input config ({type(exc).__name__}: {str(exc).splitlines()[0][:120] if str(exc) else ''})") from None
-    if model_config != config.model_config(len(active)) or input_config != config.input_config():
-        raise bad("model_config / input_config do not follow from its train_config")
-    try:
-        stats = NormStats.from_dict(ckpt["norm_stats"])
-        stats.check_layout(layout)
-        finite = np.isfinite(np.asarray(stats.mean, np.float64)).all() and np.isfinite(np.asarray(stats.std, np.float64)).all()
-    except UserError as exc:
-        raise bad(str(exc)) from None
-    except (TypeError, ValueError) as exc:
-        raise bad(f"norm_stats ({str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__})") from None
-    if not finite or not (np.asarray(stats.std, np.float64) > 0).all():
-        raise bad("norm_stats must have finite means and positive finite standard deviations")
-    state = ckpt["model_state"]
-    if not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()):
-        raise bad("model_state must map parameter names to tensors")
-    if not all(bool(torch.isfinite(v).all()) for v in state.values() if v.is_floating_point()):
-        raise bad("model_state holds NaN or infinite weights")
-    if not _is_int(ckpt.get("epoch", 0)) or ckpt.get("epoch", 0) < 0:
-        raise bad("epoch must be a whole number >= 0")
-
-
-def build_model_from_checkpoint(ckpt: dict, device="cpu"):
-    """The network of a checkpoint, weights loaded, in eval mode."""
-    from .model import MixtureDensityNetwork, ModelConfig
-
-    model = MixtureDensityNetwork(ModelConfig.from_dict(ckpt["model_config"]))
-    try:
-        model.load_state_dict(ckpt["model_state"])
-    except RuntimeError as exc:
-        raise UserError(f"checkpoint weights do not match its model configuration ({str(exc).splitlines()[0][:160]})") from None
-    return model.to(device).eval()
-
-
-# --------------------------------------------------------------------------------------
-# Training
-# --------------------------------------------------------------------------------------
 
 def resolve_device(device: str | None) -> "object":
     import torch
@@ -674,47 +290,6 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
         if echo is not None:
             echo(line)
     return load_checkpoint(out) if start_epoch >= last else result
-
-
-def anchored_columns(names: list[str]) -> list[tuple[int, int]]:
-    """``(column, axis)`` of every axis-origin column (``j{j}.origin.{x,y,z}``): these are
-    predicted relative to the image anchor's coordinate ``axis`` (0, 1, 2 = x, y, z)."""
-    out = []
-    for c, n in enumerate(names):
-        head, _, rest = n.partition(".")
-        kind, _, comp = rest.partition(".")
-        if kind == "origin" and comp in ("x", "y", "z"):
-            out.append((c, "xyz".index(comp)))
-    return out
-
-
-def shift_anchored(y: np.ndarray, anchor_m: np.ndarray, anchored, sign: float) -> np.ndarray:
-    """``y[..., c] + sign * anchor[:, axis]`` for each anchored ``(c, axis)``; ``y`` (N, ..., D)
-    in label units, ``anchor_m`` (N, 3).  ``sign = -1`` makes targets anchor-relative,
-    ``+1`` restores camera-frame labels."""
-    out = np.array(y, dtype=np.float64, copy=True)
-    a = np.asarray(anchor_m, np.float64)
-    for c, axis in anchored:
-        out[..., c] += sign * a[:, axis].reshape((-1,) + (1,) * (out.ndim - 2))
-    return out
-
-
-def active_columns(stats) -> np.ndarray:
-    """Indices of the target columns the mixture models: those that vary in the training
-    data.  A column whose standard deviation is at the NormStats floor (constant up to label
-    precision, e.g. the x/y components of a vertical hinge axis or the chirality of a
-    one-sided class) is not modelled: its normalised estimate is 0 (the training value) and
-    its scale 1 (the floor, in label units).  Modelling it would let the likelihood grow
-    without bound as its scales shrink, and its huge gradients would swamp the others."""
-    std = np.asarray(stats.std, np.float64)
-    return np.nonzero(std > stats.std_floor * CONSTANT_COLUMN_TOLERANCE)[0]
-
-
-def expand_active(x: np.ndarray, active: np.ndarray, dim: int, fill: float) -> np.ndarray:
-    """Arrays (..., len(active)) over the modelled columns -> (..., dim), other columns ``fill``."""
-    out = np.full(x.shape[:-1] + (dim,), fill, dtype=np.float64)
-    out[..., active] = x
-    return out
 
 
 def _plain(obj):

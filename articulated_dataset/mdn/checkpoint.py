@@ -1,0 +1,179 @@
+"""Checkpoints of the mixture density network: atomic saving, reading an untrusted file,
+the checks a checkpoint must pass before it is used, the training output folder, and the
+model rebuilt from a checkpoint."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UserError
+from ..format import Split
+from .config import TrainConfig, is_int
+
+
+CHECKPOINT_FORMAT = "artdata-mdn"
+CHECKPOINT_VERSION = 1
+
+
+def atomic_torch_save(obj: dict, path: Path) -> None:
+    import torch
+
+    tmp = path.with_name(path.name + ".partial")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def read_checkpoint_file(path: str | Path, map_location="cpu"):
+    """``torch.load(path, weights_only=True)`` (tensors and plain containers only: nothing in the
+    file is executed); a missing or unreadable file is a one-line UserError.  The contents are
+    the caller's to check (:func:`load_checkpoint`, the dense model's loader)."""
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"checkpoint not found: {path}")
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch.load raises many types on a corrupt file (even IndexError)
+        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+        raise UserError(f"{path}: not a readable model checkpoint ({first})") from None
+
+
+def prepare_training_output(split_dir: Path, class_name: str, out: Path, *, resume: bool, load, config,
+                            example_name: str) -> dict | None:
+    """Checks shared by every ``artdata train``: the split holds ``class_name`` and is generated
+    (not ingested real captures), ``out`` is a file, and ``--resume`` finds a checkpoint trained
+    with the same ``config`` (``load(out)`` reads it; its ``train_config`` is compared through
+    ``type(config).from_dict``).  Returns that checkpoint, or None for a new run."""
+    split = Split(split_dir)
+    if split.class_name != class_name:
+        raise UserError(f"{split_dir}: holds class {split.class_name!r}, not {class_name!r} (--class)")
+    if split.is_real:
+        raise UserError(f"{split_dir} holds ingested real captures (labels NaN where not given); train on a generated "
+                        f"split and use real splits with 'artdata predict'")
+    if out.exists() and out.is_dir():
+        raise UserError(f"--out {out} is a directory; give a file name such as {example_name}")
+    if not resume:
+        if out.exists():
+            raise UserError(f"{out} exists; pass --resume to continue its training or choose another --out")
+        return None
+    if not out.exists():
+        raise UserError(f"--resume: no checkpoint at {out} to resume from")
+    ckpt = load(out)
+    old = type(config).from_dict(ckpt["train_config"])
+    if old != config:
+        diff = [k for k in config.to_dict() if config.to_dict()[k] != old.to_dict().get(k)]
+        raise UserError(f"--resume: {out} was trained with different settings ({', '.join(diff)}); "
+                        f"repeat the original options")
+    return ckpt
+
+
+def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
+    """Load and check an ``artdata train`` checkpoint; any problem is a one-line UserError.
+
+    The file is read with ``torch.load(weights_only=True)`` (tensors and plain containers
+    only: nothing in it is executed) and every field the package reads is checked
+    (:func:`check_checkpoint`) before a network is built from it.
+    """
+    path = Path(path)
+    ckpt = read_checkpoint_file(path, map_location)
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise UserError(f"{path}: not an artdata MDN checkpoint (written by 'artdata train')")
+    if ckpt.get("version") != CHECKPOINT_VERSION:
+        raise UserError(f"{path}: checkpoint version {str(ckpt.get('version'))[:40]} is not readable "
+                        f"(expected {CHECKPOINT_VERSION})")
+    for key in ("class_name", "layout_names", "norm_stats", "model_config", "input_config", "train_config", "model_state"):
+        if key not in ckpt:
+            raise UserError(f"{path}: checkpoint is missing {key!r}")
+    check_checkpoint(ckpt, path)
+    return ckpt
+
+
+def check_checkpoint(ckpt: dict, path) -> None:
+    """Every field of a loaded checkpoint that the package reads has the type and value
+    ``artdata train`` writes: the class is registered and its target layout matches; the
+    training config is valid and implies the stored model and input configs (so no size read
+    from the file is allocated unchecked); the normalisation statistics fit the layout and are
+    finite; the column lists are in range; the weights are finite tensors; the epoch count is
+    a whole number.  Otherwise a one-line :class:`UserError` naming ``path``."""
+    import torch
+
+    from ..registry import get_class
+    from ..targets import NormStats, TargetLayout
+    from .model import ModelConfig
+    from .preprocess import InputConfig
+
+    def bad(what: str) -> UserError:
+        return UserError(f"{path}: corrupt checkpoint: {what}")
+
+    name = ckpt["class_name"]
+    if not isinstance(name, str):
+        raise bad("class_name is not a string")
+    try:
+        obj_class = get_class(name)
+    except UserError as exc:
+        raise UserError(f"{path}: {exc}") from None
+    layout = TargetLayout.for_class(obj_class.name)
+    if not isinstance(ckpt["layout_names"], list) or list(ckpt["layout_names"]) != list(layout.names):
+        raise UserError(f"{path}: the checkpoint's target layout differs from this version's {name!r} layout; retrain it")
+    for key in ("train_config", "model_config", "input_config", "norm_stats", "model_state"):
+        if not isinstance(ckpt[key], dict):
+            raise bad(f"{key} is not a mapping")
+    try:
+        config = TrainConfig.from_dict(ckpt["train_config"])
+    except TypeError as exc:
+        raise bad(f"train_config ({str(exc).splitlines()[0][:120]})") from None
+    try:
+        config = config.resolved()
+    except UserError as exc:
+        raise bad(f"train_config: {exc}") from None
+    if config.class_name != name:
+        raise bad(f"train_config is for class {str(config.class_name)[:40]!r}, the checkpoint for {name!r}")
+    D = len(layout.names)
+    active = ckpt.get("active_columns", list(range(D)))
+    if not (isinstance(active, list) and active and all(is_int(i) and 0 <= i < D for i in active)
+            and active == sorted(set(active))):
+        raise bad(f"active_columns must be increasing column indices in [0, {D})")
+    anchored = ckpt.get("anchored_columns", [])
+    if not (isinstance(anchored, list) and all(isinstance(c, list) and len(c) == 2 and all(is_int(i) and 0 <= i < D for i in c)
+                                                for c in anchored)):
+        raise bad(f"anchored_columns must be pairs of column indices in [0, {D})")
+    try:
+        model_config = ModelConfig.from_dict(ckpt["model_config"])
+        input_config = InputConfig.from_dict(ckpt["input_config"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise bad(f"model or input config ({type(exc).__name__}: {str(exc).splitlines()[0][:120] if str(exc) else ''})") from None
+    if model_config != config.model_config(len(active)) or input_config != config.input_config():
+        raise bad("model_config / input_config do not follow from its train_config")
+    try:
+        stats = NormStats.from_dict(ckpt["norm_stats"])
+        stats.check_layout(layout)
+        finite = np.isfinite(np.asarray(stats.mean, np.float64)).all() and np.isfinite(np.asarray(stats.std, np.float64)).all()
+    except UserError as exc:
+        raise bad(str(exc)) from None
+    except (TypeError, ValueError) as exc:
+        raise bad(f"norm_stats ({str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__})") from None
+    if not finite or not (np.asarray(stats.std, np.float64) > 0).all():
+        raise bad("norm_stats must have finite means and positive finite standard deviations")
+    state = ckpt["model_state"]
+    if not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()):
+        raise bad("model_state must map parameter names to tensors")
+    if not all(bool(torch.isfinite(v).all()) for v in state.values() if v.is_floating_point()):
+        raise bad("model_state holds NaN or infinite weights")
+    if not is_int(ckpt.get("epoch", 0)) or ckpt.get("epoch", 0) < 0:
+        raise bad("epoch must be a whole number >= 0")
+
+
+def build_model_from_checkpoint(ckpt: dict, device="cpu"):
+    """The network of a checkpoint, weights loaded, in eval mode."""
+    from .model import MixtureDensityNetwork, ModelConfig
+
+    model = MixtureDensityNetwork(ModelConfig.from_dict(ckpt["model_config"]))
+    try:
+        model.load_state_dict(ckpt["model_state"])
+    except RuntimeError as exc:
+        raise UserError(f"checkpoint weights do not match its model configuration ({str(exc).splitlines()[0][:160]})") from None
+    return model.to(device).eval()

@@ -1,0 +1,147 @@
+"""Training data of the mixture density network: a split read into memory as model inputs
+and encoded targets (:func:`load_split`), the validation objects held out of the training
+split (:func:`split_by_object`), and the target columns made relative to the image anchor or
+left out when constant."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DataFormatError, UserError
+from ..format import Split, one_split_dir
+
+
+#: Images preprocessed per chunk while loading (bounds the float32 temporaries).
+LOAD_CHUNK = 512
+#: A column is constant when its std is within this factor of the NormStats floor.
+CONSTANT_COLUMN_TOLERANCE = 1.0 + 1e-6
+
+
+@dataclass
+class PreparedSplit:
+    """A split reduced to model inputs, in memory (torch tensors, CPU)."""
+
+    planes: "object"  # torch.Tensor (N, 2, h, w) float16
+    scalars: "object"  # torch.Tensor (N, 1) float32
+    targets: np.ndarray  # (N, D) float32, label units (encoded, not normalised)
+    anchor: "object"  # torch.Tensor (N, 3) float32, metres: centroid of the valid pixels (preprocess.image_anchor)
+    object_index: np.ndarray  # (N,) int64
+    sample_id: np.ndarray  # (N,) int64
+    shard_of: np.ndarray = field(default=None)  # (N,) index of the shard each image came from
+
+
+def resolve_split_dir(data: str | Path) -> Path:
+    """The one split folder at ``data`` (a UserError if there is none or several)."""
+    return one_split_dir(data)
+
+
+def split_class(split_dir: Path) -> str:
+    return Split(split_dir).class_name
+
+
+def load_split(split_dir: Path, layout, input_config, *, max_objects: int | None = None, progress: bool = False,
+               with_targets: bool = True) -> PreparedSplit:
+    """Read every shard of ``split_dir`` and reduce it to model inputs (and encoded targets)."""
+    import torch
+    from tqdm.auto import tqdm
+
+    from .preprocess import preprocess_depth
+
+    split = Split(split_dir)
+    manifest, shards = split.manifest, split.shards
+    if not shards:
+        raise DataFormatError(f"{split_dir}: the split has no shards")
+    planes, scalars, anchors, targets, obj, sid, shard_of = [], [], [], [], [], [], []
+    total = int(manifest.get("n_images", 0)) or None
+    bar = tqdm(total=total, desc=f"loading {split_dir}", unit="img", disable=not progress, leave=False)
+    for s_idx, sh in enumerate(shards):
+        oi = sh.read("object_index")
+        keep = np.ones(len(oi), bool) if max_objects is None else oi < max_objects
+        if not keep.any():
+            sh.close()
+            continue
+        idx = np.nonzero(keep)[0]
+        K = sh.K
+        for start in range(0, len(idx), LOAD_CHUNK):
+            sel = idx[start : start + LOAD_CHUNK]
+            depth = sh.read("depth", slice(int(sel[0]), int(sel[-1]) + 1))[sel - sel[0]]
+            p, s, a = preprocess_depth(depth, input_config, K)
+            planes.append(p)
+            scalars.append(s)
+            anchors.append(a)
+            bar.update(len(sel))
+        if with_targets:
+            labels = sh.labels()
+            labels = {k: v[idx] for k, v in labels.items()}
+            targets.append(np.asarray(layout.encode(labels), np.float32))
+        obj.append(oi[idx].astype(np.int64))
+        sid.append(sh.read("sample_id")[idx].astype(np.int64))
+        shard_of.append(np.full(len(idx), s_idx))
+        sh.close()
+    bar.close()
+    if not planes:
+        raise UserError(f"{split_dir}: no images selected")
+    return PreparedSplit(
+        planes=torch.cat(planes), scalars=torch.cat(scalars), anchor=torch.cat(anchors),
+        targets=np.concatenate(targets) if with_targets else np.zeros((sum(len(o) for o in obj), 0), np.float32),
+        object_index=np.concatenate(obj), sample_id=np.concatenate(sid), shard_of=np.concatenate(shard_of),
+    )
+
+
+def split_by_object(object_index: np.ndarray, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Boolean masks (train, val) over images: ``round(val_fraction * n_objects)`` objects (at
+    least one when val_fraction > 0 and there are two objects or more), chosen by a
+    permutation seeded with ``seed``, go to validation with all their images."""
+    objects = np.unique(object_index)
+    n_val = int(round(val_fraction * len(objects)))
+    if val_fraction > 0 and len(objects) >= 2:
+        n_val = min(max(n_val, 1), len(objects) - 1)
+    else:
+        n_val = 0
+    perm = np.random.default_rng(seed).permutation(objects)
+    val = np.isin(object_index, perm[:n_val])
+    return ~val, val
+
+
+def anchored_columns(names: list[str]) -> list[tuple[int, int]]:
+    """``(column, axis)`` of every axis-origin column (``j{j}.origin.{x,y,z}``): these are
+    predicted relative to the image anchor's coordinate ``axis`` (0, 1, 2 = x, y, z)."""
+    out = []
+    for c, n in enumerate(names):
+        head, _, rest = n.partition(".")
+        kind, _, comp = rest.partition(".")
+        if kind == "origin" and comp in ("x", "y", "z"):
+            out.append((c, "xyz".index(comp)))
+    return out
+
+
+def shift_anchored(y: np.ndarray, anchor_m: np.ndarray, anchored, sign: float) -> np.ndarray:
+    """``y[..., c] + sign * anchor[:, axis]`` for each anchored ``(c, axis)``; ``y`` (N, ..., D)
+    in label units, ``anchor_m`` (N, 3).  ``sign = -1`` makes targets anchor-relative,
+    ``+1`` restores camera-frame labels."""
+    out = np.array(y, dtype=np.float64, copy=True)
+    a = np.asarray(anchor_m, np.float64)
+    for c, axis in anchored:
+        out[..., c] += sign * a[:, axis].reshape((-1,) + (1,) * (out.ndim - 2))
+    return out
+
+
+def active_columns(stats) -> np.ndarray:
+    """Indices of the target columns the mixture models: those that vary in the training
+    data.  A column whose standard deviation is at the NormStats floor (constant up to label
+    precision, e.g. the x/y components of a vertical hinge axis or the chirality of a
+    one-sided class) is not modelled: its normalised estimate is 0 (the training value) and
+    its scale 1 (the floor, in label units).  Modelling it would let the likelihood grow
+    without bound as its scales shrink, and its huge gradients would swamp the others."""
+    std = np.asarray(stats.std, np.float64)
+    return np.nonzero(std > stats.std_floor * CONSTANT_COLUMN_TOLERANCE)[0]
+
+
+def expand_active(x: np.ndarray, active: np.ndarray, dim: int, fill: float) -> np.ndarray:
+    """Arrays (..., len(active)) over the modelled columns -> (..., dim), other columns ``fill``."""
+    out = np.full(x.shape[:-1] + (dim,), fill, dtype=np.float64)
+    out[..., active] = x
+    return out
