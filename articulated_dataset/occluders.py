@@ -16,7 +16,9 @@ extra render per image, the cheapest exact way), and ``visible_fraction`` =
 ``visible_pixels / unoccluded_pixels``.  Visibility rejection: an image whose moving parts do
 not all keep ``visible_fraction`` in :data:`~articulated_dataset.context_labels.VISIBLE_FRACTION_RANGE` and
 ``min_part_pixels`` visible pixels gets new occluders, at most ``max_tries`` times; then the
-object's pose is redrawn as for any hidden part.  Draws per try, per occluder, in order: kind,
+object's pose is redrawn as for any hidden part.  Draw t (0, 1, ...) multiplies the drawn
+sizes by ``1 - t / max_tries``, so that many occluders (up to 8) still leave every part
+identifiable: most images of one or two occluders pass at the first draw, unshrunk.  Draws per try, per occluder, in order: kind,
 part, 3 target coordinates, depth fraction, then 3 half sizes and a quaternion (box), radius,
 half length and a quaternion (cylinder) or per link a length, a radius and a direction (arm).
 """
@@ -100,8 +102,9 @@ class Context:
         self.part_geoms = [np.nonzero(info.geom_part == MASK_FIRST_PART + j)[0] for j in range(J)]
         self.object_geoms = np.nonzero((info.geom_part >= 1) & (info.geom_part < MASK_OCCLUDER))[0]
 
-    def draw(self, data: mujoco.MjData) -> None:
-        """Place every occluder for the model's current configuration (kinematics up to date)."""
+    def draw(self, data: mujoco.MjData, scale: float = 1.0) -> None:
+        """Place every occluder for the model's current configuration (kinematics up to date),
+        its drawn sizes multiplied by ``scale``."""
         from .labels import _geom_corners_world
         from .scene import NEAR_CLIP_M
 
@@ -119,7 +122,7 @@ class Context:
             m.geom_group[geoms] = HIDDEN_GROUP
             m.body_pos[body], m.body_quat[body] = centre, (1.0, 0.0, 0.0, 0.0)
             if kind == "arm":
-                self._arm(geoms[2:], room)
+                self._arm(geoms[2:], room, scale)
                 continue
             g = geoms[0] if kind == "box" else geoms[1]
             if kind == "box":
@@ -128,11 +131,11 @@ class Context:
                 size = np.array([*rng.uniform(*OCCLUDER_TABLE["half_size_m"], size=2), 0.0])
             quat = _unit(rng.normal(size=4))
             radius = float(np.linalg.norm(size[:3] if kind == "box" else size[:2]))
-            m.geom_size[g] = size * min(1.0, room / radius)
+            m.geom_size[g] = size * min(scale, room / radius)
             m.geom_pos[g], m.geom_quat[g], m.geom_group[g] = 0.0, quat, CONTEXT_GEOM_GROUP
         mujoco.mj_kinematics(m, data)
 
-    def _arm(self, geoms: np.ndarray, room: float) -> None:
+    def _arm(self, geoms: np.ndarray, room: float, scale: float) -> None:
         """An arm-like chain of capsules from the slot's centre, shrunk to stay within ``room``."""
         m, rng = self.model, self.rng
         p, links = np.zeros(3), []
@@ -143,7 +146,7 @@ class Context:
             links.append((p, p + length * d, radius, d))
             p = p + length * d
         reach = max(max(np.linalg.norm(a), np.linalg.norm(b)) + r for a, b, r, _ in links)
-        s = min(1.0, room / reach)
+        s = min(scale, room / reach)
         for g, (a, b, r, d) in zip(geoms, links):
             m.geom_pos[g], m.geom_quat[g] = s * 0.5 * (a + b), _quat_z_to(d)
             m.geom_size[g] = (s * r, s * 0.5 * float(np.linalg.norm(b - a)), 0.0)
@@ -160,9 +163,10 @@ class Context:
         if alone[1:].min(initial=min_part_pixels) < min_part_pixels:
             return None
         lo_frac = VISIBLE_FRACTION_RANGE[0]
-        for _ in range(OCCLUDER_TABLE["max_tries"] if self.slots else 1):
-            if self.slots:
-                self.draw(data)
+        tries = OCCLUDER_TABLE["max_tries"] if self.slots else 1
+        for t in range(tries):
+            if self.slots:  # each further draw shrinks the shapes: many occluders still fit
+                self.draw(data, scale=1.0 - t / tries)
             _, geom_id = renderer.render(data, depth_out=depth_out, context=True)
             mask_out[...] = self.info.mask_from_geoms(geom_id)
             vis = visible_pixels(mask_out, J)

@@ -38,7 +38,7 @@ from .safeio import (FULL_HINT, TMP_SUFFIX, WriteError, available_memory_bytes, 
 from .sampling import ObjectSample, mean_object, object_rng, sample_id, sample_object, sample_pose
 from .scene import ORIGIN_POSE, ObjectPlacer, build_model, set_configuration
 from .format.schema import FIELDS, OPTIONAL_FIELDS
-from .context_labels import visible_fraction
+from .context_labels import VISIBLE_FRACTION_RANGE, visible_fraction
 from .occluders import Context, occluders_record
 from .scenes import context_builder, context_rngs, scene_record
 from .shards import shard_name, write_shard
@@ -150,6 +150,8 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
             f"with >= {config.min_part_pixels} px after {MAX_POSE_ATTEMPTS} attempts; check the table"
             + (" or choose the joints that open with --joints (a hidden part cannot be labelled)"
                if config.third_party is not None else "")
+            + (f" (and >= {VISIBLE_FRACTION_RANGE[0]:g} of its pixels unhidden by the scene and occluders; "
+               "try fewer --occluders)" if config.has_context else "")
         )
     if config.noise != "none":
         from .real.noise import get_noise_model  # seeded per object: see noise_rng

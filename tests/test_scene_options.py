@@ -284,3 +284,29 @@ def test_docs_state_the_ranges_the_code_uses():
     assert f"at most {MAX_LAYOUT_TRIES} times" in gen
     table = [line for line in gen.splitlines() if line.startswith("| cabinet | 1.00 (")]
     assert len(table) == 1 and table[0] in sheet
+
+
+def test_the_most_occluders_and_a_third_party_urdf(tmp_path):
+    """--occluders 8 (the most) still leaves every moving part identifiable (draws shrink);
+    a --urdf object takes occluders (not a scene) and its split verifies."""
+    from articulated_dataset.format.manifest import MAX_OCCLUDERS
+    from helpers_core import write_flap_urdf
+
+    split = generate_split(GenerationConfig("toaster", n_objects=2, images_per_object=4, occluders=MAX_OCCLUDERS,
+                                            scene="kitchen"), tmp_path / "most")
+    assert verify_split(split).ok
+    _, a, _, _ = _read(split, ("visible_fraction", "mask"))
+    assert a["visible_fraction"][:, 1:].min() >= VISIBLE_FRACTION_RANGE[0] and (a["mask"] == MASK_OCCLUDER).any()
+    urdf = write_flap_urdf(tmp_path / "urdf")
+    out = tmp_path / "tp"
+    r = CliRunner().invoke(main, ["generate", "--urdf", str(urdf), "--n", "2", "--images", "4", "--out", str(out), "-q",
+                                  "--workers", "1", "--occluders", "2"])
+    assert r.exit_code == 0, r.output
+    (split,) = [p.parent for p in out.glob("*/train/manifest.json")]
+    report = verify_split(split)
+    assert report.ok, report.problems
+    _, a, _, _ = _read(split, ("visible_fraction", "mask"))
+    assert (a["mask"] == MASK_OCCLUDER).any() and a["visible_fraction"][:, 1:].min() >= VISIBLE_FRACTION_RANGE[0]
+    r = CliRunner().invoke(main, ["generate", "--urdf", str(urdf), "--n", "1", "--out", str(tmp_path / "tp2"), "-q",
+                                  "--scene", "room"])
+    assert r.exit_code == 2 and r.output.startswith("artdata: error:") and len(r.output.strip().splitlines()) == 1
