@@ -310,3 +310,20 @@ def test_the_most_occluders_and_a_third_party_urdf(tmp_path):
     r = CliRunner().invoke(main, ["generate", "--urdf", str(urdf), "--n", "1", "--out", str(tmp_path / "tp2"), "-q",
                                   "--scene", "room"])
     assert r.exit_code == 2 and r.output.startswith("artdata: error:") and len(r.output.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("option", [["--scene", "room"], ["--scene", "kitchen"], ["--occluders", "1"]],
+                         ids=lambda o: "".join(o).lstrip("-"))
+def test_cli_each_option_same_bytes_with_one_or_two_workers(tmp_path, option):
+    runs = []
+    for workers in ("1", "2"):
+        out = tmp_path / f"w{workers}"
+        r = CliRunner().invoke(main, ["generate", "--class", "cabinet2", "--n", "2", "--images", "4", "--objects-per-shard",
+                                      "1", "--out", str(out), "-q", "--workers", workers, *option])
+        assert r.exit_code == 0, r.output
+        runs.append(read_manifest(out / "cabinet2" / "train"))
+        r = CliRunner().invoke(main, ["verify", str(out / "cabinet2" / "train"), "-q"])
+        assert r.exit_code == 0, r.output
+    assert [s["sha256"] for s in runs[0]["shards"]] == [s["sha256"] for s in runs[1]["shards"]]
+    key, value = option[0].lstrip("-"), option[1]
+    assert str(runs[0]["config"][key]) == value and runs[0]["format_version"] == CONTEXT_FORMAT_VERSION
