@@ -54,7 +54,7 @@ def main(argv=None) -> int:
     n_train, n_test = FULL_TRAIN_IMAGES // scale, FULL_TEST_IMAGES // scale
     icp_images = 16 if args.quick else args.icp_images
 
-    from articulated_dataset.baselines import icp, nn
+    from articulated_dataset.baselines import icp_model, nn
     from articulated_dataset.baselines.common import open_split_checked
     from articulated_dataset.pipeline import GenerationConfig, generate_split
     from articulated_dataset.registry import class_names
@@ -100,7 +100,7 @@ def main(argv=None) -> int:
         for cls in classes:
             mean = open_split_checked(root / cls / "mean", "mean")
             test = open_split_checked(root / cls / "test", "test")
-            model = icp.MeanObjectModel.from_split(mean, test.yaw_range_rad)
+            model = icp_model.MeanObjectModel.from_split(mean, test.yaw_range_rad)
             sh = test.shards[0]
             n = min(icp_images, len(sh))
             depth, mask, K = sh.read("depth", slice(0, n)), sh.read("mask", slice(0, n)), sh.K

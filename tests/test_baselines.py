@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from articulated_dataset.benchmark import metrics
 from articulated_dataset import rotations
-from articulated_dataset.baselines import BASELINES, icp, mean, nn
+from articulated_dataset.baselines import BASELINES, clouds, icp, icp_model, mean, nn
 from articulated_dataset.baselines.common import open_split_checked
 from articulated_dataset.cli import main
 from articulated_dataset.pipeline import GenerationConfig, generate_split
@@ -171,7 +171,7 @@ def test_kabsch_recovers_a_known_transform_with_outliers_weighted_out():
     w = np.ones((2, 50))
     dst[:, :5] += 10.0  # outliers, weight 0
     w[:, :5] = 0.0
-    r_est, t_est = icp.kabsch(src, dst, w)
+    r_est, t_est = clouds.kabsch(src, dst, w)
     np.testing.assert_allclose(r_est, rot, atol=1e-10)
     np.testing.assert_allclose(t_est, t, atol=1e-10)
 
@@ -194,7 +194,7 @@ def icp_objects(tmp_path_factory):
     table = get_class(ICP_CLASS).table.override({"pose": {"yaw_rad": [YAW_OFFSET_RAD, YAW_OFFSET_RAD]}})
     yawed_dir = generate_split(GenerationConfig(ICP_CLASS, mean=True, n_objects=1, table=table), root / "yawed")
     mean_split = open_split_checked(model_dir, "mean")
-    model = icp.MeanObjectModel.from_split(mean_split, tuple(get_class(ICP_CLASS).table.pose["yaw_rad"]))
+    model = icp_model.MeanObjectModel.from_split(mean_split, tuple(get_class(ICP_CLASS).table.pose["yaw_rad"]))
     mean_split.close()
     return model_dir, yawed_dir, model
 
@@ -203,7 +203,7 @@ def test_icp_recovers_yaw_of_a_moved_model_cloud(icp_objects):
     _, _, model = icp_objects
     m = 5
     yaw = 0.3
-    rot = icp.rotation_about_axis(model.up, yaw)
+    rot = clouds.rotation_about_axis(model.up, yaw)
     c = model.base_centre_m
     shift = np.array([0.12, -0.07, 0.03])
     obs = (model.clouds[m] - c) @ rot.T + c + shift

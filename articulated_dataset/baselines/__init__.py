@@ -6,8 +6,8 @@ configuration, the geometry and the part offset, and is written as a ``predictio
 method.  See docs/baselines.md.
 
 ``run_baseline(name, train_dir, test_dir, out, ...)`` runs one of :data:`BASELINES` and
-writes its predictions; the modules (:mod:`.mean`, :mod:`.nn`, :mod:`.icp`) hold the
-algorithms.  scipy (ICP) is imported only when ICP runs.
+writes its predictions; the modules (:mod:`.mean`, :mod:`.nn`, :mod:`.icp` with :mod:`.icp_model`
+and :mod:`.clouds`) hold the algorithms.  scipy (ICP) is imported only when ICP runs.
 """
 
 from __future__ import annotations
