@@ -38,7 +38,7 @@ TABLE_NAMES = ("paper", "realistic")
 
 #: Sanity bounds of a table (not physics: they keep absurd values from reaching MuJoCo and
 #: the renderer).  Object sides in metres: 1 mm (the smallest a third-party object is given,
-#: see urdf_import.MIN_GEOMETRY_M) to 100 m.
+#: see urdf_import.build.MIN_GEOMETRY_M) to 100 m.
 MIN_SIZE_M = 1e-3
 MAX_SIZE_M = 100.0
 #: Largest |x|, |y|, |z| of an object's base in the camera frame (m) and |yaw| (rad).

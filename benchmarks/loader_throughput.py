@@ -146,7 +146,9 @@ def main() -> None:
     args = ap.parse_args()
     skip = set(filter(None, args.skip.split(",")))
 
-    from articulated_dataset.loaders.reader import BatchProcessor, ShardReader, load_batch, plan_epoch
+    from articulated_dataset.loaders.batch import BatchProcessor, load_batch
+    from articulated_dataset.loaders.epoch import plan_epoch
+    from articulated_dataset.loaders.reader import ShardReader
     from articulated_dataset.targets import NormStats, TargetLayout
 
     tmp = None

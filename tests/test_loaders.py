@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from articulated_dataset.errors import UserError
-from articulated_dataset.loaders.reader import DEFAULT_FIELDS, ShardReader, plan_epoch
+from articulated_dataset.loaders.epoch import plan_epoch
+from articulated_dataset.loaders.reader import DEFAULT_FIELDS, ShardReader
 from articulated_dataset.schema import K_DATASET
 
 SPLIT_KEYS = list(DEFAULT_FIELDS)

@@ -15,16 +15,9 @@ Importing this package imports neither torch nor jax; import the submodules expl
 See docs/loaders.md.
 """
 
-from .reader import (
-    DEFAULT_BLOCK_SIZE,
-    DEFAULT_FIELDS,
-    NUMERIC_FIELDS,
-    REMAINDER_MODES,
-    BatchProcessor,
-    ShardReader,
-    load_batch,
-    plan_epoch,
-)
+from .batch import BatchProcessor, load_batch
+from .epoch import DEFAULT_BLOCK_SIZE, REMAINDER_MODES, plan_epoch
+from .reader import DEFAULT_FIELDS, NUMERIC_FIELDS, ShardReader
 
 __all__ = ["ShardReader", "plan_epoch", "BatchProcessor", "load_batch", "DEFAULT_FIELDS", "NUMERIC_FIELDS",
            "DEFAULT_BLOCK_SIZE", "REMAINDER_MODES"]

@@ -5,7 +5,7 @@
   ``_getitems`` that grain's batch push-down calls), for users who build their own grain
   pipeline: ``grain.MapDataset.source(ShardDataSource(path)).shuffle(seed=0).batch(128)``.
 * :class:`JaxLoader`: the recommended loader.  It yields dicts of numpy arrays (ready for
-  :func:`device_put`) following :func:`~articulated_dataset.loaders.reader.plan_epoch`, the same
+  :func:`device_put`) following :func:`~articulated_dataset.loaders.epoch.plan_epoch`, the same
   shuffling, sharding and batches as the PyTorch loaders (a process is one part:
   ``process_index`` of ``process_count``, defaults from ``jax.process_index()`` /
   ``jax.process_count()``; every process gets the same number of batches).  With
@@ -30,8 +30,9 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import UserError
-from .reader import (DEFAULT_BLOCK_SIZE, JAX_INSTALL, NUMERIC_FIELDS, BatchProcessor, ShardReader, load_batch,
-                     n_batches, part_bounds, plan_epoch, require)
+from .batch import BatchProcessor, load_batch
+from .epoch import DEFAULT_BLOCK_SIZE, n_batches, part_bounds, plan_epoch
+from .reader import JAX_INSTALL, NUMERIC_FIELDS, ShardReader, require
 
 #: Batches each grain worker prepares ahead.
 DEFAULT_PREFETCH_BATCHES = 2
@@ -194,7 +195,7 @@ class JaxLoader:
 
     ``fields`` default: every numeric field (:data:`~articulated_dataset.loaders.reader.NUMERIC_FIELDS`).
     Every batch holds ``index`` (global sample indices) and, with ``target``, ``target``.
-    ``remainder`` as in :func:`~articulated_dataset.loaders.reader.plan_epoch` (default ``"pad"``:
+    ``remainder`` as in :func:`~articulated_dataset.loaders.epoch.plan_epoch` (default ``"pad"``:
     every process gets the same number of batches).  ``len(loader)``: batches per epoch.
     """
 

@@ -7,8 +7,8 @@ reader created before ``fork`` reopens its files in each worker, and a pickled r
 reopens them in the child).  Label datasets are small and are read whole, once per shard and
 process; depth and mask are read with one HDF5 read per run of consecutive images.
 
-:func:`plan_epoch` is the one definition of the shuffling and sharding used by both the PyTorch
-and the JAX loaders; :class:`BatchProcessor` the one definition of what is added to a batch
+:func:`.epoch.plan_epoch` is the one definition of the shuffling and sharding used by both the PyTorch
+and the JAX loaders; :class:`.batch.BatchProcessor` the one definition of what is added to a batch
 (transforms, target vector, sample index).
 """
 
@@ -28,6 +28,7 @@ from ..format import (FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, Shard, Sp
 
 log = logging.getLogger(__name__)
 
+
 #: Fields computed by the reader rather than stored per image: the shard's intrinsics (3, 3)
 #: float64 and the position of the sample's class in :attr:`ShardReader.class_names`.
 VIRTUAL_FIELDS: dict[str, tuple[tuple, str]] = {"K": ((3, 3), "float64"), "class_index": ((), "int64")}
@@ -39,21 +40,6 @@ DEFAULT_FIELDS = tuple(f.name for f in FIELDS) + ("K",)
 STRING_FIELDS = tuple(f.name for f in FIELDS if f.dtype.startswith("S"))
 #: Default selection without string fields (what the JAX loader returns by default).
 NUMERIC_FIELDS = tuple(n for n in DEFAULT_FIELDS if n not in STRING_FIELDS)
-#: Key of the global sample index that the loaders add to every batch.
-INDEX_KEY = "index"
-#: Key of the (normalised) target vector added when a TargetLayout is given.
-TARGET_KEY = "target"
-
-#: Images per contiguous block in :func:`plan_epoch`.  Batches are unions of shuffled blocks, so
-#: a block is the unit of contiguous reading.  Measured CPU per 192x108 image (depth + mask +
-#: labels): 126 us read one by one, 113 us in runs of 4, 103 us in slabs of 128 (decompression
-#: dominates); a batch of 128 still mixes 32 blocks, i.e. up to 32 objects (16 images each).
-DEFAULT_BLOCK_SIZE = 4
-#: Stream tags keep the shuffling and the transform random streams independent for one seed.
-PLAN_STREAM = 0x5EED0001
-SAMPLE_ORDER_STREAM = 0x5EED0002
-
-
 #: How to install the optional dependencies (the package is installed from its checkout).
 TORCH_INSTALL = ("pip install torch --index-url https://download.pytorch.org/whl/cpu (PyTorch's CPU build; "
                  "or bash scripts/setup.sh from the repository checkout)")
@@ -389,151 +375,3 @@ def _read_runs(ds, out: np.ndarray, runs: list[tuple[int, int, int]]) -> None:
         fspace.select_hyperslab((src,) + zeros, (n,) + tail)
         mspace.select_hyperslab((dst,) + zeros, (n,) + tail)
         ds.id.read(mspace, fspace, out)
-
-
-# --------------------------------------------------------------------------------------
-# Epoch plan: shuffling and sharding shared by every loader
-# --------------------------------------------------------------------------------------
-
-def _check_seed(name: str, value) -> int:
-    if not isinstance(value, (int, np.integer)) or value < 0:
-        raise UserError(f"{name} must be a non-negative integer, got {value!r}")
-    return int(value)
-
-
-#: How :func:`plan_epoch` deals with the ``N mod P`` samples that do not divide equally among
-#: ``P`` parts (ranks): ``"pad"`` repeats samples from the start of the epoch's order until every
-#: part has ``ceil(N / P)`` (``DistributedSampler(drop_last=False)``), ``"drop"`` leaves them out
-#: of the epoch, every part has ``floor(N / P)`` (``DistributedSampler(drop_last=True)``);
-#: ``"uneven"`` keeps every sample exactly once and parts differ by up to one sample.
-REMAINDER_MODES = ("pad", "drop", "uneven")
-
-
-def check_remainder(remainder: str) -> str:
-    if remainder not in REMAINDER_MODES:
-        raise UserError(f"remainder must be one of {', '.join(map(repr, REMAINDER_MODES))}, got {remainder!r}")
-    return remainder
-
-
-def part_bounds(n_samples: int, part_count: int, part_index: int, remainder: str = "pad") -> tuple[int, int]:
-    """``[start, stop)`` of part ``part_index`` in the epoch's (padded or cut) sample sequence."""
-    n, P = int(n_samples), int(part_count)
-    total = {"pad": -(-n // P) * P, "drop": n // P * P, "uneven": n}[check_remainder(remainder)] if n else 0
-    return part_index * total // P, (part_index + 1) * total // P
-
-
-def n_batches(n_samples: int, batch_size: int, drop_last: bool) -> int:
-    """Batches of ``batch_size`` cut from ``n_samples`` (a short last one kept unless ``drop_last``)."""
-    return n_samples // batch_size if drop_last else -(-n_samples // batch_size)
-
-
-def plan_epoch(shard_sizes, *, batch_size: int, seed: int = 0, epoch: int = 0, shuffle: bool = True,
-               part_index: int = 0, part_count: int = 1, block_size: int = DEFAULT_BLOCK_SIZE,
-               drop_last: bool = False, remainder: str = "pad") -> list[np.ndarray]:
-    """The batches (arrays of global sample indices) of one part of one epoch.
-
-    1. Every shard is cut into blocks of ``block_size`` consecutive images (a block never
-       crosses a shard boundary).
-    2. With ``shuffle``, the blocks are permuted by a generator seeded with ``(seed, epoch)``:
-       the same for every part, different for every epoch.  Their images, in that block
-       order, are the epoch's sample sequence (``N`` samples).
-    3. The sequence is made divisible by ``P = part_count`` as :data:`REMAINDER_MODES` says
-       (default ``"pad"``: repeated from its start to ``ceil(N / P) P``, as
-       ``DistributedSampler`` does), and part ``p`` takes the contiguous range
-       ``[p T / P, (p + 1) T / P)`` of it (``T`` its length): every part gets the same number of
-       samples, hence of batches (ranks of a collective training step must), and together the
-       parts hold every sample once (plus the padding).  Parts are distributed ranks or JAX
-       processes.
-    4. The part's samples are cut into consecutive batches of ``batch_size`` (the last one
-       shorter unless ``drop_last``).  Each batch is sorted: the order inside a batch does not
-       matter to a training step, and sorted indices are read without reordering copies.
-    """
-    sizes = np.asarray(shard_sizes, dtype=np.int64).reshape(-1)
-    if batch_size is None or int(batch_size) <= 0:
-        raise UserError(f"batch size must be positive, got {batch_size}")
-    if block_size is None or int(block_size) <= 0:
-        raise UserError(f"block size must be positive, got {block_size}")
-    if part_count <= 0 or not 0 <= part_index < part_count:
-        raise UserError(f"part index {part_index} is not in [0, {part_count})")
-    check_remainder(remainder)
-    batch_size, block_size = int(batch_size), int(block_size)
-    seed, epoch = _check_seed("seed", seed), _check_seed("epoch", epoch)
-    offsets = np.concatenate([[0], np.cumsum(sizes)])
-    starts = np.concatenate([np.arange(o, o + n, block_size) for o, n in zip(offsets[:-1], sizes)] or [np.zeros(0, np.int64)])
-    shard_end = np.repeat(offsets[1:], -(-sizes // block_size))
-    stops = np.minimum(starts + block_size, shard_end)
-    nb = len(starts)
-    order = np.random.default_rng([seed, epoch, PLAN_STREAM]).permutation(nb) if shuffle else np.arange(nb)
-    lengths = (stops - starts)[order]
-    n = int(lengths.sum())
-    a, b = part_bounds(n, part_count, part_index, remainder)
-    pos = np.arange(a, b, dtype=np.int64) % max(n, 1)  # positions in the sequence ("pad" wraps around)
-    first = np.concatenate([[0], np.cumsum(lengths)])  # sequence position of each (ordered) block's first image
-    k = np.searchsorted(first, pos, side="right") - 1
-    idx = (starts[order][k] + pos - first[k]).astype(np.int64) if len(pos) else np.zeros(0, np.int64)
-    batches = [idx[i : i + batch_size] for i in range(0, len(idx), batch_size)]
-    if drop_last and batches and len(batches[-1]) < batch_size:
-        batches.pop()
-    return [np.sort(b) for b in batches]
-
-
-# --------------------------------------------------------------------------------------
-# What every loader adds to a batch
-# --------------------------------------------------------------------------------------
-
-#: dtype of the intrinsics ``K`` in loader batches (the reader keeps the stored float64):
-#: training code multiplies them with float32 tensors.
-LOADER_K_DTYPE = np.float32
-
-
-class BatchProcessor:
-    """Applies the optional transform (per sample, seeded by ``(seed, epoch, index)``), adds the
-    target vector (``target``, float32 (B, D), normalised if ``norm`` is given) and the global
-    sample indices (``index``, int64), and gives ``K`` as :data:`LOADER_K_DTYPE`.
-
-    ``epoch`` of :meth:`__call__` is an int, or, for a dataset whose epoch was never set, one key
-    (a sequence of non-negative ints) per sample: see
-    :func:`articulated_dataset.transforms.sample_rng`."""
-
-    def __init__(self, fields: Sequence[str], *, transform=None, target=None, norm=None, seed: int = 0):
-        self.transform = transform
-        self.target = target
-        self.norm = norm
-        self.seed = _check_seed("seed", seed)
-        #: dtypes the reader allocates for fields whose loader dtype differs from the stored one
-        self.dtypes = {"K": np.dtype(LOADER_K_DTYPE)} if "K" in fields else {}
-        if norm is not None and target is None:
-            raise UserError("normalisation statistics need a target layout (target=TargetLayout.for_class(...))")
-        if target is not None:
-            missing = [f for f in target.fields if f not in fields]
-            if missing:
-                raise UserError(f"the target vector needs the field(s) {', '.join(missing)}; add them to fields")
-            if norm is not None:
-                norm.check_layout(target)
-
-    def __call__(self, batch: dict, indices: np.ndarray, epoch) -> dict:
-        indices = np.asarray(indices, dtype=np.int64)
-        if self.transform is not None:
-            from ..transforms import apply_to_batch
-
-            batch = apply_to_batch(self.transform, batch, indices, seed=self.seed, epoch=epoch)
-        if self.target is not None:
-            vec = self.target.encode(batch)
-            batch[TARGET_KEY] = self.norm.normalize(vec) if self.norm is not None else vec
-        for name, dtype in self.dtypes.items():
-            if name in batch and batch[name].dtype != dtype:  # a transform made it float64 again
-                batch[name] = batch[name].astype(dtype)
-        batch[INDEX_KEY] = indices.copy()
-        return batch
-
-
-def load_batch(reader: ShardReader, processor: BatchProcessor, indices, epoch, alloc=None) -> dict:
-    """Read and process one batch: the single code path of every loader."""
-    indices = np.asarray(indices, dtype=np.int64)
-    return processor(reader.get_batch(indices, alloc=alloc, dtypes=processor.dtypes), indices, epoch)
-
-
-__all__ = ["ShardReader", "plan_epoch", "BatchProcessor", "load_batch", "resolve_split_dirs", "check_fields",
-           "REMAINDER_MODES", "require", "TORCH_INSTALL", "JAX_INSTALL", "part_bounds", "n_batches", "LOADER_K_DTYPE",
-           "DEFAULT_FIELDS", "NUMERIC_FIELDS", "ALL_FIELDS", "STRING_FIELDS", "VIRTUAL_FIELDS", "DEFAULT_BLOCK_SIZE",
-           "INDEX_KEY", "TARGET_KEY"]

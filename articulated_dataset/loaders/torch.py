@@ -4,7 +4,7 @@ https://download.pytorch.org/whl/cpu``, PyTorch's CPU build).
 * :class:`DepthDataset`: map-style; ``ds[i]`` one sample, ``ds[[i, j]]`` a batch; works with a
   stock ``DataLoader`` (auto-batching reads each batch at once through ``__getitems__``) and
   ``DistributedSampler``.
-* :class:`EpochBatchSampler`: the batches of :func:`~articulated_dataset.loaders.reader.plan_epoch`
+* :class:`EpochBatchSampler`: the batches of :func:`~articulated_dataset.loaders.epoch.plan_epoch`
   for one rank, for ``DataLoader(ds, sampler=..., batch_size=None)``.
 * :class:`ShardIterableDataset`: iterable; the rank's batches of the epoch plan, dealt to the
   DataLoader workers in turn, so batches are the same whatever ``num_workers`` is.
@@ -20,6 +20,11 @@ tensor, so it also reaches persistent workers.  A dataset whose epoch is never s
 DataLoader whose sampler alone gets ``set_epoch``) still gives each read of a sample a new
 augmentation (see :meth:`_SharedEpoch.transform_epoch`).  In a worker process, batches are
 read straight into shared memory, so handing them to the main process copies nothing.
+
+Why one module of ~440 lines: it is everything that imports torch (an optional dependency,
+imported once at the top), and its four public classes share the private shared-memory and
+epoch helpers; the framework-neutral parts are already in :mod:`.reader`, :mod:`.epoch` and
+:mod:`.batch`.
 """
 
 from __future__ import annotations
@@ -30,8 +35,9 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import UserError
-from .reader import (DEFAULT_BLOCK_SIZE, SAMPLE_ORDER_STREAM, TORCH_INSTALL, BatchProcessor, ShardReader, load_batch,
-                     n_batches, part_bounds, plan_epoch, require)
+from .batch import BatchProcessor, load_batch
+from .epoch import DEFAULT_BLOCK_SIZE, SAMPLE_ORDER_STREAM, n_batches, part_bounds, plan_epoch
+from .reader import ShardReader, TORCH_INSTALL, require
 
 torch = require("torch", "articulated_dataset.loaders.torch", TORCH_INSTALL)
 from torch.utils.data import DataLoader, Dataset, IterableDataset, Sampler, get_worker_info  # noqa: E402
@@ -271,7 +277,7 @@ class EpochBatchSampler(Sampler):
     """Batches of :func:`plan_epoch` for ``rank`` of ``world_size`` (``set_epoch`` per epoch).
 
     ``remainder`` (``"pad"``, ``"drop"`` or ``"uneven"``): what happens to the samples that do
-    not divide equally among the ranks (:data:`~articulated_dataset.loaders.reader.REMAINDER_MODES`);
+    not divide equally among the ranks (:data:`~articulated_dataset.loaders.epoch.REMAINDER_MODES`);
     with ``"pad"`` or ``"drop"`` every rank gets the same number of batches."""
 
     def __init__(self, shard_sizes, batch_size: int, *, shuffle: bool = True, seed: int = 0, rank: int | None = None,
