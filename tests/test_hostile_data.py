@@ -28,7 +28,8 @@ from click.testing import CliRunner
 from articulated_dataset import urdf_import
 from articulated_dataset.cli import main
 from articulated_dataset.errors import DataFormatError, UserError
-from articulated_dataset.exr import INDEX_NAME, export_split
+from articulated_dataset.exr import export_split
+from articulated_dataset.exr.files import INDEX_NAME
 from articulated_dataset.pipeline import GenerationConfig, generate_split
 from articulated_dataset.shards import MANIFEST_NAME, resolve_inside
 from articulated_dataset.templating import render_urdf
