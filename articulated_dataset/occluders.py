@@ -92,7 +92,7 @@ class Context:
     def __init__(self, model: mujoco.MjModel, info, n_occluders: int, rng: np.random.Generator | None):
         self.model, self.info, self.rng = model, info, rng
         names = [model.geom(i).name for i in range(model.ngeom)]
-        scene = np.array([model.geom_bodyid[i] == _body(model, "scene") for i in range(model.ngeom)])
+        scene = model.geom_bodyid == _body(model, "scene")  # no scene body: -1, no geom
         self.slots = [np.array([names.index(f"occluder_{k}_{g}") for g in range(SLOT_GEOMS)]) for k in range(n_occluders)]
         self.slot_bodies = [_body(model, f"occluder_{k}") for k in range(n_occluders)]
         info.geom_part[scene] = MASK_SCENE
