@@ -1322,7 +1322,45 @@ def look_at_viewpoint(point, normal, distance_m: float = HANDLE_LOOK_DISTANCE_M)
 
 def find_handle(depth_m: np.ndarray, K: np.ndarray, rng: np.random.Generator) -> np.ndarray | None:
     """The handle bar's centre (m, in the frame of the camera that took ``depth_m``) near the
-    image centre, or None; method and thresholds: ``HANDLE_*`` above."""
+    image centre, or None; method and thresholds: ``HANDLE_*`` above (:func:`sight_handle`)."""
+    seen = sight_handle(depth_m, K, rng)
+    return None if seen is None else seen.centre_m
+
+
+@dataclass
+class HandleSighting:
+    """A handle bar seen in a close-up (camera frame of the image it was found in)."""
+
+    centre_m: np.ndarray  # (3,) the bar's centre
+    panel_normal: np.ndarray  # (3,) unit normal of the panel it stands on, towards the camera
+    panel_points_m: np.ndarray  # (K, 3) pixels of the image on the panel's plane (at most PANEL_MAX_POINTS)
+
+    def transformed(self, rot: np.ndarray, trans: np.ndarray) -> "HandleSighting":
+        """The same sighting in the frame where this camera's pose is ``(rot, trans)``."""
+        return HandleSighting(rot @ self.centre_m + trans, rot @ self.panel_normal, self.panel_points_m @ rot.T + trans)
+
+    def panel_extent(self, direction) -> tuple[float, float]:
+        """How far (m) the seen panel runs from the handle against and along ``direction``
+        (between :data:`PANEL_EXTENT_PERCENTILES` of its points)."""
+        if not len(self.panel_points_m):
+            return 0.0, 0.0
+        lo, hi = np.percentile((self.panel_points_m - self.centre_m) @ np.asarray(direction, np.float64),
+                               PANEL_EXTENT_PERCENTILES)
+        return float(max(-lo, 0.0)), float(max(hi, 0.0))
+
+
+#: A sighting keeps at most this many panel points (every k-th); its extent is read between these
+#: percentiles of them.
+PANEL_MAX_POINTS = 4096
+PANEL_EXTENT_PERCENTILES = (2.0, 98.0)
+
+
+def sight_handle(depth_m: np.ndarray, K: np.ndarray, rng: np.random.Generator,
+                 search_radius_m: float = HANDLE_SEARCH_RADIUS_M) -> HandleSighting | None:
+    """The handle bar nearest the image centre within ``search_radius_m`` of the view's axis
+    (:class:`HandleSighting`, camera frame of ``depth_m``: camera z is up), or None; method and
+    thresholds: ``HANDLE_*`` above.  The panel's extent is that of every pixel of the image
+    within :data:`HANDLE_PLANE_TOL_M` of its plane, along the plane's horizontal direction."""
     from .camera import R_CAMERA_TO_OPTICAL
     from .errors import import_optional
 
@@ -1334,7 +1372,7 @@ def find_handle(depth_m: np.ndarray, K: np.ndarray, rng: np.random.Generator) ->
     valid = z > 0
     pts = (np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], -1) @ R_CAMERA_TO_OPTICAL)
     lateral = np.hypot(pts[..., 1], pts[..., 2])
-    near = valid & (lateral < HANDLE_SEARCH_RADIUS_M)
+    near = valid & (lateral < search_radius_m)
     P = pts[near]
     if len(P) < 3 * HANDLE_MIN_PIXELS:
         return None
@@ -1370,7 +1408,64 @@ def find_handle(depth_m: np.ndarray, K: np.ndarray, rng: np.random.Generator) ->
         return None
     centre = min(found, key=lambda f: f[0])[1]
     # the visible faces are the bar's front: its centre lies half the standoff nearer the panel
-    return centre - 0.5 * HANDLE_STANDOFF_M * nrm
+    centre = centre - 0.5 * HANDLE_STANDOFF_M * nrm
+    panel = pts[valid & (np.abs(height) < HANDLE_PLANE_TOL_M)]
+    return HandleSighting(centre, nrm, panel[:: max(1, -(-len(panel) // PANEL_MAX_POINTS))])
+
+
+#: A sighted panel normal further than this from the hypothesis's (about its axis) is not used
+#: to turn the hypothesis (the plane found is then unlikely to be its door's).
+MAX_PANEL_TURN_DEG = 60.0
+#: When no hypothesis's handle is in its close-up: one overview of the door from
+#: HANDLE_OVERVIEW_DISTANCE_M (9.5 mm per pixel), searched within HANDLE_OVERVIEW_RADIUS_M.
+HANDLE_OVERVIEW_DISTANCE_M = 1.0
+HANDLE_OVERVIEW_RADIUS_M = 0.5
+
+
+def anchor_to_handle(estimate: Estimate, joint: int, joint_type: str, handle_m, panel_normal) -> Estimate:
+    """The estimate moved onto a sighted handle (reference frame).  A door (revolute) is first
+    turned about its axis so that its panel's outward normal at the estimated ``q`` is
+    ``panel_normal`` (projected across the axis; skipped if that turn exceeds
+    :data:`MAX_PANEL_TURN_DEG`), then translated so that its planned grasp point
+    (:func:`grasp_pose_from_estimate`) is ``handle_m``: the hinge then lies the estimated door
+    width from the handle, along the seen panel.  A drawer is translated only."""
+    pose = np.array(estimate.axis_pose, np.float64)
+    po = None if estimate.part_offset is None else estimate.part_offset[joint]
+    q = float(estimate.q[joint])
+    grasp = grasp_pose_from_estimate(pose[joint], po, estimate.geometry, joint_type, q)
+    if joint_type == REVOLUTE:
+        o, rot = axis_frame(pose[joint])
+        d = rot[:, 2]
+        n_est, n_seen = outward_normal(grasp, joint_type), _vec("panel_normal", panel_normal, 3)
+        n_est, n_seen = n_est - (n_est @ d) * d, n_seen - (n_seen @ d) * d
+        if np.linalg.norm(n_est) > ZERO_LENGTH and np.linalg.norm(n_seen) > ZERO_LENGTH:
+            angle = math.atan2(float(np.cross(n_est, n_seen) @ d), float(n_est @ n_seen))
+            if abs(angle) <= math.radians(MAX_PANEL_TURN_DEG):
+                pose[joint, 3:] = _canonical(mat_to_quat(quat_to_matrix(axis_angle_quat(d, angle)) @ rot))
+                grasp = grasp_pose_from_estimate(pose[joint], po, estimate.geometry, joint_type, q)
+    pose[joint, :3] += _vec("handle_m", handle_m, 3) - grasp[:3]
+    return replace(estimate, axis_pose=pose, alternatives=[])
+
+
+def overview_hypothesis(hypotheses: list[Estimate], joint: int, joint_type: str, seen: HandleSighting) -> int:
+    """Index of the hypothesis a handle seen in an overview belongs to.  A door's handle is near
+    its free edge, so its hinge is on the side of the handle where the seen panel runs further
+    (across the hypothesis's axis, in the panel: :meth:`HandleSighting.panel_extent`); among the
+    hypotheses whose hinge is on that side (all, for a drawer or when none is) the one whose
+    planned grasp is nearest the handle."""
+    grasps = [grasp_pose_from_estimate(h.axis_pose[joint], None if h.part_offset is None else h.part_offset[joint],
+                                       h.geometry, joint_type, float(h.q[joint]))[:3] for h in hypotheses]
+
+    def hinge_on_the_long_side(h: Estimate) -> bool:
+        o, d = h.axis(joint)
+        u = np.cross(seen.panel_normal, d)
+        if np.linalg.norm(u) < ZERO_LENGTH:
+            return True
+        before, beyond = seen.panel_extent(u)
+        return bool(((o - seen.centre_m) @ u) * (beyond - before) > 0)
+
+    ok = [k for k, h in enumerate(hypotheses) if joint_type != REVOLUTE or hinge_on_the_long_side(h)]
+    return min(ok or range(len(hypotheses)), key=lambda k: float(np.linalg.norm(grasps[k] - seen.centre_m)))
 
 
 #: Closed loop defaults.  Extra views before grasping: the reference camera swung by these
@@ -1480,33 +1575,49 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
     if mirror is not None and not any(same_axis(mirror, c, joint) for _, c in candidates):
         candidates.append((0.0, mirror))  # the door hinged on its other edge: looked at last
     n_images = len(views)
-    chosen = None  # (fused estimate, plan) of the hypothesis the grasp goes to
-    for rank, (score, fused_k) in enumerate(candidates):
-        plan_k = plan_from_estimate(fused_k, joint, jt, target, step_rad, step_m)
-        if chosen is None:
-            chosen = (fused_k, plan_k)  # the best hypothesis unless a look finds another's handle
+    plans = [plan_from_estimate(c, joint, jt, target, step_rad, step_m) for _, c in candidates]
+    chosen = (candidates[0][1], plans[0])  # the best hypothesis unless a look finds another's handle
+    sighting = None  # (hypothesis rank, handle centre, panel normal) in the reference frame
+    for rank, ((score, _), plan_k) in enumerate(zip(candidates, plans)):
         if not look_at_handle or n_images >= max_images:
             break
-        grasp = plan_k.grasp_pose.copy()
-        rot, trans = look_at_viewpoint(grasp[:3], outward_normal(grasp, jt))
-        found = find_handle(camera.render(q_true0, (rot, trans)), camera.K, rng)
+        rot, trans = look_at_viewpoint(plan_k.grasp_pose[:3], outward_normal(plan_k.grasp_pose, jt))
+        seen = sight_handle(camera.render(q_true0, (rot, trans)), camera.K, rng)
         n_images += 1
-        if found is not None:
-            grasp[:3] = rot @ found + trans
-        views.append({"when": "before grasp", "viewpoint_deg": None, "wrist": True, "hypothesis": rank,
-                      "hypothesis_score": score, "handle_found": found is not None,
-                      "grasp_moved_m": float(np.linalg.norm(grasp[:3] - plan_k.grasp_pose[:3]))})
-        if found is not None:
-            if jt == REVOLUTE:  # the door is where its handle is: move the axis with the panel's plane
-                n = outward_normal(plan_k.grasp_pose, jt)
-                fused_k = replace(fused_k, axis_pose=np.array(fused_k.axis_pose, np.float64))
-                fused_k.axis_pose[joint, :3] += ((grasp[:3] - plan_k.grasp_pose[:3]) @ n) * n
-                plan_k.axis_origin = fused_k.axis(joint)[0]
-            o, d = fused_k.axis(joint)
-            plan_k.grasp_pose = grasp
-            plan_k.waypoints = plan_waypoints(jt, o, d, plan_k.q_current, target, grasp, step_rad, step_m)
-            chosen = (fused_k, plan_k)
+        view = {"when": "before grasp", "viewpoint_deg": None, "wrist": True, "hypothesis": rank,
+                "hypothesis_score": score, "handle_found": seen is not None}
+        views.append(view)
+        if seen is not None:
+            sighting = (rank, seen.transformed(rot, trans))
             break
+    if look_at_handle and sighting is None and n_images < max_images:
+        # no handle where any hypothesis put it: one overview of the best hypothesis's panel
+        # (between its handle and its mirror's), the handle given to the hypothesis it is nearest
+        ends = [p.grasp_pose[:3] for p in plans[:1]]
+        mirror0 = mirrored_hypothesis(candidates[0][1], joint) if jt == REVOLUTE else None
+        if mirror0 is not None:
+            ends.append(plan_from_estimate(mirror0, joint, jt, target, step_rad, step_m).grasp_pose[:3])
+        rot, trans = look_at_viewpoint(np.mean(ends, axis=0), outward_normal(plans[0].grasp_pose, jt),
+                                       HANDLE_OVERVIEW_DISTANCE_M)
+        seen = sight_handle(camera.render(q_true0, (rot, trans)), camera.K, rng, HANDLE_OVERVIEW_RADIUS_M)
+        n_images += 1
+        views.append({"when": "before grasp", "viewpoint_deg": None, "wrist": True, "overview": True,
+                      "handle_found": seen is not None})
+        if seen is not None:
+            seen = seen.transformed(rot, trans)
+            rank = overview_hypothesis([c for _, c in candidates] + ([mirror0] if mirror0 is not None else []),
+                                       joint, jt, seen)
+            if rank == len(candidates):  # the best hypothesis's mirror
+                candidates.append((0.0, mirror0))
+                plans.append(plan_from_estimate(mirror0, joint, jt, target, step_rad, step_m))
+            sighting = (rank, seen)
+    if sighting is not None:
+        rank, seen = sighting
+        anchored = anchor_to_handle(candidates[rank][1], joint, jt, seen.centre_m, seen.panel_normal)
+        plan_k = plan_from_estimate(anchored, joint, jt, target, step_rad, step_m)
+        views[-1]["grasp_moved_m"] = float(np.linalg.norm(plan_k.grasp_pose[:3] - plans[rank].grasp_pose[:3]))
+        views[-1]["hypothesis"] = rank
+        chosen = (anchored, plan_k)
     fused, plan = chosen
     grasp = plan.grasp_pose
     estimates = [c for c in (consistent_hypothesis(e, fused, joint, jt) for e in estimates) if c is not None] or [fused]
