@@ -66,3 +66,48 @@ def test_real_split_summarises_labelled_values_only(real_split):
     assert lines[2].split()[-1] == "labelled" and not any("nan" in line for line in lines)
     yaw = next(line for line in lines if line.lstrip().startswith("object yaw (rad)"))
     assert yaw.split()[-4:] == ["-", "-", "-", "0"]
+
+
+@pytest.fixture(scope="module")
+def option_splits(tmp_path_factory):
+    """One tiny microwave split per option line: a kitchen with two occluders, the head camera
+    with a sensor's intrinsics."""
+    root = tmp_path_factory.mktemp("info_options")
+    options = {"context": ["--scene", "kitchen", "--occluders", "2"],
+               "robot": ["--camera", "head", "--intrinsics", "d435", "--resolution", "96x54"]}
+    for name, extra in options.items():
+        result = CliRunner().invoke(main, ["generate", "--class", "microwave", "--n", "1", "--images", "2", "--workers", "1",
+                                           "--out", str(root / name), "-q", *extra])
+        assert result.exit_code == 0, result.output
+    return {name: root / name / "microwave" / "train" for name in options}
+
+
+def test_scene_and_occluders_are_printed(option_splits):
+    split = option_splits["context"]
+    lines = run_info(split).splitlines()
+    assert lines[2] == "  scene kitchen, 2 occluders per image"
+    summary = json.loads(run_info("--json", split))[0]
+    assert (summary["scene"], summary["occluders"], summary["camera_mount"], summary["intrinsics"]) == ("kitchen", 2, "fixed", None)
+    fraction = summary["labels"]["visible_fraction"]
+    assert [c["name"] for c in fraction["columns"]] == ["visible fraction body", "visible fraction door_hinge"]
+    ref = Split(split).read_fields(["visible_fraction"])["visible_fraction"]
+    assert fraction["min"] == [round(float(x), 4) for x in ref.min(0)]
+    assert 0.3 <= fraction["min"][1] <= fraction["max"][1] <= 1.0  # the occluders' bound on a moving part
+    rows = {line[2:].split("  ")[0]: line.split()[-3:] for line in lines[4:]}
+    assert rows["visible fraction door_hinge"] == [f"{v:.3f}" for v in (ref[:, 1].min(), ref[:, 1].mean(), ref[:, 1].max())]
+
+
+def test_camera_options_are_printed(option_splits):
+    lines = run_info(option_splits["robot"]).splitlines()
+    assert lines[1].endswith("96x54 px") and lines[2] == "  camera head, intrinsics d435"
+    summary = json.loads(run_info("--json", option_splits["robot"]))[0]
+    assert (summary["scene"], summary["occluders"], summary["camera_mount"], summary["intrinsics"]) == ("none", 0, "head", "d435")
+    assert "visible_fraction" not in summary["labels"]
+
+
+def test_the_papers_setting_prints_no_option_line(tiny_root):
+    lines = run_info(tiny_root / "microwave" / "test").splitlines()
+    assert lines[2].split() == ["label", "min", "mean", "max"]
+    summary = json.loads(run_info("--json", tiny_root / "microwave" / "test"))[0]
+    assert (summary["scene"], summary["occluders"], summary["camera_mount"], summary["intrinsics"]) == ("none", 0, "fixed", None)
+    assert "visible_fraction" not in summary["labels"]

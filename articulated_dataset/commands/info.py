@@ -11,16 +11,20 @@ from ..errors import DataFormatError
 from ..format import MANIFEST_NAME, Split, find_split_dirs
 
 _SUMMARY_FIELDS = ("q", "axis_origin", "geometry", "object_yaw", "visible_pixels")
+#: Summarised too where a split has a scene or occluders (format 1.1 stores it).
+_CONTEXT_FIELDS = ("visible_fraction",)
 
 
 def summarize_split(split_dir) -> dict:
     """Counts, settings and min/mean/max of the main labels of one split folder."""
     split = Split(split_dir)
-    stats = split.read_fields(_SUMMARY_FIELDS)
     try:
         summary = _manifest_summary(split_dir, split.manifest)
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        split.close()
         raise DataFormatError(f"{split_dir / MANIFEST_NAME}: corrupt manifest ({type(exc).__name__}: {exc})") from None
+    context = summary["scene"] != "none" or summary["occluders"] > 0
+    stats = split.read_fields(_SUMMARY_FIELDS + (_CONTEXT_FIELDS if context else ()))
     joint_names, joint_types = _joints(split)
     split.close()
     for k, a in stats.items():
@@ -65,6 +69,8 @@ def _columns(field: str, width: int, names: list[str], types: list[str]) -> list
         return [{"name": "object yaw", "unit": "rad"}]
     if field == "visible_pixels" and width == 1 + J:
         return [{"name": "visible body", "unit": "px"}] + [{"name": f"visible {n}", "unit": "px"} for n in names]
+    if field == "visible_fraction" and width == 1 + J:
+        return [{"name": f"visible fraction {n}", "unit": ""} for n in ["body", *names]]
     return [{"name": f"{field}[{i}]", "unit": ""} for i in range(width)]
 
 
@@ -82,6 +88,7 @@ def _manifest_summary(split_dir, manifest: dict) -> dict:
         "bytes": int(sum(int(s["bytes"]) for s in manifest["shards"])),
         "image_size": [int(manifest["config"]["camera"]["width_px"]), int(manifest["config"]["camera"]["height_px"])],
         **_table_summary(manifest["config"]),
+        **_context_summary(manifest["config"]),
         "labels": {},
     }
 
@@ -96,6 +103,30 @@ def _table_summary(config: dict) -> dict:
         names = [str(c.get("name", "?"))[:60] for c in shape["components"] if isinstance(c, dict)]
         return {"table": "realistic", "size_classes": names}
     return {"table": "uniform" if config.get("third_party") else "paper"}
+
+
+def _context_summary(config: dict) -> dict:
+    """Scene, occluders and camera of the split (the manifest records them only when used;
+    the paper's setting is scene none, 0 occluders, the fixed camera with its own intrinsics)."""
+    camera = config["camera"]
+    intrinsics = camera.get("intrinsics")
+    return {"scene": str(config.get("scene", "none")), "occluders": int(config.get("occluders", 0)),
+            "camera_mount": str(camera.get("mount", "fixed")), "intrinsics": None if intrinsics is None else str(intrinsics)}
+
+
+def _settings_line(s: dict) -> str | None:
+    """``scene kitchen, 2 occluders per image, camera head, intrinsics d435``: the options
+    beyond the paper's setting, or None for the paper's."""
+    parts = []
+    if s["scene"] != "none":
+        parts.append(f"scene {s['scene']}")
+    if s["occluders"]:
+        parts.append(f"{s['occluders']} occluder{'s' if s['occluders'] > 1 else ''} per image")
+    if s["camera_mount"] != "fixed":
+        parts.append(f"camera {s['camera_mount']}")
+    if s["intrinsics"] is not None:
+        parts.append(f"intrinsics {s['intrinsics']}")
+    return ", ".join(parts) or None
 
 
 def _cell(x: float | None, unit: str) -> str:
@@ -118,6 +149,9 @@ def info_cmd(path, as_json):
         click.echo(f"{s['path']}: class {s['class']}, split {s['split']}, seed {s['seed']}, format {s['format_version']}, {state}")
         click.echo(f"  {s['objects']} objects, {s['images']} images, {s['shards']} shards, "
                    f"{s['bytes'] / max(s['images'], 1):.0f} bytes/image, {s['image_size'][0]}x{s['image_size'][1]} px")
+        settings = _settings_line(s)
+        if settings is not None:
+            click.echo(f"  {settings}")
         if s["table"] == "realistic":
             click.echo(f"  table realistic: {len(s['size_classes'])} size classes ({'; '.join(s['size_classes'])})")
         rows = [(f"{c['name']} ({c['unit']})" if c["unit"] else c["name"], c["unit"], v["min"][i], v["mean"][i], v["max"][i],
