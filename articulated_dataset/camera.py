@@ -100,7 +100,7 @@ class CameraConfig:
 
     ``mount``: ``"fixed"`` (the paper's camera: level, at the origin of the tables' frame) or
     ``"head"`` (a mobile manipulator's head camera: height, pitch and roll sampled per image,
-    :mod:`articulated_dataset.viewpoint`).
+    :mod:`articulated_dataset.generation.viewpoint`).
     """
 
     width_px: int = DEFAULT_WIDTH_PX
@@ -121,7 +121,7 @@ class CameraConfig:
             object.__setattr__(self, "vfov_deg", vfov)
         if not 0.0 < self.vfov_deg < 180.0:
             raise ValueError(f"vertical field of view must be in (0, 180) degrees, got {self.vfov_deg}")
-        from .viewpoint import CAMERA_MOUNTS
+        from .generation.viewpoint import CAMERA_MOUNTS
 
         if self.mount not in CAMERA_MOUNTS:
             raise ValueError(f"unknown camera mount {str(self.mount)[:40]!r}; choose from: {', '.join(CAMERA_MOUNTS)}")

@@ -6,7 +6,7 @@ origin (m) and unit direction in the camera frame (x forward, y left, z up), the
 configuration q (rad or m), the part offset, the object geometry, and the uncertainty (the
 mixture's per-column standard deviations and its components).  Images of any size and
 intrinsics are resampled onto the model's camera as ``artdata ingest`` does
-(:func:`articulated_dataset.real.ingest_capture`); the estimate is in the original
+(:func:`articulated_dataset.real.ingest.ingest_capture`); the estimate is in the original
 camera's frame (resampling changes intrinsics only).
 """
 

@@ -36,10 +36,10 @@ import numpy as np
 
 from .errors import UserError
 from .format import MASK_FIRST_PART
-from .labels import HANDLE_SUFFIX, ModelInfo, mat_to_quat, model_info, read_object_labels
+from .generation.labels import HANDLE_SUFFIX, ModelInfo, mat_to_quat, read_object_labels
 from .registry import JOINT_TYPES, PRISMATIC, REVOLUTE
 from .rotations import axis_angle_quat, quat_multiply, quat_to_matrix  # noqa: F401  (re-exported)
-from .scene import build_model, set_configuration
+from .generation.scene import set_configuration
 from .units import format_q, normalise
 
 log = logging.getLogger(__name__)
@@ -484,13 +484,14 @@ def load_true_object(manifest: dict, labels: dict, camera=None) -> TrueObject:
     """Rebuild the true object of an image in MuJoCo.
 
     Geometry and chirality come from the split's generation config
-    and the pose from the stored labels (:func:`~articulated_dataset.pipeline.stored_sample`:
-    the pipeline redraws a pose whose view hides a part).  The
+    and the pose from the stored labels (:func:`~articulated_dataset.generation.stored_sample`:
+    the pipeline redraws a pose whose view hides a part); the object is compiled as the
+    pipeline compiles it (:func:`~articulated_dataset.generation.compile_object`).  The
     rebuilt model's axis labels are checked against the stored ones.  ``camera`` overrides
     the image size (for figures); the physics is the same.
     """
-    from .pipeline import GenerationConfig, stored_sample
-    from .templating import render_urdf
+    from .generation import GenerationConfig, compile_object, stored_sample
+    from .generation.templating import object_urdf
 
     config = GenerationConfig.from_dict(manifest["config"])
     if config.camera.mount != "fixed":
@@ -499,9 +500,9 @@ def load_true_object(manifest: dict, labels: dict, camera=None) -> TrueObject:
     obj_class = config.obj_class
     sample = stored_sample(config, int(labels["object_index"]), labels["object_pose"], labels["object_yaw"])
     pose = sample.pose
-    urdf = render_urdf(obj_class.template_path(), sample.template_mappings(config.table))
-    model = build_model(urdf, pose, camera or config.camera, obj_class.base_link)
-    info = model_info(model, obj_class)
+    urdf = object_urdf(obj_class, sample, config.table)
+    obj = compile_object(obj_class, urdf, pose, camera or config.camera)
+    model, info = obj.model, obj.info
     # check: the rebuilt object has the stored axes (float32 labels: ~1e-6 m)
     data = mujoco.MjData(model)
     set_configuration(model, data, info.joint_ids, np.zeros(obj_class.n_joints))
@@ -876,7 +877,7 @@ def run_trial(obj: TrueObject, estimate: Estimate, joint: int, q_target: float |
 
 def load_prediction_estimates(path: str | Path, class_name: str) -> tuple[str, dict[int, Estimate]]:
     """``(method, {sample_id: Estimate})`` for one class of a predictions file
-    (:func:`articulated_dataset.predictions.read_predictions`)."""
+    (:func:`articulated_dataset.benchmark.predictions.read_predictions`)."""
     from .benchmark.predictions import read_predictions
 
     attrs, per_class = read_predictions(path)
@@ -1044,8 +1045,8 @@ class SceneCamera:
     """
 
     def __init__(self, obj: TrueObject, rng: np.random.Generator):
-        from .render import process_renderer
-        from .scene import CAMERA_NAME
+        from .generation.render import process_renderer
+        from .generation.scene import CAMERA_NAME
 
         if obj.config is None:
             raise UserError(f"{obj.class_name}: no generation config, so no camera to render the scene with")

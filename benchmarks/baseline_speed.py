@@ -56,7 +56,7 @@ def main(argv=None) -> int:
 
     from articulated_dataset.baselines import icp_model, nn
     from articulated_dataset.baselines.common import open_split_checked
-    from articulated_dataset.pipeline import GenerationConfig, generate_split
+    from articulated_dataset.generation import GenerationConfig, generate_split
     from articulated_dataset.registry import class_names
 
     classes = args.classes or class_names()

@@ -39,7 +39,7 @@ def main(argv=None) -> int:
     from articulated_dataset.dense.predict import predict_arrays
     from articulated_dataset.dense.train import build_dense_model, load_dense_checkpoint, load_dense_split
     from articulated_dataset.models import resolve_model
-    from articulated_dataset.pipeline import GenerationConfig, generate_split
+    from articulated_dataset.generation import GenerationConfig, generate_split
 
     torch.set_num_threads(args.threads)
     n_objects = max(1, -(-args.batch // 16))

@@ -34,8 +34,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 def _scenes(class_name: str, n_objects: int, seed: int):
     """The final (visible) samples of objects 0..n-1 as the pipeline renders them."""
-    from articulated_dataset.pipeline import GenerationConfig, object_sample, render_object
-    from articulated_dataset.render import process_renderer
+    from articulated_dataset.generation import GenerationConfig, object_sample, render_object
+    from articulated_dataset.generation.render import process_renderer
 
     config = GenerationConfig(class_name, n_objects=n_objects, seed=seed)
     renderer = process_renderer(config.camera)
@@ -48,10 +48,9 @@ def _bare_render(args) -> tuple[int, float]:
     import mujoco
     import numpy as np
 
-    from articulated_dataset.labels import model_info
-    from articulated_dataset.render import process_renderer
-    from articulated_dataset.scene import build_model
-    from articulated_dataset.templating import render_urdf
+    from articulated_dataset.generation.compiled import compile_object
+    from articulated_dataset.generation.render import process_renderer
+    from articulated_dataset.generation.templating import object_urdf
 
     config, samples = _scenes(class_name, n_objects, seed)
     obj_class = config.obj_class
@@ -59,8 +58,8 @@ def _bare_render(args) -> tuple[int, float]:
     prepared = []
     for k in indices:
         s = samples[k]
-        model = build_model(render_urdf(obj_class.template_path(), s.template_mappings(config.table)), s.pose, config.camera)
-        prepared.append((model, mujoco.MjData(model), model_info(model, obj_class).qpos_adr, s.q))
+        obj = compile_object(obj_class, object_urdf(obj_class, s, config.table), s.pose, config.camera)
+        prepared.append((obj.model, mujoco.MjData(obj.model), obj.info.qpos_adr, s.q))
     H, W = config.camera.height_px, config.camera.width_px
     depth = np.zeros((H, W), np.float32)
     n = 0
@@ -99,7 +98,8 @@ def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: P
     (``camera``: CameraConfig keyword arguments besides the default image size; ``table``:
     the class's table of that name; ``scene``, ``occluders``: --scene, --occluders)."""
     from articulated_dataset.camera import CameraConfig
-    from articulated_dataset.pipeline import DEFAULT_OBJECTS_PER_SHARD, GenerationConfig, generate_split
+    from articulated_dataset.format.manifest import DEFAULT_OBJECTS_PER_SHARD
+    from articulated_dataset.generation import GenerationConfig, generate_split
     from articulated_dataset.registry import get_class
     from articulated_dataset.shards import read_manifest
 
@@ -117,7 +117,7 @@ def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: P
 
 def main() -> None:
     from articulated_dataset.registry import class_names
-    from articulated_dataset.render import process_renderer
+    from articulated_dataset.generation.render import process_renderer
     from articulated_dataset.camera import CameraConfig
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -154,7 +154,7 @@ def main() -> None:
     tmp = None
     split = args.data
     if split is None:
-        from articulated_dataset.pipeline import GenerationConfig, generate_split
+        from articulated_dataset.generation import GenerationConfig, generate_split
 
         tmp = tempfile.TemporaryDirectory(prefix="loader-bench-")
         t = time.perf_counter()

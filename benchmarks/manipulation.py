@@ -111,8 +111,8 @@ def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, lis
 
     from articulated_dataset import manipulation as M
     from articulated_dataset.errors import UserError
-    from articulated_dataset.pipeline import GenerationConfig
-    from articulated_dataset.sampling import stable_key
+    from articulated_dataset.generation import GenerationConfig
+    from articulated_dataset.generation.sampling import stable_key
 
     path, manifest, labels = M.read_split_labels(split_dir)
     config = GenerationConfig.from_dict(manifest["config"])
@@ -290,9 +290,9 @@ def _figure_case(split_dir: Path, joint: int, offset_m: float, title: str) -> di
 
     from articulated_dataset import manipulation as M
     from articulated_dataset.camera import CameraConfig, project
-    from articulated_dataset.pipeline import GenerationConfig
-    from articulated_dataset.render import process_renderer
-    from articulated_dataset.scene import set_configuration
+    from articulated_dataset.generation import GenerationConfig
+    from articulated_dataset.generation.render import process_renderer
+    from articulated_dataset.generation.scene import set_configuration
 
     path, manifest, labels = M.read_split_labels(split_dir)
     config = GenerationConfig.from_dict(manifest["config"])
@@ -429,8 +429,8 @@ def _trajectory_case(split_dir: Path, spec: str, name: str, seed: int) -> dict |
     """Open and closed loop on the view nearest closed of the split's first object, recorded."""
     from articulated_dataset import manipulation as M
     from articulated_dataset.errors import UserError
-    from articulated_dataset.pipeline import GenerationConfig
-    from articulated_dataset.sampling import stable_key
+    from articulated_dataset.generation import GenerationConfig
+    from articulated_dataset.generation.sampling import stable_key
 
     path, manifest, labels = M.read_split_labels(split_dir)
     config = GenerationConfig.from_dict(manifest["config"])

@@ -130,7 +130,7 @@ def _mdn_checkpoints(args, classes) -> dict[str, Path]:
 
 def generate_class(cls: str, args) -> dict:
     """Generate (or reuse) the train/test splits and the mean object; returns seconds per split."""
-    from articulated_dataset.pipeline import GenerationConfig, generate_split
+    from articulated_dataset.generation import GenerationConfig, generate_split
 
     seconds = {}
     test_seed = args.seed if args.test_seed is None else args.test_seed

@@ -46,7 +46,7 @@ def main(argv=None) -> int:
 
     from articulated_dataset.mdn.train import configure_threads
     from articulated_dataset.models import resolve_model
-    from articulated_dataset.pipeline import GenerationConfig, generate_split
+    from articulated_dataset.generation import GenerationConfig, generate_split
     from articulated_dataset.benchmark.predictions import write_predictions
     from articulated_dataset.registry import class_names
     from articulated_dataset.benchmark.scoring import score

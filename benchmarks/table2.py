@@ -91,7 +91,7 @@ def one_object_table(class_name: str, q_rad: float):
 
 
 def generate_standin(out: Path, class_name: str, condition: str, n_images: int, noise: str, seed: int, workers: int) -> Path:
-    from articulated_dataset.pipeline import GenerationConfig, generate_split
+    from articulated_dataset.generation import GenerationConfig, generate_split
 
     q = OPEN_Q_RAD if condition == "open" else 0.0
     config = GenerationConfig(class_name, split=CONDITION_SPLITS[condition], n_objects=n_images, seed=seed,
@@ -101,7 +101,7 @@ def generate_standin(out: Path, class_name: str, condition: str, n_images: int, 
 
 
 def training_split(train_root: Path | None, work: Path, class_name: str, n_objects: int, seed: int, workers: int) -> Path:
-    from articulated_dataset.pipeline import GenerationConfig, generate_split
+    from articulated_dataset.generation import GenerationConfig, generate_split
 
     if train_root is not None:
         path = train_root / class_name / "train"

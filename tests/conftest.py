@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from articulated_dataset.pipeline import GenerationConfig, generate_split
+from articulated_dataset.generation import GenerationConfig, generate_split
 from articulated_dataset.registry import class_names
 
 #: Objects per class in the shared tiny dataset (train) and its test split.

@@ -9,13 +9,14 @@ import numpy as np
 
 from articulated_dataset.camera import CameraConfig, backproject
 from articulated_dataset.classes import PRISMATIC
-from articulated_dataset.labels import MASK_BODY, MASK_FIRST_PART, model_info, read_object_labels
-from articulated_dataset.pipeline import GenerationConfig, object_sample, render_object
-from articulated_dataset.render import process_renderer
+from articulated_dataset.generation import GenerationConfig, object_sample, render_object
+from articulated_dataset.generation.compiled import compile_object as compile_urdf
+from articulated_dataset.generation.labels import MASK_BODY, MASK_FIRST_PART, read_object_labels
+from articulated_dataset.generation.render import process_renderer
+from articulated_dataset.generation.scene import ORIGIN_POSE, ObjectPlacer, set_configuration
+from articulated_dataset.generation.templating import object_urdf
+from articulated_dataset.generation.viewpoint import object_in_camera
 from articulated_dataset.rotations import quat_to_matrix
-from articulated_dataset.scene import ORIGIN_POSE, ObjectPlacer, build_model, set_configuration
-from articulated_dataset.templating import render_urdf
-from articulated_dataset.viewpoint import object_in_camera
 
 
 def final_object(class_name: str, index: int = 0, camera: CameraConfig | None = None, split: str = "train", table=None):
@@ -37,11 +38,11 @@ def compile_object(config, sample, image: int = 0):
     """Compile the object as the pipeline rendered image ``image`` (a head camera's object is
     built at the origin and placed in that image's camera frame); labels read from the model."""
     obj_class = config.obj_class
-    urdf = render_urdf(obj_class.template_path(), sample.template_mappings(config.table))
+    urdf = object_urdf(obj_class, sample, config.table)
     head = sample.views is not None
-    model = build_model(urdf, ORIGIN_POSE if head else sample.pose, config.camera, obj_class.base_link)
+    obj = compile_urdf(obj_class, urdf, ORIGIN_POSE if head else sample.pose, config.camera)
+    model, info = obj.model, obj.info
     data = mujoco.MjData(model)
-    info = model_info(model, obj_class)
     if head:
         ObjectPlacer(model, info.base_body).place(object_transform(sample, image))
     labels = read_object_labels(model, data, info, obj_class)

@@ -14,7 +14,7 @@ from articulated_dataset import rotations
 from articulated_dataset.baselines import BASELINES, clouds, icp, icp_model, mean, nn
 from articulated_dataset.baselines.common import open_split_checked
 from articulated_dataset.cli import main
-from articulated_dataset.pipeline import GenerationConfig, generate_split
+from articulated_dataset.generation import GenerationConfig, generate_split
 from articulated_dataset.registry import get_class
 
 pytest.importorskip("scipy")

@@ -89,7 +89,7 @@ def test_every_skip_marker_gives_a_reason():
 @pytest.fixture(scope="session")
 def docs_workdir(tmp_path_factory) -> Path:
     """The folder every page's run starts from (copied per page)."""
-    from articulated_dataset.pipeline import GenerationConfig, generate_split
+    from articulated_dataset.generation import GenerationConfig, generate_split
     from articulated_dataset.registry import class_names
 
     base = tmp_path_factory.mktemp("docs-base")

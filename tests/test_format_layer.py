@@ -49,7 +49,7 @@ def test_reading_imports_no_simulator_renderer_or_framework(module):
 
 def test_the_import_check_sees_mujoco():
     """The check above can fail: the generator's label reader does import MuJoCo."""
-    assert "mujoco" in heavy_modules_after_import("articulated_dataset.labels")
+    assert "mujoco" in heavy_modules_after_import("articulated_dataset.generation.labels")
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +123,7 @@ def test_every_consumer_reads_the_same_labels(generated):
 
 
 def test_split_config_is_the_generators_config(generated):
-    from articulated_dataset.pipeline import GenerationConfig
+    from articulated_dataset.generation import GenerationConfig
 
     split = Split(generated)
     config = split.config

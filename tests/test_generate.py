@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from articulated_dataset import FORMAT_VERSION
 from articulated_dataset.camera import CameraConfig, R_CAMERA_TO_OPTICAL
 from articulated_dataset.cli import main
-from articulated_dataset.pipeline import GenerationConfig, generate_split
+from articulated_dataset.generation import GenerationConfig, generate_split
 from articulated_dataset.registry import class_names
 from articulated_dataset.schema import FIELDS
 from articulated_dataset.shards import open_split, read_manifest, sha256_file

@@ -30,9 +30,9 @@ from articulated_dataset.cli import main
 from articulated_dataset.errors import DataFormatError, UserError
 from articulated_dataset.exr import export_split
 from articulated_dataset.exr.files import INDEX_NAME
-from articulated_dataset.pipeline import GenerationConfig, generate_split
+from articulated_dataset.generation import GenerationConfig, generate_split
 from articulated_dataset.shards import MANIFEST_NAME, resolve_inside
-from articulated_dataset.templating import render_urdf
+from articulated_dataset.generation.templating import render_urdf
 
 #: What a payload would create if it were ever evaluated.
 PWNED = "PWNED"

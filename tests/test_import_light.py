@@ -52,7 +52,7 @@ def test_the_check_sees_mujoco():
 
 
 def test_reading_a_split_is_light(tmp_path):
-    from articulated_dataset.pipeline import GenerationConfig, generate_split
+    from articulated_dataset.generation import GenerationConfig, generate_split
 
     split = generate_split(GenerationConfig("drawer", split="test", n_objects=1, images_per_object=2), tmp_path)
     assert heavy_modules_after_cli("info", str(split)) == []

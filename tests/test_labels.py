@@ -14,7 +14,7 @@ import pytest
 import yourdfpy
 
 from articulated_dataset.camera import CameraConfig, project
-from articulated_dataset.labels import MASK_BODY, MASK_FIRST_PART
+from articulated_dataset.generation.labels import MASK_BODY, MASK_FIRST_PART
 from articulated_dataset.registry import PRISMATIC, all_classes, get_class
 from articulated_dataset.rotations import matrix_to_quat
 from articulated_dataset.shards import open_split

@@ -340,7 +340,7 @@ def test_three_ranks_get_equal_steps_by_default(tmp_path):
     every rank the same number of batches, len(loader) each rank's batches per epoch, every image seen."""
     pytest.importorskip("torch")
     from articulated_dataset.loaders.torch import make_loader
-    from articulated_dataset.pipeline import GenerationConfig, generate_split
+    from articulated_dataset.generation import GenerationConfig, generate_split
 
     split = generate_split(GenerationConfig("drawer", split="test", n_objects=2), tmp_path)
     for iterable in (True, False):

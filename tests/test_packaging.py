@@ -49,7 +49,7 @@ def test_wheel_ships_generators_and_templates(tmp_path):
     target = tmp_path / "site"
     subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(target), str(wheel)],
                    check=True, capture_output=True)
-    code = ("import articulated_dataset.registry as r, articulated_dataset.templating as t;"
+    code = ("import articulated_dataset.registry as r, articulated_dataset.generation.templating as t;"
             "cs = r.all_classes(); assert str(cs[0].template_path()).startswith(%r);"
             "print(len(cs), len(t.render_urdf(cs[0].template_path(), {})))" % str(target))
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env={"PYTHONPATH": str(target), "PATH": "/usr/bin:/bin"},

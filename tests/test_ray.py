@@ -13,7 +13,7 @@ from click.testing import CliRunner
 from articulated_dataset.cli import main
 from articulated_dataset.errors import UserError
 from articulated_dataset.executors import RAY_INSTALL_HELP, RayExecutor, get_executor
-from articulated_dataset.pipeline import GenerationConfig, generate_split
+from articulated_dataset.generation import GenerationConfig, generate_split
 from articulated_dataset.shards import TMP_SUFFIX, shard_name
 from articulated_dataset.urdf_import import CACHE_ENV, import_urdf
 

@@ -13,7 +13,7 @@ from PIL import Image
 from articulated_dataset.camera import R_CAMERA_TO_OPTICAL, CameraConfig, backproject
 from articulated_dataset.cli import main
 from articulated_dataset.errors import UserError
-from articulated_dataset.labels import mat_to_quat
+from articulated_dataset.generation.labels import mat_to_quat
 from articulated_dataset.real.ingest import DEPTH_QUANTUM_M
 from articulated_dataset.real.readers import load_depth
 from articulated_dataset.real.resample import crop_intrinsics, resample_depth

@@ -20,9 +20,9 @@ from click.testing import CliRunner
 
 from articulated_dataset.cli import main
 from articulated_dataset.errors import UserError
-from articulated_dataset.pipeline import GenerationConfig, generate_split, object_sample
+from articulated_dataset.generation import GenerationConfig, generate_split, object_sample
 from articulated_dataset.registry import all_classes, get_class
-from articulated_dataset.sampling import object_rng, sample_object
+from articulated_dataset.generation.sampling import object_rng, sample_object
 from articulated_dataset.shards import MANIFEST_NAME, open_split, read_manifest, sha256_file
 from articulated_dataset.tables import GEOMETRY_KEYS, SamplingTable, ShapeMixture
 from articulated_dataset.verify import verify_split

@@ -15,7 +15,7 @@ from articulated_dataset import generators, registry
 from articulated_dataset.classes import ObjectClass
 from articulated_dataset.cli import main
 from articulated_dataset.errors import UserError
-from articulated_dataset.pipeline import GenerationConfig
+from articulated_dataset.generation import GenerationConfig
 from articulated_dataset.urdf_import import import_urdf
 from helpers_core import write_flap_urdf
 
@@ -38,12 +38,12 @@ def test_what_the_registry_loads_never_imports_it_back():
     load without the registry, which imports them (a generator that registered itself by
     importing the registry would fail this)."""
     loaded = ["articulated_dataset.generators." + n for n in registry.BUILTIN_GENERATORS] + [
-        "articulated_dataset.urdf_import", "articulated_dataset.labels", "articulated_dataset.scene",
-        "articulated_dataset.sampling", "articulated_dataset.classes"]
+        "articulated_dataset.urdf_import", "articulated_dataset.generation.labels", "articulated_dataset.generation.scene",
+        "articulated_dataset.generation.sampling", "articulated_dataset.classes"]
     code = "import sys\n" + "".join(f"import {m}\n" for m in loaded) + "print('articulated_dataset.registry' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
-    check = subprocess.run([sys.executable, "-c", "import sys, articulated_dataset.pipeline\n"
+    check = subprocess.run([sys.executable, "-c", "import sys, articulated_dataset.generation.pipeline\n"
                             "print('articulated_dataset.registry' in sys.modules)"], capture_output=True, text=True)
     assert check.stdout.strip() == "True"  # the check can fail: the generator does import the registry
 

@@ -42,8 +42,8 @@ def test_camera_intrinsics_match_mujoco_rasterisation():
     import numpy as np
 
     from articulated_dataset.camera import CameraConfig, project
-    from articulated_dataset.render import process_renderer
-    from articulated_dataset.scene import build_model, set_configuration
+    from articulated_dataset.generation.render import process_renderer
+    from articulated_dataset.generation.scene import build_model, set_configuration
 
     cam = CameraConfig()
     renderer = process_renderer(cam)

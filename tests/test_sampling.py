@@ -8,7 +8,7 @@ import pytest
 
 from articulated_dataset.errors import UserError
 from articulated_dataset.registry import all_classes, class_names, get_class
-from articulated_dataset.sampling import mean_object, object_rng, sample_id, sample_object, stratified_configurations
+from articulated_dataset.generation.sampling import mean_object, object_rng, sample_id, sample_object, stratified_configurations
 from articulated_dataset.tables import GEOMETRY_KEYS, POSE_KEYS, SamplingTable, load_table_file
 
 N_SAMPLES = 400

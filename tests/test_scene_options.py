@@ -15,15 +15,15 @@ from click.testing import CliRunner
 
 from articulated_dataset.camera import backproject
 from articulated_dataset.cli import main
-from articulated_dataset.context_labels import (OCCLUDER_SHOW_RGB, SCENE_SHOW_RGB, VISIBLE_FRACTION_RANGE, object_depth,
+from articulated_dataset.generation.context_labels import (OCCLUDER_SHOW_RGB, SCENE_SHOW_RGB, VISIBLE_FRACTION_RANGE, object_depth,
                                                 tint_context, visible_fraction)
 from articulated_dataset.format.manifest import SplitConfig
 from articulated_dataset.format.schema import (CONTEXT_FORMAT_VERSION, MASK_BODY, MASK_OCCLUDER, MASK_SCENE, OPTIONAL_FIELDS,
                                                visible_pixels)
-from articulated_dataset.pipeline import GenerationConfig, generate_split, stored_sample
+from articulated_dataset.generation import GenerationConfig, generate_split, stored_sample
 from articulated_dataset.registry import all_classes
 from articulated_dataset.rotations import quat_to_matrix
-from articulated_dataset.scenes import MIN_CAMERA_HEIGHT_M, layout_boxes, scene_layout
+from articulated_dataset.generation.scenes import MIN_CAMERA_HEIGHT_M, layout_boxes, scene_layout
 from articulated_dataset.shards import open_split, read_manifest
 from articulated_dataset.verify import verify_split
 from helpers_core import IMAGE_CHECK_FIELDS, check_stored_images, compile_object, render_at
@@ -266,8 +266,8 @@ def test_docs_state_the_ranges_the_code_uses():
     from pathlib import Path
 
     from articulated_dataset.format.manifest import MAX_OCCLUDERS
-    from articulated_dataset.occluders import OCCLUDER_TABLE
-    from articulated_dataset.scenes import CAMERA_CLEARANCE_M, MAX_LAYOUT_TRIES, SCENE_TABLE
+    from articulated_dataset.generation.occluders import OCCLUDER_TABLE
+    from articulated_dataset.generation.scenes import CAMERA_CLEARANCE_M, MAX_LAYOUT_TRIES, SCENE_TABLE
 
     root = Path(__file__).resolve().parents[1]
     gen, sheet = (root / "docs" / "generation.md").read_text(), (root / "DATASHEET.md").read_text()

@@ -18,7 +18,7 @@ from click.testing import CliRunner
 from articulated_dataset.camera import CameraConfig, backproject
 from articulated_dataset.cli import main
 from articulated_dataset.errors import UserError
-from articulated_dataset.pipeline import GenerationConfig, generate_split
+from articulated_dataset.generation import GenerationConfig, generate_split
 from articulated_dataset.shards import open_split, read_manifest, sha256_file
 from articulated_dataset import urdf_import
 from articulated_dataset.urdf_import import import_urdf

@@ -202,7 +202,7 @@ def ensure_mean_object(train_dir, mean_dir=None, *, workers: int = 1) -> Path:
     ``<train_dir>/../.mean-object/<class>/mean`` and reused from there.
     """
     from ..format import MANIFEST_NAME, read_manifest
-    from ..pipeline import GenerationConfig, generate_split, split_dir_for
+    from ..generation import GenerationConfig, generate_split, split_dir_for
 
     train = open_split_checked(train_dir, "train")
     try:

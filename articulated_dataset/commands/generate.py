@@ -14,15 +14,16 @@ from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, INTRINSICS_PRESETS, KI
 from ..errors import UserError
 from ..executors import EXECUTORS, get_executor
 from ..format.manifest import MAX_OCCLUDERS, SCENE_NAMES
-from ..pipeline import DEFAULT_IMAGES_PER_OBJECT, DEFAULT_OBJECTS_PER_SHARD, DEFAULT_SEED, GenerationConfig, generate_split
+from ..format.manifest import DEFAULT_IMAGES_PER_OBJECT, DEFAULT_OBJECTS_PER_SHARD, DEFAULT_SEED
+from ..generation import GenerationConfig, generate_split
 from ..registry import get_class, register
 from ..tables import TABLE_NAMES, SamplingTable, load_table_file
-from ..viewpoint import CAMERA_MOUNTS
+from ..generation.viewpoint import CAMERA_MOUNTS
 from .options import ClassChoice
 
 
 class _NoiseChoice(click.ParamType):
-    """Noise models of :mod:`articulated_dataset.noise` (just ``none`` while it does not exist)."""
+    """Noise models of :mod:`articulated_dataset.real.noise` (just ``none`` while it does not exist)."""
 
     name = "noise"
 

@@ -46,7 +46,7 @@ def predict_arrays(model, data, idx: np.ndarray, *, joint_types: list[str], cali
 
     ``refinement``: the checkpoint's :class:`~articulated_dataset.dense.refine.Refinement` (or
     its dict) applied to the vote modes, or None.  Returns the datasets of
-    :func:`articulated_dataset.predictions.write_predictions` (``sample_id``, ``axis_pose``,
+    :func:`articulated_dataset.benchmark.predictions.write_predictions` (``sample_id``, ``axis_pose``,
     ``q``, ``geometry``, ``part_offset``, ``mixture_*``, ``mixture_layout``) plus ``spread``
     (N, M, D), the raw vote spreads.
     """
@@ -241,7 +241,7 @@ def _quat_from_rot6(r6: np.ndarray) -> np.ndarray:
 
 def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BATCH, progress: bool = True) -> tuple[str, dict]:
     """Run a loaded dense checkpoint on the split at ``data``; ``(class_name, arrays)`` as
-    :func:`articulated_dataset.predictions.write_predictions` takes them.  Labels are not read."""
+    :func:`articulated_dataset.benchmark.predictions.write_predictions` takes them.  Labels are not read."""
     from ..mdn.data import resolve_split_dir, split_class
     from .train import build_dense_model, load_dense_split
 

@@ -5,7 +5,7 @@
   2.7 GB for 4,000 objects x 16 images), per-pixel part labels at the output resolution,
   and the labels (axis origin, axis frame, q, part offset, geometry).
 * Validation: a held-out part of the TRAINING split chosen by object (the MDN's
-  :func:`~articulated_dataset.mdn.train.split_by_object`); the test split is never read.
+  :func:`~articulated_dataset.mdn.data.split_by_object`); the test split is never read.
   After the last epoch the geometric refinement (:mod:`articulated_dataset.dense.refine`) is
   chosen and the uncertainty calibration (:mod:`articulated_dataset.dense.predict`) fitted on
   the validation objects (:func:`~articulated_dataset.dense.predict.fit_inference`).

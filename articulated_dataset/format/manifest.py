@@ -4,7 +4,7 @@ is read and checked.
 ``OUT/<class>/<split>/manifest.json`` lists the split's complete shards (file, images,
 bytes, sha256, object range) and the settings that determine its bytes (``config``: a
 :class:`SplitConfig` as a dict).  The generator fills a :class:`SplitConfig`
-(:class:`articulated_dataset.pipeline.GenerationConfig` is one, with the checks that need the
+(:class:`articulated_dataset.generation.pipeline.GenerationConfig` is one, with the checks that need the
 class registry); reading one needs neither the generator nor MuJoCo.
 """
 
@@ -34,9 +34,9 @@ DEFAULT_OBJECTS_PER_SHARD = 64
 DEFAULT_SEED = 0
 #: Largest seed: shards store it as a signed 64-bit integer attribute.
 MAX_SEED = 2**63 - 1
-#: Scene context around the object (``--scene``; articulated_dataset.scenes): none = the paper's isolated objects.
+#: Scene context around the object (``--scene``; articulated_dataset.generation.scenes): none = the paper's isolated objects.
 SCENE_NAMES = ("none", "kitchen", "room")
-#: Most occluders per image (``--occluders``; articulated_dataset.occluders).
+#: Most occluders per image (``--occluders``; articulated_dataset.generation.occluders).
 MAX_OCCLUDERS = 8
 
 
@@ -45,7 +45,7 @@ class SplitConfig:
     """Everything that determines a split's bytes: the manifest's ``config``.
 
     Its own checks need no class registry (counts, seed range, split name); the generator's
-    :class:`~articulated_dataset.pipeline.GenerationConfig` adds those that do.
+    :class:`~articulated_dataset.generation.pipeline.GenerationConfig` adds those that do.
     """
 
     class_name: str
@@ -59,7 +59,7 @@ class SplitConfig:
     min_part_pixels: int | None = None  # None: DEFAULT_MIN_PART_FRACTION of the image
     depth_quantum_m: float = DEFAULT_DEPTH_QUANTUM_M
     mean: bool = False  # render the class's mean object (n_objects must be 1)
-    noise: str = "none"  # depth sensor-noise model applied after rendering (articulated_dataset.noise)
+    noise: str = "none"  # depth sensor-noise model applied after rendering (articulated_dataset.real.noise)
     # Definition of a third-party URDF class (articulated_dataset.urdf_import), rebuilt in
     # every worker process; None for registry classes.
     third_party: dict | None = None

@@ -5,7 +5,7 @@ z-depth image in metres (0 = no return), ``K`` its 3x3 OpenCV intrinsics and ``r
 ``numpy.random.Generator`` (all randomness comes from it: same generator state, same output).
 :data:`NOISE_MODELS` maps names to models; :func:`get_noise_model` looks one up.  The
 generation pipeline applies one per image (``GenerationConfig(noise=...)``, seeded per object
-by :func:`articulated_dataset.pipeline.noise_rng`); the loaders wrap them as transforms.
+by :func:`articulated_dataset.generation.pipeline.noise_rng`); the loaders wrap them as transforms.
 
 ``kinect2`` (:class:`DepthSensorNoise` with the Kinect v2 constants below) applies, in order:
 

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import FORMAT_VERSION, __version__
 from ..camera import R_CAMERA_TO_OPTICAL, CameraConfig
 from ..errors import UserError
 from ..format import FIELDS, SplitConfig, visible_pixels
+from ..format.records import shard_attrs, split_manifest
 from ..registry import get_class
 from .ingest import Capture, DEPTH_QUANTUM_M, IngestOptions
 
@@ -130,12 +130,19 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
     next_index = len(old_shards)
     written: list[Path] = []
 
+    def split_config(images_per_object: int = 1) -> SplitConfig:
+        """The real split's settings (the manifest's ``config``; a shard's attributes replace
+        its per-split counts with their own)."""
+        return SplitConfig(class_name, split=split, n_objects=len(objects), seed=0, images_per_object=images_per_object,
+                           objects_per_shard=len(objects), camera=camera, table=obj_class.table,
+                           depth_quantum_m=DEPTH_QUANTUM_M)
+
     def write_all(split_dir: Path) -> None:
         """Shards of ``captures`` from shard ``next_index`` on (paths added to ``written``),
         then the manifest, into ``split_dir``."""
         nonlocal next_index
         J = obj_class.n_joints
-        H, W = camera.height_px, camera.width_px
+        H = camera.height_px
         field_names = {f.name for f in FIELDS}
         for members in groups.values():
             for start in range(0, len(members), MAX_IMAGES_PER_SHARD):
@@ -161,31 +168,14 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
                 K = captures[chunk[0]].K
                 obj_idx = arrays["object_index"]
                 per_object = {str(int(o)): int(c) for o, c in zip(*np.unique(obj_idx, return_counts=True))}
-                attrs = {
-                    "format_version": FORMAT_VERSION,
-                    "class_name": class_name,
-                    "split": split,
-                    "seed": 0,
-                    "n_objects": len(per_object),
-                    "object_start": int(obj_idx.min()),
-                    "object_stop": int(obj_idx.max()) + 1,
-                    "images_per_object": max(per_object.values()),
-                    "n_joints": J,
-                    "joint_names": json.dumps([j.name for j in obj_class.joints]),
-                    "joint_types": json.dumps(list(obj_class.joint_types)),
-                    "image_width": W,
-                    "image_height": H,
-                    "vfov_deg": vfov_deg_of(K, H),
-                    "depth_quantum_m": DEPTH_QUANTUM_M,
-                    "min_part_pixels": 0,
-                    "mean_object": 0,
-                    "noise_model": "real",
-                    "real": 1,
-                    "capture_names": json.dumps([captures[i].name for i in chunk]),
-                    "has_ground_truth": np.array([captures[i].has_labels for i in chunk], np.int8),
-                    "sampling_table": obj_class.table.to_json(),
-                    "package_version": __version__,
-                }
+                # The split's settings with this shard's own: its field of view, the real
+                # "noise model", no visibility threshold, the captures it holds.
+                attrs = shard_attrs(
+                    split_config(), obj_class, range(int(obj_idx.min()), int(obj_idx.max()) + 1),
+                    n_objects=len(per_object), images_per_object=max(per_object.values()), vfov_deg=vfov_deg_of(K, H),
+                    min_part_pixels=0, noise_model="real", real=1,
+                    capture_names=json.dumps([captures[i].name for i in chunk]),
+                    has_ground_truth=np.array([captures[i].has_labels for i in chunk], np.int8))
                 target = split_dir / shard_name(next_index)
                 if target.exists():
                     raise UserError(f"{target} exists but the manifest does not list it; run 'artdata verify' on the split")
@@ -195,27 +185,13 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
                 records.append(rec)
                 names.extend(captures[i].name for i in chunk)
                 next_index += 1
-        n_images = sum(r["n_images"] for r in records)
         per_obj_total: dict[int, int] = {}
         for r in records:
             for o, n in r.get("object_images", {}).items():
                 per_obj_total[int(o)] = per_obj_total.get(int(o), 0) + int(n)
-        config = SplitConfig(class_name, split=split, n_objects=len(objects), seed=0, images_per_object=max(per_obj_total.values()),
-                             objects_per_shard=len(objects), camera=camera, table=obj_class.table)
-        manifest = {
-            "format_version": FORMAT_VERSION,
-            "package_version": __version__,
-            "class_name": class_name,
-            "split": split,
-            "seed": 0,
-            "complete": True,
-            "n_objects": len(objects),
-            "n_images": n_images,
-            "n_shards_expected": len(records),
-            "config": config.to_dict(),
-            "shards": records,
-            "real": {"objects": objects, "captures": names, "options": options.to_dict()},
-        }
+        manifest = split_manifest(split_config(max(per_obj_total.values())), records, n_objects=len(objects),
+                                  n_shards_expected=len(records),
+                                  real={"objects": objects, "captures": names, "options": options.to_dict()})
         write_manifest(split_dir, manifest)
 
     # Appending writes new shard files beside the old ones and then replaces the manifest;

@@ -35,7 +35,7 @@ pose and configuration sampling and label definitions.  The URDF is turned into 
 The processed files live in a content-addressed cache folder (:func:`.ranges.cache_root`), rebuilt
 on demand by any process (spawned workers, Ray workers on other nodes) from the
 *definition*: a small JSON-able dict (source path, joints, options, sha256 of the URDF and
-its meshes) that :class:`articulated_dataset.pipeline.GenerationConfig` carries in its
+its meshes) that :class:`articulated_dataset.generation.pipeline.GenerationConfig` carries in its
 ``third_party`` field.  A worker whose files differ from the driver's (changed file,
 different copy on another node) stops with an error instead of writing different data.
 

@@ -75,8 +75,9 @@ def _build_class(definition: dict) -> tuple[ObjectClass, tuple[str, ...]]:
     import mujoco
 
     from ..generators.common import YAW_RAD
-    from ..labels import MASK_BODY, MASK_FIRST_PART, model_info, read_object_labels
-    from ..scene import build_model
+    from ..format.schema import MASK_BODY, MASK_FIRST_PART
+    from ..generation.compiled import compile_object
+    from ..generation.labels import read_object_labels
 
     definition = _check_definition(definition)
     path = Path(definition["urdf"])
@@ -127,12 +128,12 @@ def _build_class(definition: dict) -> tuple[ObjectClass, tuple[str, ...]]:
     try:
         with warnings.catch_warnings():  # a model MuJoCo warns about here would warn on every object
             warnings.simplefilter("error")
-            model = build_model(template.read_text(), {"x_m": 0.0, "y_m": 0.0, "z_m": 0.0, "yaw_rad": 0.0}, camera,
-                                parsed.root)
+            obj = compile_object(obj_class, template.read_text(), {"x_m": 0.0, "y_m": 0.0, "z_m": 0.0, "yaw_rad": 0.0},
+                                 camera)
     except (ValueError, Warning) as exc:  # MuJoCo's compiler refuses the model (degenerate mesh, ...)
         raise UserError(f"{path}: MuJoCo cannot compile the object ({one_line(exc)})") from None
+    model, info = obj.model, obj.info
     data = mujoco.MjData(model)
-    info = model_info(model, obj_class)
     for j, p in enumerate(plans):
         if not np.any(info.geom_part == MASK_FIRST_PART + j):
             raise UserError(f"joint {p.name!r} of {path} moves no geometry (link {p.part!r} and its children have none)")
@@ -157,8 +158,8 @@ def _build_class(definition: dict) -> tuple[ObjectClass, tuple[str, ...]]:
 
 def _check_fits_camera(box_lo, box_hi, camera: CameraConfig, path: Path) -> None:
     """The default pose table's nearest and farthest views must lie within the depth range
-    (:data:`articulated_dataset.scene.NEAR_CLIP_M` .. ``FAR_CLIP_M``); else say --scale."""
-    from ..scene import FAR_CLIP_M, NEAR_CLIP_M
+    (:data:`articulated_dataset.generation.scene.NEAR_CLIP_M` .. ``FAR_CLIP_M``); else say --scale."""
+    from ..generation.scene import FAR_CLIP_M, NEAR_CLIP_M
 
     _, r = yaw_sphere(box_lo, box_hi)
     d = VIEW_MARGIN * r / math.sin(half_fov(camera))

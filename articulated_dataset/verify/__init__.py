@@ -23,12 +23,12 @@ or ``shard-NNNNN.h5``); nothing raises for bad data.  What is checked:
     attribute ``sampling_table``); ``object_yaw`` = yaw of ``object_pose``; with a head
     camera (root attribute ``camera_mount``), the camera's pitch and roll read from the
     object's up axis within the head ranges and the object's level-frame pose within the
-    table (:func:`articulated_dataset.viewpoint.level_pose_from_camera`);
+    table (:func:`articulated_dataset.generation.viewpoint.level_pose_from_camera`);
   - ``K`` equal to the image size's paper camera, or its ``intrinsics`` preset;
   - per-object labels identical over the object's images (only ``geometry`` with a head
     camera, which moves per image); ``object_index`` /
     ``image_index`` in generation order; ``sample_id`` equal to
-    :func:`articulated_dataset.sampling.sample_id` and unique over the split;
+    :func:`articulated_dataset.generation.sampling.sample_id` and unique over the split;
   - ``class`` = the shard's class; positive body dimensions; chirality 0 or 1.
 
 **Real splits** (written by ``artdata ingest``: manifest key ``real``, shard attribute

@@ -12,8 +12,8 @@ import numpy as np
 from ..errors import UserError
 from ..format import MASK_BACKGROUND, MASK_FIRST_PART
 from ..rotations import quat_to_matrix
-from ..context_labels import context_mask_codes
-from ..viewpoint import is_head_mount
+from ..generation.context_labels import context_mask_codes
+from ..generation.viewpoint import is_head_mount
 
 #: Allowed | |v| - 1 | of stored unit vectors and quaternions.  They are computed in
 #: float64 and stored as float32 (relative rounding 6e-8 per component), so a correct
@@ -316,7 +316,7 @@ def _check_head_limits(object_pose: np.ndarray, table, p: list) -> None:
     """A head camera's images: the camera's pitch and roll (read from the object's up axis)
     within the head ranges, and the object's pose in the level frame within the table (its
     height relative to the camera also moves by up to half the camera-height range)."""
-    from ..viewpoint import HEAD_HEIGHT_M, HEAD_PITCH_DEG, HEAD_ROLL_DEG, level_pose_from_camera
+    from ..generation.viewpoint import HEAD_HEIGHT_M, HEAD_PITCH_DEG, HEAD_ROLL_DEG, level_pose_from_camera
 
     level = level_pose_from_camera(object_pose)
     for key, (lo, hi) in (("pitch_rad", HEAD_PITCH_DEG), ("roll_rad", HEAD_ROLL_DEG)):
@@ -336,7 +336,7 @@ def _check_head_limits(object_pose: np.ndarray, table, p: list) -> None:
 
 
 def _check_order(a: dict, attrs: dict, *, J: int, ipo: int, start: int, problems: list) -> None:
-    from ..sampling import sample_id
+    from ..generation.sampling import sample_id
 
     p = problems
     n = next(iter(a.values())).shape[0] if a else 0

@@ -15,7 +15,7 @@ import numpy as np
 from ..camera import R_CAMERA_TO_OPTICAL, CameraConfig
 from ..errors import DataFormatError, UserError
 from ..format import (FIELDS, K_DATASET, R_DATASET, ROOT_ATTRS, check_h5_layout, check_version, resolve_shape, sha256_file)
-from ..context_labels import occlusion_problems
+from ..generation.context_labels import occlusion_problems
 from .content import check_content
 
 #: Relative tolerance when comparing the stored intrinsics with the camera config's K.

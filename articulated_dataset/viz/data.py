@@ -129,19 +129,18 @@ def preview_rgb(manifest: dict, object_index: int, image_indices, stored_depth: 
     """Shaded colour renders (H, W, 3) uint8 of one object's images, from its rebuilt scene.
 
     The object is re-sampled from the manifest's config (``object_sample``), rendered with
-    :func:`pipeline.render_object` to get the final pose (visibility redraws included),
+    :func:`~articulated_dataset.generation.render_object` to get the final pose (visibility redraws included),
     then recompiled with geom colours by part and rendered with ``render_rgb``.  If
     ``stored_depth`` ({image_index: depth}) is given, a mismatch with the re-rendered
     depth is logged as a warning (the stored data came from another package version).
     """
     import mujoco
 
-    from ..labels import model_info
-    from ..pipeline import GenerationConfig, object_sample, render_object
-    from ..render import process_renderer
-    from ..scene import ORIGIN_POSE, ObjectPlacer, build_model, set_configuration
-    from ..templating import render_urdf
-    from ..viewpoint import object_in_camera
+    from ..generation import GenerationConfig, compile_object, object_sample, render_object
+    from ..generation.render import process_renderer
+    from ..generation.scene import ORIGIN_POSE, ObjectPlacer, set_configuration
+    from ..generation.templating import object_urdf
+    from ..generation.viewpoint import object_in_camera
     from matplotlib.colors import to_rgba
 
     try:
@@ -158,10 +157,10 @@ def preview_rgb(manifest: dict, object_index: int, image_indices, stored_depth: 
                 log.warning("%s object %d image %d: re-rendered depth differs from the stored image; the RGB preview "
                             "may not match (data from another package version?)", config.class_name, object_index, i)
                 break
-    urdf = render_urdf(obj_class.template_path(), sample.template_mappings(config.table))
     head = sample.views is not None  # a head camera: the object is placed in each image's camera frame
-    model = build_model(urdf, ORIGIN_POSE if head else sample.pose, config.camera, obj_class.base_link)
-    info = model_info(model, obj_class)
+    obj = compile_object(obj_class, object_urdf(obj_class, sample, config.table), ORIGIN_POSE if head else sample.pose,
+                         config.camera)
+    model, info = obj.model, obj.info
     placer = ObjectPlacer(model, info.base_body) if head else None
     for g in range(model.ngeom):
         part = int(info.geom_part[g])

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import backproject, project
-from ..context_labels import context_details, object_depth, tint_context  # scene/occluder pixels: own colours
+from ..generation.context_labels import context_details, object_depth, tint_context  # scene/occluder pixels: own colours
 from ..format import MASK_BACKGROUND, MASK_FIRST_PART
 from ..units import format_q
 from .data import SplitView

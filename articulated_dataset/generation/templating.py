@@ -1,7 +1,8 @@
-"""Stage 2 of the pipeline: turn a class's Xacro template and sampled arguments into URDF.
+"""Stage 2 of the pipeline (template): a sampled object -> its class's Xacro arguments -> URDF.
 
-Templates are parsed once per process and cached; each object re-runs only xacro's macro
-expansion on a copy of the parsed document.
+The arguments are formatted here, from the sample and the table (:func:`template_arguments`);
+stage 1 knows nothing of Xacro.  Templates are parsed once per process and cached; each
+object re-runs only xacro's macro expansion on a copy of the parsed document.
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ from pathlib import Path
 
 import xacro
 
-from .errors import UserError
+from ..errors import UserError
+from ..tables import SamplingTable
 
 log = logging.getLogger(__name__)
 
@@ -43,3 +45,20 @@ def render_urdf(template_path: str | Path, mappings: dict[str, str]) -> str:
     except xacro.XacroException as exc:
         raise UserError(f"xacro failed on {path}: {exc}") from None
     return doc.toxml()
+
+
+def template_arguments(sample, table: SamplingTable) -> dict[str, str]:
+    """Xacro arguments of an :class:`~articulated_dataset.generation.sampling.ObjectSample`'s
+    class template (all strings, SI units): its geometry, chirality and the table's largest
+    opening of each joint (``q_max_<j>``)."""
+    m = {k: repr(float(v)) for k, v in sample.geometry.items()}
+    m["chirality"] = str(int(sample.chirality))
+    for j, (_, hi) in enumerate(table.q):
+        m[f"q_max_{j}"] = repr(float(hi))
+    return m
+
+
+def object_urdf(obj_class, sample, table: SamplingTable) -> str:
+    """Stage 2: the URDF text of a sampled object of ``obj_class`` (an
+    :class:`~articulated_dataset.classes.ObjectClass`)."""
+    return render_urdf(obj_class.template_path(), template_arguments(sample, table))

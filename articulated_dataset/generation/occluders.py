@@ -31,7 +31,7 @@ import mujoco
 import numpy as np
 
 from .context_labels import VISIBLE_FRACTION_RANGE, visible_fraction
-from .format.schema import MASK_FIRST_PART, MASK_OCCLUDER, MASK_SCENE, visible_pixels
+from ..format.schema import MASK_FIRST_PART, MASK_OCCLUDER, MASK_SCENE, visible_pixels
 from .render import CONTEXT_GEOM_GROUP
 
 #: Extra SeedSequence word of an object's occluder stream (noise 1, head camera 2, scene 3).

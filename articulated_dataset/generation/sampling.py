@@ -1,4 +1,4 @@
-"""Stage 1 of the pipeline: sample one object's parameters from its class table.
+"""Stage 1 of the pipeline (sample): one object's parameters drawn from its class table.
 
 Randomness is injected: every object gets its own ``numpy.random.Generator`` derived from
 ``SeedSequence([seed, class_key, split_key, object_index])`` only, so object k is the same
@@ -9,13 +9,12 @@ random stream.
 from __future__ import annotations
 
 import hashlib
-import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from .classes import ObjectClass
-from .tables import GEOMETRY_KEYS, POSE_KEYS, SamplingTable
+from ..classes import ObjectClass
+from ..tables import GEOMETRY_KEYS, POSE_KEYS, SamplingTable
 
 SPLITS = ("train", "val", "test", "real")
 
@@ -83,13 +82,20 @@ class ObjectSample:
     # each image's camera (articulated_dataset.viewpoint), set by the pipeline; None: fixed.
     views: np.ndarray | None = None
 
-    def template_mappings(self, table: SamplingTable) -> dict[str, str]:
-        """Xacro arguments of the class template (all as strings, SI units)."""
-        m = {k: repr(float(v)) for k, v in self.geometry.items()}
-        m["chirality"] = str(int(self.chirality))
-        for j, (_, hi) in enumerate(table.q):
-            m[f"q_max_{j}"] = repr(float(hi))
-        return m
+    # State of the object's generator after these draws (``bit_generator.state``): a pose
+    # rejected later is redrawn from it (:meth:`pose_generator`), never by replaying the draws.
+    # None for the mean object, whose pose is never redrawn.
+    rng_state: dict | None = field(default=None, compare=False, repr=False)
+
+    def pose_generator(self) -> np.random.Generator:
+        """A new generator positioned where this sample's draws left the object's generator:
+        the stream of its pose redraws (:func:`sample_pose`).  Each call starts at the same
+        state, so the sample can be rendered again with the same result."""
+        if self.rng_state is None:
+            raise ValueError("this sample keeps no generator state (the mean object, or built by hand)")
+        rng = np.random.Generator(np.random.PCG64(0))  # its state replaced at once
+        rng.bit_generator.state = self.rng_state
+        return rng
 
 
 def sample_pose(rng: np.random.Generator, table: SamplingTable) -> dict:
@@ -109,8 +115,9 @@ def sample_object(
 ) -> tuple[ObjectSample, np.random.Generator]:
     """Draw geometry, chirality and configurations, then a first pose.
 
-    Returns the sample and the object's generator, positioned after these draws, so that a
-    rejected pose can be redrawn with :func:`sample_pose` deterministically.
+    Returns the sample and the object's generator, positioned after these draws; the sample
+    keeps that position (:meth:`ObjectSample.pose_generator`), so that a rejected pose can be
+    redrawn with :func:`sample_pose` deterministically.
     """
     if rng is None:
         rng = object_rng(seed, obj_class.name, split, object_index)
@@ -121,7 +128,8 @@ def sample_object(
     chirality = int(rng.random() < table.chirality_p)
     q = stratified_configurations(rng, table.q, n_images)
     pose = sample_pose(rng, table)
-    sample = ObjectSample(obj_class.name, split, seed, object_index, geometry, chirality, q, pose)
+    sample = ObjectSample(obj_class.name, split, seed, object_index, geometry, chirality, q, pose,
+                          rng_state=rng.bit_generator.state)
     return sample, rng
 
 
@@ -145,7 +153,3 @@ def mean_object(obj_class: ObjectClass, table: SamplingTable, *, split: str, n_i
     q = stratified_configurations(_Centre(), table.q, n_images)
     return ObjectSample(obj_class.name, split, 0, 0, geometry, 0, q, pose)
 
-
-def yaw_quaternion(yaw_rad: float) -> np.ndarray:
-    """Quaternion (w, x, y, z) of a rotation by ``yaw_rad`` about +z."""
-    return np.array([math.cos(yaw_rad / 2), 0.0, 0.0, math.sin(yaw_rad / 2)])

@@ -29,11 +29,11 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from .format.schema import MASK_BACKGROUND, MASK_BODY, MASK_FIRST_PART, visible_pixels  # noqa: F401  (declared with the format)
-from .classes import PRISMATIC, ObjectClass
-from .rotations import matrix_to_quat
+from ..format.schema import MASK_BACKGROUND, MASK_BODY, MASK_FIRST_PART, visible_pixels  # noqa: F401  (declared with the format)
+from ..classes import PRISMATIC, ObjectClass
+from ..rotations import matrix_to_quat
 from .scene import OBJECT_PREFIX, object_joint_ids, set_configuration
-from .units import normalise
+from ..units import normalise
 
 HANDLE_SUFFIX = "_handle"
 

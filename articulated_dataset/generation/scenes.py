@@ -46,10 +46,11 @@ import mujoco
 import numpy as np
 
 from .context_labels import VISIBLE_FRACTION_RANGE
-from .format.manifest import SCENE_NAMES  # noqa: F401  (re-exported: declared with the split config)
+from ..format.manifest import SCENE_NAMES  # noqa: F401  (re-exported: declared with the split config)
 from .occluders import OCCLUDER_STREAM, add_occluder_slots
 from .render import CONTEXT_GEOM_GROUP
-from .sampling import object_rng, yaw_quaternion
+from .sampling import object_rng
+from .scene import yaw_quaternion
 
 #: Extra SeedSequence word of an object's scene stream (noise 1, head camera 2).
 SCENE_STREAM = 3

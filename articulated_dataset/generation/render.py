@@ -18,8 +18,8 @@ from collections import OrderedDict
 import mujoco
 import numpy as np
 
-from .camera import CameraConfig
-from .errors import RenderError
+from ..camera import CameraConfig
+from ..errors import RenderError
 
 #: MuJoCo geom group of scene and occluder geoms (articulated_dataset.scenes, .occluders).
 CONTEXT_GEOM_GROUP = 3

@@ -145,7 +145,7 @@ def level_pose_from_camera(object_pose: np.ndarray) -> dict[str, np.ndarray]:
     ``roll_rad`` and the object's pose in the level frame: ``x_m``, ``y_m``, ``yaw_rad`` and
     ``z_m`` (base height relative to *this image's* camera height: the table's z minus the
     camera's rise ``height - mid-range``)."""
-    from .rotations import quat_to_matrix
+    from ..rotations import quat_to_matrix
 
     p = np.atleast_2d(np.asarray(object_pose, np.float64))
     R = quat_to_matrix(p[:, 3:])

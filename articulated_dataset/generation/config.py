@@ -1,0 +1,58 @@
+"""The settings of a generated split (:class:`GenerationConfig`), where it goes, and the
+per-object random streams besides the sampling one (sensor noise, head-camera views).
+
+Light: no MuJoCo (the command line and the readers can build a config without a renderer).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..format.manifest import SplitConfig
+from ..registry import ObjectClass, check_table, resolve
+from .sampling import object_rng
+from .viewpoint import CAMERA_STREAM
+
+
+@dataclass(frozen=True)
+class GenerationConfig(SplitConfig):
+    """Everything that determines a split's bytes: a :class:`SplitConfig` (the manifest's
+    schema, :mod:`articulated_dataset.format.manifest`) whose class is checked against the
+    registry and whose table defaults to the class's."""
+
+    def _validate(self) -> None:
+        # UserError for unknown names.  A third-party class with its table given (e.g. read
+        # back from a manifest) is not rebuilt here: its URDF files are needed only to render.
+        obj_class = self.obj_class if self.third_party is None or self.table is None else None
+        super()._validate()
+        if self.table is None:
+            object.__setattr__(self, "table", obj_class.table)
+        if obj_class is not None:
+            check_table(obj_class, self.table)
+
+    @property
+    def obj_class(self) -> ObjectClass:
+        return resolve(self.class_name, self.third_party)
+
+
+def split_dir_for(out_root: str | Path, config: SplitConfig) -> Path:
+    """``OUT/<class>/<split>`` (``OUT/<class>/mean`` for the mean object)."""
+    return Path(out_root) / config.class_name / ("mean" if config.mean else config.split)
+
+
+#: Extra SeedSequence word separating the noise stream from the object's sampling stream.
+NOISE_STREAM = 1
+
+
+def noise_rng(config: SplitConfig, object_index: int) -> np.random.Generator:
+    """Generator of the sensor noise of one object, independent of its sampling stream."""
+    return object_rng(config.seed, config.class_name, config.split, object_index, stream=NOISE_STREAM)
+
+
+def camera_rng(config: SplitConfig, object_index: int) -> np.random.Generator:
+    """Generator of one object's head-camera views (:mod:`articulated_dataset.generation.viewpoint`),
+    independent of its sampling stream: an object is the same with either camera."""
+    return object_rng(config.seed, config.class_name, config.split, object_index, stream=CAMERA_STREAM)

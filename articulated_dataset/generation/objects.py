@@ -1,0 +1,197 @@
+"""The per-object stages of the pipeline, each one function from one input to one output:
+
+* sample (stage 1): :func:`object_sample` -- config and object index -> :class:`ObjectSample`;
+* template (stage 2): :func:`~articulated_dataset.generation.templating.object_urdf` -- sample -> URDF;
+* arrange: :func:`arrange` -- sample -> where it is compiled (head-camera views drawn, or
+  its scene laid out), or None when no scene layout fits its pose;
+* compile (stage 3): :func:`~articulated_dataset.generation.compiled.compile_object` -- URDF
+  at a pose -> model and its index tables;
+* render (stage 4): :func:`render_images` -- compiled object -> :class:`Views` (depth, mask,
+  configurations, visible pixels, the object's labels), or None when a part is hidden;
+  :func:`apply_sensor` -- rendered depth -> depth as the sensor reports it (noise, quantum);
+* label (stage 5): :func:`object_arrays` -- views -> every schema field of the object's images.
+
+:func:`articulated_dataset.generation.pipeline.render_object` composes them, redrawing the
+pose while a stage rejects it; writing (stage 6) is per shard.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import mujoco
+import numpy as np
+
+from .compiled import CompiledObject
+from .config import GenerationConfig, camera_rng, noise_rng
+from .context_labels import visible_fraction
+from .labels import read_configuration, read_object_labels, visible_pixels
+from .occluders import Context
+from .render import DepthRenderer
+from .sampling import ObjectSample, mean_object, sample_id, sample_object
+from .scene import ORIGIN_POSE, ObjectPlacer, set_configuration
+from .scenes import context_builder, context_rngs
+from .viewpoint import head_views, object_in_camera
+
+#: Label fields read from the compiled model (per object, or per image with the head camera).
+OBJECT_LABEL_FIELDS = ("axis_origin", "axis_direction", "axis_pose", "part_offset", "object_pose", "object_yaw", "geometry")
+
+
+def object_sample(config: GenerationConfig, object_index: int) -> ObjectSample:
+    """Stage 1 for object ``object_index`` of the split (the mean object with ``config.mean``).
+    The sample keeps its generator's state for pose redraws (:meth:`ObjectSample.pose_generator`)."""
+    if config.mean:
+        return mean_object(config.obj_class, config.table, split=config.split, n_images=config.images_per_object)
+    sample, _ = sample_object(config.obj_class, config.table, seed=config.seed, split=config.split,
+                              object_index=object_index, n_images=config.images_per_object)
+    return sample
+
+
+def stored_sample(config: GenerationConfig, object_index: int, object_pose, object_yaw: float) -> ObjectSample:
+    """The sample of object ``object_index`` as it was rendered and stored.
+
+    :func:`object_sample` returns the object's *first* pose draw; the pipeline redraws the
+    pose while a part is hidden, so code that rebuilds a stored object (figures, physics)
+    must take the pose from the stored labels (``object_pose`` position, ``object_yaw``).
+    """
+    sample = object_sample(config, object_index)
+    p = np.asarray(object_pose, dtype=np.float64)
+    return replace(sample, pose={"x_m": float(p[0]), "y_m": float(p[1]), "z_m": float(p[2]), "yaw_rad": float(object_yaw)})
+
+
+@dataclass(frozen=True)
+class Streams:
+    """One object's generators besides its sampling stream (None where unused): head-camera
+    views, scene layout, occluders.  Made once per object and advanced by every attempt."""
+
+    camera: np.random.Generator | None
+    scene: np.random.Generator | None
+    occluders: np.random.Generator | None
+
+    @classmethod
+    def of(cls, config: GenerationConfig, object_index: int) -> "Streams":
+        head = config.camera.mount == "head"
+        crng = camera_rng(config, object_index) if head and not config.mean else None
+        return cls(crng, *context_rngs(config, object_index))
+
+
+@dataclass(frozen=True)
+class Arrangement:
+    """What stage 3 compiles: the sample as placed (views drawn, base height fitted to its
+    scene), the base pose given to the compiler and the hook that adds scene and occluders."""
+
+    sample: ObjectSample
+    pose: dict
+    add_context: object = None  # callable(spec) or None
+
+
+def arrange(sample: ObjectSample, config: GenerationConfig, streams: Streams) -> Arrangement | None:
+    """Where the sample is compiled: with the head camera at the origin (placed per image,
+    views drawn now), with a scene or occluders in its context, else at its pose.  None when
+    no scene layout fits the pose (it must be redrawn)."""
+    if config.camera.mount == "head":
+        views = head_views(streams.camera, sample.pose, sample.geometry, config.images_per_object)
+        return Arrangement(replace(sample, views=views), ORIGIN_POSE)
+    if config.has_context:
+        sample, add_context = context_builder(config, sample, streams.scene)
+        return None if add_context is None else Arrangement(sample, sample.pose, add_context)
+    return Arrangement(sample, sample.pose)
+
+
+@dataclass
+class Views:
+    """Stage 4's output for one object: its images and what was read while rendering them."""
+
+    depth: np.ndarray  # (n, H, W) float32, m
+    mask: np.ndarray  # (n, H, W) uint8
+    q: np.ndarray  # (n, J) configurations read back from the model
+    visible: np.ndarray  # (n, 1 + J) visible pixels of the body and each part
+    unoccluded: np.ndarray | None  # (n, 1 + J) the same without scene and occluders (context only)
+    labels: dict  # OBJECT_LABEL_FIELDS -> (n, ...) arrays
+
+
+def render_images(obj: CompiledObject, sample: ObjectSample, config: GenerationConfig, renderer: DepthRenderer,
+                  streams: Streams, out: dict, *, check_visibility: bool = True) -> Views | None:
+    """Render the object's images into ``out["depth"]``/``out["mask"]`` ((n, H, W) buffers).
+    None (the pose is rejected) when a moving part covers fewer than
+    ``config.min_part_pixels`` in some view (with ``check_visibility``) or no occluder draw
+    leaves every part identifiable."""
+    model, info, obj_class = obj.model, obj.info, config.obj_class
+    n, J = config.images_per_object, obj_class.n_joints
+    head = config.camera.mount == "head"
+    data = mujoco.MjData(model)
+    ctx = Context(model, info, config.occluders, streams.occluders) if config.has_context else None
+    if head:  # the object is built at the origin and placed in each image's camera frame
+        placer = ObjectPlacer(model, info.base_body)
+        per_image = [None] * n
+    else:
+        labels = read_object_labels(model, data, info, obj_class)
+    renderer.bind(model)
+    depth, mask = out["depth"], out["mask"]
+    q = np.empty((n, J), np.float64)
+    vis = np.empty((n, 1 + J), np.int32)
+    alone = np.empty((n, 1 + J), np.int32) if ctx is not None else None
+    # Widest-open configurations first: they are the views that fail the visibility
+    # check (doors edge-on or swung out of the frame), so a rejected pose costs few renders.
+    for i in np.argsort(-sample.q.sum(axis=1), kind="stable"):
+        if head:  # this image's camera: labels are read from the model as placed for it
+            placer.place(object_in_camera(sample.pose, sample.views[i]))
+            per_image[i] = read_object_labels(model, data, info, obj_class)
+        set_configuration(model, data, info.joint_ids, sample.q[i])
+        if ctx is not None:
+            counts = ctx.render(renderer, data, depth[i], mask[i], config.min_part_pixels)
+            if counts is None:  # no occluder draw leaves every moving part identifiable
+                return None
+            vis[i], alone[i] = counts
+        else:
+            _, geom_id = renderer.render(data, depth_out=depth[i])
+            mask[i] = info.mask_from_geoms(geom_id)
+            vis[i] = visible_pixels(mask[i], J)
+        if check_visibility and vis[i, 1:].min() < config.min_part_pixels:
+            return None
+        q[i] = read_configuration(data, info)
+    if head:
+        stacked = {k: np.stack([np.asarray(per_image[i][k]) for i in range(n)]) for k in per_image[0]}
+    else:
+        stacked = {k: np.repeat(np.asarray(v)[None], n, 0) for k, v in labels.items()}
+    return Views(depth, mask, q, vis, alone, stacked)
+
+
+def apply_sensor(depth: np.ndarray, config: GenerationConfig, object_index: int) -> None:
+    """Rendered depth (n, H, W) -> the depth stored, in place (it may be a view into a
+    shard's buffer): the sensor-noise model (seeded per object, :func:`noise_rng`), then
+    rounding to ``config.depth_quantum_m``."""
+    if config.noise != "none":
+        from ..real.noise import get_noise_model
+
+        apply_noise = get_noise_model(config.noise)
+        nrng = noise_rng(config, object_index)
+        K = config.camera.K
+        for i in range(len(depth)):
+            depth[i] = apply_noise(depth[i], K, nrng)
+    if config.depth_quantum_m > 0:
+        np.divide(depth, config.depth_quantum_m, out=depth)
+        np.round(depth, out=depth)
+        np.multiply(depth, config.depth_quantum_m, out=depth)
+
+
+def object_arrays(sample: ObjectSample, config: GenerationConfig, views: Views) -> dict:
+    """Stage 5: every schema field of the object's images (optional occlusion fields with a
+    scene or occluders, format 1.1)."""
+    n = config.images_per_object
+    ids = np.array([sample_id(config.class_name, config.split, config.seed, sample.object_index, i) for i in range(n)], np.int64)
+    arrays = {
+        "depth": views.depth,
+        "mask": views.mask,
+        "q": views.q.astype(np.float32),
+        **{k: views.labels[k].astype(np.float32) for k in OBJECT_LABEL_FIELDS},
+        "visible_pixels": views.visible,
+        "object_index": np.full(n, sample.object_index, np.int64),
+        "image_index": np.arange(n, dtype=np.int32),
+        "sample_id": ids,
+        "class": np.full(n, config.class_name.encode("ascii"), dtype="S32"),
+    }
+    if views.unoccluded is not None:
+        arrays["unoccluded_pixels"] = views.unoccluded
+        arrays["visible_fraction"] = visible_fraction(views.visible, views.unoccluded)
+    return arrays

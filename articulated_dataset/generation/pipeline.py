@@ -1,0 +1,137 @@
+"""The generation pipeline composed: the stages of :mod:`.objects` per object
+(:func:`render_object`), and per shard (:func:`generate_shard`, stage 6's shard writing).
+
+sample -> template -> compile -> render -> label -> write.  Each object's stages run until a
+pose passes (a rejected pose is redrawn from the object's kept generator state); a shard is a
+pure function of the :class:`GenerationConfig` and its index, which is all an executor maps
+(:func:`run_shard`; :mod:`.split` runs a whole split).  Expensive setup happens once per
+process: the renderer (:func:`~articulated_dataset.generation.render.process_renderer`) and
+the parsed templates (:mod:`.templating`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import R_CAMERA_TO_OPTICAL
+from ..errors import UserError
+from ..format.records import shard_attrs as format_shard_attrs
+from ..format.schema import FIELDS, OPTIONAL_FIELDS
+from ..registry import JOINT_TYPES
+from ..shards import shard_name, write_shard
+from .compiled import compile_object
+from .config import GenerationConfig
+from .context_labels import VISIBLE_FRACTION_RANGE
+from .objects import Streams, apply_sensor, arrange, object_arrays, object_sample, render_images
+from .occluders import occluders_record
+from .render import DepthRenderer, process_renderer
+from .sampling import ObjectSample, sample_pose
+from .scenes import scene_record
+from .templating import object_urdf
+from .viewpoint import head_ranges
+
+log = logging.getLogger(__name__)
+
+#: Pose redraws allowed per object before giving up (a table that never shows the part).
+MAX_POSE_ATTEMPTS = 200
+
+
+def render_object(sample: ObjectSample, config: GenerationConfig, renderer: DepthRenderer, *, check_visibility: bool = True,
+                  out: dict | None = None):
+    """Template, compile, render and label one sampled object.
+
+    Redraws the pose (from the object's own generator, after its other draws: the state the
+    sample keeps) while a moving part covers fewer than ``config.min_part_pixels`` in some
+    view.  Returns ``(arrays, sample, attempts)`` where ``arrays`` holds every schema field
+    for the object's images and ``sample`` is the one rendered.  ``out`` may hold
+    preallocated ``depth`` (n, H, W) float32 and ``mask`` (n, H, W) uint8 arrays (views into
+    a shard's buffers) to render into.
+    """
+    obj_class = config.obj_class
+    urdf = object_urdf(obj_class, sample, config.table)
+    n, H, W = config.images_per_object, config.camera.height_px, config.camera.width_px
+    if out is None:
+        out = {"depth": np.empty((n, H, W), np.float32), "mask": np.empty((n, H, W), np.uint8)}
+    streams = Streams.of(config, sample.object_index)
+    poses = None  # the object's pose-redraw stream, made on the first rejection
+    for attempt in range(1, MAX_POSE_ATTEMPTS + 1):
+        placed = arrange(sample, config, streams)
+        if placed is not None:  # else no scene layout fits this pose
+            sample = placed.sample
+            obj = compile_object(obj_class, urdf, placed.pose, config.camera, placed.add_context)
+            views = render_images(obj, sample, config, renderer, streams, out, check_visibility=check_visibility)
+            if views is not None:
+                break
+        if poses is None:
+            poses = sample.pose_generator()
+        sample = replace(sample, pose=sample_pose(poses, config.table))
+    else:
+        raise UserError(
+            f"{obj_class.name} object {sample.object_index}: no pose in the table shows every moving part "
+            f"with >= {config.min_part_pixels} px after {MAX_POSE_ATTEMPTS} attempts; check the table"
+            + (" or choose the joints that open with --joints (a hidden part cannot be labelled)"
+               if config.third_party is not None else "")
+            + (f" (and >= {VISIBLE_FRACTION_RANGE[0]:g} of its pixels unhidden by the scene and occluders; "
+               "try fewer --occluders)" if config.has_context else "")
+        )
+    apply_sensor(views.depth, config, sample.object_index)
+    return object_arrays(sample, config, views), sample, attempt
+
+
+def shard_attrs(config: GenerationConfig, objects: range) -> dict:
+    """A generated shard's root attributes (:func:`articulated_dataset.format.records.shard_attrs`)
+    with the options beyond the paper's setting, recorded only when used (a default shard's
+    attributes, and bytes, are as they were)."""
+    obj_class = config.obj_class
+    assert set(obj_class.joint_types) <= set(JOINT_TYPES)
+    attrs = format_shard_attrs(config, obj_class, objects)
+    if config.camera.intrinsics is not None:
+        attrs["intrinsics"] = config.camera.intrinsics
+    if config.camera.mount != "fixed":
+        attrs["camera_mount"] = json.dumps({"mount": config.camera.mount, **head_ranges()}, sort_keys=True)
+    if config.scene != "none":
+        attrs["scene"] = scene_record(config.scene, config.class_name)
+    if config.occluders:
+        attrs["occluders"] = occluders_record(config.occluders)
+    return attrs
+
+
+def generate_shard(config: GenerationConfig, shard_index: int, split_dir: str | Path, progress=None) -> dict:
+    """Generate shard ``shard_index`` of the split into ``split_dir``; returns its manifest record.
+
+    ``progress(n_images)`` is called after each object, if given.
+    """
+    renderer = process_renderer(config.camera)
+    objects = config.shard_objects(shard_index)
+    n = config.images_per_object
+    H, W = config.camera.height_px, config.camera.width_px
+    # Images are rendered straight into the shard's buffers (no per-object copies).
+    images = {"depth": np.empty((len(objects) * n, H, W), np.float32), "mask": np.empty((len(objects) * n, H, W), np.uint8)}
+    stored = FIELDS + (OPTIONAL_FIELDS if config.has_context else ())
+    labels: dict[str, list] = {f.name: [] for f in stored if f.name not in images}
+    attempts = 0
+    for p, k in enumerate(objects):
+        out = {name: buf[p * n:(p + 1) * n] for name, buf in images.items()}
+        arrays, _, tries = render_object(object_sample(config, k), config, renderer, check_visibility=not config.mean, out=out)
+        attempts += tries
+        for name in labels:
+            labels[name].append(arrays[name])
+        if progress is not None:
+            progress(n)
+    arrays = {**images, **{name: np.concatenate(v, axis=0) for name, v in labels.items()}}
+    attrs = shard_attrs(config, objects)
+    attrs["pose_attempts"] = attempts
+    record = write_shard(Path(split_dir) / shard_name(shard_index), arrays, attrs, config.camera.K, R_CAMERA_TO_OPTICAL)
+    record.update(object_start=objects.start, object_stop=objects.stop, pose_attempts=attempts)
+    return record
+
+
+def run_shard(args, progress=None):
+    """Executor task: generate one shard; returns ``(shard_index, manifest_record)``."""
+    config, index, split_dir = args
+    return index, generate_shard(config, index, split_dir, progress=progress)

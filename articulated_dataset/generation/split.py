@@ -1,0 +1,359 @@
+"""Stage 6 of the pipeline at the split level: writing a whole split with its manifest
+(:func:`generate_split`), and the split folder's lifecycle around it.
+
+Every shard is a pure function of the :class:`GenerationConfig` and its index
+(:func:`~articulated_dataset.generation.pipeline.generate_shard`), so executors (local
+processes, or Ray; :mod:`articulated_dataset.executors`) only map
+:func:`~articulated_dataset.generation.pipeline.run_shard` over shard indices and any
+executor gives identical bytes.  Around them: the split's lock, ``--resume`` (the shards a
+run of the same settings completed), ``--overwrite`` (a staging sibling swapped in when
+complete), the memory and disk checks, and what a failed run keeps.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import DataFormatError, UserError
+from ..format.records import split_manifest
+from ..safeio import (FULL_HINT, TMP_SUFFIX, WriteError, available_memory_bytes, check_free_space, ensure_dir, format_bytes,
+                      fsync_dir, remove_created_dirs, translated)
+from ..shards import write_manifest
+from .config import GenerationConfig, split_dir_for
+from .pipeline import run_shard, shard_attrs
+
+log = logging.getLogger(__name__)
+
+
+# Files of a split folder that this package writes (the manifest, shards and their
+# temporary siblings).  Nothing else in a split folder is ever deleted or replaced.
+_OWN_FILE = re.compile(r"(manifest\.json|shard-([0-9]{5,})\.h5)(\.partial)?")
+_SHARD_FILE = re.compile(r"shard-([0-9]{5,})\.h5")
+#: Siblings of ``OUT/<class>/<split>`` (hidden): the lock held while a run writes the split,
+#: the new split an ``--overwrite`` builds, and the old one while the two are swapped.
+LOCK_SUFFIX = ".lock"
+STAGING_SUFFIX = ".new"
+RETIRED_SUFFIX = ".old"
+#: Memory one image takes in a shard's buffers while it is generated (float32 depth + uint8
+#: mask), and the renderer's own buffers (RGB, depth, GL colour/depth/stencil), per pixel.
+SHARD_BUFFER_BYTES_PER_PIXEL = 5
+RENDERER_BYTES_PER_PIXEL = 24
+#: Memory of one worker process before its first shard (Python, NumPy, MuJoCo, the GL
+#: driver; ~200-250 MB measured), counted for each worker process a run would start.
+WORKER_PROCESS_BYTES = 250e6
+#: Fraction of the available memory generation may plan to use (the rest: Python, MuJoCo,
+#: the GL driver, other programs).
+MEMORY_BUDGET_FRACTION = 0.5
+#: A lower bound of a shard's size on disk per pixel: measured 0.08-0.10 byte/pixel (1.6-2.1
+#: KB per 192x108 image); a split certainly needs more than this, so a run that would not fit
+#: is refused before it starts.
+MIN_DISK_BYTES_PER_PIXEL = 0.02
+
+
+def _sibling(split_dir: Path, suffix: str) -> Path:
+    return split_dir.parent / f".{split_dir.name}{suffix}"
+
+
+def _own_entries(folder: Path) -> tuple[list[Path], list[Path]]:
+    """``(ours, foreign)`` entries of ``folder``: regular files named as we name them, and
+    everything else (other files, folders, symbolic links)."""
+    ours, foreign = [], []
+    for p in sorted(folder.iterdir()):
+        own = _OWN_FILE.fullmatch(p.name) is not None and p.is_file() and not p.is_symlink()
+        (ours if own else foreign).append(p)
+    return ours, foreign
+
+
+def _remove_own_folder(folder: Path) -> None:
+    """Delete ``folder`` if it holds only files we write (else leave it and say so)."""
+    if not folder.is_dir() or folder.is_symlink():
+        return
+    ours, foreign = _own_entries(folder)
+    if foreign:
+        raise UserError(f"{folder} holds files artdata did not write ({', '.join(p.name for p in foreign[:3])}); "
+                        "move them away (nothing was deleted)")
+    for p in ours:
+        p.unlink()
+    folder.rmdir()
+
+
+class SplitLock:
+    """Exclusive lock of one split folder while a run writes it: ``OUT/<class>/.<split>.lock``
+    (``flock``, released by the kernel when the process dies, whatever kills it).
+
+    The lock file is removed when released; a run that finds the file replaced after locking
+    it locks the new one, so two runs never both hold the lock.
+    """
+
+    def __init__(self, split_dir: Path):
+        self.split_dir = split_dir
+        self.path = _sibling(split_dir, LOCK_SUFFIX)
+        self._fd: int | None = None
+
+    def acquire(self) -> None:
+        try:
+            import fcntl
+        except ImportError:  # no flock (Windows): runs are not protected from each other
+            log.warning("no file locking on this platform: do not run two generate commands on %s", self.split_dir)
+            return
+        while True:
+            with translated(self.path, "create lock file"):
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                raise UserError(f"another artdata generate is writing {self.split_dir} (it holds {self.path}); "
+                                "wait for it to finish or stop it") from None
+            try:
+                st, held = os.stat(self.path), os.fstat(fd)
+                same = (st.st_dev, st.st_ino) == (held.st_dev, held.st_ino)
+            except FileNotFoundError:
+                same = False
+            if same:
+                self._fd = fd
+                return
+            os.close(fd)  # released and removed by the run that held it: lock the new file
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        try:
+            os.unlink(self.path)
+        except OSError:
+            pass
+        os.close(self._fd)
+        self._fd = None
+
+
+@dataclass
+class _Run:
+    """What :func:`_begin` decided: where shards go and what already exists."""
+
+    split_dir: Path
+    target: Path  # split_dir, or its staging sibling with --overwrite
+    records: dict[int, dict]
+    created: list[Path]  # folders this run created (removed again if it writes nothing)
+    lock: SplitLock
+
+
+def _restore_interrupted_swap(split_dir: Path) -> None:
+    """An ``--overwrite`` killed between its two renames left the old split as
+    ``.<split>.old`` and no split: put the old split back (lock held)."""
+    retired = _sibling(split_dir, RETIRED_SUFFIX)
+    if retired.is_dir() and not retired.is_symlink() and not split_dir.exists() and not split_dir.is_symlink():
+        os.rename(retired, split_dir)
+
+
+def _remove_interrupted_siblings(split_dir: Path) -> None:
+    """Remove the ``.new``/``.old`` siblings a killed ``--overwrite`` left (lock held, and
+    only once this run proceeds)."""
+    for suffix in (STAGING_SUFFIX, RETIRED_SUFFIX):
+        _remove_own_folder(_sibling(split_dir, suffix))
+
+
+def _begin(split_dir: Path, config: GenerationConfig, *, resume: bool, overwrite: bool) -> _Run:
+    """Lock the split and decide what to do.  A refusal changes nothing on disk (and removes
+    the folders and lock it created to find out)."""
+    if split_dir.is_symlink():
+        raise UserError(f"{split_dir} is a symbolic link; generate writes only into real folders "
+                        "(give the link's target as --out, or remove the link)")
+    if split_dir.exists() and not split_dir.is_dir():
+        raise UserError(f"{split_dir} exists and is not a folder")
+    created = ensure_dir(split_dir.parent)
+    lock = SplitLock(split_dir)
+    try:
+        lock.acquire()
+        _restore_interrupted_swap(split_dir)  # a restore, never a deletion
+        ours, foreign = _own_entries(split_dir) if split_dir.is_dir() else ([], [])
+        data = [p for p in ours if not p.name.endswith(TMP_SUFFIX)]
+        stale = [p for p in ours if p.name.endswith(TMP_SUFFIX)]  # a killed run's; no run holds the lock
+        names = ", ".join(p.name for p in foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        records: dict[int, dict] = {}
+        target = split_dir
+        if not data:
+            if foreign:
+                raise UserError(f"{split_dir} is not empty and holds no generated split ({names}); "
+                                "choose another --out or --split")
+        elif not (resume or overwrite):
+            raise UserError(f"{split_dir} already holds generated data; pass --resume to continue it or --overwrite to replace it")
+        elif overwrite:
+            if foreign:
+                raise UserError(f"{split_dir} holds files artdata did not write ({names}); --overwrite replaces "
+                                "only generated splits: move them away first")
+            target = _sibling(split_dir, STAGING_SUFFIX)
+        else:
+            records = _resume_records(split_dir, config)
+        # Proceeding: now (and only now) remove what killed runs left.
+        _remove_interrupted_siblings(split_dir)
+        for p in stale:
+            p.unlink()
+        created += ensure_dir(target)
+    except BaseException:
+        lock.release()
+        remove_created_dirs(created)
+        raise
+    return _Run(split_dir, target, records, created, lock)
+
+
+def _resume_records(split_dir: Path, config: GenerationConfig) -> dict[int, dict]:
+    """Records of the shards a run of ``config`` already completed in ``split_dir``; a
+    manifest or shard of other settings is refused (never adopted)."""
+    from ..format import MANIFEST_NAME, Shard, read_manifest, sha256_file
+
+    records: dict[int, dict] = {}
+    manifest_path = split_dir / MANIFEST_NAME
+    different = "--resume needs the same command (or use --overwrite)"
+    if manifest_path.exists():
+        old = read_manifest(split_dir)
+        try:
+            old_config = GenerationConfig.from_dict(old["config"])
+            listed = [(_SHARD_FILE.fullmatch(rec["file"]), rec) for rec in old["shards"]]
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise DataFormatError(f"{manifest_path}: corrupt manifest ({type(exc).__name__}: {exc}); "
+                                  "use --overwrite") from None
+        if old_config != config:
+            raise UserError(f"{split_dir} was generated with different settings; {different}")
+        for m, rec in listed:
+            if m is None or int(m.group(1)) >= config.n_shards:
+                raise DataFormatError(f"{manifest_path}: corrupt manifest (shard file {str(rec['file'])[:80]!r}); "
+                                      "use --overwrite")
+            records[int(m.group(1))] = rec
+    # Shards listed but missing or of another size are generated again; shards on disk but
+    # not in the manifest (killed between rename and manifest update) are complete by
+    # construction (atomic rename) if they were written with these settings.
+    for i, rec in list(records.items()):
+        path = split_dir / rec["file"]
+        if not path.is_file() or path.stat().st_size != rec.get("bytes"):
+            del records[i]
+    for path in sorted(split_dir.iterdir()):
+        m = _SHARD_FILE.fullmatch(path.name)
+        if m is None or int(m.group(1)) in records:
+            continue
+        i = int(m.group(1))
+        if i >= config.n_shards:
+            raise UserError(f"{path} is not a shard of this command ({config.n_shards} shards); {different}")
+        sh = Shard(path)
+        try:
+            attrs, n = sh.attrs, len(sh)
+        finally:
+            sh.close()
+        objects = config.shard_objects(i)
+        for key, want in shard_attrs(config, objects).items():
+            have = attrs.get(key)
+            if key != "package_version" and have != want:
+                raise UserError(f"{path} was generated with different settings ({key} = {str(have)[:60]}, "
+                                f"this command: {str(want)[:60]}); {different}")
+        records[i] = {"file": path.name, "n_images": n, "bytes": path.stat().st_size, "sha256": sha256_file(path),
+                      "object_start": objects.start, "object_stop": objects.stop,
+                      "pose_attempts": int(attrs.get("pose_attempts", 0))}
+    return records
+
+
+def _finish_overwrite(run: _Run) -> None:
+    """Swap the complete new split (staging sibling) in for the old one."""
+    retired = _sibling(run.split_dir, RETIRED_SUFFIX)
+    with translated(run.split_dir, "replace"):
+        os.rename(run.split_dir, retired)
+        os.rename(run.target, run.split_dir)
+    fsync_dir(run.split_dir.parent)
+    _remove_own_folder(retired)
+
+
+def _abandon(run: _Run) -> None:
+    """After a failure: drop what cannot be continued, keep what ``--resume`` can."""
+    if run.target != run.split_dir:  # an --overwrite: the old split stays as it was
+        _remove_own_folder(run.target)
+    elif run.target.is_dir():
+        for p in run.target.iterdir():
+            if p.name.endswith(TMP_SUFFIX) and _OWN_FILE.fullmatch(p.name):
+                p.unlink(missing_ok=True)
+
+
+def check_resources(config: GenerationConfig, split_dir: Path, *, workers: int, remote: bool = False,
+                    done_images: int = 0) -> None:
+    """Refuse (one line) a run whose shards cannot fit in this machine's memory or whose
+    images cannot fit on the output's filesystem, before anything is allocated."""
+    pixels = config.camera.width_px * config.camera.height_px
+    per_shard = min(config.objects_per_shard, config.n_objects) * config.images_per_object
+    if not remote:
+        in_flight = max(1, min(workers, config.n_shards))
+        process = WORKER_PROCESS_BYTES if in_flight > 1 else 0.0  # one worker runs in this process
+        need = in_flight * (per_shard * pixels * SHARD_BUFFER_BYTES_PER_PIXEL + pixels * RENDERER_BYTES_PER_PIXEL + process)
+        avail = available_memory_bytes()
+        if avail is not None and need > MEMORY_BUDGET_FRACTION * avail:
+            raise UserError(
+                f"{in_flight} worker(s) with shards of {per_shard} images of {config.camera.width_px}x{config.camera.height_px} px "
+                f"need {format_bytes(need)} of memory, more than half of the {format_bytes(avail)} available; "
+                "lower --objects-per-shard, --images, --width/--height or --workers")
+    remaining = config.n_objects * config.images_per_object - done_images
+    check_free_space(split_dir.parent if not split_dir.exists() else split_dir,
+                     remaining * pixels * MIN_DISK_BYTES_PER_PIXEL, f"{remaining} images of {pixels} px")
+
+
+def generate_split(
+    config: GenerationConfig,
+    out_root: str | Path,
+    *,
+    workers: int = 1,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: bool = False,
+    executor=None,
+) -> Path:
+    """Generate every shard of ``config`` under ``out_root/<class>/<split>`` and its manifest.
+
+    Shards are independent, so the result is byte-identical for any executor, any number of
+    ``workers`` and across interruptions with ``resume``.  ``executor`` (see
+    :mod:`articulated_dataset.executors`) defaults to local processes (``workers``).
+    Returns the split folder.
+
+    Lifecycle (docs/security.md): the split is locked while a run writes it; a refused run
+    changes nothing; ``overwrite`` builds the new split beside the old one and swaps them
+    only when it is complete; a failed run keeps its complete shards for ``resume`` and
+    leaves nothing if it completed none.
+    """
+    from tqdm import tqdm
+
+    from ..executors import local_executor
+
+    if resume and overwrite:
+        raise UserError("--resume and --overwrite are mutually exclusive")
+    if executor is None:
+        executor = local_executor(workers)
+    split_dir = split_dir_for(out_root, config)
+    remote = getattr(executor, "remote", False)  # Ray: shards are built in other machines' memory
+    check_resources(config, split_dir, workers=workers, remote=remote)
+    run = _begin(split_dir, config, resume=resume, overwrite=overwrite)
+    records = run.records
+    try:
+        done_images = sum(r["n_images"] for r in records.values())
+        if done_images:
+            check_resources(config, split_dir, workers=workers, remote=remote, done_images=done_images)
+        total_images = config.n_objects * config.images_per_object
+        bar = tqdm(total=total_images, initial=done_images, unit="img", disable=not progress,
+                   desc=f"{config.class_name}/{config.split}", dynamic_ncols=True)
+        todo = ((config, i, run.target) for i in range(config.n_shards) if i not in records)
+        try:
+            for i, rec in executor.map_unordered(run_shard, todo, progress=bar.update):
+                records[i] = rec
+                write_manifest(run.target, split_manifest(config, [records[i] for i in sorted(records)]))
+        finally:
+            bar.close()
+        write_manifest(run.target, split_manifest(config, [records[i] for i in sorted(records)]))
+        if run.target != split_dir:
+            _finish_overwrite(run)
+    except BaseException as exc:
+        _abandon(run)
+        run.lock.release()
+        remove_created_dirs(run.created)  # only folders still empty: a run that wrote nothing leaves nothing
+        if isinstance(exc, WriteError) and run.target == split_dir and records:
+            raise WriteError(f"{str(exc).removesuffix(FULL_HINT)}; the {len(records)} complete shard(s) are kept: "
+                             "run the same command with --resume once there is space", exc.path, exc.errno) from None
+        raise
+    run.lock.release()
+    return split_dir
