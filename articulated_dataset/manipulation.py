@@ -1415,8 +1415,10 @@ def sight_handle(depth_m: np.ndarray, K: np.ndarray, rng: np.random.Generator,
 
 
 #: A sighted panel normal further than this from the hypothesis's (about its axis) is not used
-#: to turn the hypothesis (the plane found is then unlikely to be its door's).
-MAX_PANEL_TURN_DEG = 60.0
+#: to turn the hypothesis (the plane found then faces away from where the hypothesis's door can
+#: face; the handle stands on the panel, so the plane is the door's; a door believed open 35
+#: degrees and 25 degrees off in yaw is 60 off).
+MAX_PANEL_TURN_DEG = 90.0
 #: When no hypothesis's handle is in its close-up: one overview of the door from
 #: HANDLE_OVERVIEW_DISTANCE_M (9.5 mm per pixel), searched within HANDLE_OVERVIEW_RADIUS_M.
 HANDLE_OVERVIEW_DISTANCE_M = 1.0
