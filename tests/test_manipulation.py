@@ -18,7 +18,7 @@ from articulated_dataset.errors import UserError
 from articulated_dataset.registry import PRISMATIC, REVOLUTE, all_classes
 from articulated_dataset.units import parse_quantity
 from articulated_dataset.rotations import quat_to_matrix
-from articulated_dataset.scene import set_configuration
+from articulated_dataset.generation.scene import set_configuration
 
 CLASSES = [c.name for c in all_classes()]
 REVOLUTE_CLASSES = [c.name for c in all_classes() if c.joint_types[0] == REVOLUTE]
