@@ -13,12 +13,11 @@ import click
 from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, INTRINSICS_PRESETS, KINECT_V2_VFOV_DEG, CameraConfig, parse_resolution
 from ..errors import UserError
 from ..executors import EXECUTORS, get_executor
-from ..format.manifest import MAX_OCCLUDERS, SCENE_NAMES
-from ..format.manifest import DEFAULT_IMAGES_PER_OBJECT, DEFAULT_OBJECTS_PER_SHARD, DEFAULT_SEED
+from ..format.manifest import DEFAULT_IMAGES_PER_OBJECT, DEFAULT_OBJECTS_PER_SHARD, DEFAULT_SEED, MAX_OCCLUDERS, SCENE_NAMES
 from ..generation import GenerationConfig, generate_split
+from ..generation.viewpoint import CAMERA_MOUNTS
 from ..registry import get_class, register
 from ..tables import TABLE_NAMES, SamplingTable, load_table_file
-from ..generation.viewpoint import CAMERA_MOUNTS
 from .options import ClassChoice
 
 
