@@ -23,7 +23,7 @@ import numpy as np
 
 from .format.discovery import find_split_dirs  # noqa: F401
 from .format.manifest import MANIFEST_NAME, check_manifest_names, read_manifest, shard_paths  # noqa: F401
-from .format.schema import FIELDS, IMAGE_FIELDS, K_DATASET, OPTIONAL_FIELDS, R_DATASET, validate_arrays
+from .format.schema import FIELDS, IMAGE_FIELDS, K_DATASET, OPTIONAL_FIELDS, R_DATASET, RGB_FIELDS, validate_arrays
 from .format.shards import (  # noqa: F401
     _CLASS_NAME_RE,
     _SHARD_FILE_RE,
@@ -79,10 +79,10 @@ def write_shard(path: str | Path, arrays: dict, attrs: dict, K: np.ndarray, R: n
     from .safeio import atomic_write_h5
 
     def build(f: h5py.File) -> None:
-        for field in FIELDS + tuple(f for f in OPTIONAL_FIELDS if f.name in arrays):  # optional: format 1.1
+        for field in FIELDS + tuple(f for f in OPTIONAL_FIELDS + RGB_FIELDS if f.name in arrays):  # optional: 1.1, 1.2
             a = arrays[field.name]
-            if field.name in IMAGE_FIELDS:
-                f.create_dataset(field.name, data=a, chunks=(1, H, W), shuffle=a.dtype.itemsize > 1,
+            if field.name in IMAGE_FIELDS or field in RGB_FIELDS:  # one chunk per image
+                f.create_dataset(field.name, data=a, chunks=(1,) + a.shape[1:], shuffle=a.dtype.itemsize > 1,
                                  compression="gzip", compression_opts=IMAGE_GZIP_LEVEL, track_times=False)
             else:
                 f.create_dataset(field.name, data=a, shuffle=a.dtype.itemsize > 1,

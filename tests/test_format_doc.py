@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from articulated_dataset.format.schema import FIELDS, MASK_OCCLUDER, MASK_SCENE, OPTIONAL_FIELDS, markdown_table
+from articulated_dataset.format.schema import FIELDS, MASK_OCCLUDER, MASK_SCENE, OPTIONAL_FIELDS, RGB_FIELDS, markdown_table
 
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "format.md"
 
@@ -16,10 +16,13 @@ def test_page_holds_the_generated_field_table():
     table = markdown_table()
     assert f"\n{table}\n\n" in text, "docs/format.md: regenerate the table with python -m articulated_dataset.format.schema"
     rows = [line for line in table.splitlines()[2:]]
-    assert len(rows) == len(FIELDS) + len(OPTIONAL_FIELDS)
+    assert len(rows) == len(FIELDS) + len(OPTIONAL_FIELDS) + len(RGB_FIELDS)
     for f in OPTIONAL_FIELDS:
         row = next(r for r in rows if r.startswith(f"| `{f.name}` |"))
         assert "format 1.1" in row
+    for f in RGB_FIELDS:
+        row = next(r for r in rows if r.startswith(f"| `{f.name}` |"))
+        assert "format 1.2" in row
 
 
 def test_page_documents_the_context_mask_codes():

@@ -156,6 +156,9 @@ def table_from_options(obj_class, values) -> SamplingTable:
 @click.option("--occluders", type=int, default=0, show_default=True,
               help=f"Occluding shapes (boxes, cylinders, arm-like chains) between the camera and the object, per image "
                    f"(0-{MAX_OCCLUDERS}); occlusion fractions are stored as labels.")
+@click.option("--rgb", is_flag=True,
+              help="Also render colour images (same camera; randomised materials, textures and lights), stored as "
+                   "the optional field rgb (format 1.2); docs/generation.md.")
 @click.option("--noise", type=_NoiseChoice(), default="none", show_default=True, help="Depth sensor-noise model.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run of the same command.")
 @click.option("--overwrite", is_flag=True, help="Replace existing data of this class and split (the new split is built beside it and swapped in when complete).")
@@ -163,7 +166,7 @@ def table_from_options(obj_class, values) -> SamplingTable:
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missing_meshes, urdf_scale, urdf_mesh_root,
                  n_objects, split, out_root, seed, images_per_object, objects_per_shard, width, height, resolution, vfov,
-                 intrinsics, camera_mount, tables, workers, executor, address, scene, occluders, noise, resume, overwrite,
+                 intrinsics, camera_mount, tables, workers, executor, address, scene, occluders, rgb, noise, resume, overwrite,
                  mean_object, quiet):
     """Generate labelled depth images of one object class (or one URDF object) into HDF5 shards."""
     camera = camera_from_options(width, height, resolution, vfov, intrinsics, camera_mount)
@@ -206,7 +209,7 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
     config = GenerationConfig(
         class_name=obj_class.name, split=split, n_objects=n_objects, seed=seed, images_per_object=images_per_object,
         objects_per_shard=objects_per_shard, camera=camera, table=table, mean=mean_object, noise=noise,
-        third_party=third_party, scene=scene, occluders=occluders,
+        third_party=third_party, scene=scene, occluders=occluders, rgb=rgb,
     )
     t0 = time.perf_counter()
     try:

@@ -66,6 +66,7 @@ class SplitConfig:
     # Options beyond the paper's dataset (issue 18): in the manifest only when used.
     scene: str = "none"  # scene context around the object (SCENE_NAMES)
     occluders: int = 0  # occluding shapes between the camera and the object, per image
+    rgb: bool = False  # also store colour images (articulated_dataset.generation.appearance)
 
     def __post_init__(self) -> None:
         self._validate()
@@ -91,6 +92,8 @@ class SplitConfig:
             raise UserError(f"unknown scene {str(self.scene)[:40]!r}; choose from: {', '.join(SCENE_NAMES)}")
         if isinstance(self.occluders, bool) or not isinstance(self.occluders, int) or not 0 <= self.occluders <= MAX_OCCLUDERS:
             raise UserError(f"--occluders must be an integer in [0, {MAX_OCCLUDERS}], got {str(self.occluders)[:40]}")
+        if not isinstance(self.rgb, bool):
+            raise UserError(f"rgb must be true or false, got {str(self.rgb)[:40]}")
         if self.has_context:
             option = "--scene" if self.scene != "none" else "--occluders"
             if self.mean:
@@ -110,7 +113,7 @@ class SplitConfig:
     def format_version(self) -> str:
         from .schema import format_version_for
 
-        return format_version_for(self.has_context)
+        return format_version_for(self.has_context, self.rgb)
 
     @property
     def n_shards(self) -> int:
@@ -125,7 +128,7 @@ class SplitConfig:
         d["camera"] = self.camera.to_dict()  # options beyond the paper's camera only when set
         d["table"] = self.table.to_dict()
         d["format_version"] = self.format_version
-        for key, default in (("scene", "none"), ("occluders", 0)):  # a default split's manifest is as it was
+        for key, default in (("scene", "none"), ("occluders", 0), ("rgb", False)):  # a default split's manifest is as it was
             if d[key] == default:
                 del d[key]
         return d

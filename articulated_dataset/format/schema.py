@@ -74,10 +74,21 @@ OPTIONAL_FIELDS_BY_NAME = {f.name: f for f in OPTIONAL_FIELDS}
 #: :data:`MASK_SCENE`/:data:`MASK_OCCLUDER`); other splits keep FORMAT_VERSION (1.0).
 CONTEXT_FORMAT_VERSION = "1.1"
 
+#: Fields stored only by splits generated with ``--rgb`` (format 1.2; with or without the
+#: context fields): readers of depth-only splits never see them.
+RGB_FIELDS: tuple[Field, ...] = (
+    Field("rgb", "uint8", ("N", "H", "W", 3), "-", "image",
+          "colour image from the depth's camera (sRGB-ish 8-bit, row 0 at the top), randomised materials, "
+          "textures and lights (shard attribute appearance); (0, 0, 0) exactly where depth hits nothing."),
+)
+RGB_FIELDS_BY_NAME = {f.name: f for f in RGB_FIELDS}
+RGB_FORMAT_VERSION = "1.2"
 
-def format_version_for(has_context: bool) -> str:
-    """The format version a split is written with: 1.1 with scene/occluders, else 1.0."""
-    return CONTEXT_FORMAT_VERSION if has_context else FORMAT_VERSION
+
+def format_version_for(has_context: bool, rgb: bool = False) -> str:
+    """The format version a split is written with: 1.2 with colour images, 1.1 with
+    scene/occluders, else 1.0."""
+    return RGB_FORMAT_VERSION if rgb else CONTEXT_FORMAT_VERSION if has_context else FORMAT_VERSION
 
 #: Joint types (the shards' ``joint_types`` attribute): ``q`` in radians or metres.
 REVOLUTE = "revolute"
@@ -135,7 +146,7 @@ def validate_arrays(arrays: dict, *, N: int, J: int, H: int, W: int, where: str 
             raise DataFormatError(f"{prefix}dataset {f.name!r} has shape {tuple(a.shape)}, expected {expected}")
         if np.dtype(a.dtype) != np.dtype(f.dtype):
             raise DataFormatError(f"{prefix}dataset {f.name!r} has dtype {a.dtype}, expected {f.dtype}")
-    for f in OPTIONAL_FIELDS:  # only where present
+    for f in OPTIONAL_FIELDS + RGB_FIELDS:  # only where present
         if f.name in arrays:
             a = arrays[f.name]
             expected = resolve_shape(f.shape, N=N, J=J, H=H, W=W)
@@ -155,9 +166,10 @@ def check_version(version: str, where: str = "") -> None:
 def markdown_table() -> str:
     """The schema as a Markdown table (used to build docs/format.md)."""
     rows = ["| dataset | dtype | shape | units | frame | meaning |", "|---|---|---|---|---|---|"]
-    for f in FIELDS + OPTIONAL_FIELDS:
+    for f in FIELDS + OPTIONAL_FIELDS + RGB_FIELDS:
         shape = "(" + ", ".join(str(s) for s in f.shape) + ")"
-        optional = " (format 1.1, splits with --scene or --occluders only)" if f in OPTIONAL_FIELDS else ""
+        optional = (" (format 1.1, splits with --scene or --occluders only)" if f in OPTIONAL_FIELDS
+                    else " (format 1.2, splits with --rgb only)" if f in RGB_FIELDS else "")
         cells = [f"`{f.name}`", f.dtype, shape, f.units, f.frame, f.description + optional]
         rows.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
     return "\n".join(rows)

@@ -56,3 +56,14 @@ def camera_rng(config: SplitConfig, object_index: int) -> np.random.Generator:
     """Generator of one object's head-camera views (:mod:`articulated_dataset.generation.viewpoint`),
     independent of its sampling stream: an object is the same with either camera."""
     return object_rng(config.seed, config.class_name, config.split, object_index, stream=CAMERA_STREAM)
+
+
+#: Extra SeedSequence word of an object's colour appearance stream (``--rgb``; noise 1, head
+#: camera 2, scene 3, occluders 4).
+APPEARANCE_STREAM = 5
+
+
+def appearance_rng(config: SplitConfig, object_index: int) -> np.random.Generator:
+    """Generator of one object's colour appearance (``--rgb``: materials, textures, lights;
+    :mod:`articulated_dataset.generation.appearance`), independent of every other stream."""
+    return object_rng(config.seed, config.class_name, config.split, object_index, stream=APPEARANCE_STREAM)

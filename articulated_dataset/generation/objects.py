@@ -22,8 +22,9 @@ from dataclasses import dataclass, replace
 import mujoco
 import numpy as np
 
+from .appearance import Appearance
 from .compiled import CompiledObject
-from .config import GenerationConfig, camera_rng, noise_rng
+from .config import GenerationConfig, appearance_rng, camera_rng, noise_rng
 from .context_labels import visible_fraction
 from .labels import read_configuration, read_object_labels, visible_pixels
 from .occluders import Context
@@ -62,17 +63,20 @@ def stored_sample(config: GenerationConfig, object_index: int, object_pose, obje
 @dataclass(frozen=True)
 class Streams:
     """One object's generators besides its sampling stream (None where unused): head-camera
-    views, scene layout, occluders.  Made once per object and advanced by every attempt."""
+    views, scene layout, occluders, colour appearance.  Made once per object and advanced by
+    every attempt."""
 
     camera: np.random.Generator | None
     scene: np.random.Generator | None
     occluders: np.random.Generator | None
+    appearance: np.random.Generator | None = None
 
     @classmethod
     def of(cls, config: GenerationConfig, object_index: int) -> "Streams":
         head = config.camera.mount == "head"
         crng = camera_rng(config, object_index) if head and not config.mean else None
-        return cls(crng, *context_rngs(config, object_index))
+        arng = appearance_rng(config, object_index) if config.rgb else None
+        return cls(crng, *context_rngs(config, object_index), arng)
 
 
 @dataclass(frozen=True)
@@ -108,11 +112,14 @@ class Views:
     visible: np.ndarray  # (n, 1 + J) visible pixels of the body and each part
     unoccluded: np.ndarray | None  # (n, 1 + J) the same without scene and occluders (context only)
     labels: dict  # OBJECT_LABEL_FIELDS -> (n, ...) arrays
+    rgb: np.ndarray | None = None  # (n, H, W, 3) uint8 colour images (--rgb only)
 
 
 def render_images(obj: CompiledObject, sample: ObjectSample, config: GenerationConfig, renderer: DepthRenderer,
                   streams: Streams, out: dict, *, check_visibility: bool = True) -> Views | None:
-    """Render the object's images into ``out["depth"]``/``out["mask"]`` ((n, H, W) buffers).
+    """Render the object's images into ``out["depth"]``/``out["mask"]`` ((n, H, W) buffers),
+    and with ``config.rgb`` its colour images into ``out["rgb"]`` ((n, H, W, 3) uint8; the
+    model compiled with :func:`~articulated_dataset.generation.appearance.with_appearance_assets`).
     None (the pose is rejected) when a moving part covers fewer than
     ``config.min_part_pixels`` in some view (with ``check_visibility``) or no occluder draw
     leaves every part identifiable."""
@@ -128,6 +135,10 @@ def render_images(obj: CompiledObject, sample: ObjectSample, config: GenerationC
         labels = read_object_labels(model, data, info, obj_class)
     renderer.bind(model)
     depth, mask = out["depth"], out["mask"]
+    look = None
+    if config.rgb:  # materials drawn once per compiled model, after the context's mask codes
+        look = Appearance(model, info.geom_part, J, streams.appearance)
+        look.dress()
     q = np.empty((n, J), np.float64)
     vis = np.empty((n, 1 + J), np.int32)
     alone = np.empty((n, 1 + J), np.int32) if ctx is not None else None
@@ -149,12 +160,15 @@ def render_images(obj: CompiledObject, sample: ObjectSample, config: GenerationC
             vis[i] = visible_pixels(mask[i], J)
         if check_visibility and vis[i, 1:].min() < config.min_part_pixels:
             return None
+        if look is not None:  # the same state (occluders as drawn), lights drawn per image
+            look.light(data)
+            renderer.render_rgb(data, out["rgb"][i], context=ctx is not None)
         q[i] = read_configuration(data, info)
     if head:
         stacked = {k: np.stack([np.asarray(per_image[i][k]) for i in range(n)]) for k in per_image[0]}
     else:
         stacked = {k: np.repeat(np.asarray(v)[None], n, 0) for k, v in labels.items()}
-    return Views(depth, mask, q, vis, alone, stacked)
+    return Views(depth, mask, q, vis, alone, stacked, out["rgb"] if look is not None else None)
 
 
 def apply_sensor(depth: np.ndarray, config: GenerationConfig, object_index: int) -> None:
@@ -191,6 +205,8 @@ def object_arrays(sample: ObjectSample, config: GenerationConfig, views: Views) 
         "sample_id": ids,
         "class": np.full(n, config.class_name.encode("ascii"), dtype="S32"),
     }
+    if views.rgb is not None:
+        arrays["rgb"] = views.rgb
     if views.unoccluded is not None:
         arrays["unoccluded_pixels"] = views.unoccluded
         arrays["visible_fraction"] = visible_fraction(views.visible, views.unoccluded)

@@ -21,9 +21,10 @@ import numpy as np
 from ..camera import R_CAMERA_TO_OPTICAL
 from ..errors import UserError
 from ..format.records import shard_attrs as format_shard_attrs
-from ..format.schema import FIELDS, OPTIONAL_FIELDS
+from ..format.schema import FIELDS, OPTIONAL_FIELDS, RGB_FIELDS
 from ..registry import JOINT_TYPES
 from ..shards import shard_name, write_shard
+from .appearance import appearance_record, with_appearance_assets
 from .compiled import compile_object
 from .config import GenerationConfig
 from .context_labels import VISIBLE_FRACTION_RANGE
@@ -54,16 +55,17 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
     """
     obj_class = config.obj_class
     urdf = object_urdf(obj_class, sample, config.table)
-    n, H, W = config.images_per_object, config.camera.height_px, config.camera.width_px
+    n = config.images_per_object
     if out is None:
-        out = {"depth": np.empty((n, H, W), np.float32), "mask": np.empty((n, H, W), np.uint8)}
+        out = image_buffers(config, n)
     streams = Streams.of(config, sample.object_index)
     poses = None  # the object's pose-redraw stream, made on the first rejection
     for attempt in range(1, MAX_POSE_ATTEMPTS + 1):
         placed = arrange(sample, config, streams)
         if placed is not None:  # else no scene layout fits this pose
             sample = placed.sample
-            obj = compile_object(obj_class, urdf, placed.pose, config.camera, placed.add_context)
+            add = with_appearance_assets(placed.add_context, obj_class.n_joints) if config.rgb else placed.add_context
+            obj = compile_object(obj_class, urdf, placed.pose, config.camera, add)
             views = render_images(obj, sample, config, renderer, streams, out, check_visibility=check_visibility)
             if views is not None:
                 break
@@ -98,7 +100,19 @@ def shard_attrs(config: GenerationConfig, objects: range) -> dict:
         attrs["scene"] = scene_record(config.scene, config.class_name)
     if config.occluders:
         attrs["occluders"] = occluders_record(config.occluders)
+    if config.rgb:
+        attrs["appearance"] = appearance_record()
     return attrs
+
+
+def image_buffers(config: GenerationConfig, n: int) -> dict:
+    """Empty image arrays of ``n`` images: depth (n, H, W) float32, mask (n, H, W) uint8 and,
+    with ``--rgb``, rgb (n, H, W, 3) uint8."""
+    H, W = config.camera.height_px, config.camera.width_px
+    out = {"depth": np.empty((n, H, W), np.float32), "mask": np.empty((n, H, W), np.uint8)}
+    if config.rgb:
+        out["rgb"] = np.empty((n, H, W, 3), np.uint8)
+    return out
 
 
 def generate_shard(config: GenerationConfig, shard_index: int, split_dir: str | Path, progress=None) -> dict:
@@ -109,10 +123,9 @@ def generate_shard(config: GenerationConfig, shard_index: int, split_dir: str | 
     renderer = process_renderer(config.camera)
     objects = config.shard_objects(shard_index)
     n = config.images_per_object
-    H, W = config.camera.height_px, config.camera.width_px
     # Images are rendered straight into the shard's buffers (no per-object copies).
-    images = {"depth": np.empty((len(objects) * n, H, W), np.float32), "mask": np.empty((len(objects) * n, H, W), np.uint8)}
-    stored = FIELDS + (OPTIONAL_FIELDS if config.has_context else ())
+    images = image_buffers(config, len(objects) * n)
+    stored = FIELDS + (OPTIONAL_FIELDS if config.has_context else ()) + (RGB_FIELDS if config.rgb else ())
     labels: dict[str, list] = {f.name: [] for f in stored if f.name not in images}
     attempts = 0
     for p, k in enumerate(objects):

@@ -180,15 +180,22 @@ class DepthRenderer:
         depth[buf >= 1.0] = 0.0
         return depth, geom_id
 
-    def render_rgb(self, data: mujoco.MjData) -> np.ndarray:
-        """A shaded colour preview of the bound model (H, W, 3) uint8, for galleries."""
+    def render_rgb(self, data: mujoco.MjData, out: np.ndarray | None = None, *, context: bool = False) -> np.ndarray:
+        """A shaded colour image of the bound model (H, W, 3) uint8, row 0 at the top: the
+        ``--rgb`` images (:mod:`articulated_dataset.generation.appearance`) and gallery
+        previews.  ``out`` (H, W, 3) uint8, if given, receives it (and is returned);
+        ``context`` as in :meth:`render`."""
         self._scn.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 0
         self._scn.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 0
         try:
-            mujoco.mjv_updateScene(self._model, data, self._opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL, self._scn)
+            opt = self._context_opt if context else self._opt
+            mujoco.mjv_updateScene(self._model, data, opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL, self._scn)
             mujoco.mjr_render(self._viewport, self._scn, self._con)
             mujoco.mjr_readPixels(self._rgb, self._depth, self._viewport, self._con)
-            return self._rgb[::-1].copy()
+            if out is None:
+                return self._rgb[::-1].copy()
+            out[...] = self._rgb[::-1]
+            return out
         finally:
             self._scn.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 1
             self._scn.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 1
