@@ -50,6 +50,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
+from articulated_dataset.registry import REVOLUTE  # noqa: E402
 from articulated_dataset.rotations import axis_angle_quat, quat_multiply  # noqa: E402
 
 #: Table 1 metrics shown beside the success rate (keys of ``artdata score --json`` rows).
@@ -90,7 +91,7 @@ def perturb(estimate, joint_types, rng: np.random.Generator, errors: tuple[float
         turn_axis = math.cos(phi) * rot[:, 0] + math.sin(phi) * rot[:, 1]
         angle = abs(rng.normal(0.0, rot_e * math.sqrt(math.pi / 2)))
         pose[j, 3:] = quat_multiply(axis_angle_quat(turn_axis, angle), pose[j, 3:])
-        q_scale = q_e[0] if joint_types[j] == M.REVOLUTE else q_e[1]
+        q_scale = q_e[0] if joint_types[j] == REVOLUTE else q_e[1]
         q[j] += rng.normal(0.0, q_scale * math.sqrt(math.pi / 2))
     return Estimate(pose, q, estimate.part_offset, estimate.geometry, source=name)
 
@@ -192,7 +193,7 @@ def classes_in(path: Path) -> list[str]:
 
 def summarize(records: list[dict]) -> list[dict]:
     """Success rates and medians per (class, method), in first-seen order."""
-    from articulated_dataset.manipulation import format_q
+    from articulated_dataset.units import format_q
 
     keys = list(dict.fromkeys((r["class"], r["method"]) for r in records))
     out = []
@@ -321,7 +322,7 @@ def _figure_case(split_dir: Path, joint: int, offset_m: float, title: str) -> di
         "title": title, "before": before, "after": after, "result": res, "joint_type": jt,
         "planned_px": project(wps[:, :3], K)[0], "achieved_px": project(res.trace["grasp"], K)[0],
         "planned": wps[:, :3], "achieved": res.trace["grasp"], "origin": origin, "planned_origin": planned_origin,
-        "revolute": jt == M.REVOLUTE,
+        "revolute": jt == REVOLUTE,
     }
 
 
@@ -358,7 +359,8 @@ def make_figure(root: Path, split: str, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from articulated_dataset.manipulation import MAX_FORCE_N, format_q
+    from articulated_dataset.manipulation import MAX_FORCE_N
+    from articulated_dataset.units import format_q
 
     cases = []
     for cls, joint, offset, title in (("cabinet", 0, 0.0, "cabinet, true axis"),
@@ -462,7 +464,7 @@ def make_trajectory_figure(root: Path, split: str, models: dict[str, str], out: 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from articulated_dataset.manipulation import format_q
+    from articulated_dataset.units import format_q
 
     name, spec = next(iter(models.items()))
     cases = []

@@ -26,6 +26,7 @@ from click.testing import CliRunner
 from PIL import Image
 
 from articulated_dataset.cli import EXIT_ENVIRONMENT_ERROR, EXIT_USER_ERROR, main
+from articulated_dataset.registry import REVOLUTE
 from articulated_dataset.shards import open_split
 from helpers_real import write_capture
 
@@ -530,7 +531,7 @@ def test_real_split_plans_from_its_labels(env):
     assert res.exit_code == 0, res.output
     plan = json.loads((env.tmp / "plan.json").read_text())
     label = env.inputs.label
-    want = M.grasp_pose_from_estimate(label["axis_pose"][0], None, label["geometry"], M.REVOLUTE, label["q"][0])
+    want = M.grasp_pose_from_estimate(label["axis_pose"][0], None, label["geometry"], REVOLUTE, label["q"][0])
     np.testing.assert_allclose(plan["grasp_pose"], want, atol=1e-5)  # float32 storage of the labels
     assert plan["q_true"] == pytest.approx(label["q"][0], abs=1e-6) and plan["source"] == "truth"
 

@@ -17,7 +17,7 @@ from articulated_dataset.cli import main
 from articulated_dataset.errors import UserError
 from articulated_dataset.registry import PRISMATIC, REVOLUTE, all_classes
 from articulated_dataset.units import parse_quantity
-from articulated_dataset.rotations import quat_to_matrix
+from articulated_dataset.rotations import axis_angle_quat, quat_multiply, quat_to_matrix
 from articulated_dataset.generation.scene import set_configuration
 
 CLASSES = [c.name for c in all_classes()]
@@ -240,7 +240,7 @@ def test_missed_grasp_moves_nothing(tiny_root):
 def test_finger_hold_hand_worked(shift, turn_deg, held, why):
     """A door-style grasp frame (x: jaws close, y: outward normal, z: along the bar) and a
     2 x 3 x 12 cm bar at the origin."""
-    quat = M.axis_angle_quat(np.array([0.0, 1.0, 0.0]), math.radians(turn_deg))
+    quat = axis_angle_quat(np.array([0.0, 1.0, 0.0]), math.radians(turn_deg))
     pose = np.concatenate([np.asarray(shift, float), quat])
     ok, offset, reason = M.finger_hold(pose, np.zeros(3), np.eye(3), np.array([0.01, 0.015, 0.06]), REVOLUTE)
     assert ok == held and why in reason
@@ -259,8 +259,8 @@ def test_fingers_must_hold_the_real_handle(tiny_root):
     res = M.execute_plan(obj, shifted, 0, plan.q_target)
     assert res.grasped and res.success, res.failure_reason()
     turned = plan.waypoints.copy()
-    turn = M.axis_angle_quat(frame[:, 1], math.radians(90))  # about the outward normal
-    turned[:, 3:] = [M.quat_multiply(turn, w[3:]) for w in plan.waypoints]
+    turn = axis_angle_quat(frame[:, 1], math.radians(90))  # about the outward normal
+    turned[:, 3:] = [quat_multiply(turn, w[3:]) for w in plan.waypoints]
     res = M.execute_plan(obj, turned, 0, plan.q_target)
     assert res.grasp_error_m == 0.0 and not res.grasped
     assert "fingers did not hold" in res.failure_reason() and "jaws" in res.failure_reason()

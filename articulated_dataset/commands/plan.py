@@ -99,6 +99,7 @@ def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, no_to
     the target.  See docs/manipulation.md.
     """
     from .. import manipulation as M
+    from ..registry import REVOLUTE
 
     if index < 0:
         raise UserError(f"--index must be >= 0, got {index}")
@@ -130,7 +131,7 @@ def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, no_to
 
     q_target = M.default_target(joint_type) if target is None else _quantity(target, "--target")
     if step is None:
-        step_value = M.DEFAULT_STEP_RAD if joint_type == M.REVOLUTE else M.DEFAULT_STEP_M
+        step_value = M.DEFAULT_STEP_RAD if joint_type == REVOLUTE else M.DEFAULT_STEP_M
     else:
         step_value = _quantity(step, "--step")
         if step_value <= 0:
