@@ -167,17 +167,20 @@ def run(args) -> list[dict]:
 
 
 def markdown(rows: list[dict]) -> str:
+    """One Markdown table per metric: a row per (setting, model), a column per class (the model
+    column only when there are several models)."""
     classes = list(dict.fromkeys(r["class"] for r in rows))
+    several = len({r["model"] for r in rows}) > 1
     lines = []
     for key, title in METRICS:
-        lines += [f"**{title}**", "", "| setting | model | " + " | ".join(classes) + " |",
-                  "|---|---|" + "---|" * len(classes)]
+        lines += [f"**{title}**", "", "| setting | " + ("model | " if several else "") + " | ".join(classes) + " |",
+                  "|---|" + ("---|" if several else "") + "---|" * len(classes)]
         for setting, model in dict.fromkeys((r["setting"], r["model"]) for r in rows):
             cells = []
             for c in classes:
                 r = next((r for r in rows if (r["class"], r["setting"], r["model"]) == (c, setting, model)), None)
                 cells.append("-" if r is None else f"{r[key]:.3f}" if key == "coverage_90" else f"{r[key]:.2f}")
-            lines.append(f"| {setting} | {model} | " + " | ".join(cells) + " |")
+            lines.append(f"| {setting} | " + (f"{model} | " if several else "") + " | ".join(cells) + " |")
         lines.append("")
     return "\n".join(lines)
 

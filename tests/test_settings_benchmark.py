@@ -83,3 +83,5 @@ def test_table_has_a_row_per_setting_and_model():
     text = bench.markdown(rows)
     assert "| default | dense | 1.00 | 2.00 |" in text and "| kitchen (object mask) | ckpt | 3.00 | - |" in text
     assert text.count("| setting | model | microwave | drawer |") == len(bench.METRICS)
+    one_model = bench.markdown(rows[:2])
+    assert "| setting | microwave | drawer |" in one_model and "| default | 1.00 | 2.00 |" in one_model
