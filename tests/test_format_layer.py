@@ -40,7 +40,8 @@ def heavy_modules_after_import(*modules: str) -> list[str]:
 
 @pytest.mark.parametrize("module", ["articulated_dataset.format", "articulated_dataset.benchmark",
                                     "articulated_dataset.benchmark.pointlik", "articulated_dataset.loaders",
-                                    "articulated_dataset.baselines.common", "articulated_dataset.commands.info",
+                                    "articulated_dataset.baselines.common", "articulated_dataset.format.summary",
+                                    "articulated_dataset.cli.info",
                                     "articulated_dataset.verify", "articulated_dataset.real.ingest",
                                     "articulated_dataset.real.write", "articulated_dataset.viz"])
 def test_reading_imports_no_simulator_renderer_or_framework(module):
@@ -91,7 +92,7 @@ def test_split_reads_the_shards_labels(generated):
 
 def test_every_consumer_reads_the_same_labels(generated):
     from articulated_dataset.baselines.common import open_split_checked
-    from articulated_dataset.commands.info import summarize_split
+    from articulated_dataset.format.summary import summarize_split
     from articulated_dataset.loaders import ShardReader
     from articulated_dataset.manipulation import read_split_labels
     from articulated_dataset.benchmark.truth import load_truth_set

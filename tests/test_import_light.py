@@ -12,7 +12,7 @@ import sys
 
 import pytest
 
-from articulated_dataset import cli, commands
+from articulated_dataset import cli
 
 HEAVY = ("mujoco", "OpenGL", "torch", "jax")
 
@@ -60,10 +60,10 @@ def test_reading_a_split_is_light(tmp_path):
 
 
 def test_command_modules_name_every_command():
-    """:data:`cli.COMMAND_MODULES` is what the modules of ``articulated_dataset.commands`` define."""
+    """:data:`cli.COMMAND_MODULES` is what the modules of ``articulated_dataset.cli`` define."""
     defined = {}
-    for info in pkgutil.iter_modules(commands.__path__):
-        module = importlib.import_module(f"{commands.__name__}.{info.name}")
+    for info in [m for m in pkgutil.iter_modules(cli.__path__) if m.name != "__main__"]:  # __main__ runs the CLI
+        module = importlib.import_module(f"{cli.__name__}.{info.name}")
         for cmd in getattr(module, "COMMANDS", []):
             defined[cmd.name] = info.name
     assert defined == cli.COMMAND_MODULES

@@ -32,8 +32,23 @@ GRAVITY_ON = True
 REBUILD_TOL_M = 1e-3
 
 
+class PlannableObject:
+    """What planning needs of an object, for a :class:`TrueObject` and for a real capture's
+    (:class:`~articulated_dataset.manipulation.image_plan.CapturedObject`): its labels
+    (``self.labels``) as the truth, and its joints' ranges (``self.q_ranges``) for the target."""
+
+    def truth(self) -> Estimate:
+        L = self.labels
+        return Estimate(L["axis_pose"].astype(np.float64), L["q"].astype(np.float64),
+                        L["part_offset"].astype(np.float64), L["geometry"].astype(np.float64), source="truth")
+
+    def clip_target(self, joint: int, q_target: float) -> float:
+        lo, hi = self.q_ranges[joint]
+        return float(min(max(q_target, lo), hi))
+
+
 @dataclass
-class TrueObject:
+class TrueObject(PlannableObject):
     """A test image's true object compiled in MuJoCo, with its labels."""
 
     class_name: str
@@ -49,15 +64,6 @@ class TrueObject:
     @property
     def n_joints(self) -> int:
         return len(self.joint_types)
-
-    def truth(self) -> Estimate:
-        L = self.labels
-        return Estimate(L["axis_pose"].astype(np.float64), L["q"].astype(np.float64),
-                        L["part_offset"].astype(np.float64), L["geometry"].astype(np.float64), source="truth")
-
-    def clip_target(self, joint: int, q_target: float) -> float:
-        lo, hi = self.q_ranges[joint]
-        return float(min(max(q_target, lo), hi))
 
 
 def read_split_labels(split_dir: str | Path) -> tuple[Path, dict, dict]:

@@ -1,14 +1,19 @@
-"""``artdata info``: counts, settings and label ranges of generated splits."""
+"""What ``artdata info`` reports of a split: counts, settings and label ranges.
+
+:func:`summarize_split` reads one split folder through :class:`~articulated_dataset.format.Split`
+and returns a JSON-ready dict: the manifest's counts and settings (sampling table, scene,
+occluders, camera) and min/mean/max of the main labels per named column (with units).
+"""
 
 from __future__ import annotations
 
 import json
 
-import click
 import numpy as np
 
 from ..errors import DataFormatError
-from ..format import MANIFEST_NAME, Split, find_split_dirs
+from .manifest import MANIFEST_NAME
+from .split import Split
 
 _SUMMARY_FIELDS = ("q", "axis_origin", "geometry", "object_yaw", "visible_pixels")
 #: Summarised too where a split has a scene or occluders (format 1.1 stores it).
@@ -112,57 +117,3 @@ def _context_summary(config: dict) -> dict:
     intrinsics = camera.get("intrinsics")
     return {"scene": str(config.get("scene", "none")), "occluders": int(config.get("occluders", 0)),
             "camera_mount": str(camera.get("mount", "fixed")), "intrinsics": None if intrinsics is None else str(intrinsics)}
-
-
-def _settings_line(s: dict) -> str | None:
-    """``scene kitchen, 2 occluders per image, camera head, intrinsics d435``: the options
-    beyond the paper's setting, or None for the paper's."""
-    parts = []
-    if s["scene"] != "none":
-        parts.append(f"scene {s['scene']}")
-    if s["occluders"]:
-        parts.append(f"{s['occluders']} occluder{'s' if s['occluders'] > 1 else ''} per image")
-    if s["camera_mount"] != "fixed":
-        parts.append(f"camera {s['camera_mount']}")
-    if s["intrinsics"] is not None:
-        parts.append(f"intrinsics {s['intrinsics']}")
-    return ", ".join(parts) or None
-
-
-def _cell(x: float | None, unit: str) -> str:
-    if x is None:
-        return "-"
-    return f"{x:,.0f}" if unit == "px" else f"{x:.3f}"
-
-
-@click.command("info")
-@click.argument("path", type=click.Path(exists=False))
-@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of text.")
-def info_cmd(path, as_json):
-    """Summarize generated data at PATH (a split folder, a class folder or an output root)."""
-    summaries = [summarize_split(d) for d in find_split_dirs(path)]
-    if as_json:
-        click.echo(json.dumps(summaries, indent=1))
-        return
-    for s in summaries:
-        state = "complete" if s["complete"] else "INCOMPLETE (resume with --resume)"
-        click.echo(f"{s['path']}: class {s['class']}, split {s['split']}, seed {s['seed']}, format {s['format_version']}, {state}")
-        click.echo(f"  {s['objects']} objects, {s['images']} images, {s['shards']} shards, "
-                   f"{s['bytes'] / max(s['images'], 1):.0f} bytes/image, {s['image_size'][0]}x{s['image_size'][1]} px")
-        settings = _settings_line(s)
-        if settings is not None:
-            click.echo(f"  {settings}")
-        if s["table"] == "realistic":
-            click.echo(f"  table realistic: {len(s['size_classes'])} size classes ({'; '.join(s['size_classes'])})")
-        rows = [(f"{c['name']} ({c['unit']})" if c["unit"] else c["name"], c["unit"], v["min"][i], v["mean"][i], v["max"][i],
-                 v["n_labelled"][i]) for v in s["labels"].values() for i, c in enumerate(v["columns"])]
-        if rows:
-            partial = any(n < s["images"] for *_, n in rows)  # a real split: say how many images give each label
-            w = max(len(r[0]) for r in rows)
-            click.echo(f"  {'label':{w}s}  {'min':>10s}  {'mean':>10s}  {'max':>10s}" + ("  labelled" if partial else ""))
-            for name, unit, lo, mean, hi, n in rows:
-                click.echo(f"  {name:{w}s}  {_cell(lo, unit):>10s}  {_cell(mean, unit):>10s}  {_cell(hi, unit):>10s}"
-                           + (f"  {n:>8,d}" if partial else ""))
-
-
-COMMANDS = [info_cmd]

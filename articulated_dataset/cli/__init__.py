@@ -1,9 +1,11 @@
-"""The ``artdata`` command line.
+"""The ``artdata`` command line: a thin face over the library.
 
-Subcommands live in :mod:`articulated_dataset.commands`, one module each, exposing
-``COMMANDS`` (a list of click commands); :data:`COMMAND_MODULES` names the module of each
-command, and a module is imported only when one of its commands runs or shows its help (or
-``artdata --help`` lists them all).  Importing this module loads no MuJoCo, OpenGL, torch or
+Each subcommand lives in a module of this package (``cli/<module>.py``) exposing ``COMMANDS``
+(a list of click commands) and does three things: parse its options, call the library
+function that does the work, print what it returns.  :data:`COMMAND_MODULES` names the
+module of each command, and a module is imported only when one of its commands runs or shows
+its help (or ``artdata --help`` lists them all); ``options.py`` holds the option types and
+set-up several commands share.  Importing this package loads no MuJoCo, OpenGL, torch or
 jax: MuJoCo is imported only by the commands of :data:`MUJOCO_COMMANDS` when they run.
 
 Errors: a :class:`~articulated_dataset.errors.UserError` (bad option, bad file, existing
@@ -24,13 +26,13 @@ import sys
 
 import click
 
-from . import __version__
-from .errors import RenderError, UserError
+from .. import __version__
+from ..errors import RenderError, UserError
 
 EXIT_USER_ERROR = 2
 #: The machine lacks something rendering needs (EGL/OSMesa libraries).
 EXIT_ENVIRONMENT_ERROR = 3
-#: Every subcommand and the module of :mod:`articulated_dataset.commands` that defines it
+#: Every subcommand and the module of this package that defines it
 #: (tests/test_import_light.py checks it against the modules' ``COMMANDS``).
 COMMAND_MODULES = {
     "baseline": "baseline", "estimate": "estimate", "export": "export", "generate": "generate",
@@ -192,12 +194,12 @@ def _unavailable_command(name: str, exc: BaseException) -> click.Command:
 
 
 def _load_commands(module_name: str) -> None:
-    """Import ``articulated_dataset.commands.<module_name>`` and add its commands.  A module
+    """Import ``articulated_dataset.cli.<module_name>`` and add its commands.  A module
     that imports MuJoCo at its top fails where MuJoCo's GL backend cannot start: then MuJoCo is
     imported without GL (:func:`_import_mujoco`) and the module again, and its commands stop
     with the one-line message when they render; if it still cannot be imported, they are
     stand-ins that say why."""
-    name = f"{__package__}.commands.{module_name}"
+    name = f"{__name__}.{module_name}"
     try:
         module = importlib.import_module(name)
     except Exception as exc:
@@ -216,7 +218,3 @@ def _load_commands(module_name: str) -> None:
             return
     for cmd in getattr(module, "COMMANDS", []):
         main.add_command(_prepared(cmd))
-
-
-if __name__ == "__main__":  # pragma: no cover
-    main()
