@@ -25,6 +25,10 @@ import numpy as np
 
 from .errors import UserError
 from .format import IMAGE_FIELDS
+from .format.schema import RGB_FIELDS
+
+#: Fields cropped and resized with the images: depth, mask and (``--rgb`` splits) rgb (H, W, 3).
+SPATIAL_FIELDS = IMAGE_FIELDS + tuple(f.name for f in RGB_FIELDS)
 
 #: Stream tag of the transform generators (independent of the shuffling stream).
 TRANSFORM_STREAM = 0x5EED0003
@@ -100,7 +104,7 @@ def crop_sample(sample: dict, top_px: int, left_px: int, height_px: int, width_p
     if top_px < 0 or left_px < 0 or top_px + height_px > H or left_px + width_px > W:
         raise UserError(f"crop {width_px}x{height_px} at ({left_px}, {top_px}) does not fit a {W}x{H} image")
     out = dict(sample)
-    for name in IMAGE_FIELDS:
+    for name in SPATIAL_FIELDS:
         if name in out:
             out[name] = np.ascontiguousarray(out[name][top_px : top_px + height_px, left_px : left_px + width_px])
     if "K" in out:
@@ -179,7 +183,7 @@ class Resize:
         H, W = _image_size(sample)
         rows, cols = resize_indices(H, self.height_px), resize_indices(W, self.width_px)
         out = dict(sample)
-        for name in IMAGE_FIELDS:
+        for name in SPATIAL_FIELDS:
             if name in out:
                 out[name] = np.ascontiguousarray(out[name][rows[:, None], cols[None, :]])
         if "K" in out:

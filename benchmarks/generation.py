@@ -12,8 +12,8 @@ Whole machine (``--workers N``): the same two rates with N processes, measured i
 
 Generation options beside the default (issue 18, one process, ``--option-objects`` per class):
 end-to-end images/s with ``--camera head``, with ``--intrinsics kinect2`` at the default size,
-with ``--table realistic``, with ``--scene kitchen``/``room``, with ``--occluders 2`` and with
-both, each next to the paper's setting measured in the same run (a figure, not a target).
+with ``--table realistic``, with ``--scene kitchen``/``room``, with ``--occluders 2``, with
+both, with ``--rgb`` alone and with all three, each next to the paper's setting measured in the same run (a figure, not a target).
 
 Targets (issue 2/3): end to end >= 60% of the bare rate; < 4 KB per image; whole machine
 >= 1,000 images/s on 2 cores.
@@ -88,15 +88,16 @@ def _one_raster_thread() -> None:
 OPTIONS = {"default": {}, "--camera head": {"camera": {"mount": "head"}},
            "--intrinsics kinect2": {"camera": {"intrinsics": "kinect2"}}, "--table realistic": {"table": "realistic"},
            "--scene kitchen": {"scene": "kitchen"}, "--scene room": {"scene": "room"}, "--occluders 2": {"occluders": 2},
-           "--scene kitchen --occluders 2": {"scene": "kitchen", "occluders": 2}}
+           "--scene kitchen --occluders 2": {"scene": "kitchen", "occluders": 2}, "--rgb": {"rgb": True},
+           "--rgb --scene kitchen --occluders 2": {"rgb": True, "scene": "kitchen", "occluders": 2}}
 
 
 def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: Path,
                 camera: dict | None = None, table: str = "paper", scene: str = "none",
-                occluders: int = 0) -> tuple[int, float, int, float]:
+                occluders: int = 0, rgb: bool = False) -> tuple[int, float, int, float]:
     """(images, seconds, bytes, mean pose draws per object) of one generate_split run
     (``camera``: CameraConfig keyword arguments besides the default image size; ``table``:
-    the class's table of that name; ``scene``, ``occluders``: --scene, --occluders)."""
+    the class's table of that name; ``scene``, ``occluders``, ``rgb``: --scene, --occluders, --rgb)."""
     from articulated_dataset.camera import CameraConfig
     from articulated_dataset.format.manifest import DEFAULT_OBJECTS_PER_SHARD
     from articulated_dataset.generation import GenerationConfig, generate_split
@@ -106,7 +107,7 @@ def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: P
     per_shard = min(DEFAULT_OBJECTS_PER_SHARD, max(1, n_objects // max(workers, 1) // 2))
     config = GenerationConfig(class_name, n_objects=n_objects, seed=seed, objects_per_shard=per_shard,
                               camera=CameraConfig(**(camera or {})), table=get_class(class_name).named_table(table),
-                              scene=scene, occluders=occluders)
+                              scene=scene, occluders=occluders, rgb=rgb)
     t0 = time.perf_counter()
     split = generate_split(config, out, workers=workers, overwrite=True)
     seconds = time.perf_counter() - t0
@@ -128,6 +129,9 @@ def main() -> None:
                     help="objects per class in the whole-machine runs (start-up of the worker processes included)")
     ap.add_argument("--option-objects", type=int, default=24,
                     help="objects per class for the generation options beside the default (0: skip)")
+    ap.add_argument("--option-names", nargs="*", default=None, metavar="OPTION",
+                    help="time only these options, named without dashes (e.g. default rgb 'scene kitchen occluders 2'); "
+                         "default: all")
     ap.add_argument("--seed", type=int, default=1234)
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = ap.parse_args()
@@ -147,15 +151,16 @@ def main() -> None:
         if args.option_objects > 0:
             results["options"] = {}
             print(f"\nend to end, 1 process, {args.option_objects} objects per class (img/s; pose draws/object):")
-            print(f"{'class':14s} " + " ".join(f"{k:>30s}" for k in OPTIONS))
+            chosen = {k: v for k, v in OPTIONS.items() if args.option_names is None or k.replace("--", "") in args.option_names}
+            print(f"{'class':14s} " + " ".join(f"{k:>30s}" for k in chosen))
             for name in classes:
                 row = {}
-                for label, option in OPTIONS.items():
+                for label, option in chosen.items():
                     n, sec, nbytes, attempts = _end_to_end(name, args.option_objects, args.seed, 1, Path(tmp) / "options",
                                                            **option)
                     row[label] = {"e2e_img_s": n / sec, "bytes_per_img": nbytes / n, "pose_draws_per_object": attempts}
                 results["options"][name] = row
-                print(f"{name:14s} " + " ".join(f"{v['e2e_img_s']:>22.0f} ({v['pose_draws_per_object']:4.2f})"
+                print(f"{name:14s} " + " ".join(f"{v['e2e_img_s']:>13.0f} ({v['pose_draws_per_object']:4.2f}) {v['bytes_per_img']:6.0f} B"
                                                  for v in row.values()))
         for w in args.workers:
             ctx = mp.get_context("spawn")

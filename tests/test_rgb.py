@@ -133,3 +133,91 @@ def test_config_refuses_hostile_values():
     for v in (1, "yes", None):
         with pytest.raises(UserError):
             GenerationConfig("drawer", n_objects=1, rgb=v)
+
+
+@pytest.fixture(scope="module")
+def rgb_split(tmp_path_factory):
+    root = tmp_path_factory.mktemp("rgb")
+    return generate_split(GenerationConfig("cabinet", n_objects=2, images_per_object=3, objects_per_shard=1, rgb=True), root)
+
+
+def test_loaders_serve_rgb_only_where_every_split_has_it(rgb_split, tmp_path):
+    from articulated_dataset.errors import UserError
+    from articulated_dataset.loaders.reader import DEFAULT_FIELDS, ShardReader
+
+    r = ShardReader(rgb_split)
+    assert r.fields == DEFAULT_FIELDS + ("rgb",)
+    b = r.get_batch([4, 0, 5])
+    _, files = _shards(rgb_split)
+    with h5py.File(files[0]) as f0, h5py.File(files[1]) as f1:
+        want = np.stack([f1["rgb"][1], f0["rgb"][0], f1["rgb"][2]])
+    assert b["rgb"].dtype == np.uint8 and np.array_equal(b["rgb"], want)
+    plain = generate_split(GenerationConfig("cabinet", n_objects=1, images_per_object=2), tmp_path)
+    assert "rgb" not in ShardReader(plain).fields and "rgb" not in ShardReader([rgb_split, plain]).fields
+    with pytest.raises(UserError, match="no 'rgb' images"):
+        ShardReader([rgb_split, plain], fields=["depth", "rgb"])
+    # a crop cuts the colour image with the depth
+    from articulated_dataset.transforms import Crop, apply_to_batch
+
+    out = apply_to_batch(Crop(10, 20, 50, 60), r.get_batch([1, 2], fields=["depth", "rgb"]), np.array([1, 2]), seed=0, epoch=0)
+    assert out["rgb"].shape == (2, 50, 60, 3) and np.array_equal(out["rgb"][0], r[1]["rgb"][10:60, 20:80])
+    torch = pytest.importorskip("torch")
+    from articulated_dataset.loaders.torch import make_loader
+
+    batch = next(iter(make_loader(rgb_split, batch_size=2, shuffle=False, num_workers=0)))
+    assert isinstance(batch["rgb"], torch.Tensor) and tuple(batch["rgb"].shape) == (2, 108, 192, 3)
+
+
+def test_jax_loader_serves_rgb(rgb_split):
+    pytest.importorskip("jax")
+    from articulated_dataset.loaders.jax import JaxLoader
+
+    batch = next(iter(JaxLoader(rgb_split, batch_size=2, shuffle=False)))
+    assert tuple(batch["rgb"].shape) == (2, 108, 192, 3)
+
+
+def test_verify_catches_colour_that_does_not_match_the_depth(rgb_split, tmp_path):
+    import shutil
+
+    from articulated_dataset.verify import verify_split
+
+    bad = tmp_path / "bad"
+    shutil.copytree(rgb_split, bad)
+    _, files = _shards(bad)
+    with h5py.File(files[1], "r+") as f:
+        a = f["rgb"][()]
+        a[0] = np.roll(a[0], 5, axis=1)
+        f["rgb"][...] = a
+    report = verify_split(bad, content=True)
+    assert not report.ok and "rgb/depth" in str(report.problems)
+    assert verify_split(rgb_split, content=True).ok
+    with h5py.File(files[0], "r+") as f:
+        del f["rgb"]
+    assert "missing dataset 'rgb'" in str(verify_split(bad, content=True).problems)
+
+
+def test_export_writes_rgb_png_and_import_restores_the_split(rgb_split, tmp_path):
+    from PIL import Image
+
+    r = CliRunner().invoke(main, ["export", str(rgb_split), str(tmp_path / "exr"), "-q"])
+    assert r.exit_code == 0, r.output
+    pngs = sorted((tmp_path / "exr").rglob("*.rgb.png"))
+    assert len(pngs) == 6
+    _, files = _shards(rgb_split)
+    with h5py.File(files[0]) as f:
+        first = f["rgb"][0]
+    with Image.open(pngs[0]) as im:
+        assert im.mode == "RGB" and np.array_equal(np.asarray(im), first)
+    r = CliRunner().invoke(main, ["import-exr", str(tmp_path / "exr"), "--out", str(tmp_path / "back"), "-q"])
+    assert r.exit_code == 0, r.output
+    back = next((tmp_path / "back").rglob("manifest.json")).parent
+    for a, b in zip(_shards(rgb_split)[1], _shards(back)[1]):
+        with h5py.File(a) as x, h5py.File(b) as y:
+            assert np.array_equal(x["rgb"][()], y["rgb"][()])
+
+
+def test_show_draws_the_stored_colour_panel(rgb_split, tmp_path):
+    from articulated_dataset.viz import make_gallery
+
+    panels = make_gallery([rgb_split], out=tmp_path / "g.png", n=2, cols=2)
+    assert sorted(p.kind for p in panels) == ["depth", "depth", "rgb", "rgb"]

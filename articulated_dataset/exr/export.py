@@ -13,8 +13,9 @@ from pathlib import Path
 from ..errors import UserError
 from ..safeio import ensure_dir, remove_created_dirs, translated
 from ..format import FIELDS, FIELDS_BY_NAME, K_DATASET, LABEL_FIELDS, R_DATASET, TMP_SUFFIX, Split, reading
+from ..format.schema import RGB_FIELDS_BY_NAME
 from .files import (DEPTH_CHANNEL, DEPTH_SUFFIX, EXPORT_FORMAT, EXPORT_FORMAT_VERSION, INDEX_NAME, LABEL_SUFFIX,
-                    MASK_SUFFIX, json_value, sample_stem, write_depth_exr, write_mask_png)
+                    MASK_SUFFIX, RGB_SUFFIX, json_value, sample_stem, write_depth_exr, write_mask_png, write_rgb_png)
 
 
 def _check_target(path: Path, overwrite: bool, what: str, marker: str) -> None:
@@ -61,7 +62,8 @@ def staged_dir(final: Path, overwrite: bool, what: str, marker: str):
 
 
 def export_split(split_dir: str | Path, out_dir: str | Path, *, overwrite: bool = False, progress=None) -> Path:
-    """Export one split folder to ``out_dir`` (EXR depth, PNG mask, JSON labels per image).
+    """Export one split folder to ``out_dir`` (EXR depth, PNG mask, JSON labels per image; an
+    RGB PNG too for a ``--rgb`` split).
 
     The files are written to a temporary sibling folder that replaces ``out_dir`` only when
     complete; ``overwrite`` replaces only a folder holding an export (``split.json``).
@@ -86,12 +88,15 @@ def _export_into(out_dir: Path, manifest: dict, shards: list, progress) -> None:
         "manifest": manifest,
         "shards": [],
     }
+    if manifest.get("config", {}).get("rgb") is True:  # a --rgb split: its colour images too
+        index["rgb"] = {"suffix": RGB_SUFFIX, "mode": "8-bit RGB", "meaning": RGB_FIELDS_BY_NAME["rgb"].description}
     for sh in shards:
         f = sh.file
         with reading(sh.path):
             attrs = {k: json_value(f.attrs[k]) for k in f.attrs}
         K, R = sh.read(K_DATASET, ()), sh.read(R_DATASET, ())
         depth, mask = sh.read("depth"), sh.read("mask")
+        rgb = sh.read("rgb") if "rgb" in index else None
         labels = sh.labels()
         stems = []
         for row in range(depth.shape[0]):
@@ -100,6 +105,8 @@ def _export_into(out_dir: Path, manifest: dict, shards: list, progress) -> None:
             write_depth_exr(out_dir / (stem + DEPTH_SUFFIX), depth[row],
                             {"sample_id": str(int(labels["sample_id"][row])), "depth_units": "m"})
             write_mask_png(out_dir / (stem + MASK_SUFFIX), mask[row])
+            if rgb is not None:
+                write_rgb_png(out_dir / (stem + RGB_SUFFIX), rgb[row])
             record = {name: json_value(labels[name][row]) for name in LABEL_FIELDS}
             record.update(shard=sh.path.name, row=row, K=K.tolist())
             (out_dir / (stem + LABEL_SUFFIX)).write_text(json.dumps(record) + "\n")

@@ -21,6 +21,8 @@ INDEX_NAME = "split.json"
 DEPTH_CHANNEL = "Z"
 DEPTH_SUFFIX = ".exr"
 MASK_SUFFIX = ".mask.png"
+#: Colour image of a ``--rgb`` split (8-bit RGB PNG), only where the split stores ``rgb``.
+RGB_SUFFIX = ".rgb.png"
 LABEL_SUFFIX = ".json"
 #: An image stem as :func:`sample_stem` writes it (read back from ``split.json``).
 STEM_RE = re.compile(r"o[0-9]{6,}_i[0-9]{3,}")
@@ -116,18 +118,25 @@ def write_mask_png(path: str | Path, mask: np.ndarray) -> None:
     Image.fromarray(np.ascontiguousarray(mask, dtype=np.uint8)).save(str(path), format="PNG")
 
 
-def read_mask_png(path: str | Path, expect_hw: tuple[int, int] | None = None) -> np.ndarray:
-    """Read an 8-bit greyscale PNG; ``expect_hw`` is checked before the pixels are decoded."""
+def write_rgb_png(path: str | Path, rgb: np.ndarray) -> None:
+    write_mask_png(path, rgb)  # (H, W, 3) uint8 -> an 8-bit RGB PNG
+
+
+def read_mask_png(path: str | Path, expect_hw: tuple[int, int] | None = None, *, what: str = "mask",
+                  mode: str = "L") -> np.ndarray:
+    """Read an 8-bit greyscale PNG (``mode="RGB"``: an 8-bit colour PNG, (H, W, 3)); ``expect_hw``
+    is checked before the pixels are decoded."""
     from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
     if not path.is_file():
-        raise DataFormatError(f"{path}: missing mask image")
+        raise DataFormatError(f"{path}: missing {what} image")
     try:
         with Image.open(path) as im:
-            _size_mismatch(path, "mask", im.size[0], im.size[1], expect_hw)
-            if im.mode != "L":
-                raise DataFormatError(f"{path}: mask must be an 8-bit greyscale PNG, got mode {im.mode}")
+            _size_mismatch(path, what, im.size[0], im.size[1], expect_hw)
+            if im.mode != mode:
+                kind = "an 8-bit greyscale" if mode == "L" else "an 8-bit RGB"
+                raise DataFormatError(f"{path}: {what} must be {kind} PNG, got mode {im.mode}")
             return np.asarray(im, dtype=np.uint8).copy()
     except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError) as exc:
         raise DataFormatError(f"{path}: not a readable PNG ({str(exc).splitlines()[0][:150]})") from None

@@ -15,7 +15,7 @@ from ..format import (FIELDS_BY_NAME, LABEL_FIELDS, MANIFEST_NAME, check_manifes
 from ..shards import write_manifest, write_shard
 from .export import staged_dir
 from .files import (DEPTH_SUFFIX, EXPORT_FORMAT, EXPORT_FORMAT_VERSION, INDEX_NAME, LABEL_SUFFIX, MASK_SUFFIX,
-                    STEM_RE, read_depth_exr, read_mask_png)
+                    RGB_SUFFIX, STEM_RE, read_depth_exr, read_mask_png)
 
 log = logging.getLogger(__name__)
 
@@ -152,11 +152,12 @@ def import_split(export_dir: str | Path, split_dir: str | Path, *, overwrite: bo
     if len(set(files)) != len(files) or len(set(stems)) != len(stems) or set(files) != set(records_by_file):
         raise DataFormatError(f"{where}: corrupt export index (a shard or image is listed twice, or the shard list "
                               "differs from the source manifest's)")
+    with_rgb = "rgb" in index  # a --rgb split's export: <stem>.rgb.png per image
     # Read and validate everything before writing anything.
     shards = []
     for file, attrs, K, R, stems, rec in specs:
         J, H, W = attrs["n_joints"], attrs["image_height"], attrs["image_width"]
-        depth = mask = None
+        depth = mask = rgb = None
         labels = []
         for i, stem in enumerate(stems):
             inside = resolve_inside(export_dir, stem)  # a checked stem; its files must not be links leading out
@@ -164,6 +165,12 @@ def import_split(export_dir: str | Path, split_dir: str | Path, *, overwrite: bo
                 resolve_inside(export_dir, stem + suffix)
             d = read_depth_exr(inside.with_name(stem + DEPTH_SUFFIX), (H, W))
             m = read_mask_png(inside.with_name(stem + MASK_SUFFIX), (H, W))
+            if with_rgb:
+                resolve_inside(export_dir, stem + RGB_SUFFIX)
+                c = read_mask_png(inside.with_name(stem + RGB_SUFFIX), (H, W), what="colour", mode="RGB")
+                if rgb is None:
+                    rgb = np.empty((len(stems), H, W, 3), np.uint8)
+                rgb[i] = c
             for what, a, suffix in (("depth", d, DEPTH_SUFFIX), ("mask", m, MASK_SUFFIX)):
                 if a.shape != (H, W):
                     raise DataFormatError(f"{export_dir / (stem + suffix)}: {what} is {a.shape[1]}x{a.shape[0]} px, "
@@ -185,6 +192,8 @@ def import_split(export_dir: str | Path, split_dir: str | Path, *, overwrite: bo
                                           f"{got}, expected {shape}")
             labels.append(lab)
         arrays = {"depth": depth, "mask": mask}
+        if rgb is not None:
+            arrays["rgb"] = rgb
         for name in LABEL_FIELDS:
             arrays[name] = _label_array(labels, name, export_dir / file)
         shards.append((file, attrs, K, R, arrays, rec))

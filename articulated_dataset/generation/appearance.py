@@ -56,6 +56,10 @@ APPEARANCE_TABLE = {
     "light_rgb": (0.7, 1.0),  # per channel, times the intensity
     "ambient": (0.2, 0.4),  # grey level of the ambient (head) light
 }
+#: Side (px) of the key light's shadow map in ``--rgb`` models (MuJoCo's default, 4096, made a
+#: software-rendered colour frame ~20x slower than its depth frame; 1024 is finer than any
+#: image's pixels at the default 192 x 108).
+SHADOW_SIZE_PX = 1024
 #: Material slots: 0 body, 1 + j moving part j, then scene, then occluders.
 FILL_LIGHT = "rgb_fill"
 KEY_LIGHT = "key"
@@ -72,10 +76,12 @@ def n_material_slots(n_joints: int) -> int:
 
 def with_appearance_assets(add_context, n_joints: int):
     """A spec hook adding the texture bank, the material slots and the fill light (after
-    ``add_context``, if any): the model compiles to the same geoms, bodies and depth."""
+    ``add_context``, if any), and setting the shadow map's size: the model compiles to the same
+    geoms, bodies and depth."""
     def add(spec):
         if add_context is not None:
             add_context(spec)
+        spec.visual.quality.shadowsize = SHADOW_SIZE_PX
         for name, builtin, light, dark in TEXTURES:
             size = TEXTURE_SIZE_PX.get(name, 64)
             spec.add_texture(name=name, type=mujoco.mjtTexture.mjTEXTURE_CUBE,

@@ -42,22 +42,31 @@ def visible_fraction_bound(attrs: dict) -> float:
     return VISIBLE_FRACTION_RANGE[0]
 
 
+def optional_field_problems(f, fields, expected: bool, why_needed: str, where_unexpected: str, *,
+                            N: int, J: int, H: int, W: int) -> list[str]:
+    """Problems of optional datasets ``fields`` of an open shard ``f``: present exactly when
+    ``expected``, each with its declared dtype and shape."""
+    p = []
+    for fd in fields:
+        if fd.name not in f:
+            if expected:
+                p.append(f"missing dataset {fd.name!r} ({why_needed})")
+            continue
+        if not expected:
+            p.append(f"dataset {fd.name!r} in {where_unexpected}")
+        ds, shape = f[fd.name], resolve_shape(fd.shape, N=N, J=J, H=H, W=W)
+        if tuple(ds.shape) != shape or np.dtype(ds.dtype) != np.dtype(fd.dtype):
+            p.append(f"dataset {fd.name!r} is {ds.dtype} {tuple(ds.shape)}, expected {fd.dtype} {shape}")
+    return p
+
+
 def occlusion_problems(f, attrs: dict, arrays: dict, *, J: int, N: int, H: int, W: int) -> list[str]:
     """Problems of a shard's occlusion fields (``f``: the open HDF5 file): present exactly
     when the shard has a scene or occluders, declared dtype and shape, ``unoccluded_pixels >=
     visible_pixels``, ``visible_fraction`` = their ratio, moving parts within the bound."""
     context = bool(context_mask_codes(attrs))
-    p = []
-    for fd in OPTIONAL_FIELDS:
-        if fd.name not in f:
-            if context:
-                p.append(f"missing dataset {fd.name!r} (a split with a scene or occluders stores it)")
-            continue
-        if not context:
-            p.append(f"dataset {fd.name!r} in a shard without scene or occluders")
-        ds, shape = f[fd.name], resolve_shape(fd.shape, N=N, J=J, H=H, W=W)
-        if tuple(ds.shape) != shape or np.dtype(ds.dtype) != np.dtype(fd.dtype):
-            p.append(f"dataset {fd.name!r} is {ds.dtype} {tuple(ds.shape)}, expected {fd.dtype} {shape}")
+    p = optional_field_problems(f, OPTIONAL_FIELDS, context, "a split with a scene or occluders stores it",
+                                "a shard without scene or occluders", N=N, J=J, H=H, W=W)
     if p or not context or "visible_pixels" not in arrays:
         return p
     try:

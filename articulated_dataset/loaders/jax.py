@@ -32,7 +32,7 @@ import numpy as np
 from ..errors import UserError
 from .batch import BatchProcessor, load_batch
 from .epoch import DEFAULT_BLOCK_SIZE, n_batches, part_bounds, plan_epoch
-from .reader import JAX_INSTALL, NUMERIC_FIELDS, ShardReader, require
+from .reader import JAX_INSTALL, NUMERIC_FIELDS, OPTIONAL_IMAGE_FIELDS, ShardReader, require
 
 #: Batches each grain worker prepares ahead.
 DEFAULT_PREFETCH_BATCHES = 2
@@ -193,7 +193,8 @@ class JaxLoader:
     """Batches of numpy arrays for one JAX process; ``set_epoch(epoch)`` before each epoch
     (without it, each pass runs the next epoch; the first pass runs epoch 0).
 
-    ``fields`` default: every numeric field (:data:`~articulated_dataset.loaders.reader.NUMERIC_FIELDS`).
+    ``fields`` default: every numeric field (:data:`~articulated_dataset.loaders.reader.NUMERIC_FIELDS`),
+    and ``rgb`` when every split stores colour images.
     Every batch holds ``index`` (global sample indices) and, with ``target``, ``target``.
     ``remainder`` as in :func:`~articulated_dataset.loaders.epoch.plan_epoch` (default ``"pad"``:
     every process gets the same number of batches).  ``len(loader)``: batches per epoch.
@@ -204,7 +205,9 @@ class JaxLoader:
                  block_size: int = DEFAULT_BLOCK_SIZE, drop_last: bool = False, remainder: str = "pad",
                  target=None, norm=None, transform=None, num_workers: int = 0,
                  prefetch_batches: int = DEFAULT_PREFETCH_BATCHES):
-        fields = NUMERIC_FIELDS if fields is None else fields
+        if fields is None:  # every numeric field, rgb where every split has it
+            fields = NUMERIC_FIELDS + tuple(f for f in ShardReader(source.split_dirs if isinstance(source, ShardReader) else source).fields
+                                            if f in OPTIONAL_IMAGE_FIELDS)
         if isinstance(source, ShardReader) and tuple(fields) == source.fields:
             self.reader = source
         else:

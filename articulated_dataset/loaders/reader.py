@@ -23,8 +23,9 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ..errors import DataFormatError, UserError, import_optional
-from ..format import (FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, Shard, Split, find_splits, open_h5, reading, resolve_shape,
+from ..format import (FIELDS, IMAGE_FIELDS, K_DATASET, Shard, Split, find_splits, open_h5, reading, resolve_shape,
                       shard_paths)
+from ..format.schema import FIELDS_BY_NAME as _STORED_FIELDS_BY_NAME, RGB_FIELDS
 
 log = logging.getLogger(__name__)
 
@@ -32,8 +33,14 @@ log = logging.getLogger(__name__)
 #: Fields computed by the reader rather than stored per image: the shard's intrinsics (3, 3)
 #: float64 and the position of the sample's class in :attr:`ShardReader.class_names`.
 VIRTUAL_FIELDS: dict[str, tuple[tuple, str]] = {"K": ((3, 3), "float64"), "class_index": ((), "int64")}
+#: Optional image fields a reader serves when every split stores them (``rgb``: splits
+#: generated with ``--rgb``, format 1.2); in the default selection only then.
+OPTIONAL_IMAGE_FIELDS = tuple(f.name for f in RGB_FIELDS)
 #: Every field a reader can return.
-ALL_FIELDS = tuple(f.name for f in FIELDS) + tuple(VIRTUAL_FIELDS)
+ALL_FIELDS = tuple(f.name for f in FIELDS) + OPTIONAL_IMAGE_FIELDS + tuple(VIRTUAL_FIELDS)
+#: Fields read per run of images (one HDF5 read each), not cached per shard.
+READ_IMAGE_FIELDS = IMAGE_FIELDS + OPTIONAL_IMAGE_FIELDS
+FIELDS_BY_NAME = {**_STORED_FIELDS_BY_NAME, **{f.name: f for f in RGB_FIELDS}}
 #: Default selection: every stored field plus the intrinsics.
 DEFAULT_FIELDS = tuple(f.name for f in FIELDS) + ("K",)
 #: Fields stored as byte strings (not numeric; not accepted by jax.device_put / torch tensors).
@@ -94,13 +101,15 @@ class ShardReader:
     paths_or_split_dirs: a split folder (``OUT/<class>/<split>``), a class folder, a dataset root,
         or a list of them.  Split folders are found with :func:`articulated_dataset.format.find_splits`.
     fields: the fields each sample holds (default :data:`DEFAULT_FIELDS`: every stored field and
-        ``K``).  ``class_index`` (int64 index into :attr:`class_names`) is available on request.
+        ``K``, and ``rgb`` (H, W, 3) uint8 when every split stores colour images, ``--rgb``).
+        ``class_index`` (int64 index into :attr:`class_names`) is available on request.
 
     ``reader[i]`` is a dict of numpy arrays (``depth`` (H, W) float32 m, ``mask`` (H, W) uint8,
     every selected label); :meth:`get_batch` stacks several samples.
     """
 
     def __init__(self, paths_or_split_dirs, fields: Sequence[str] | None = None):
+        default = fields is None
         self.fields = check_fields(fields)
         self.split_dirs = resolve_split_dirs(paths_or_split_dirs)
         paths, sizes, shard_split, shard_class = [], [], [], []
@@ -119,6 +128,9 @@ class ShardReader:
                 sizes.append(size)
                 shard_split.append(s)
                 shard_class.append(self.class_names.index(meta["class_name"]))
+        with_rgb = bool(self._split_meta) and all(m["rgb"] for m in self._split_meta)
+        if default and with_rgb:
+            self.fields = self.fields + OPTIONAL_IMAGE_FIELDS
         self._check_compatible()
         self.shard_paths: list[Path] = paths
         self.shard_sizes = np.asarray(sizes, dtype=np.int64)
@@ -150,16 +162,20 @@ class ShardReader:
                 J = int(f.attrs.get("n_joints", 0))
         else:
             J = 0
-        return {"class_name": class_name, "H": H, "W": W, "J": J}
+        return {"class_name": class_name, "H": H, "W": W, "J": J, "rgb": isinstance(config, dict) and config.get("rgb") is True}
 
     def _check_compatible(self) -> None:
         """Samples of different splits must stack: same image size, same J for joint fields."""
         if not self._split_meta:
             return
         first = self._split_meta[0]
-        needs_image = any(f in IMAGE_FIELDS for f in self.fields)
+        needs_image = any(f in READ_IMAGE_FIELDS for f in self.fields)
         needs_j = any(f in FIELDS_BY_NAME and any(s in ("J", "P") for s in FIELDS_BY_NAME[f].shape) for f in self.fields)
         for d, meta in zip(self.split_dirs, self._split_meta):
+            for name in OPTIONAL_IMAGE_FIELDS:
+                if name in self.fields and not meta[name]:
+                    raise UserError(f"{d}: the split has no {name!r} images (generated without --{name}); "
+                                    f"drop {name!r} from fields")
             if needs_image and (meta["H"], meta["W"]) != (first["H"], first["W"]):
                 raise UserError(f"{d}: images are {meta['W']}x{meta['H']}, but {self.split_dirs[0]} has "
                                 f"{first['W']}x{first['H']}; read them separately")
@@ -234,7 +250,7 @@ class ShardReader:
         cached = state.labels.get(s)
         if cached is None:
             sh = self._shard(s)
-            names = [f for f in self.fields if f in FIELDS_BY_NAME and f not in IMAGE_FIELDS]
+            names = [f for f in self.fields if f in FIELDS_BY_NAME and f not in READ_IMAGE_FIELDS]
             cached = {name: sh.read(name) for name in names}
             state.labels[s] = cached
         return cached
@@ -323,8 +339,8 @@ class ShardReader:
             out = {name: np.empty(shape, dtype) for name, (shape, dtype) in specs.items()}
         else:
             out = alloc(specs)
-        image_names = [f for f in names if f in IMAGE_FIELDS]
-        label_names = [f for f in names if f in FIELDS_BY_NAME and f not in IMAGE_FIELDS]
+        image_names = [f for f in names if f in READ_IMAGE_FIELDS]
+        label_names = [f for f in names if f in FIELDS_BY_NAME and f not in READ_IMAGE_FIELDS]
         cuts = np.flatnonzero(np.diff(shard)) + 1
         for a, b in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [n]])) if n else ():
             a, b = int(a), int(b)
@@ -352,7 +368,7 @@ class ShardReader:
 
     def iter_labels(self, fields: Sequence[str] | None = None):
         """Yield ``(global_offset, labels)`` per shard: whole label arrays, no image decoding."""
-        names = [f for f in (self.fields if fields is None else fields) if f in FIELDS_BY_NAME and f not in IMAGE_FIELDS]
+        names = [f for f in (self.fields if fields is None else fields) if f in FIELDS_BY_NAME and f not in READ_IMAGE_FIELDS]
         for s in range(len(self.shard_paths)):
             labels = self._labels(s)
             yield int(self.offsets[s]), {k: labels[k] for k in names}

@@ -371,3 +371,29 @@ def _check_order(a: dict, attrs: dict, *, J: int, ipo: int, start: int, problems
         uniq, counts = np.unique(ids, return_counts=True)
         if (counts > 1).any():
             p.append(f"sample_id: {int((counts > 1).sum())} ids repeated within the shard (e.g. {int(uniq[counts > 1][0])})")
+
+
+def rgb_problems(f, attrs: dict, arrays: dict, *, N: int, H: int, W: int) -> list[str]:
+    """Problems of a shard's colour images (format 1.2, ``generate --rgb``; ``f``: the open
+    HDF5 file): present exactly when the shard records its ``appearance``, uint8 (N, H, W, 3),
+    in a format 1.2 shard, and (noise-free depth) not black exactly where the depth hit something."""
+    from ..format.schema import RGB_FIELDS, RGB_FORMAT_VERSION
+    from ..generation.context_labels import optional_field_problems
+
+    recorded = "appearance" in attrs
+    p = optional_field_problems(f, RGB_FIELDS, recorded, "the shard records its appearance, a --rgb split stores it",
+                                "a shard without the attribute appearance", N=N, J=0, H=H, W=W)
+    if "rgb" not in f or p:
+        return p
+    if str(attrs.get("format_version")) != RGB_FORMAT_VERSION:
+        p.append(f"dataset 'rgb' in a shard of format {attrs.get('format_version')}, expected {RGB_FORMAT_VERSION}")
+    depth, ds = arrays.get("depth"), f["rgb"]
+    if depth is None or attrs.get("noise_model", "none") != "none":
+        return p
+    bad = np.zeros(N, bool)
+    for s in range(0, N, DEPTH_BLOCK):
+        lit = ds[s:s + DEPTH_BLOCK].max(axis=-1) > 0
+        bad[s:s + DEPTH_BLOCK] = _per_image(lit != (depth[s:s + DEPTH_BLOCK] > 0))
+    if bad.any():
+        p.append(f"rgb/depth: black pixels (0, 0, 0) and pixels without depth differ in {_where(bad)}")
+    return p

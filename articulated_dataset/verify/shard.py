@@ -16,7 +16,7 @@ from ..camera import R_CAMERA_TO_OPTICAL, CameraConfig
 from ..errors import DataFormatError, UserError
 from ..format import (FIELDS, K_DATASET, R_DATASET, ROOT_ATTRS, check_h5_layout, check_version, resolve_shape, sha256_file)
 from ..generation.context_labels import occlusion_problems
-from .content import check_content
+from .content import check_content, rgb_problems
 
 #: Relative tolerance when comparing the stored intrinsics with the camera config's K.
 K_RTOL = 1e-9
@@ -184,6 +184,7 @@ def _check_open_shard(f: h5py.File, expect: ShardExpectation, res: ShardResult, 
         p.append(msg)
     check_content(arrays, attrs, table, J=J, ipo=ipo, start=start, problems=p, capture_names=names)
     p.extend(occlusion_problems(f, attrs, arrays, J=J, N=N, H=H, W=W))  # format 1.1 (--scene, --occluders)
+    p.extend(rgb_problems(f, attrs, arrays, N=N, H=H, W=W))  # format 1.2 (--rgb)
     if "sample_id" in arrays:
         res.sample_ids = arrays["sample_id"]
 

@@ -147,6 +147,12 @@ def make_gallery(split_dirs, *, out: str | Path | None = None, per_sample_dir: s
             v.close()
 
 
+def stored_colour(view: SplitView) -> bool:
+    """Whether the split stores colour images (``generate --rgb``): shown as the colour panel."""
+    config = view.manifest.get("config")
+    return isinstance(config, dict) and config.get("rgb") is True
+
+
 def _read_predicted_axes(path) -> dict:
     """class -> {sample_id: {"axis_pose": (J, 7), "q": (J,)}} of a predictions file."""
     from ..benchmark.predictions import read_predictions
@@ -185,7 +191,10 @@ def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi
                 if hit is not None and hit["axis_pose"].shape[0] == len(v.joint_types):
                     smp["prediction"] = hit
         samples.append(ss)
-        if rgb:
+        if stored_colour(v):  # a --rgb split: its own colour images, nothing rebuilt
+            sh_rows = [v.locate(o) for o, _ in pairs]
+            rgbs.append([sh.read("rgb", row + i) for (sh, row), (_, i) in zip(sh_rows, pairs)])
+        elif rgb:
             by_obj: dict[int, list[int]] = {}
             for o, i in pairs:
                 by_obj.setdefault(o, []).append(i)
@@ -197,6 +206,7 @@ def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi
             rgbs.append([rendered[p] for p in pairs])
         else:
             rgbs.append([None] * len(pairs))
+    rgb = rgb or any(stored_colour(v) for v in views)  # a colour panel beside every depth panel
     panels: list[Panel] = []
     if out is not None:
         panels += _gallery_figure(views, samples, rgbs, out, cols, dpi, outline, rgb)
