@@ -5,11 +5,7 @@ from __future__ import annotations
 import click
 
 from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, KINECT_V2_VFOV_DEG, CameraConfig
-from ..errors import UserError, check_memory
-
-#: Bytes per training-resolution pixel held per capture while ingesting: stored float32 depth
-#: and uint8 mask, plus float64 depth and int64 index temporaries of the resampling.
-_BYTES_PER_PIXEL = 4 + 1 + 8 + 8
+from ..errors import UserError
 
 
 def _parse_size(text: str | None) -> tuple[int, int] | None:
@@ -25,23 +21,6 @@ def _parse_size(text: str | None) -> tuple[int, int] | None:
         raise UserError(f"--source-size must be positive, got {text!r}")
     check_source_size((w, h), "--source-size")
     return w, h
-
-
-def _camera_like(path: str) -> CameraConfig:
-    """The camera of an existing split (its manifest's config)."""
-    from ..format import find_split_dirs, read_manifest
-
-    dirs = find_split_dirs(path)
-    try:
-        cam = read_manifest(dirs[0])["config"]["camera"]
-        w, h, vfov = cam["width_px"], cam["height_px"], cam["vfov_deg"]
-        if not (all(isinstance(v, int) and not isinstance(v, bool) for v in (w, h))
-                and isinstance(vfov, (int, float)) and not isinstance(vfov, bool)):
-            raise TypeError("camera values are not numbers")
-        return CameraConfig(w, h, float(vfov))
-    except (KeyError, TypeError, ValueError) as exc:
-        raise UserError(f"--like {path}: {dirs[0]}/manifest.json has no readable camera "
-                        f"({type(exc).__name__}: {str(exc)[:80]})") from None
 
 
 @click.command("ingest")
@@ -88,14 +67,9 @@ def ingest_cmd(captures, class_name, out_root, split, mask_path, labels_path, in
     Next to NAME.png|.exr|.npy|.ply|.pcd the optional files NAME.mask.png, NAME.labels.json and
     NAME.camera.json (or camera.json in the folder) are picked up.  See docs/real_data.md.
     """
-    from pathlib import Path
-
-    from tqdm import tqdm
-
-    from ..real.captures import find_captures
-    from ..real.ingest import IngestOptions, ingest_capture
-    from ..real.intrinsics import check_intrinsics, intrinsics_matrix, load_intrinsics
-    from ..real.write import write_real_split
+    from ..real.ingest import IngestOptions
+    from ..real.ingest_split import camera_like, check_training_camera, ingest_split
+    from ..real.intrinsics import intrinsics_matrix, load_intrinsics
     from ..registry import get_class
 
     get_class(class_name)
@@ -112,29 +86,17 @@ def ingest_cmd(captures, class_name, out_root, split, mask_path, labels_path, in
         K, file_size = load_intrinsics(intrinsics_path)
         size = size or file_size
     if like_path:
-        camera = _camera_like(like_path)
+        camera = camera_like(like_path)
     else:
         try:
             camera = CameraConfig(width, height, vfov)
         except ValueError as exc:
             raise UserError(str(exc)) from None
-    check_memory(float(camera.width_px) * camera.height_px * _BYTES_PER_PIXEL,
-                 f"a {camera.width_px}x{camera.height_px} training image")
-    check_intrinsics(camera.K, (camera.width_px, camera.height_px), "training camera (--width/--height/--vfov)")
+    check_training_camera(camera)
     options = IngestOptions(camera=camera, fit=fit, resample=resample, crop_margin=crop_margin, depth_units=depth_units,
                             cloud_frame=cloud_frame, keep_background=keep_background, intrinsics=K, source_size=size)
-    files = find_captures(captures)
-    if (mask_path or labels_path) and len(files) != 1:
-        raise UserError(f"--mask and --labels name the files of one capture; {len(files)} captures were given")
-    check_memory(float(len(files)) * camera.width_px * camera.height_px * _BYTES_PER_PIXEL,
-                 f"{len(files)} captures at {camera.width_px}x{camera.height_px} px")
-    if mask_path:
-        files[0].mask = Path(mask_path)
-    if labels_path:
-        files[0].labels = Path(labels_path)
-    ingested = [ingest_capture(f, class_name, options) for f in tqdm(files, unit="capture", disable=quiet, desc="ingest")]
-    split_dir = write_real_split(ingested, class_name, out_root, split=split, camera=camera, options=options,
-                                 append=append, overwrite=overwrite)
+    split_dir, ingested = ingest_split(captures, class_name, out_root, options, split=split, mask_path=mask_path,
+                                       labels_path=labels_path, append=append, overwrite=overwrite, progress=not quiet)
     if not quiet:
         n_gt = sum(c.has_labels for c in ingested)
         cut = [c.name for c in ingested if c.mask_fraction_inside < 1.0]
