@@ -221,3 +221,46 @@ def test_show_draws_the_stored_colour_panel(rgb_split, tmp_path):
 
     panels = make_gallery([rgb_split], out=tmp_path / "g.png", n=2, cols=2)
     assert sorted(p.kind for p in panels) == ["depth", "depth", "rgb", "rgb"]
+
+
+def test_third_party_urdf_and_mean_object(tmp_path):
+    """A --urdf object (its own rendering context for its assets) and the mean object take --rgb."""
+    from articulated_dataset.verify import verify_split
+    from helpers_core import write_flap_urdf
+
+    urdf = write_flap_urdf(tmp_path / "urdf")
+    out = tmp_path / "tp"
+    r = CliRunner().invoke(main, ["generate", "--urdf", str(urdf), "--n", "1", "--images", "3", "--out", str(out), "-q",
+                                  "--workers", "1", "--rgb", "--occluders", "1"])
+    assert r.exit_code == 0, r.output
+    (split,) = [p.parent for p in out.glob("*/train/manifest.json")]
+    report = verify_split(split)
+    assert report.ok, report.problems
+    with h5py.File(_shards(split)[1][0]) as f:
+        for i in range(3):
+            _check_colour_covers_exactly_the_depth(f["rgb"][i], f["depth"][i])
+    r = CliRunner().invoke(main, ["generate", "--class", "drawer", "--mean", "--images", "2", "--out", str(tmp_path / "m"),
+                                  "-q", "--workers", "1", "--rgb"])
+    assert r.exit_code == 0, r.output
+    assert verify_split(tmp_path / "m" / "drawer" / "mean").ok
+
+
+def test_docs_state_the_ranges_the_code_uses():
+    from pathlib import Path
+
+    from articulated_dataset.generation.appearance import SHADOW_SIZE_PX, TEXTURES
+
+    root = Path(__file__).resolve().parents[1]
+    gen = (root / "docs" / "generation.md").read_text()
+    t = APPEARANCE_TABLE
+    r = lambda key: "{:g}-{:g}".format(*t[key])  # noqa: E731
+    assert f"each channel {t['material_rgb'][0]:g}-{t['material_rgb'][1]:.1f}" in gen
+    assert f"| {r('specular')}, {r('shininess')}, {r('reflectance')} |" in gen
+    assert f"{t['texture_probability'] * 100:g}%: one of {['', 'one', 'two', 'three', 'four'][len(TEXTURES)]} grey" in gen
+    assert f"from {r('key_light_elevation_deg')} deg above the camera" in gen
+    assert "-{:g}..{:g} deg".format(-t["key_light_azimuth_deg"][0], t["key_light_azimuth_deg"][1]) in gen
+    assert f"intensity {r('key_light_intensity')} |" in gen and f"intensity {r('fill_light_intensity')} |" in gen
+    (x, y, z) = t["fill_light_pos_m"]
+    assert f"at x {x[0]:g}..{x[1]:.1f} m, y {y[0]:g}..{y[1]:g} m, z {z[0]:g}..{z[1]:g} m" in gen
+    assert f"each channel {r('light_rgb')}" in gen and f"grey {r('ambient')} |" in gen
+    assert f"{SHADOW_SIZE_PX} px" in gen
