@@ -42,7 +42,7 @@ def test_importing_the_cli_is_light():
 def test_help_of_every_command_but_generate_is_light(command):
     """Help loads the command's module only: even the commands that run a network or build
     MuJoCo models import them when they run (``train --help`` imported the generator's
-    module, and MuJoCo, for its --class type before commands.options)."""
+    module, and MuJoCo, for its --class type before cli.options)."""
     assert heavy_modules_after_cli(command, "--help") == []
 
 
