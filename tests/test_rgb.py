@@ -194,6 +194,10 @@ def test_verify_catches_colour_that_does_not_match_the_depth(rgb_split, tmp_path
     with h5py.File(files[0], "r+") as f:
         del f["rgb"]
     assert "missing dataset 'rgb'" in str(verify_split(bad, content=True).problems)
+    with h5py.File(files[0], "r+") as f:
+        del f.attrs["appearance"]
+    problems = str(verify_split(bad, content=True).problems)
+    assert "missing dataset 'rgb'" not in problems and "config has rgb = true but the shard has no attribute" in problems
 
 
 def test_export_writes_rgb_png_and_import_restores_the_split(rgb_split, tmp_path):

@@ -37,6 +37,7 @@ class ShardExpectation:
     camera: CameraConfig | None = None
     real: bool | None = None  # the manifest says the split holds ingested real captures
     capture_names: list | None = None  # real: the manifest's captures of this shard, in order
+    rgb: bool | None = None  # the manifest's config says the split stores colour images (--rgb)
 
 
 @dataclass
@@ -185,6 +186,9 @@ def _check_open_shard(f: h5py.File, expect: ShardExpectation, res: ShardResult, 
     check_content(arrays, attrs, table, J=J, ipo=ipo, start=start, problems=p, capture_names=names)
     p.extend(occlusion_problems(f, attrs, arrays, J=J, N=N, H=H, W=W))  # format 1.1 (--scene, --occluders)
     p.extend(rgb_problems(f, attrs, arrays, N=N, H=H, W=W))  # format 1.2 (--rgb)
+    if expect.rgb is not None and ("appearance" in attrs) != expect.rgb:
+        p.append("the manifest's config has rgb = true but the shard has no attribute appearance" if expect.rgb
+                 else "the shard has the attribute appearance (--rgb) but the manifest's config has no rgb = true")
     if "sample_id" in arrays:
         res.sample_ids = arrays["sample_id"]
 

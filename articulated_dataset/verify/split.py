@@ -88,7 +88,7 @@ def _plan_split(split_dir: Path, content: bool) -> tuple[SplitReport, list]:
             n_images=r["n_images"], n_bytes=r["bytes"], sha256=r["sha256"], object_start=r["object_start"],
             object_stop=r["object_stop"], class_name=manifest["class_name"], split=manifest["split"],
             seed=manifest["seed"], camera=config.camera if config is not None else None, real=real,
-            capture_names=captures_of.get(r["file"]))
+            capture_names=captures_of.get(r["file"]), rgb=config.rgb if config is not None else None)
         tasks.append((split_dir / r["file"], expect, content))
     return report, tasks
 
