@@ -196,3 +196,54 @@ def test_refinement_round_trips_through_its_dict():
     ref = R.Refinement(frame=True, hinge_offset_m=-0.01, min_door_px=80)
     assert R.Refinement.from_dict(ref.to_dict()) == ref
     assert R.Refinement.from_dict(None) is None
+
+
+def test_refinement_dict_reads_version_1_without_a_gate():
+    ref = R.Refinement(frame=True, hinge_offset_m=-0.01, min_door_px=80, max_turn_deg=10.0)
+    assert R.Refinement.from_dict(ref.to_dict()) == ref
+    old = {"frame": True, "hinge_offset_m": -0.01, "min_door_px": None, "version": 1}
+    assert R.Refinement.from_dict(old).max_turn_deg is None
+
+
+def test_fit_gates_the_box_frame_where_it_turns_too_far():
+    """90% of box frames are exact; 10% matched a wrong face and are 20 degrees off while the votes
+    are 3 degrees off: the fitted gate keeps those votes and beats the ungated box frame."""
+    rng = np.random.default_rng(5)
+    N = 400
+    true = Rotation.from_euler("z", rng.uniform(-45, 45, N)[:, None], degrees=True)
+    votes = (true * Rotation.from_rotvec(rng.normal(0, math.radians(3), (N, 3)))).as_matrix()
+    wrong = rng.random(N) < 0.1
+    box = (true * Rotation.from_euler("z", np.where(wrong, 20.0, 0.0)[:, None], degrees=True)).as_matrix()  # yaw (the metric)
+    z = np.zeros((N, 1, 1))
+    m = {"axis": votes[:, None, None, :, 2], "xaxis": votes[:, None, None, :, 0], "q": z.copy(),
+         "part_offset": np.full((N, 1, 1, 3), 0.3)}
+    r = {"axis": box[:, None, None, :, 2], "xaxis": box[:, None, None, :, 0], "q": np.zeros((N, 1)),
+         "door_px": np.zeros((N, 1))}
+    truth = {"axis_pose": np.concatenate([np.zeros((N, 1, 3)), _quat(true.as_matrix())[:, None]], -1), "q": np.zeros((N, 1)),
+             "part_offset": np.c_[np.full(N, 0.3), np.zeros(N), np.zeros(N)][:, None]}
+    ref, report = R.fit_refinement(m, r, truth, ["prismatic"])
+    assert ref.frame and ref.max_turn_deg is not None and 5.0 <= ref.max_turn_deg < 20.0
+    gated = report["rotation_deg"][f"box_frame_turn<={ref.max_turn_deg:g}deg"]
+    assert gated < 0.6 * report["rotation_deg"]["box_frame"]
+    turn = R.frame_turn_deg(m["axis"], m["xaxis"], r["axis"], r["xaxis"])[:, 0, 0]
+    assert np.median(turn[wrong]) > 15 and np.median(turn[~wrong]) < 8
+    assert R.frame_turn_deg(m["axis"], m["xaxis"], -m["axis"], -m["xaxis"]).max() < 1e-5  # the mirrored side: 0 apart
+
+
+@pytest.mark.parametrize("joint_type", ["prismatic", "revolute"])
+def test_a_drawer_front_aligns_the_frame(joint_type):
+    """Only a part's face is seen (a closed drawer's front; the body shows a rim at most): a
+    prismatic part only translates, so its face aligns the frame; a door's face, turned by q, must not."""
+    depth, K, frame = _door_scene(0.0)
+    inputs = make_inputs(depth, K)
+    h, w = inputs["weight_out"].shape[1:]
+    seg = torch.zeros(1, 2, h, w)
+    seg[:, 1] = 5.0  # every pixel is the part
+    votes = torch.tensor(Rotation.from_euler("z", 8, degrees=True).as_matrix() @ frame, dtype=torch.float32)
+    rot6 = torch.cat([votes[:, 2], votes[:, 0]]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w)
+    parts = {"seg": seg, "rot6": rot6, "conf": torch.zeros(1, 1, 3, h, w)}
+    modes = {"origin": torch.tensor([[[[1.5, 0.5, 0.0]]]]), "axis": votes[:, 2].reshape(1, 1, 1, 3)}
+    r = R.refined_quantities(parts, inputs, modes, [joint_type])
+    x = r["xaxis"][0, 0, 0].double().numpy()
+    off = math.degrees(math.acos(min(1.0, abs(x @ frame[:, 0]))))
+    assert (off < 0.5) if joint_type == "prismatic" else (off > 7.0)

@@ -12,11 +12,14 @@ regressed (:func:`refined_quantities`, per image and joint):
    ``y = normalise(sum_i w_i z_i x x_i)`` (``w_i`` the rotation confidences): both are
    unchanged when a pixel votes for the mirrored frame (``z, x -> -z, -x``), so two hinge sides
    no longer cancel.  ``x = y x z``.
-2. **Box frame** (Manhattan alignment).  The normals of the body's pixels (network segmentation,
-   upsampled) are matched to the nearest signed frame axis (inliers within
+2. **Box frame** (Manhattan alignment).  The normals of the body's pixels and of prismatic parts'
+   pixels (a drawer only translates: its front shows the pull axis where the body shows only a
+   rim) (network segmentation, upsampled) are matched to the nearest signed frame axis (inliers within
    an angle that shrinks over the rounds, :data:`INLIER_ANGLES_DEG`) and the rotation that best maps the axes onto the normals is found
    by Kabsch's SVD; :data:`PRIOR_WEIGHT_PX` pseudo-normals on
-   the current axes keep a direction no face constrains where it was.
+   the current axes keep a direction no face constrains where it was.  Where the result turns a
+   mode's voted frame by more than ``max_turn_deg`` (fitted; :func:`frame_turn_deg`) the voted
+   frame is kept.
 3. **Axis side.**  Per vote mode, ``x`` points from the mode's axis origin towards the centre
    of the visible object (a door's hinge is on the object's edge), ``z`` follows (``y = z x x``
    is kept); prismatic joints keep the sign of their votes.
@@ -61,8 +64,10 @@ DOOR_PX_CANDIDATES = (20, 40, 80, 160, 320)
 MIN_RADIUS_M = 0.05
 #: Offsets (m) fitted from rotations further than this from the truth (deg) are discarded.
 MAX_OFFSET_FIT_ANGLE_DEG = 15.0
-#: Refinement format version stored in checkpoints.
-REFINEMENT_VERSION = 1
+#: Gates tried for ``max_turn_deg`` by :func:`fit_refinement` (None: never gate).
+TURN_GATE_CANDIDATES_DEG = (5.0, 8.0, 10.0, 15.0, 20.0, 30.0, None)
+#: Refinement format version stored in checkpoints (2: ``max_turn_deg``; version 1 reads as None).
+REFINEMENT_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -75,6 +80,8 @@ class Refinement:
     hinge_offset_m: float = 0.0
     #: use the normal-based door angle where at least this many door pixels have a normal (None: never)
     min_door_px: int | None = None
+    #: keep a mode's voted frame where the box frame turns it by more than this (deg; None: never)
+    max_turn_deg: float | None = None
     version: int = REFINEMENT_VERSION
 
     @property
@@ -89,9 +96,10 @@ class Refinement:
     def from_dict(cls, d: dict | None) -> "Refinement | None":
         if d is None:
             return None
+        turn = d.get("max_turn_deg")
         return cls(frame=bool(d["frame"]), hinge_offset_m=float(d["hinge_offset_m"]),
                    min_door_px=None if d["min_door_px"] is None else int(d["min_door_px"]),
-                   version=int(d.get("version", REFINEMENT_VERSION)))
+                   max_turn_deg=None if turn is None else float(turn), version=int(d.get("version", REFINEMENT_VERSION)))
 
 
 def as_refinement(refinement) -> "Refinement | None":
@@ -168,7 +176,13 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types) -> d
     n_flat = normals.flatten(2).transpose(1, 2)  # (B, P, 3)
     # the frame fit uses every ALIGN_STRIDE-th row and column (neighbouring normals share pixels)
     sub = (slice(None), slice(None, None, ALIGN_STRIDE), slice(None, None, ALIGN_STRIDE))
-    body_w = ((label == 0) & has_normal)[sub].flatten(1).to(x.dtype)
+    # the body's faces, and a drawer's: a prismatic part only translates, so its faces stay parallel
+    # to the frame's (the front of a drawer shows the pull axis where the body shows only a rim)
+    frame_px = label == 0
+    for j, t in enumerate(joint_types):
+        if t == "prismatic":
+            frame_px = frame_px | (label == 1 + j)
+    body_w = (frame_px & has_normal)[sub].flatten(1).to(x.dtype)
     n_sub = normals[(slice(None), slice(None)) + sub[1:]].flatten(2).transpose(1, 2)
     frame = _align_to_normals(_sign_free_frame(parts, valid), n_sub, body_w)
     xf, yf, zf = frame[..., 0], frame[..., 1], frame[..., 2]  # (B, J, 3)
@@ -193,6 +207,16 @@ def hinge_offset_angle(radius_m: np.ndarray, hinge_offset_m: float) -> np.ndarra
     return np.arctan2(hinge_offset_m, np.maximum(radius_m, MIN_RADIUS_M))
 
 
+def frame_turn_deg(axis_a: np.ndarray, xaxis_a: np.ndarray, axis_b: np.ndarray, xaxis_b: np.ndarray) -> np.ndarray:
+    """How far apart two frames' lines are (deg): the larger of the angles between their axis
+    lines and between their x lines, signs ignored (a frame and its mirrored side are 0 apart)."""
+    def line_angle(a, b):
+        cos = np.abs((a * b).sum(-1)) / np.maximum(np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1), 1e-12)
+        return np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
+
+    return np.maximum(line_angle(axis_a, axis_b), line_angle(xaxis_a, xaxis_b))
+
+
 def apply_refinement(m: dict, r: dict, refinement: "Refinement | None", joint_types) -> dict:
     """Mode arrays ``m`` (numpy, :func:`vote_modes` keys) with the refinement ``r`` (numpy,
     :func:`refined_quantities`; None when ``refinement`` is None or not :attr:`Refinement.needed`)
@@ -205,8 +229,12 @@ def apply_refinement(m: dict, r: dict, refinement: "Refinement | None", joint_ty
         axis, xaxis = r["axis"].copy(), r["xaxis"].copy()
         angle = hinge_offset_angle(m["part_offset"][..., 0], refinement.hinge_offset_m)
         angle = np.where(revolute[None, :, None], angle, 0.0)
-        out["axis"] = axis
-        out["xaxis"] = rotate_about(torch.from_numpy(xaxis), torch.from_numpy(axis), torch.from_numpy(angle)).numpy()
+        xaxis = rotate_about(torch.from_numpy(xaxis), torch.from_numpy(axis), torch.from_numpy(angle)).numpy()
+        if refinement.max_turn_deg is not None:
+            keep = frame_turn_deg(m["axis"], m["xaxis"], r["axis"], r["xaxis"]) > refinement.max_turn_deg
+            axis = np.where(keep[..., None], m["axis"], axis)
+            xaxis = np.where(keep[..., None], m["xaxis"], xaxis)
+        out["axis"], out["xaxis"] = axis, xaxis
     if refinement.min_door_px is not None:
         use = revolute[None] & (r["door_px"] >= refinement.min_door_px) & np.isfinite(r["q"])
         out["q"] = np.where(use[..., None], r["q"][..., None], m["q"])
@@ -221,8 +249,10 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     joints (whose box frame is within :data:`MAX_OFFSET_FIT_ANGLE_DEG` of the truth, sides
     agreeing) of ``r tan(a)``, ``a`` the signed angle from the box frame's ``x`` to the true
     ``x`` about the true axis and ``r`` the true radius.  The box frame is kept when it lowers
-    the mean axis rotation error of the heaviest mode, the normal-based angle (with the best
-    of :data:`DOOR_PX_CANDIDATES`) when it lowers the mean configuration error.  Returns the
+    the mean axis rotation error of the heaviest mode, with the gate of
+    :data:`TURN_GATE_CANDIDATES_DEG` (keep the votes' frame where the box frame turns it further;
+    a face mistaken for another) that lowers it most; the normal-based angle (with the best of
+    :data:`DOOR_PX_CANDIDATES`) when it lowers the mean configuration error.  Returns the
     :class:`Refinement` and the validation errors of every candidate.
     """
     from ..benchmark import metrics as M
@@ -250,6 +280,13 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     framed = apply_refinement(m, r, Refinement(frame=True, hinge_offset_m=offset), joint_types)
     report["rotation_deg"]["box_frame"] = rot_err(framed)
     use_frame = report["rotation_deg"]["box_frame"] < report["rotation_deg"]["votes"]
+    best_turn, best_rot = None, report["rotation_deg"]["box_frame"]
+    for turn in TURN_GATE_CANDIDATES_DEG[:-1]:
+        e = rot_err(apply_refinement(m, r, Refinement(frame=True, hinge_offset_m=offset, max_turn_deg=turn), joint_types))
+        report["rotation_deg"][f"box_frame_turn<={turn:g}deg"] = e
+        if e < best_rot:
+            best_turn, best_rot = turn, e
+    use_frame = best_rot < report["rotation_deg"]["votes"]
     best_px, best_cfg = None, report["configuration"]["votes"]
     if revolute.any():
         for px in DOOR_PX_CANDIDATES:
@@ -257,5 +294,6 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
             report["configuration"][f"normals>={px}px"] = e
             if e < best_cfg:
                 best_px, best_cfg = px, e
-    refinement = Refinement(frame=bool(use_frame), hinge_offset_m=offset if use_frame else 0.0, min_door_px=best_px)
+    refinement = Refinement(frame=bool(use_frame), hinge_offset_m=offset if use_frame else 0.0, min_door_px=best_px,
+                            max_turn_deg=best_turn if use_frame else None)
     return refinement, report
