@@ -21,13 +21,16 @@ from .options import prepare_torch
                    "The dense model always gives its heaviest vote mode.")
 @click.option("--snap-to-cloud", is_flag=True,
               help="MDN: move each axis origin to the segmented depth point most likely under the mixture (paper, Table 2).")
+@click.option("--object-mask", is_flag=True,
+              help="Dense model: keep only the object's pixels (the split's mask codes), as a robot's segmentation "
+                   "would; for splits made with --scene or --occluders.")
 @click.option("--method", default=None, help="Method name in the file and the score table (default: dense, MDN or MDN-small).")
 @click.option("--batch-size", type=int, default=None, help="Images per forward pass (default: MDN 256, dense 128).")
 @click.option("--device", default="auto", show_default=True, help="auto (GPU if present), cpu, cuda or cuda:N.")
 @click.option("--threads", type=int, default=None, help="CPU threads for torch (default: all cores of this process).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or summary.")
-def predict_cmd(model_path, data, out, estimate, snap_to_cloud, method, batch_size, device, threads, overwrite, quiet):
+def predict_cmd(model_path, data, out, estimate, snap_to_cloud, object_mask, method, batch_size, device, threads, overwrite, quiet):
     """Predict axis poses, configurations, geometry and the full mixture for every image of a split."""
     out = Path(out)
     if out.exists() and not overwrite:
@@ -49,9 +52,13 @@ def predict_cmd(model_path, data, out, estimate, snap_to_cloud, method, batch_si
 
         ckpt = load_dense_checkpoint(ref.path)
         name = method or "dense"
-        class_name, arrays = predict_dense(ckpt, data, batch_size=128 if batch_size is None else batch_size, progress=not quiet)
-        attrs = {"model": str(model_path), "estimate": "heaviest-mode", "steps": int(ckpt["step"])}
+        class_name, arrays = predict_dense(ckpt, data, batch_size=128 if batch_size is None else batch_size,
+                                           object_mask=object_mask, progress=not quiet)
+        attrs = {"model": str(model_path), "estimate": "heaviest-mode", "steps": int(ckpt["step"]),
+                 "object_mask": int(object_mask)}
     else:
+        if object_mask:
+            raise UserError("--object-mask applies to the dense model")
         from ..mdn.predict import predict_split
         from ..mdn.checkpoint import load_checkpoint
 

@@ -239,9 +239,13 @@ def _quat_from_rot6(r6: np.ndarray) -> np.ndarray:
     return matrix_to_quat(gram_schmidt(r6[..., :3], r6[..., 3:]))
 
 
-def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BATCH, progress: bool = True) -> tuple[str, dict]:
+def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BATCH, object_mask: bool = False,
+                  progress: bool = True) -> tuple[str, dict]:
     """Run a loaded dense checkpoint on the split at ``data``; ``(class_name, arrays)`` as
-    :func:`articulated_dataset.benchmark.predictions.write_predictions` takes them.  Labels are not read."""
+    :func:`articulated_dataset.benchmark.predictions.write_predictions` takes them.  Labels are not
+    read; with ``object_mask`` the split's mask keeps only the object's pixels
+    (:func:`~.train.load_dense_split`).  A split with a scene or occluders predicted without it
+    logs a warning: the model was trained on isolated objects and reads every pixel with depth."""
     from ..mdn.data import resolve_split_dir, split_class
     from .train import build_dense_model, load_dense_split
 
@@ -252,9 +256,19 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
     data_class = split_class(split_dir)
     if data_class != class_name:
         raise UserError(f"{split_dir}: holds class {data_class!r} but the dense model was trained on {class_name!r}")
+    if not object_mask:
+        from ..format import read_manifest
+
+        config = read_manifest(split_dir).get("config", {})
+        if config.get("scene", "none") != "none" or int(config.get("occluders", 0) or 0) > 0:
+            log.warning("%s: the split has a scene or occluders (scene %s, %s occluders per image); the model was "
+                        "trained on isolated objects and reads every pixel with depth: pass --object-mask to give it "
+                        "only the object's pixels, as a robot's segmentation would", split_dir,
+                        config.get("scene", "none"), config.get("occluders", 0))
     model = build_dense_model(ckpt)
     cfg = model.config
-    d = load_dense_split(split_dir, cfg.n_joints, (cfg.height_px, cfg.width_px), with_labels=False, progress=progress)
+    d = load_dense_split(split_dir, cfg.n_joints, (cfg.height_px, cfg.width_px), with_labels=False,
+                         object_mask=object_mask, progress=progress)
     t0 = time.perf_counter()
     arrays = predict_arrays(model, d, np.arange(len(d.sample_id)), joint_types=list(ckpt["joint_types"]),
                             calibration=ckpt.get("calibration"), refinement=ckpt.get("refinement"),

@@ -119,8 +119,10 @@ def quantise_depth(depth_m: np.ndarray) -> np.ndarray:
 
 
 def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max_objects: int | None = None,
-                     with_labels: bool = True, progress: bool = False) -> DenseData:
-    """Read a split into a :class:`DenseData` (labels only if ``with_labels``)."""
+                     with_labels: bool = True, object_mask: bool = False, progress: bool = False) -> DenseData:
+    """Read a split into a :class:`DenseData` (labels only if ``with_labels``).  ``object_mask``:
+    the depth outside the object's mask codes (body and parts) is set to no return, as a
+    robot's object segmentation would leave it (scenes and occluders removed)."""
     import torch
     from tqdm.auto import tqdm
 
@@ -147,6 +149,11 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
             sel = idx[start : start + LOAD_CHUNK]
             rows = slice(int(sel[0]), int(sel[-1]) + 1)
             depth = sh.read("depth", rows)[sel - sel[0]]
+            if object_mask:
+                from ..format import MASK_BODY
+
+                m = sh.read("mask", rows)[sel - sel[0]]
+                depth = np.where((m >= MASK_BODY) & (m <= MASK_BODY + n_joints), depth, 0)
             src_hw = depth.shape[1:]
             if tuple(src_hw) != tuple(hw):
                 depth = resize_depth(torch.from_numpy(np.asarray(depth, np.float32)), hw).numpy()
