@@ -18,7 +18,7 @@ FORMAT_VERSION = "1.0"
 
 def estimate(depth_m, K, class_name, mask=None, model="dense"):
     """Estimate an object's articulation from one depth image: see
-    :func:`articulated_dataset.estimation.estimate` (imports torch on first use)."""
-    from .estimation import estimate as _estimate
+    :func:`articulated_dataset.models.estimation.estimate` (imports torch on first use)."""
+    from .models.estimation import estimate as _estimate
 
     return _estimate(depth_m, K, class_name, mask=mask, model=model)

@@ -29,11 +29,11 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from articulated_dataset.camera import CameraConfig  # noqa: E402
-from articulated_dataset.mdn.loss import mean_of_best  # noqa: E402
-from articulated_dataset.mdn.model import MixtureDensityNetwork, count_parameters  # noqa: E402
-from articulated_dataset.mdn.preprocess import assemble_inputs, preprocess_depth  # noqa: E402
-from articulated_dataset.mdn.config import PRESETS, TrainConfig  # noqa: E402
-from articulated_dataset.mdn.train import configure_threads  # noqa: E402
+from articulated_dataset.models.mdn.loss import mean_of_best  # noqa: E402
+from articulated_dataset.models.mdn.model import MixtureDensityNetwork, count_parameters  # noqa: E402
+from articulated_dataset.models.mdn.preprocess import assemble_inputs, preprocess_depth  # noqa: E402
+from articulated_dataset.models.mdn.config import PRESETS, TrainConfig  # noqa: E402
+from articulated_dataset.models.mdn.train import configure_threads  # noqa: E402
 
 #: Target columns of a 2-joint class (13 per joint + 4 geometry), the larger case.
 TARGET_DIM = 30

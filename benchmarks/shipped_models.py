@@ -44,7 +44,7 @@ def main(argv=None) -> int:
 
     import torch
 
-    from articulated_dataset.mdn.train import configure_threads
+    from articulated_dataset.models.mdn.train import configure_threads
     from articulated_dataset.models import resolve_model
     from articulated_dataset.generation import GenerationConfig, generate_split
     from articulated_dataset.benchmark.predictions import write_predictions
@@ -63,8 +63,8 @@ def main(argv=None) -> int:
             out.parent.mkdir(parents=True, exist_ok=True)
             t0 = time.perf_counter()
             if ref.kind == "dense":
-                from articulated_dataset.dense.predict import predict_arrays
-                from articulated_dataset.dense.train import build_dense_model, load_dense_checkpoint, load_dense_split
+                from articulated_dataset.models.dense.predict import predict_arrays
+                from articulated_dataset.models.dense.train import build_dense_model, load_dense_checkpoint, load_dense_split
                 import numpy as np
 
                 ckpt = load_dense_checkpoint(ref.path)
@@ -79,7 +79,7 @@ def main(argv=None) -> int:
                 speed = len(data.sample_id) / (time.perf_counter() - t1)
                 method = "dense"
             else:
-                from articulated_dataset.mdn.predict import predict_split
+                from articulated_dataset.models.mdn.predict import predict_split
 
                 _, arrays = predict_split(ref.path, split_dir, progress=False)
                 speed = len(arrays["sample_id"]) / (time.perf_counter() - t0)

@@ -14,7 +14,7 @@ Methods, each scored with and without the point-likelihood estimate (Table 2 pro
 point under the predicted mixture's marginal over it):
 
 * ``--models DIR``: trained MDN checkpoints (``DIR/<class>.pt``, ``DIR/<class>/*.pt``) via
-  :func:`articulated_dataset.mdn.predict.predict_split`;
+  :func:`articulated_dataset.models.mdn.predict.predict_split`;
 * the Mean baseline (training-split mean; its "mixture" is one Gaussian at the mean origin
   with the training standard deviation, so snapping picks the cloud point nearest the class-
   mean origin in that metric).  Training data: ``--train-root`` (``<class>/train``), else a
@@ -154,7 +154,7 @@ def mean_predictions(train_dir: Path, test_dir: Path) -> tuple[dict, dict]:
 
 
 def mdn_predictions(model: Path, test_dir: Path) -> tuple[dict, dict]:
-    from articulated_dataset.mdn.predict import predict_split
+    from articulated_dataset.models.mdn.predict import predict_split
 
     _, plain = predict_split(model, test_dir, snap_to_cloud=False, progress=False)
     _, snapped = predict_split(model, test_dir, snap_to_cloud=True, progress=False)

@@ -64,10 +64,10 @@ def main() -> None:
     import torch
 
     from articulated_dataset.baselines import run_baseline
-    from articulated_dataset.mdn.predict import predict_split
-    from articulated_dataset.mdn.checkpoint import load_checkpoint
-    from articulated_dataset.mdn.config import TrainConfig
-    from articulated_dataset.mdn.train import configure_threads, train
+    from articulated_dataset.models.mdn.predict import predict_split
+    from articulated_dataset.models.mdn.checkpoint import load_checkpoint
+    from articulated_dataset.models.mdn.config import TrainConfig
+    from articulated_dataset.models.mdn.train import configure_threads, train
     from articulated_dataset.benchmark.predictions import write_predictions
     from articulated_dataset.registry import class_names
     from articulated_dataset.benchmark.scoring import score

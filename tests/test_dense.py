@@ -15,12 +15,12 @@ from click.testing import CliRunner  # noqa: E402
 
 from articulated_dataset.camera import CameraConfig, backproject  # noqa: E402
 from articulated_dataset.cli import main  # noqa: E402
-from articulated_dataset.dense import aggregate as A  # noqa: E402
-from articulated_dataset.dense.features import (  # noqa: E402
+from articulated_dataset.models.dense import aggregate as A  # noqa: E402
+from articulated_dataset.models.dense.features import (  # noqa: E402
     backproject_torch, make_inputs, output_labels, resize_depth, scale_intrinsics, surface_normals)
-from articulated_dataset.dense.model import DenseConfig, DenseNet  # noqa: E402
-from articulated_dataset.dense.refine import REFINEMENT_VERSION  # noqa: E402
-from articulated_dataset.dense.train import DenseTrainConfig, load_dense_checkpoint, train_dense  # noqa: E402
+from articulated_dataset.models.dense.model import DenseConfig, DenseNet  # noqa: E402
+from articulated_dataset.models.dense.refine import REFINEMENT_VERSION  # noqa: E402
+from articulated_dataset.models.dense.train import DenseTrainConfig, load_dense_checkpoint, train_dense  # noqa: E402
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
@@ -128,8 +128,8 @@ def overfit_run(tiny_root, tmp_path_factory):
 
 
 def test_tiny_training_run_overfits(overfit_run, tiny_root):
-    from articulated_dataset.dense.predict import predict_arrays, quick_errors
-    from articulated_dataset.dense.train import build_dense_model, load_dense_split
+    from articulated_dataset.models.dense.predict import predict_arrays, quick_errors
+    from articulated_dataset.models.dense.train import build_dense_model, load_dense_split
 
     out, ckpt, _ = overfit_run
     d = load_dense_split(tiny_root / "microwave" / "train", 1, (108, 192), max_objects=1)
@@ -157,7 +157,7 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
     assert resumed["calibration"] == whole["calibration"]
     # the refinement is chosen on the validation objects at the end (dense.refine.fit_refinement)
     assert whole["refinement"]["version"] == REFINEMENT_VERSION and resumed["refinement"] == whole["refinement"]
-    from articulated_dataset.dense.refine import TURN_GATE_CANDIDATES_DEG
+    from articulated_dataset.models.dense.refine import TURN_GATE_CANDIDATES_DEG
 
     gates = {f"box_frame_turn<={t:g}deg" for t in TURN_GATE_CANDIDATES_DEG if t is not None}
     assert set(whole["refinement_report"]["rotation_deg"]) == {"votes", "box_frame"} | gates

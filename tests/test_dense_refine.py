@@ -1,4 +1,4 @@
-"""Geometric refinement of the dense estimate (articulated_dataset.dense.refine): each step on
+"""Geometric refinement of the dense estimate (articulated_dataset.models.dense.refine): each step on
 constructed cases with a known answer, the fit on synthetic validation arrays, and the
 refinement stored by training and applied by prediction."""
 
@@ -14,8 +14,8 @@ torch = pytest.importorskip("torch")
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from articulated_dataset.benchmark import metrics as M  # noqa: E402
-from articulated_dataset.dense import refine as R  # noqa: E402
-from articulated_dataset.dense.features import make_inputs  # noqa: E402
+from articulated_dataset.models.dense import refine as R  # noqa: E402
+from articulated_dataset.models.dense.features import make_inputs  # noqa: E402
 from articulated_dataset.rotations import matrix_to_quat  # noqa: E402
 
 

@@ -50,8 +50,8 @@ class Inputs:
 
 @pytest.fixture(scope="module")
 def inputs(tiny_root, tmp_path_factory) -> Inputs:
-    from articulated_dataset.mdn.config import TrainConfig
-    from articulated_dataset.mdn.train import train
+    from articulated_dataset.models.mdn.config import TrainConfig
+    from articulated_dataset.models.mdn.train import train
 
     root = tmp_path_factory.mktemp("hostile")
     _, shards = open_split(tiny_root / "cabinet" / "test")

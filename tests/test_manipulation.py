@@ -372,7 +372,7 @@ def dense_ckpt(tiny_root, tmp_path_factory):
     """A dense microwave checkpoint from a few steps on one tiny object (fast; not accurate)."""
     import torch
 
-    from articulated_dataset.dense.train import DenseTrainConfig, train_dense
+    from articulated_dataset.models.dense.train import DenseTrainConfig, train_dense
 
     torch.set_num_threads(1)
     out = tmp_path_factory.mktemp("dense-plan") / "mw.pt"
@@ -383,7 +383,7 @@ def dense_ckpt(tiny_root, tmp_path_factory):
 
 
 def test_cli_plan_model_estimates_from_the_stored_image(tiny_root, dense_ckpt, tmp_path):
-    from articulated_dataset.estimation import estimate
+    from articulated_dataset.models.estimation import estimate
     from articulated_dataset.shards import open_split
 
     data = tiny_root / "microwave" / "test"
@@ -573,9 +573,9 @@ def test_cli_plan_with_an_mdn_checkpoint_matches_predict(tiny_root, tmp_path):
     """plan --model with an MDN checkpoint: the one-image estimate is the row predict gives."""
     import torch
 
-    from articulated_dataset.mdn.predict import predict_split
-    from articulated_dataset.mdn.config import TrainConfig
-    from articulated_dataset.mdn.train import train
+    from articulated_dataset.models.mdn.predict import predict_split
+    from articulated_dataset.models.mdn.config import TrainConfig
+    from articulated_dataset.models.mdn.train import train
 
     torch.set_num_threads(1)
     model = tmp_path / "mdn.pt"

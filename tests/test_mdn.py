@@ -13,12 +13,12 @@ scipy_stats = pytest.importorskip("scipy.stats")
 from click.testing import CliRunner  # noqa: E402
 
 from articulated_dataset.cli import main  # noqa: E402
-from articulated_dataset.mdn.loss import mean_of_best, mixture_log_prob, mixture_mode, mixture_nll, point_estimate  # noqa: E402
-from articulated_dataset.mdn.model import MixtureDensityNetwork, ModelConfig, ResNet, count_parameters  # noqa: E402
-from articulated_dataset.mdn.preprocess import InputConfig, assemble_inputs, preprocess_depth  # noqa: E402
-from articulated_dataset.mdn.config import TrainConfig  # noqa: E402
-from articulated_dataset.mdn.data import split_by_object  # noqa: E402
-from articulated_dataset.mdn.train import lr_factor, train  # noqa: E402
+from articulated_dataset.models.mdn.loss import mean_of_best, mixture_log_prob, mixture_mode, mixture_nll, point_estimate  # noqa: E402
+from articulated_dataset.models.mdn.model import MixtureDensityNetwork, ModelConfig, ResNet, count_parameters  # noqa: E402
+from articulated_dataset.models.mdn.preprocess import InputConfig, assemble_inputs, preprocess_depth  # noqa: E402
+from articulated_dataset.models.mdn.config import TrainConfig  # noqa: E402
+from articulated_dataset.models.mdn.data import split_by_object  # noqa: E402
+from articulated_dataset.models.mdn.train import lr_factor, train  # noqa: E402
 
 #: A network small enough for tests: 4 channels, two one-block stages, 3 components, 27x48 input.
 TINY = dict(preset="small", width=4, blocks=(1, 1), height_px=27, width_px=48, n_components=3, batch_size=16)
@@ -173,7 +173,7 @@ def test_preprocess_hand_worked_example():
 
 def test_anchor_is_the_centroid_of_the_back_projected_pixels(tiny_root):
     from articulated_dataset.camera import backproject
-    from articulated_dataset.mdn.preprocess import image_anchor
+    from articulated_dataset.models.mdn.preprocess import image_anchor
     from articulated_dataset.shards import open_split
 
     _, shards = open_split(tiny_root / "drawer" / "train")
@@ -194,7 +194,7 @@ def test_validation_split_is_by_object_and_seeded():
 
 
 def test_anchored_columns_round_trip():
-    from articulated_dataset.mdn.data import anchored_columns, shift_anchored
+    from articulated_dataset.models.mdn.data import anchored_columns, shift_anchored
     from articulated_dataset.targets import TargetLayout
 
     names = TargetLayout.for_class("cabinet2").names
@@ -282,7 +282,7 @@ def test_cli_train_predict_score_round_trip(tiny_root, tmp_path):
 
 def test_predict_two_joint_class_mode_and_snap_to_cloud(tiny_root, tmp_path):
     from articulated_dataset.errors import UserError
-    from articulated_dataset.mdn.predict import predict_split
+    from articulated_dataset.models.mdn.predict import predict_split
     from articulated_dataset.benchmark.pointlik import object_cloud
 
     model = tmp_path / "cabinet2.pt"
@@ -334,7 +334,7 @@ def test_cli_errors_are_one_line(tiny_root, tmp_path):
 
 def test_predict_split_refuses_bad_batch_sizes_and_estimates(tiny_root, tmp_path):
     from articulated_dataset.errors import UserError
-    from articulated_dataset.mdn.predict import predict_split
+    from articulated_dataset.models.mdn.predict import predict_split
 
     model = tmp_path / "never-read.pt"  # the options are checked before the checkpoint is opened
     for kwargs, match in (({"batch_size": 0}, "--batch-size"), ({"batch_size": -5}, "--batch-size"),

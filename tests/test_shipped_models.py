@@ -12,7 +12,7 @@ torch = pytest.importorskip("torch")
 
 from click.testing import CliRunner  # noqa: E402
 
-from articulated_dataset import models as M  # noqa: E402
+from articulated_dataset.models import shipped as M  # noqa: E402
 from articulated_dataset.cli import main  # noqa: E402
 from articulated_dataset.errors import UserError  # noqa: E402
 from articulated_dataset.registry import class_names  # noqa: E402
@@ -83,7 +83,7 @@ def test_shipped_dense_model_predicts_a_fresh_split(tiny_root, tmp_path, cls):
 
 
 def test_every_shipped_dense_model_carries_its_refinement():
-    from articulated_dataset.dense.refine import REFINEMENT_VERSION, Refinement
+    from articulated_dataset.models.dense.refine import REFINEMENT_VERSION, Refinement
 
     dense = [m for m in SHIPPED if m["kind"] == "dense"]
     assert dense

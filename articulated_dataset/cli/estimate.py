@@ -54,7 +54,7 @@ def estimate_cmd(depth, class_name, camera_path, mask_path, depth_units, model, 
     if mask_path is not None:
         mask = load_mask(mask_path, d.shape, get_class(class_name).n_joints) > 0
     prepare_torch(threads)
-    from ..estimation import estimate
+    from ..models.estimation import estimate
 
     est = estimate(d, K, class_name, mask=mask, model=model)
     click.echo(json.dumps(est.to_dict(), indent=2) if as_json else est.summary())

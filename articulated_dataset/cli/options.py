@@ -37,7 +37,7 @@ def prepare_torch(threads: int | None) -> int:
         import torch  # noqa: F401
     except ImportError:
         raise UserError("PyTorch is not installed; install it with: pip install torch==2.13.0") from None
-    from ..mdn.train import configure_threads
+    from ..models.mdn.train import configure_threads
 
     if threads is not None and threads <= 0:
         raise UserError(f"--threads must be positive, got {threads}")

@@ -38,7 +38,7 @@ def predict_cmd(model_path, data, out, estimate, snap_to_cloud, object_mask, met
     if out.is_dir():
         raise UserError(f"--out {out} is a directory; give a file name such as predictions.h5")
     prepare_torch(threads)
-    from ..mdn.data import resolve_split_dir, split_class
+    from ..models.mdn.data import resolve_split_dir, split_class
     from ..models import resolve_model
     from ..benchmark.predictions import write_predictions
 
@@ -47,8 +47,8 @@ def predict_cmd(model_path, data, out, estimate, snap_to_cloud, object_mask, met
     if ref.kind == "dense":
         if snap_to_cloud:
             raise UserError("--snap-to-cloud applies to MDN models; the dense model's origins are already point votes")
-        from ..dense.predict import predict_split as predict_dense
-        from ..dense.train import load_dense_checkpoint
+        from ..models.dense.predict import predict_split as predict_dense
+        from ..models.dense.train import load_dense_checkpoint
 
         ckpt = load_dense_checkpoint(ref.path)
         name = method or "dense"
@@ -59,8 +59,8 @@ def predict_cmd(model_path, data, out, estimate, snap_to_cloud, object_mask, met
     else:
         if object_mask:
             raise UserError("--object-mask applies to the dense model")
-        from ..mdn.predict import predict_split
-        from ..mdn.checkpoint import load_checkpoint
+        from ..models.mdn.predict import predict_split
+        from ..models.mdn.checkpoint import load_checkpoint
 
         ckpt = load_checkpoint(ref.path)
         preset = ckpt["train_config"].get("preset", "full")

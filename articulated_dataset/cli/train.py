@@ -48,8 +48,8 @@ def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, 
         return
     if width is not None or init_from is not None:
         raise UserError("--width and --init-from belong to --model dense")
-    from ..mdn.config import TrainConfig
-    from ..mdn.train import train
+    from ..models.mdn.config import TrainConfig
+    from ..models.mdn.train import train
 
     val_fraction = 0.1 if val_fraction is None else val_fraction
     config = TrainConfig(class_name=class_name, preset="small" if small else "full", epochs=epochs, batch_size=batch_size,
@@ -67,7 +67,7 @@ def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, 
 
 def _train_dense(class_name, data, out, epochs, batch_size, lr, width, init_from, val_fraction, max_objects, seed, resume,
                  quiet):
-    from ..dense.train import DenseTrainConfig, train_dense
+    from ..models.dense.train import DenseTrainConfig, train_dense
 
     given = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "width": width, "val_fraction": val_fraction}
     config = DenseTrainConfig(class_name=class_name, max_objects=max_objects, seed=seed, init_from=init_from,

@@ -53,13 +53,13 @@ class DepthEstimator:
 def make_estimator(model: str, class_name: str) -> DepthEstimator:
     """The estimator of ``--model`` (a shipped name, ``dense`` or ``mdn-small``, or a checkpoint
     path of either kind) for ``class_name``.  Unknown names, a wrong class or an unreadable
-    file are a :class:`UserError` (:func:`articulated_dataset.models.resolve_model`)."""
+    file are a :class:`UserError` (:func:`articulated_dataset.models.shipped.resolve_model`)."""
     from ..models import resolve_model
 
     ref = resolve_model(model, class_name)
     name = ref.name if model not in ("dense", "mdn-small") else model
     if ref.kind == "dense":
-        from ..estimation import estimate
+        from ..models.estimation import estimate
 
         path = str(ref.path)  # resolved (and checksummed) once
 
@@ -75,7 +75,7 @@ HYPOTHESIS_MIN_WEIGHT = 0.05
 
 
 def estimate_with_alternatives(e, source: str) -> Estimate:
-    """A planner's :class:`Estimate` from an :class:`articulated_dataset.estimation.Estimate`: the
+    """A planner's :class:`Estimate` from an :class:`articulated_dataset.models.estimation.Estimate`: the
     heaviest mixture component, with every other component of at least
     :data:`HYPOTHESIS_MIN_WEIGHT` as an alternative (decoded like the point estimate)."""
     from ..targets import TargetLayout
@@ -99,13 +99,13 @@ def estimate_with_alternatives(e, source: str) -> Estimate:
 
 def _mdn_single_image(path: Path, class_name: str, name: str):
     """One-image inference of an MDN checkpoint (the ``mean-of-best`` point estimate, decoded
-    as :func:`articulated_dataset.mdn.predict.predict_split` does for a split)."""
+    as :func:`articulated_dataset.models.mdn.predict.predict_split` does for a split)."""
     import torch
 
-    from ..mdn.loss import point_estimate
-    from ..mdn.preprocess import InputConfig, assemble_inputs, preprocess_depth
-    from ..mdn.checkpoint import build_model_from_checkpoint, load_checkpoint
-    from ..mdn.data import expand_active, shift_anchored
+    from ..models.mdn.loss import point_estimate
+    from ..models.mdn.preprocess import InputConfig, assemble_inputs, preprocess_depth
+    from ..models.mdn.checkpoint import build_model_from_checkpoint, load_checkpoint
+    from ..models.mdn.data import expand_active, shift_anchored
     from ..targets import NormStats, TargetLayout
 
     ckpt = load_checkpoint(path)

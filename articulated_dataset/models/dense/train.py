@@ -5,14 +5,14 @@
   2.7 GB for 4,000 objects x 16 images), per-pixel part labels at the output resolution,
   and the labels (axis origin, axis frame, q, part offset, geometry).
 * Validation: a held-out part of the TRAINING split chosen by object (the MDN's
-  :func:`~articulated_dataset.mdn.data.split_by_object`); the test split is never read.
-  After the last epoch the geometric refinement (:mod:`articulated_dataset.dense.refine`) is
-  chosen and the uncertainty calibration (:mod:`articulated_dataset.dense.predict`) fitted on
-  the validation objects (:func:`~articulated_dataset.dense.predict.fit_inference`).
+  :func:`~articulated_dataset.models.mdn.data.split_by_object`); the test split is never read.
+  After the last epoch the geometric refinement (:mod:`articulated_dataset.models.dense.refine`) is
+  chosen and the uncertainty calibration (:mod:`articulated_dataset.models.dense.predict`) fitted on
+  the validation objects (:func:`~articulated_dataset.models.dense.predict.fit_inference`).
 * Loss, per valid output pixel ``i`` (weighted by its valid fraction) and image:
   ``CE(seg) + 0.5 huber(|v_i - o| / 5 cm) + |r6_i - r6| / ROT_SCALE + |q_i - q| / s_q
   + |po_i - po| / 10 cm + |g_i - g| / 10 cm + BCE(chirality)``, plus the same terms on the
-  image's softmax-weighted estimate (:func:`~articulated_dataset.dense.aggregate.weighted_mean`),
+  image's softmax-weighted estimate (:func:`~articulated_dataset.models.dense.aggregate.weighted_mean`),
   where ``r6 = (axis, frame x axis)``, ``s_q`` the training std of q per joint.
 * Optimisation: AdamW with a one-cycle schedule, gradient clipping.  Checkpoints are written
   atomically every :data:`CHECKPOINT_EVERY_STEPS` steps and after every epoch with the
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataFormatError, UserError
+from ...errors import DataFormatError, UserError
 
 log = logging.getLogger(__name__)
 
@@ -126,8 +126,8 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
     import torch
     from tqdm.auto import tqdm
 
-    from ..rotations import quat_to_matrix
-    from ..shards import open_split
+    from ...rotations import quat_to_matrix
+    from ...shards import open_split
     from .features import output_labels, resize_depth, scale_intrinsics
 
     manifest, shards = open_split(split_dir)
@@ -150,7 +150,7 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
             rows = slice(int(sel[0]), int(sel[-1]) + 1)
             depth = sh.read("depth", rows)[sel - sel[0]]
             if object_mask:
-                from ..format import MASK_BODY
+                from ...format import MASK_BODY
 
                 m = sh.read("mask", rows)[sel - sel[0]]
                 depth = np.where((m >= MASK_BODY) & (m <= MASK_BODY + n_joints), depth, 0)
@@ -290,7 +290,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
 
     from ..mdn.checkpoint import prepare_training_output
     from ..mdn.data import resolve_split_dir, split_by_object
-    from ..registry import get_class
+    from ...registry import get_class
     from .features import make_inputs
     from .model import DenseConfig, DenseNet, count_parameters
     from .predict import fit_inference, predict_arrays, quick_errors
@@ -448,7 +448,7 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     va_idx = np.nonzero(val_mask)[0]
     if not len(va_idx):
         raise UserError(f"{checkpoint}: trained without validation objects (--val-fraction 0): nothing to fit on")
-    from ..shards import sha256_file
+    from ...shards import sha256_file
 
     result = dict(ckpt)
     result.update(fit_inference(model, data_, va_idx, list(ckpt["joint_types"]), progress=progress))

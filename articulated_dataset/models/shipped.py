@@ -18,11 +18,11 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import UserError
+from ..errors import UserError
 
 log = logging.getLogger(__name__)
 
-WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 MODELS_MANIFEST = WEIGHTS_DIR / "models.json"
 #: Shipped model names -> checkpoint kind.
 SHIPPED = {"dense": "dense", "mdn-small": "mdn"}
@@ -49,7 +49,7 @@ def shipped_models() -> list[dict]:
 
 
 def _sha256(path: Path) -> str:
-    from .shards import sha256_file
+    from ..shards import sha256_file
 
     return sha256_file(path)
 

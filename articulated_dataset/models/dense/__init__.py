@@ -7,7 +7,7 @@ offset from the pixel's own 3-D point, the axis frame's rotation (6-D), the conf
 q, the part offset and the object's geometry, with confidences.  The image estimate comes
 from the pixels' votes: mean-shift finds the modes of the origin votes, so a two-sided
 ambiguity (a closed cabinet's hinge) yields two weighted mixture components, never their
-average (:mod:`articulated_dataset.dense.aggregate`).
+average (:mod:`articulated_dataset.models.dense.aggregate`).
 
 Modules: :mod:`.features` (depth + K -> network input, labels -> pixel targets),
 :mod:`.model` (the network), :mod:`.aggregate` (votes -> point estimate and mixture),

@@ -255,9 +255,9 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     :data:`DOOR_PX_CANDIDATES`) when it lowers the mean configuration error.  Returns the
     :class:`Refinement` and the validation errors of every candidate.
     """
-    from ..benchmark import metrics as M
-    from ..rotations import matrix_to_quat
-    from ..targets import gram_schmidt
+    from ...benchmark import metrics as M
+    from ...rotations import matrix_to_quat
+    from ...targets import gram_schmidt
 
     revolute = np.array([t == "revolute" for t in joint_types])
     prismatic = ~revolute

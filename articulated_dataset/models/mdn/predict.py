@@ -1,7 +1,7 @@
 """Inference of a trained MDN on a split (``artdata predict``).
 
 For every image the network gives a mixture over the normalised target; the point
-estimate (``mean-of-best`` or ``mode``, :mod:`articulated_dataset.mdn.loss`) is
+estimate (``mean-of-best`` or ``mode``, :mod:`articulated_dataset.models.mdn.loss`) is
 denormalised (``y = y_norm * std + mean``) and decoded into the label convention by
 :meth:`TargetLayout.decode` (the 6-D rotation becomes a quaternion by Gram-Schmidt).  The
 mixture itself is written in label units: means ``mu * std + mean``, scales
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import UserError
+from ...errors import UserError
 from .loss import ESTIMATES
 
 log = logging.getLogger(__name__)
@@ -41,7 +41,7 @@ def predict_split(model_path: str | Path, data: str | Path, *, estimate: str = "
     """
     import torch
 
-    from ..targets import NormStats, TargetLayout
+    from ...targets import NormStats, TargetLayout
     from .loss import point_estimate
     from .preprocess import InputConfig, assemble_inputs
     from .checkpoint import build_model_from_checkpoint, load_checkpoint
@@ -119,8 +119,8 @@ def _snap(split_dir: Path, prepared, arrays: dict, names: list[str], progress: b
     """Axis poses with every joint's origin moved to the most likely segmented point."""
     from tqdm.auto import tqdm
 
-    from ..format import Split
-    from ..benchmark.pointlik import snap_axis_poses, snap_batch
+    from ...format import Split
+    from ...benchmark.pointlik import snap_axis_poses, snap_batch
 
     shards = Split(split_dir).shards
     pose = arrays["axis_pose"].copy()

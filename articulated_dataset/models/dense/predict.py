@@ -1,6 +1,6 @@
 """Inference of the dense estimator: splits (``artdata predict --model dense``) and single images.
 
-For each image the vote modes of every joint (:func:`~articulated_dataset.dense.aggregate.vote_modes`)
+For each image the vote modes of every joint (:func:`~articulated_dataset.models.dense.aggregate.vote_modes`)
 become mixture components over the class's target columns (:class:`~articulated_dataset.targets.TargetLayout`):
 with ``J`` joints and ``M`` modes per joint the mixture has ``M**J`` components, one per
 combination, weighted by the product of the modes' weights.  A component's standard
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import UserError
+from ...errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -35,16 +35,16 @@ MIN_SCALE = 1e-6
 
 
 def _layout_names(J: int) -> list[str]:
-    from ..targets import TargetLayout
+    from ...targets import TargetLayout
 
     return TargetLayout("-", J).names
 
 
 def predict_arrays(model, data, idx: np.ndarray, *, joint_types: list[str], calibration: dict | None,
                    refinement=None, batch_size: int = PREDICT_BATCH, progress: bool = False) -> dict:
-    """Predictions of ``model`` for the images ``idx`` of a :class:`~articulated_dataset.dense.train.DenseData`.
+    """Predictions of ``model`` for the images ``idx`` of a :class:`~articulated_dataset.models.dense.train.DenseData`.
 
-    ``refinement``: the checkpoint's :class:`~articulated_dataset.dense.refine.Refinement` (or
+    ``refinement``: the checkpoint's :class:`~articulated_dataset.models.dense.refine.Refinement` (or
     its dict) applied to the vote modes, or None.  Returns the datasets of
     :func:`articulated_dataset.benchmark.predictions.write_predictions` (``sample_id``, ``axis_pose``,
     ``q``, ``geometry``, ``part_offset``, ``mixture_*``, ``mixture_layout``) plus ``spread``
@@ -139,7 +139,7 @@ def mixture_from_modes(m: dict, sample_id: np.ndarray, J: int, n_modes: int, cal
     scales = apply_calibration(spread, calibration)
     best = weights.argmax(-1)
     point = means[np.arange(N), best]  # (N, D)
-    from ..targets import TargetLayout
+    from ...targets import TargetLayout
 
     decoded = TargetLayout("-", J).decode(point)
     geometry = np.asarray(decoded["geometry"], np.float64)
@@ -216,7 +216,7 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, progr
 
 def quick_errors(arrays: dict, data, idx: np.ndarray, joint_types: list[str]) -> dict:
     """Mean axis position (cm), axis rotation (deg) and configuration errors of point estimates."""
-    from ..benchmark import metrics as M
+    from ...benchmark import metrics as M
 
     pose = arrays["axis_pose"]
     true_pose = _true_pose(data, idx)
@@ -233,8 +233,8 @@ def _true_pose(data, idx: np.ndarray) -> np.ndarray:
 
 
 def _quat_from_rot6(r6: np.ndarray) -> np.ndarray:
-    from ..rotations import matrix_to_quat
-    from ..targets import gram_schmidt
+    from ...rotations import matrix_to_quat
+    from ...targets import gram_schmidt
 
     return matrix_to_quat(gram_schmidt(r6[..., :3], r6[..., 3:]))
 
@@ -257,7 +257,7 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
     if data_class != class_name:
         raise UserError(f"{split_dir}: holds class {data_class!r} but the dense model was trained on {class_name!r}")
     if not object_mask:
-        from ..format import read_manifest
+        from ...format import read_manifest
 
         config = read_manifest(split_dir).get("config", {})
         if config.get("scene", "none") != "none" or int(config.get("occluders", 0) or 0) > 0:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, replace
 
-from ..errors import UserError
+from ...errors import UserError
 
 
 #: Fraction of the training split's objects held out for validation.

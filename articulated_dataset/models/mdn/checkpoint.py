@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import UserError
-from ..format import Split
+from ...errors import UserError
+from ...format import Split
 from .config import TrainConfig, is_int
 
 
@@ -101,8 +101,8 @@ def check_checkpoint(ckpt: dict, path) -> None:
     a whole number.  Otherwise a one-line :class:`UserError` naming ``path``."""
     import torch
 
-    from ..registry import get_class
-    from ..targets import NormStats, TargetLayout
+    from ...registry import get_class
+    from ...targets import NormStats, TargetLayout
     from .model import ModelConfig
     from .preprocess import InputConfig
 

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataFormatError, UserError
-from ..format import Split, one_split_dir
+from ...errors import DataFormatError, UserError
+from ...format import Split, one_split_dir
 
 
 #: Images preprocessed per chunk while loading (bounds the float32 temporaries).

@@ -9,7 +9,7 @@ first stage; ResNet-18 uses 64) and ``blocks`` (basic blocks per stage; ResNet-1
 
 Fully connected heads (Bishop 1994, "Mixture density networks") read the pooled features
 concatenated with per-image scalars (the normalised median depth and image anchor, see
-:mod:`articulated_dataset.mdn.preprocess`; the backbone only sees depth relative to the
+:mod:`articulated_dataset.models.mdn.preprocess`; the backbone only sees depth relative to the
 median) and give, for ``M`` components over a ``D``-dimensional normalised target::
 
     logits (B, M)      mixing weights pi = softmax(logits)

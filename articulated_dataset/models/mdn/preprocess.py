@@ -14,7 +14,7 @@ For a depth image ``d`` (metres, 0 = no return) with validity ``v = d > 0`` and 
   0)) / MEDIAN_SCALE_M`` are given to the heads, where the anchor ``a`` is the centroid of the
   back-projected valid pixels (camera frame, metres; :func:`image_anchor`), so the absolute
   distance removed from channel 0 is not lost.  The network predicts axis origins
-  relative to this anchor (see :mod:`articulated_dataset.mdn.data`): a convolutional
+  relative to this anchor (see :mod:`articulated_dataset.models.mdn.data`): a convolutional
   network with global pooling is good at shapes and poor at absolute image positions.
 
 Resizing to the model resolution is validity-weighted area averaging:
@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from ..camera import R_CAMERA_TO_OPTICAL
+from ...camera import R_CAMERA_TO_OPTICAL
 
 #: Relative depths are divided by this (m): object surfaces span about +-1 m around the median.
 RELATIVE_DEPTH_SCALE_M = 0.5

@@ -1,7 +1,7 @@
 """Training loop of the per-class mixture density network (``artdata train``).
 
 * Data: one class's training split is read shard by shard, each depth image reduced to the
-  model input (:mod:`articulated_dataset.mdn.preprocess`) and held in memory as float16
+  model input (:mod:`articulated_dataset.models.mdn.preprocess`) and held in memory as float16
   (2 bytes x 2 planes x h x w per image: 13 GB for 160,000 images at 192x108, 0.2 GB for
   16,000 at the small preset's 96x54); targets are encoded by
   :class:`articulated_dataset.targets.TargetLayout`, axis origins made relative to the
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import UserError, check_memory
+from ...errors import UserError, check_memory
 from .checkpoint import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, atomic_torch_save, load_checkpoint,
                          prepare_training_output)
 from .config import MAX_THREADS_PER_CPU, TrainConfig
@@ -160,8 +160,8 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
     import torch
     from tqdm.auto import tqdm
 
-    from ..registry import get_class
-    from ..targets import NormStats, TargetLayout
+    from ...registry import get_class
+    from ...targets import NormStats, TargetLayout
     from .loss import mixture_nll
     from .model import MixtureDensityNetwork, count_parameters
     from .preprocess import assemble_inputs

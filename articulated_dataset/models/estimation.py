@@ -15,10 +15,11 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
-from .errors import UserError
+from ..errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +101,7 @@ _MODEL_CACHE: dict = {}
 
 def _load(model: str, class_name: str):
     from .dense.train import build_dense_model, load_dense_checkpoint
-    from .models import resolve_model
+    from .shipped import resolve_model
 
     ref = resolve_model(model, class_name)
     if ref.kind != "dense":
@@ -149,12 +150,12 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     """
     import torch
 
-    from .camera import CameraConfig
+    from ..camera import CameraConfig
     from .dense.predict import batch_modes, modes_to_arrays
     from .dense.refine import apply_refinement, as_refinement
-    from .registry import get_class
-    from .real.intrinsics import check_intrinsics
-    from .real.resample import crop_intrinsics, mask_fraction_inside, resample_depth
+    from ..registry import get_class
+    from ..real.intrinsics import check_intrinsics
+    from ..real.resample import crop_intrinsics, mask_fraction_inside, resample_depth
 
     obj_class = get_class(class_name)
     depth = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
@@ -185,7 +186,7 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
                                  refine=refinement is not None and refinement.needed)
     arrays = modes_to_arrays(apply_refinement(modes, refined, refinement, joint_types), np.zeros(1, np.int64), net,
                              ckpt.get("calibration"))
-    from .rotations import quat_to_matrix
+    from ..rotations import quat_to_matrix
 
     pose = arrays["axis_pose"][0]
     best = int(arrays["mixture_weights"][0].argmax())
@@ -197,3 +198,38 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
         mixture_weights=arrays["mixture_weights"][0], mixture_means=arrays["mixture_means"][0],
         mixture_scales=arrays["mixture_scales"][0], mixture_layout=list(arrays["mixture_layout"]), model=name,
     )
+
+
+def estimate_file(depth_path: str | Path, class_name: str, *, camera_path: str | Path | None = None,
+                  mask_path: str | Path | None = None, depth_units: str = "auto", model: str = "dense",
+                  before_model: Callable[[], object] | None = None) -> Estimate:
+    """:func:`estimate` of a depth file (16-bit PNG in mm, EXR or .npy in m; ``depth_units``
+    overrides) with its camera file (default: ``NAME.camera.json`` or ``camera.json`` beside
+    it, as ``artdata ingest`` finds them) and an optional object mask PNG (non-zero = object).
+    ``before_model`` runs once the files are read and before the model is (``artdata
+    estimate`` imports torch and sets its threads there, so a wrong file fails fast)."""
+    from ..real.captures import capture_files
+    from ..real.intrinsics import load_intrinsics
+    from ..real.readers import load_depth, load_mask
+    from ..registry import get_class
+
+    depth_path = Path(depth_path)
+    if not depth_path.is_file():
+        raise UserError(f"depth file not found: {depth_path}")
+    if camera_path is None:
+        camera = capture_files(depth_path).camera
+        if camera is None:
+            raise UserError(f"{depth_path}: intrinsics missing; pass --camera FILE (fx, fy, cx, cy) or put "
+                            f"camera.json next to it")
+    else:
+        camera = Path(camera_path)
+    K, size = load_intrinsics(camera)
+    d = load_depth(depth_path, depth_units)
+    if size is not None and (d.shape[1], d.shape[0]) != tuple(size):
+        raise UserError(f"{depth_path}: depth is {d.shape[1]}x{d.shape[0]} px but {camera} says {size[0]}x{size[1]}")
+    mask = None
+    if mask_path is not None:
+        mask = load_mask(mask_path, d.shape, get_class(class_name).n_joints) > 0
+    if before_model is not None:
+        before_model()
+    return estimate(d, K, class_name, mask=mask, model=model)
