@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import click
 
-from ..errors import UserError
 from .options import ClassChoice, prepare_torch
 
 
@@ -31,32 +29,10 @@ def estimate_cmd(depth, class_name, camera_path, mask_path, depth_units, model, 
     DEPTH is a 16-bit PNG in millimetres, an EXR or a .npy in metres.  Results are in the
     camera frame (x forward, y left, z up) in metres and radians.
     """
-    from ..real.captures import capture_files
-    from ..real.intrinsics import load_intrinsics
-    from ..real.readers import load_depth, load_mask
-    from ..registry import get_class
+    from ..models.estimation import estimate_file
 
-    depth_path = Path(depth)
-    if not depth_path.is_file():
-        raise UserError(f"depth file not found: {depth_path}")
-    if camera_path is None:
-        camera = capture_files(depth_path).camera
-        if camera is None:
-            raise UserError(f"{depth_path}: intrinsics missing; pass --camera FILE (fx, fy, cx, cy) or put "
-                            f"camera.json next to it")
-    else:
-        camera = Path(camera_path)
-    K, size = load_intrinsics(camera)
-    d = load_depth(depth_path, depth_units)
-    if size is not None and (d.shape[1], d.shape[0]) != tuple(size):
-        raise UserError(f"{depth_path}: depth is {d.shape[1]}x{d.shape[0]} px but {camera} says {size[0]}x{size[1]}")
-    mask = None
-    if mask_path is not None:
-        mask = load_mask(mask_path, d.shape, get_class(class_name).n_joints) > 0
-    prepare_torch(threads)
-    from ..models.estimation import estimate
-
-    est = estimate(d, K, class_name, mask=mask, model=model)
+    est = estimate_file(depth, class_name, camera_path=camera_path, mask_path=mask_path, depth_units=depth_units,
+                        model=model, before_model=lambda: prepare_torch(threads))
     click.echo(json.dumps(est.to_dict(), indent=2) if as_json else est.summary())
 
 

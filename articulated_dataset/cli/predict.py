@@ -38,42 +38,13 @@ def predict_cmd(model_path, data, out, estimate, snap_to_cloud, object_mask, met
     if out.is_dir():
         raise UserError(f"--out {out} is a directory; give a file name such as predictions.h5")
     prepare_torch(threads)
-    from ..models.mdn.data import resolve_split_dir, split_class
-    from ..models import resolve_model
-    from ..benchmark.predictions import write_predictions
+    from ..models.predict import predict_to_file
 
     t0 = time.perf_counter()
-    ref = resolve_model(model_path, split_class(resolve_split_dir(data)))
-    if ref.kind == "dense":
-        if snap_to_cloud:
-            raise UserError("--snap-to-cloud applies to MDN models; the dense model's origins are already point votes")
-        from ..models.dense.predict import predict_split as predict_dense
-        from ..models.dense.train import load_dense_checkpoint
-
-        ckpt = load_dense_checkpoint(ref.path)
-        name = method or "dense"
-        class_name, arrays = predict_dense(ckpt, data, batch_size=128 if batch_size is None else batch_size,
-                                           object_mask=object_mask, progress=not quiet)
-        attrs = {"model": str(model_path), "estimate": "heaviest-mode", "steps": int(ckpt["step"]),
-                 "object_mask": int(object_mask)}
-    else:
-        if object_mask:
-            raise UserError("--object-mask applies to the dense model")
-        from ..models.mdn.predict import predict_split
-        from ..models.mdn.checkpoint import load_checkpoint
-
-        ckpt = load_checkpoint(ref.path)
-        preset = ckpt["train_config"].get("preset", "full")
-        name = method or ("MDN" if preset == "full" else f"MDN-{preset}")
-        class_name, arrays = predict_split(ref.path, data, estimate=estimate, snap_to_cloud=snap_to_cloud,
-                                           batch_size=256 if batch_size is None else batch_size, device=device, progress=not quiet)
-        attrs = {"model": str(model_path), "estimate": estimate, "snap_to_cloud": int(snap_to_cloud),
-                 "epochs": int(ckpt["epoch"]), "preset": preset}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_predictions(out, name, {class_name: arrays}, attrs=attrs)
+    run = predict_to_file(model_path, data, out, estimate=estimate, snap_to_cloud=snap_to_cloud, object_mask=object_mask,
+                          method=method, batch_size=batch_size, device=device, progress=not quiet)
     if not quiet:
-        n = len(arrays["sample_id"])
-        click.echo(f"{out}: {n} {class_name} images predicted by {name}"
+        click.echo(f"{out}: {run.n_images} {run.class_name} images predicted by {run.method}"
                    f"{' (snapped to the cloud)' if snap_to_cloud else ''} in {time.perf_counter() - t0:.1f} s")
 
 COMMANDS = [predict_cmd]

@@ -7,7 +7,6 @@ import time
 
 import click
 
-from ..errors import UserError
 from .options import ClassChoice, prepare_torch
 
 
@@ -38,48 +37,18 @@ def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, 
               max_objects, seed, device, threads, resume, quiet):
     """Train one class's estimator on its training split (checkpoints after every epoch; --resume continues)."""
     prepare_torch(threads)
-    if max_objects is not None and max_objects <= 0:
-        raise UserError(f"--max-objects must be positive, got {max_objects}")
-    if model_kind == "dense":
-        if small or components is not None:
-            raise UserError("--small and --components belong to --model mdn")
-        _train_dense(class_name, data, out, epochs, batch_size, lr, width, init_from, val_fraction, max_objects, seed,
-                     resume, quiet)
-        return
-    if width is not None or init_from is not None:
-        raise UserError("--width and --init-from belong to --model dense")
-    from ..models.mdn.config import TrainConfig
-    from ..models.mdn.train import train
+    from ..models.train import TrainingInterrupted, train_model
 
-    val_fraction = 0.1 if val_fraction is None else val_fraction
-    config = TrainConfig(class_name=class_name, preset="small" if small else "full", epochs=epochs, batch_size=batch_size,
-                         lr=lr, val_fraction=val_fraction, seed=seed, n_components=components, max_objects=max_objects)
     t0 = time.perf_counter()
     try:
-        ckpt = train(data, out, config, device=device, resume=resume, progress=not quiet,
-                     echo=None if quiet else click.echo)
-    except KeyboardInterrupt:
-        raise click.ClickException(f"interrupted; the last finished epoch is in {out}. Continue with the same command plus --resume") from None
+        run = train_model(model_kind, class_name, data, out, small=small, epochs=epochs, batch_size=batch_size, lr=lr,
+                          components=components, width=width, init_from=init_from, val_fraction=val_fraction,
+                          max_objects=max_objects, seed=seed, device=device, resume=resume, progress=not quiet,
+                          echo=None if quiet else click.echo)
+    except TrainingInterrupted as exc:
+        raise click.ClickException(str(exc)) from None
     if not quiet:
-        click.echo(f"{out}: {ckpt['class_name']}, {ckpt['epoch']} epochs ({ckpt['data']['n_train']} training / "
-                   f"{ckpt['data']['n_val']} validation images) in {time.perf_counter() - t0:.0f} s")
-
-
-def _train_dense(class_name, data, out, epochs, batch_size, lr, width, init_from, val_fraction, max_objects, seed, resume,
-                 quiet):
-    from ..models.dense.train import DenseTrainConfig, train_dense
-
-    given = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "width": width, "val_fraction": val_fraction}
-    config = DenseTrainConfig(class_name=class_name, max_objects=max_objects, seed=seed, init_from=init_from,
-                              **{k: v for k, v in given.items() if v is not None})
-    t0 = time.perf_counter()
-    try:
-        ckpt = train_dense(data, out, config, resume=resume, progress=not quiet, echo=None if quiet else click.echo)
-    except KeyboardInterrupt:
-        raise click.ClickException(f"interrupted; the last checkpoint is in {out}. Continue with the same command plus --resume") from None
-    if not quiet:
-        click.echo(f"{out}: dense {ckpt['class_name']}, {ckpt['step']} steps ({ckpt['data']['n_train_images']} training / "
-                   f"{ckpt['data']['n_val_images']} validation images) in {time.perf_counter() - t0:.0f} s")
+        click.echo(f"{out}: {run.summary} in {time.perf_counter() - t0:.0f} s")
 
 
 COMMANDS = [train_cmd]

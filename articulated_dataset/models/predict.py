@@ -1,0 +1,69 @@
+"""A split predicted by a ``--model`` (shipped name or checkpoint file) into ``predictions.h5``:
+the choice between the dense and the MDN predictor, the method's name and the file's attributes
+(``artdata predict`` parses its options and calls :func:`predict_to_file`).  Imports torch."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import UserError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PredictionRun:
+    """What :func:`predict_to_file` wrote: the method's name, the split's class and its image count."""
+
+    method: str
+    class_name: str
+    n_images: int
+
+
+def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: str = "mean-of-best",
+                    snap_to_cloud: bool = False, object_mask: bool = False, method: str | None = None,
+                    batch_size: int | None = None, device: str = "auto", progress: bool = False) -> PredictionRun:
+    """Predict every image of the split ``data`` with ``model`` and write ``out`` (``predictions.h5``).
+
+    The dense model: batches of 128 by default, its heaviest vote mode, ``object_mask`` keeps
+    the object's pixels only; the MDN: batches of 256, ``estimate`` and ``snap_to_cloud``.  An
+    option of the other kind is a :class:`UserError`.  ``method`` names the method in the
+    file (default ``dense``, ``MDN`` or ``MDN-<preset>``)."""
+    from ..benchmark.predictions import write_predictions
+    from .mdn.data import resolve_split_dir, split_class
+    from .shipped import resolve_model
+
+    ref = resolve_model(model, split_class(resolve_split_dir(data)))
+    if ref.kind == "dense":
+        if snap_to_cloud:
+            raise UserError("--snap-to-cloud applies to MDN models; the dense model's origins are already point votes")
+        from .dense.predict import predict_split as predict_dense
+        from .dense.train import load_dense_checkpoint
+
+        ckpt = load_dense_checkpoint(ref.path)
+        name = method or "dense"
+        class_name, arrays = predict_dense(ckpt, data, batch_size=128 if batch_size is None else batch_size,
+                                           object_mask=object_mask, progress=progress)
+        attrs = {"model": str(model), "estimate": "heaviest-mode", "steps": int(ckpt["step"]),
+                 "object_mask": int(object_mask)}
+    else:
+        if object_mask:
+            raise UserError("--object-mask applies to the dense model")
+        from .mdn.checkpoint import load_checkpoint
+        from .mdn.predict import predict_split
+
+        ckpt = load_checkpoint(ref.path)
+        preset = ckpt["train_config"].get("preset", "full")
+        name = method or ("MDN" if preset == "full" else f"MDN-{preset}")
+        class_name, arrays = predict_split(ref.path, data, estimate=estimate, snap_to_cloud=snap_to_cloud,
+                                           batch_size=256 if batch_size is None else batch_size, device=device,
+                                           progress=progress)
+        attrs = {"model": str(model), "estimate": estimate, "snap_to_cloud": int(snap_to_cloud),
+                 "epochs": int(ckpt["epoch"]), "preset": preset}
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_predictions(out, name, {class_name: arrays}, attrs=attrs)
+    log.info("%s: %d %s images predicted by %s", out, len(arrays["sample_id"]), class_name, name)
+    return PredictionRun(name, class_name, len(arrays["sample_id"]))
