@@ -202,7 +202,7 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
     n_images = len(views)
     plans = [plan_from_estimate(c, joint, jt, target, step_rad, step_m) for _, c in candidates]
     chosen = (candidates[0][1], plans[0])  # the best hypothesis unless a look finds another's handle
-    sighting = None  # (hypothesis rank, handle centre, panel normal) in the reference frame
+    sighting = None  # (hypothesis rank, HandleSighting in the reference frame)
     for rank, ((score, _), plan_k) in enumerate(zip(candidates, plans)):
         if not look_at_handle or n_images >= max_images:
             break
@@ -218,10 +218,8 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
     if look_at_handle and sighting is None and n_images < max_images:
         # no handle where any hypothesis put it: one overview of the best hypothesis's panel
         # (between its handle and its mirror's), the handle given to the hypothesis it is nearest
-        ends = [p.grasp_pose[:3] for p in plans[:1]]
-        mirror0 = mirrored_hypothesis(candidates[0][1], joint) if jt == REVOLUTE else None
-        if mirror0 is not None:
-            ends.append(plan_from_estimate(mirror0, joint, jt, target, step_rad, step_m).grasp_pose[:3])
+        mirror_plan = None if mirror is None else plan_from_estimate(mirror, joint, jt, target, step_rad, step_m)
+        ends = [plans[0].grasp_pose[:3]] + ([mirror_plan.grasp_pose[:3]] if mirror_plan is not None else [])
         rot, trans = look_at_viewpoint(np.mean(ends, axis=0), outward_normal(plans[0].grasp_pose, jt),
                                        HANDLE_OVERVIEW_DISTANCE_M)
         seen = sight_handle(camera.render(q_true0, (rot, trans)), camera.K, rng, HANDLE_OVERVIEW_RADIUS_M)
@@ -230,11 +228,11 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
                       "handle_found": seen is not None})
         if seen is not None:
             seen = seen.transformed(rot, trans)
-            rank = overview_hypothesis([c for _, c in candidates] + ([mirror0] if mirror0 is not None else []),
+            rank = overview_hypothesis([c for _, c in candidates] + ([mirror] if mirror is not None else []),
                                        joint, jt, seen)
-            if rank == len(candidates):  # the best hypothesis's mirror
-                candidates.append((0.0, mirror0))
-                plans.append(plan_from_estimate(mirror0, joint, jt, target, step_rad, step_m))
+            if rank == len(candidates):  # the best hypothesis's mirror (when it was not a candidate already)
+                candidates.append((0.0, mirror))
+                plans.append(mirror_plan)
             sighting = (rank, seen)
     if sighting is not None:
         rank, seen = sighting
