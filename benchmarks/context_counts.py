@@ -27,7 +27,7 @@ def counts(class_name: str, scene: str, occluders: int, n_objects: int, root: Pa
 
     from articulated_dataset.format.schema import MASK_OCCLUDER, MASK_SCENE
     from articulated_dataset.generation import GenerationConfig, generate_split
-    from articulated_dataset.shards import open_split
+    from articulated_dataset.format import open_split
 
     config = GenerationConfig(class_name, n_objects=n_objects, seed=seed, objects_per_shard=n_objects, scene=scene,
                               occluders=occluders)

@@ -102,7 +102,7 @@ def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: P
     from articulated_dataset.format.manifest import DEFAULT_OBJECTS_PER_SHARD
     from articulated_dataset.generation import GenerationConfig, generate_split
     from articulated_dataset.registry import get_class
-    from articulated_dataset.shards import read_manifest
+    from articulated_dataset.format import read_manifest
 
     per_shard = min(DEFAULT_OBJECTS_PER_SHARD, max(1, n_objects // max(workers, 1) // 2))
     config = GenerationConfig(class_name, n_objects=n_objects, seed=seed, objects_per_shard=per_shard,

@@ -27,9 +27,8 @@ from articulated_dataset.camera import R_CAMERA_TO_OPTICAL, CameraConfig
 from articulated_dataset.rotations import quat_multiply
 from articulated_dataset.benchmark.predictions import write_predictions
 from articulated_dataset.registry import all_classes
-from articulated_dataset.schema import FIELDS
+from articulated_dataset.format import FIELDS, open_split, write_manifest, write_shard
 from articulated_dataset.benchmark.scoring import score, target_matrix
-from articulated_dataset.shards import open_split, write_manifest, write_shard
 from articulated_dataset.targets import TargetLayout
 
 #: Images of one class in the paper's test split (1,000 objects x 16 images).

@@ -130,7 +130,7 @@ def mean_predictions(train_dir: Path, test_dir: Path) -> tuple[dict, dict]:
     """Mean-baseline predictions and their point-likelihood-snapped version."""
     from articulated_dataset.baselines import mean as mean_baseline
     from articulated_dataset.benchmark.pointlik import snap_axis_poses, snap_batch
-    from articulated_dataset.shards import open_split
+    from articulated_dataset.format import open_split
 
     result = mean_baseline.predict(train_dir, test_dir)
     preds = {k: np.asarray(v) for k, v in result.predictions.items()}
@@ -221,7 +221,7 @@ def noise_cost(work: Path, class_name: str, n_images: int, seed: int) -> dict:
     (one process, same run) and the bare cost of the model on those frames."""
     from articulated_dataset.camera import CameraConfig
     from articulated_dataset.real.noise import get_noise_model
-    from articulated_dataset.shards import open_split
+    from articulated_dataset.format import open_split
 
     out = {}
     for noise in ("none", "kinect2"):

@@ -29,7 +29,7 @@ PAPER_METRICS = ("axis_position_error_cm", "axis_rotation_error_deg", "configura
 
 def ensure_split(root: Path, class_name: str, split: str, n_objects: int, workers: int, generate: bool) -> Path:
     from articulated_dataset.generation import GenerationConfig, generate_split, split_dir_for
-    from articulated_dataset.shards import read_manifest
+    from articulated_dataset.format import read_manifest
 
     config = GenerationConfig(class_name, split=split, n_objects=n_objects)
     split_dir = Path(split_dir_for(root, config))

@@ -22,7 +22,7 @@ import torch
 
 from articulated_dataset.models import MODELS_MANIFEST, WEIGHTS_DIR, strip_for_shipping
 from articulated_dataset.registry import class_names
-from articulated_dataset.shards import read_manifest, sha256_file
+from articulated_dataset.format import read_manifest, sha256_file
 
 MACHINE = "2-core x86_64 CPU VM shared with other jobs, no GPU, PyTorch 2.13.0 CPU"
 TRAIN_COMMANDS = {

@@ -10,7 +10,7 @@ from click.testing import CliRunner
 from PIL import Image
 
 from articulated_dataset.cli import main
-from articulated_dataset.shards import open_split
+from articulated_dataset.format import open_split
 
 
 def write_capture(folder: Path, name: str, s: dict, K: np.ndarray, labels: dict | None) -> None:

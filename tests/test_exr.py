@@ -15,9 +15,7 @@ from PIL import Image
 
 from articulated_dataset.cli import main
 from articulated_dataset.exr.files import DEPTH_CHANNEL, INDEX_NAME, read_depth_exr, sample_stem, write_depth_exr
-from articulated_dataset.format import LABEL_FIELDS
-from articulated_dataset.schema import FIELDS
-from articulated_dataset.shards import open_split
+from articulated_dataset.format import FIELDS, LABEL_FIELDS, open_split
 
 
 def run(*args):

@@ -96,7 +96,7 @@ def test_every_consumer_reads_the_same_labels(generated):
     from articulated_dataset.loaders import ShardReader
     from articulated_dataset.manipulation import read_split_labels
     from articulated_dataset.benchmark.truth import load_truth_set
-    from articulated_dataset.shards import open_split
+    from articulated_dataset.format import open_split
 
     ref = raw_labels(generated)
     _, shards = open_split(generated)

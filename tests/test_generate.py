@@ -14,8 +14,7 @@ from articulated_dataset.camera import CameraConfig, R_CAMERA_TO_OPTICAL
 from articulated_dataset.cli import main
 from articulated_dataset.generation import GenerationConfig, generate_split
 from articulated_dataset.registry import class_names
-from articulated_dataset.schema import FIELDS
-from articulated_dataset.shards import open_split, read_manifest, sha256_file
+from articulated_dataset.format import FIELDS, open_split, read_manifest, sha256_file
 
 
 def _checksums(split_dir):

@@ -27,7 +27,7 @@ from PIL import Image
 
 from articulated_dataset.cli import EXIT_ENVIRONMENT_ERROR, EXIT_USER_ERROR, main
 from articulated_dataset.registry import REVOLUTE
-from articulated_dataset.shards import open_split
+from articulated_dataset.format import open_split
 from helpers_real import write_capture
 
 ERROR_PREFIX = "artdata: error: "

@@ -31,7 +31,7 @@ from articulated_dataset.errors import DataFormatError, UserError
 from articulated_dataset.exr import export_split
 from articulated_dataset.exr.files import INDEX_NAME
 from articulated_dataset.generation import GenerationConfig, generate_split
-from articulated_dataset.shards import MANIFEST_NAME, resolve_inside
+from articulated_dataset.format import MANIFEST_NAME, resolve_inside
 from articulated_dataset.generation.templating import render_urdf
 
 #: What a payload would create if it were ever evaluated.
@@ -913,7 +913,7 @@ def test_rebuild_reads_the_definition_safely(urdf_split, tmp_path, how, key, val
 
 
 def test_rebuilt_definition_checked_by_the_library(urdf_split):
-    from articulated_dataset.shards import read_manifest
+    from articulated_dataset.format import read_manifest
 
     cfg = read_manifest(urdf_split["split"])["config"]
     cfg["third_party"]["class_name"] = "../x"

@@ -22,7 +22,7 @@ import pytest
 from click.testing import CliRunner
 
 from articulated_dataset.cli import main
-from articulated_dataset.shards import sha256_file
+from articulated_dataset.format import sha256_file
 
 #: A split that renders in a fraction of a second: one 32x18 image per object.
 TINY = ["--class", "drawer", "--images", "1", "--width", "32", "--height", "18", "--workers", "1", "--quiet"]

@@ -20,7 +20,7 @@ from click.testing import CliRunner
 
 from articulated_dataset.cli import main
 from articulated_dataset.benchmark.predictions import PREDICTIONS_FORMAT_VERSION
-from articulated_dataset.shards import open_split
+from articulated_dataset.format import open_split
 from test_scoring import raw_write
 
 FIELDS = ("sample_id", "axis_pose", "q", "geometry", "part_offset")

@@ -17,7 +17,7 @@ from articulated_dataset.camera import CameraConfig, project
 from articulated_dataset.generation.labels import MASK_BODY, MASK_FIRST_PART
 from articulated_dataset.registry import PRISMATIC, all_classes, get_class
 from articulated_dataset.rotations import matrix_to_quat
-from articulated_dataset.shards import open_split
+from articulated_dataset.format import open_split
 from helpers_core import (compile_object, final_object, object_transform, part_points, render_at, rotate_about_axis,
                           surface_distances, to_object_frame)
 

@@ -18,7 +18,7 @@ import pytest
 from articulated_dataset.errors import UserError
 from articulated_dataset.loaders.epoch import plan_epoch
 from articulated_dataset.loaders.reader import DEFAULT_FIELDS, ShardReader
-from articulated_dataset.schema import K_DATASET
+from articulated_dataset.format import K_DATASET
 
 SPLIT_KEYS = list(DEFAULT_FIELDS)
 

@@ -384,7 +384,7 @@ def dense_ckpt(tiny_root, tmp_path_factory):
 
 def test_cli_plan_model_estimates_from_the_stored_image(tiny_root, dense_ckpt, tmp_path):
     from articulated_dataset.models.estimation import estimate
-    from articulated_dataset.shards import open_split
+    from articulated_dataset.format import open_split
 
     data = tiny_root / "microwave" / "test"
     out = tmp_path / "plan.json"
@@ -527,7 +527,7 @@ def test_find_handle_in_a_close_up(tiny_root, cls):
 def test_cli_plan_real_split_from_estimate(tiny_root, dense_ckpt, tmp_path):
     from PIL import Image
 
-    from articulated_dataset.shards import open_split
+    from articulated_dataset.format import open_split
 
     _, shards = open_split(tiny_root / "microwave" / "test")
     s, K = shards[0].sample(2), shards[0].K

@@ -174,7 +174,7 @@ def test_preprocess_hand_worked_example():
 def test_anchor_is_the_centroid_of_the_back_projected_pixels(tiny_root):
     from articulated_dataset.camera import backproject
     from articulated_dataset.models.mdn.preprocess import image_anchor
-    from articulated_dataset.shards import open_split
+    from articulated_dataset.format import open_split
 
     _, shards = open_split(tiny_root / "drawer" / "train")
     depth, K = shards[0].read("depth", slice(0, 3)), shards[0].K
@@ -260,7 +260,7 @@ def test_cli_train_predict_score_round_trip(tiny_root, tmp_path):
                                "--out", str(preds), "-q"])
     assert res.exit_code == 0, res.output
     from articulated_dataset.benchmark.predictions import read_predictions
-    from articulated_dataset.shards import open_split
+    from articulated_dataset.format import open_split
 
     attrs, per_class = read_predictions(preds)
     arr = per_class["cabinet"]
@@ -295,7 +295,7 @@ def test_predict_two_joint_class_mode_and_snap_to_cloud(tiny_root, tmp_path):
     np.testing.assert_allclose(np.linalg.norm(plain["axis_pose"][..., 3:], axis=-1), 1.0, atol=1e-5)
     np.testing.assert_array_equal(plain["axis_pose"][..., 3:], snapped["axis_pose"][..., 3:])  # orientation kept
     # every snapped origin is a point of the image's segmented cloud
-    from articulated_dataset.shards import open_split
+    from articulated_dataset.format import open_split
 
     _, shards = open_split(test)
     sh = shards[0]

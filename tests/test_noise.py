@@ -187,7 +187,7 @@ def test_lateral_noise_moves_edges_by_its_sigma():
 
 def test_pipeline_noise_is_seeded_and_keeps_labels(tmp_path):
     from articulated_dataset.generation import GenerationConfig, generate_split
-    from articulated_dataset.shards import open_split
+    from articulated_dataset.format import open_split
 
     base = dict(class_name="microwave", split="test", n_objects=1, images_per_object=2)
     clean = generate_split(GenerationConfig(**base), tmp_path / "clean")

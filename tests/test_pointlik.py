@@ -13,7 +13,7 @@ from articulated_dataset.benchmark.pointlik import (
     snap_axis_poses,
     snap_batch,
 )
-from articulated_dataset.shards import open_split
+from articulated_dataset.format import open_split
 
 
 def _layout(n_joints: int, rng: np.random.Generator) -> list[str]:

@@ -14,7 +14,7 @@ from articulated_dataset.cli import main
 from articulated_dataset.errors import UserError
 from articulated_dataset.executors import RAY_INSTALL_HELP, RayExecutor, get_executor
 from articulated_dataset.generation import GenerationConfig, generate_split
-from articulated_dataset.shards import TMP_SUFFIX, shard_name
+from articulated_dataset.format import TMP_SUFFIX, shard_name
 from articulated_dataset.urdf_import import CACHE_ENV, import_urdf
 
 #: Small split: 4 shards of one object, so both Ray workers get work and one task can fail.

@@ -18,8 +18,7 @@ from articulated_dataset.real.ingest import DEPTH_QUANTUM_M
 from articulated_dataset.real.readers import load_depth
 from articulated_dataset.real.resample import crop_intrinsics, resample_depth
 from articulated_dataset.real.write import real_sample_id
-from articulated_dataset.schema import LABEL_FIELDS
-from articulated_dataset.shards import open_split
+from articulated_dataset.format import LABEL_FIELDS, open_split
 
 #: Upsampling factor and placement of the synthetic 512 x 424 "Kinect v2" frame.
 SCALE = 2
@@ -382,7 +381,7 @@ def _files(folder):
 
 
 def test_failed_overwrite_or_append_leaves_the_split_as_it_was(tiny_root, tmp_path, monkeypatch):
-    import articulated_dataset.shards as shards_module
+    import articulated_dataset.format.shards as shards_module
     from articulated_dataset.errors import UserError as _UserError
 
     s, K = _sample(tiny_root, "drawer", 0)

@@ -23,7 +23,7 @@ from articulated_dataset.errors import UserError
 from articulated_dataset.generation import GenerationConfig, generate_split, object_sample
 from articulated_dataset.registry import all_classes, get_class
 from articulated_dataset.generation.sampling import object_rng, sample_object
-from articulated_dataset.shards import MANIFEST_NAME, open_split, read_manifest, sha256_file
+from articulated_dataset.format import MANIFEST_NAME, open_split, read_manifest, sha256_file
 from articulated_dataset.tables import GEOMETRY_KEYS, SamplingTable, ShapeMixture
 from articulated_dataset.verify import verify_split
 from helpers_core import IMAGE_CHECK_FIELDS, check_stored_images, write_flap_urdf

@@ -15,7 +15,7 @@ import pytest
 from click.testing import CliRunner
 
 from articulated_dataset.cli import main
-from articulated_dataset.shards import MANIFEST_NAME, sha256_file
+from articulated_dataset.format import MANIFEST_NAME, sha256_file
 
 #: Small but multi-shard: N_SHARDS objects, one per shard, 8 images each.
 N_SHARDS = 10

@@ -19,7 +19,7 @@ from articulated_dataset.format.schema import RGB_FORMAT_VERSION
 from articulated_dataset.generation import GenerationConfig, generate_split
 from articulated_dataset.generation.appearance import APPEARANCE_TABLE
 from articulated_dataset.registry import all_classes
-from articulated_dataset.shards import open_split, read_manifest
+from articulated_dataset.format import open_split, read_manifest
 
 CLASSES = all_classes()
 

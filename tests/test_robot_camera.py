@@ -19,7 +19,7 @@ from articulated_dataset.generation import GenerationConfig, generate_split
 from articulated_dataset.registry import all_classes, get_class
 from articulated_dataset.generation.render import DepthRenderer
 from articulated_dataset.generation.scene import _set_intrinsics
-from articulated_dataset.shards import open_split, read_manifest
+from articulated_dataset.format import open_split, read_manifest
 from articulated_dataset.generation.viewpoint import (HEAD_AIM_JITTER_DEG, HEAD_HEIGHT_M, HEAD_PITCH_DEG, HEAD_ROLL_DEG,
                                            aim_pitch_rad, head_views, level_pose_from_camera, object_in_camera)
 from articulated_dataset.verify import verify_split

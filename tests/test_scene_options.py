@@ -24,7 +24,7 @@ from articulated_dataset.generation import GenerationConfig, generate_split, sto
 from articulated_dataset.registry import all_classes
 from articulated_dataset.rotations import quat_to_matrix
 from articulated_dataset.generation.scenes import MIN_CAMERA_HEIGHT_M, layout_boxes, scene_layout
-from articulated_dataset.shards import open_split, read_manifest
+from articulated_dataset.format import open_split, read_manifest
 from articulated_dataset.verify import verify_split
 from helpers_core import IMAGE_CHECK_FIELDS, check_stored_images, compile_object, render_at
 

@@ -18,7 +18,7 @@ from articulated_dataset.cli import main
 from articulated_dataset.errors import UserError
 from articulated_dataset.benchmark.predictions import PREDICTIONS_FORMAT_VERSION, read_predictions, write_predictions
 from articulated_dataset.benchmark.scoring import score, target_matrix
-from articulated_dataset.shards import open_split
+from articulated_dataset.format import open_split
 
 FIELDS = ("sample_id", "axis_pose", "q", "geometry", "part_offset")
 
@@ -348,7 +348,7 @@ def test_truth_without_some_labels_is_averaged_where_defined(tiny_root, tmp_path
 
     from articulated_dataset.benchmark.predictions import write_predictions
     from articulated_dataset.benchmark.scoring import score
-    from articulated_dataset.shards import open_split
+    from articulated_dataset.format import open_split
 
     split = tmp_path / "drawer" / "test"
     shutil.copytree(tiny_root / "drawer" / "test", split)

@@ -16,7 +16,7 @@ from articulated_dataset.models import shipped as M  # noqa: E402
 from articulated_dataset.cli import main  # noqa: E402
 from articulated_dataset.errors import UserError  # noqa: E402
 from articulated_dataset.registry import class_names  # noqa: E402
-from articulated_dataset.shards import sha256_file  # noqa: E402
+from articulated_dataset.format import sha256_file  # noqa: E402
 
 SHIPPED = M.shipped_models()
 pytestmark = pytest.mark.skipif(not SHIPPED, reason="this checkout ships no weights")

@@ -8,7 +8,7 @@ import pytest
 
 from articulated_dataset.errors import UserError
 from articulated_dataset.registry import all_classes, get_class
-from articulated_dataset.shards import open_split
+from articulated_dataset.format import open_split
 from articulated_dataset.targets import (DEFAULT_STD_FLOOR, NormStats, TargetLayout, gram_schmidt, matrix_to_quat,
                                          quat_to_matrix)
 

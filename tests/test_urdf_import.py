@@ -19,7 +19,7 @@ from articulated_dataset.camera import CameraConfig, backproject
 from articulated_dataset.cli import main
 from articulated_dataset.errors import UserError
 from articulated_dataset.generation import GenerationConfig, generate_split
-from articulated_dataset.shards import open_split, read_manifest, sha256_file
+from articulated_dataset.format import open_split, read_manifest, sha256_file
 from articulated_dataset import urdf_import
 from articulated_dataset.urdf_import import import_urdf
 from articulated_dataset.urdf_import.build import _class_for_key

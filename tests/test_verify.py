@@ -11,7 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from articulated_dataset.cli import main
-from articulated_dataset.shards import MANIFEST_NAME, sha256_file
+from articulated_dataset.format import MANIFEST_NAME, sha256_file
 from articulated_dataset.verify import check_shard, quat_rotate_z, verify_split
 
 #: The split every damage test starts from: 6 objects in shards of 4 -> 2 shards, J = 2.
@@ -328,7 +328,7 @@ def _real_capture(folder, name, s, K, labels=None):
 def real_split_source(tiny_root, tmp_path_factory):
     """A cabinet2 real split of three captures: full labels, labels without part_offset /
     object_pose (the docs' example), and none; the last with a crop fit in a second shard."""
-    from articulated_dataset.shards import open_split
+    from articulated_dataset.format import open_split
 
     root = tmp_path_factory.mktemp("real")
     _, shards = open_split(tiny_root / "cabinet2" / "test")

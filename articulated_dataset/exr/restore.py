@@ -12,7 +12,8 @@ import numpy as np
 from ..errors import DataFormatError
 from ..format import (FIELDS_BY_NAME, LABEL_FIELDS, MANIFEST_NAME, check_manifest_names, check_shard_file,
                       find_split_dirs, read_json_object, resolve_inside, resolve_shape)
-from ..shards import write_manifest, write_shard
+from ..format.manifest import write_manifest
+from ..format.shards import write_shard
 from .export import staged_dir
 from .files import (DEPTH_SUFFIX, EXPORT_FORMAT, EXPORT_FORMAT_VERSION, INDEX_NAME, LABEL_SUFFIX, MASK_SUFFIX,
                     RGB_SUFFIX, STEM_RE, read_depth_exr, read_mask_png)

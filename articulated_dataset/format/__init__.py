@@ -2,9 +2,10 @@
 
 * :mod:`.schema` -- every stored field (dtype, shape, units, frame), the mask codes, the joint
   types and the file-level dataset names;
-* :mod:`.shards` -- names that may become paths, safe HDF5 opening, :class:`Shard`;
+* :mod:`.shards` -- names that may become paths, safe HDF5 opening, :class:`Shard`, and
+  :func:`write_shard` (the one shard writer);
 * :mod:`.manifest` -- the manifest and :class:`SplitConfig` (the settings that determine a
-  split's bytes; the generator fills one);
+  split's bytes; the generator fills one), :func:`write_manifest`;
 * :mod:`.discovery` -- finding ``<class>/<split>/`` folders;
 * :mod:`.split` -- :class:`Split`, the one reader of a split folder.
 
@@ -25,6 +26,7 @@ from .manifest import (
     read_manifest,
     shard_paths,
     split_config,
+    write_manifest,
 )
 from .schema import (
     FIELDS,
@@ -62,6 +64,7 @@ from .shards import (
     resolve_inside,
     sha256_file,
     shard_name,
+    write_shard,
 )
 from .split import Split, open_split
 
@@ -73,5 +76,5 @@ __all__ = [
     "SplitConfig", "attr_value", "check_class_name", "check_h5_layout", "check_manifest_names", "check_shard_file",
     "check_version", "find_split_dirs", "find_splits", "is_class_name", "one_split_dir", "open_h5", "open_split",
     "read_json_object", "read_manifest", "reading", "resolve_inside", "resolve_shape", "sha256_file", "shard_name",
-    "shard_paths", "split_config", "splits_by_class", "validate_arrays", "visible_pixels",
+    "shard_paths", "split_config", "splits_by_class", "validate_arrays", "visible_pixels", "write_manifest", "write_shard",
 ]

@@ -10,6 +10,7 @@ class registry); reading one needs neither the generator nor MuJoCo.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -17,6 +18,7 @@ from pathlib import Path
 from .. import FORMAT_VERSION  # noqa: F401  (the default splits' version; schema.format_version_for)
 from ..camera import CameraConfig
 from ..errors import DataFormatError, UserError
+from ..safeio import atomic_write_bytes
 from ..tables import SamplingTable
 from .schema import check_version
 from .shards import check_class_name, check_shard_file, read_json_object, resolve_inside
@@ -197,3 +199,9 @@ def shard_paths(split_dir: str | Path, manifest: dict) -> list[Path]:
     """The paths of a manifest's shards, each checked to be a shard name inside ``split_dir``."""
     where = str(Path(split_dir) / MANIFEST_NAME)
     return [resolve_inside(split_dir, check_shard_file(rec["file"], where), where=where) for rec in manifest["shards"]]
+
+
+def write_manifest(split_dir: str | Path, manifest: dict) -> None:
+    """Write ``manifest`` as ``split_dir/manifest.json`` (sorted keys, one-space indent) atomically
+    (:func:`articulated_dataset.safeio.atomic_write_bytes`: readers see the old or the new file)."""
+    atomic_write_bytes(Path(split_dir) / MANIFEST_NAME, (json.dumps(manifest, indent=1, sort_keys=True) + "\n").encode())

@@ -2,9 +2,10 @@
 
 Shapes use symbols: ``N`` images in the shard, ``J`` joints of the class, ``H``/``W`` image
 height/width, ``P = 1 + J`` (body + parts).  The writer and the reader both validate
-against :data:`FIELDS`; docs/format.md is generated from the same table
-(``python -m articulated_dataset.schema``).  The mask codes and the file-level dataset
-names are declared here too, so a reader needs nothing from the generator.
+against :data:`FIELDS`; docs/format.md's field table is generated from the same table
+(:func:`markdown_table`; ``tests/test_format_doc.py`` checks that they agree).  The mask
+codes and the file-level dataset names are declared here too, so a reader needs nothing
+from the generator.
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
-"""Reading shards: names checked before they become paths, HDF5 files opened safely, one
-:class:`Shard` per file.
+"""The shard file: names checked before they become paths, HDF5 files opened safely, one
+:class:`Shard` per file, and :func:`write_shard` (the one writer every split writer uses:
+generation, EXR import, real ingestion).
 
 Layout of a generated split::
 
@@ -8,8 +9,11 @@ Layout of a generated split::
 
 Every check that refuses a crafted file (names leading out of the folder, links and external
 storage inside HDF5, sizes that do not fit, damaged chunks) lives here, with a one-line
-:class:`~articulated_dataset.errors.DataFormatError`.  Writing is the generator's job
-(:mod:`articulated_dataset.shards`).
+:class:`~articulated_dataset.errors.DataFormatError`.
+
+A shard becomes visible only when complete: :func:`write_shard` builds it in memory and
+writes it under a temporary name, fsync'ed and atomically renamed
+(:func:`articulated_dataset.safeio.atomic_write_h5`).
 """
 
 from __future__ import annotations
@@ -26,7 +30,8 @@ import numpy as np
 
 from ..errors import DataFormatError
 from ..safeio import TMP_SUFFIX  # noqa: F401  (re-exported: one definition)
-from .schema import FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, R_DATASET, check_version, validate_arrays
+from .schema import (FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, OPTIONAL_FIELDS, R_DATASET, RGB_FIELDS,
+                     check_version, validate_arrays)
 
 SHARD_PATTERN = "shard-{:05d}.h5"
 #: Longest class name: the shards' ``class`` field is S32 (32 ASCII bytes).
@@ -314,3 +319,46 @@ def read_json_object(path: str | Path, what: str) -> dict:
     if not isinstance(data, dict):
         raise DataFormatError(f"{path}: corrupt {what} (not a JSON object)")
     return data
+
+
+#: Deflate level of the per-image depth/mask chunks.  Compression is the costliest step after
+#: rendering: level 1 takes ~40% of level 4's time for ~1.4x its size, still well under the
+#: 4 KB/image budget (benchmarks/generation.py prints bytes per image).
+IMAGE_GZIP_LEVEL = 1
+#: Deflate level of the (small) label datasets.
+LABEL_GZIP_LEVEL = 4
+
+
+def write_shard(path: str | Path, arrays: dict, attrs: dict, K: np.ndarray, R: np.ndarray) -> dict:
+    """Validate ``arrays`` against the schema and write them atomically to ``path``.
+
+    Returns the shard's manifest record (file name, images, bytes, sha256).
+    """
+    path = Path(path)
+    N, H, W = arrays["depth"].shape
+    J = arrays["q"].shape[1]
+    validate_arrays(arrays, N=N, J=J, H=H, W=W, where=str(path))
+    from ..safeio import atomic_write_h5
+
+    def build(f: h5py.File) -> None:
+        for field in FIELDS + tuple(f for f in OPTIONAL_FIELDS + RGB_FIELDS if f.name in arrays):  # optional: 1.1, 1.2
+            a = arrays[field.name]
+            if field.name in IMAGE_FIELDS or field in RGB_FIELDS:  # one chunk per image
+                f.create_dataset(field.name, data=a, chunks=(1,) + a.shape[1:], shuffle=a.dtype.itemsize > 1,
+                                 compression="gzip", compression_opts=IMAGE_GZIP_LEVEL, track_times=False)
+            else:
+                f.create_dataset(field.name, data=a, shuffle=a.dtype.itemsize > 1,
+                                 compression="gzip", compression_opts=LABEL_GZIP_LEVEL, track_times=False)
+            f[field.name].attrs["units"] = field.units
+            f[field.name].attrs["frame"] = field.frame
+        f.create_dataset(K_DATASET, data=np.asarray(K, np.float64), track_times=False)
+        f.create_dataset(R_DATASET, data=np.asarray(R, np.float64), track_times=False)
+        # Sorted: HDF5 bytes depend on attribute creation order, and every writer (generator,
+        # EXR import, ingest) must give the same bytes for the same content.
+        for k in sorted(attrs):
+            f.attrs[k] = attrs[k]
+
+    # Built in memory, written in one piece (a full disk never breaks HDF5's state).  Fixed
+    # file-format bounds and no timestamps make identical inputs give identical bytes.
+    atomic_write_h5(path, build, libver=("v110", "v110"), track_order=False)
+    return {"file": path.name, "n_images": int(N), "bytes": path.stat().st_size, "sha256": sha256_file(path)}

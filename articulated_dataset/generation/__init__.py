@@ -12,7 +12,7 @@ The stages, each a small function from one input to one output (:mod:`.objects`)
 4. render (:mod:`.render`): depth and the part mask of every image, then the sensor's noise
    and quantisation;
 5. label (:mod:`.labels`, :mod:`.context_labels`): labels read from the compiled model;
-6. write: shards (:mod:`.pipeline`, :func:`articulated_dataset.shards.write_shard`) and the
+6. write: shards (:mod:`.pipeline`, :func:`articulated_dataset.format.shards.write_shard`) and the
    split with its manifest (:mod:`.split`).
 
 :mod:`.config` holds :class:`GenerationConfig` (a :class:`~articulated_dataset.format.SplitConfig`

@@ -22,8 +22,8 @@ from ..camera import R_CAMERA_TO_OPTICAL
 from ..errors import UserError
 from ..format.records import shard_attrs as format_shard_attrs
 from ..format.schema import FIELDS, OPTIONAL_FIELDS, RGB_FIELDS
+from ..format.shards import shard_name, write_shard
 from ..registry import JOINT_TYPES
-from ..shards import shard_name, write_shard
 from .appearance import appearance_record, with_appearance_assets
 from .compiled import compile_object
 from .config import GenerationConfig

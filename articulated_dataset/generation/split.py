@@ -22,7 +22,7 @@ from ..errors import DataFormatError, UserError
 from ..format.records import split_manifest
 from ..safeio import (FULL_HINT, TMP_SUFFIX, WriteError, available_memory_bytes, check_free_space, ensure_dir, format_bytes,
                       fsync_dir, remove_created_dirs, translated)
-from ..shards import write_manifest
+from ..format.manifest import write_manifest
 from .config import GenerationConfig, split_dir_for
 from .pipeline import run_shard, shard_attrs
 

@@ -49,7 +49,7 @@ def shipped_models() -> list[dict]:
 
 
 def _sha256(path: Path) -> str:
-    from ..shards import sha256_file
+    from ..format import sha256_file
 
     return sha256_file(path)
 

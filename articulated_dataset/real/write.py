@@ -70,7 +70,8 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
     index); ``overwrite`` replaces it.  Returns the split folder.
     """
     from ..safeio import ensure_dir, remove_created_dirs
-    from ..shards import MANIFEST_NAME, read_manifest, shard_name, write_manifest, write_shard
+    from ..format.manifest import MANIFEST_NAME, read_manifest, write_manifest
+    from ..format.shards import shard_name, write_shard
 
     if not captures:
         raise UserError("no captures to ingest")
@@ -216,7 +217,7 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
 
 def _is_ours(p: Path) -> bool:
     """A file ``artdata ingest`` writes in a split folder (manifest, shards, their partial files)."""
-    from ..shards import MANIFEST_NAME, TMP_SUFFIX
+    from ..format import MANIFEST_NAME, TMP_SUFFIX
 
     name = p.name[: -len(TMP_SUFFIX)] if p.name.endswith(TMP_SUFFIX) else p.name
     return p.is_file() and not p.is_symlink() and (name == MANIFEST_NAME or re.fullmatch(r"shard-[0-9]{5,}\.h5", name) is not None)

@@ -7,7 +7,7 @@ or ``shard-NNNNN.h5``); nothing raises for bad data.  What is checked:
   generation config; the shard list (each listed file exists, no unlisted shard file),
   per-shard byte sizes and sha256 checksums, and the counts (images, objects, shards;
   a split is complete when every expected shard is listed).
-* **format** (per shard, via :mod:`articulated_dataset.schema`): readable HDF5, root
+* **format** (per shard, via :mod:`articulated_dataset.format.schema`): readable HDF5, root
   attributes, every schema dataset with its declared dtype and shape, the ``K`` and
   ``R_camera_to_optical`` datasets, attributes consistent with the manifest.
 * **content** (skipped with ``content=False``): finite values, and the label invariants
