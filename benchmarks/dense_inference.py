@@ -37,7 +37,8 @@ def main(argv=None) -> int:
     import articulated_dataset as ad
     from articulated_dataset.models.dense.features import make_inputs
     from articulated_dataset.models.dense.predict import predict_arrays
-    from articulated_dataset.models.dense.train import build_dense_model, load_dense_checkpoint, load_dense_split
+    from articulated_dataset.models.dense.checkpoint import build_dense_model, load_dense_checkpoint
+    from articulated_dataset.models.dense.data import load_dense_split
     from articulated_dataset.models import resolve_model
     from articulated_dataset.generation import GenerationConfig, generate_split
 

@@ -64,7 +64,8 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             if ref.kind == "dense":
                 from articulated_dataset.models.dense.predict import predict_arrays
-                from articulated_dataset.models.dense.train import build_dense_model, load_dense_checkpoint, load_dense_split
+                from articulated_dataset.models.dense.checkpoint import build_dense_model, load_dense_checkpoint
+                from articulated_dataset.models.dense.data import load_dense_split
                 import numpy as np
 
                 ckpt = load_dense_checkpoint(ref.path)

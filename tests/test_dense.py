@@ -20,7 +20,8 @@ from articulated_dataset.models.dense.features import (  # noqa: E402
     backproject_torch, make_inputs, output_labels, resize_depth, scale_intrinsics, surface_normals)
 from articulated_dataset.models.dense.model import DenseConfig, DenseNet  # noqa: E402
 from articulated_dataset.models.dense.refine import REFINEMENT_VERSION  # noqa: E402
-from articulated_dataset.models.dense.train import DenseTrainConfig, load_dense_checkpoint, train_dense  # noqa: E402
+from articulated_dataset.models.dense.checkpoint import load_dense_checkpoint  # noqa: E402
+from articulated_dataset.models.dense.train import DenseTrainConfig, train_dense  # noqa: E402
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
@@ -129,7 +130,8 @@ def overfit_run(tiny_root, tmp_path_factory):
 
 def test_tiny_training_run_overfits(overfit_run, tiny_root):
     from articulated_dataset.models.dense.predict import predict_arrays, quick_errors
-    from articulated_dataset.models.dense.train import build_dense_model, load_dense_split
+    from articulated_dataset.models.dense.checkpoint import build_dense_model
+    from articulated_dataset.models.dense.data import load_dense_split
 
     out, ckpt, _ = overfit_run
     d = load_dense_split(tiny_root / "microwave" / "train", 1, (108, 192), max_objects=1)

@@ -100,7 +100,7 @@ _MODEL_CACHE: dict = {}
 
 
 def _load(model: str, class_name: str):
-    from .dense.train import build_dense_model, load_dense_checkpoint
+    from .dense.checkpoint import build_dense_model, load_dense_checkpoint
     from .shipped import resolve_model
 
     ref = resolve_model(model, class_name)

@@ -40,7 +40,7 @@ def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: 
         if snap_to_cloud:
             raise UserError("--snap-to-cloud applies to MDN models; the dense model's origins are already point votes")
         from .dense.predict import predict_split as predict_dense
-        from .dense.train import load_dense_checkpoint
+        from .dense.checkpoint import load_dense_checkpoint
 
         ckpt = load_dense_checkpoint(ref.path)
         name = method or "dense"

@@ -11,6 +11,7 @@ average (:mod:`articulated_dataset.models.dense.aggregate`).
 
 Modules: :mod:`.features` (depth + K -> network input, labels -> pixel targets),
 :mod:`.model` (the network), :mod:`.aggregate` (votes -> point estimate and mixture),
-:mod:`.train` (training with checkpoints and resume), :mod:`.predict` (splits and single
-images).
+:mod:`.data` (a split in memory at the model resolution), :mod:`.checkpoint` (a checkpoint
+read, checked and its network rebuilt), :mod:`.train` (training with checkpoints and
+resume), :mod:`.predict` (splits and single images).
 """

@@ -247,7 +247,8 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
     (:func:`~.train.load_dense_split`).  A split with a scene or occluders predicted without it
     logs a warning: the model was trained on isolated objects and reads every pixel with depth."""
     from ..mdn.data import resolve_split_dir, split_class
-    from .train import build_dense_model, load_dense_split
+    from .checkpoint import build_dense_model
+    from .data import load_dense_split
 
     if batch_size <= 0:
         raise UserError(f"--batch-size must be positive, got {batch_size}")

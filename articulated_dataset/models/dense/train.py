@@ -1,9 +1,8 @@
 """Training of the dense estimator (``artdata train --model dense``).
 
 * Data: the class's training split, every image held in memory at the model resolution
-  (depth as uint16 in units of :data:`DEPTH_STORE_QUANTUM_M`: 41 KB per 192x108 image,
-  2.7 GB for 4,000 objects x 16 images), per-pixel part labels at the output resolution,
-  and the labels (axis origin, axis frame, q, part offset, geometry).
+  (:func:`~articulated_dataset.models.dense.data.load_dense_split`), per-pixel part labels at
+  the output resolution, and the labels (axis origin, axis frame, q, part offset, geometry).
 * Validation: a held-out part of the TRAINING split chosen by object (the MDN's
   :func:`~articulated_dataset.models.mdn.data.split_by_object`); the test split is never read.
   After the last epoch the geometric refinement (:mod:`articulated_dataset.models.dense.refine`) is
@@ -17,7 +16,8 @@
 * Optimisation: AdamW with a one-cycle schedule, gradient clipping.  Checkpoints are written
   atomically every :data:`CHECKPOINT_EVERY_STEPS` steps and after every epoch with the
   optimizer, schedule and history; the batch order of epoch ``e`` depends only on
-  ``(seed, e)``, so a resumed run continues exactly where it stopped.
+  ``(seed, e)``, so a resumed run continues exactly where it stopped
+  (:mod:`articulated_dataset.models.dense.checkpoint` reads them back).
 """
 
 from __future__ import annotations
@@ -30,14 +30,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ...errors import DataFormatError, UserError
+from ...errors import UserError
+from .checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, build_dense_model, load_dense_checkpoint
+from .data import DenseData, load_dense_split
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = "artdata-dense"
-CHECKPOINT_VERSION = 1
-#: Depth held in memory as uint16 multiples of this (m): 8 m range, 0.12 mm steps (the shards' quantum).
-DEPTH_STORE_QUANTUM_M = 1.0 / 8192
 #: Scales of the loss terms (see the module docstring).
 ORIGIN_SCALE_M = 0.05
 ROT_SCALE = 0.5
@@ -51,7 +49,6 @@ GRAD_CLIP_NORM = 10.0
 WARMUP_FRACTION = 0.1
 CHECKPOINT_EVERY_STEPS = 200
 EPOCH_SEED_STRIDE = 1_000_003
-LOAD_CHUNK = 256
 
 
 @dataclass(frozen=True)
@@ -86,107 +83,6 @@ class DenseTrainConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "DenseTrainConfig":
         return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
-
-
-@dataclass
-class DenseData:
-    """A split in memory, at the model resolution."""
-
-    depth_q: np.ndarray  # (N, H, W) uint16, DEPTH_STORE_QUANTUM_M units, 0 = no return
-    K: np.ndarray  # (N, 3, 3) float32, scaled to the model resolution
-    labels_out: np.ndarray | None  # (N, h, w) uint8 part labels at the output resolution
-    origin: np.ndarray | None  # (N, J, 3) m
-    rot6: np.ndarray | None  # (N, J, 6): axis (frame z) and frame x
-    q: np.ndarray | None  # (N, J)
-    part_offset: np.ndarray | None  # (N, J, 3) m
-    geometry: np.ndarray | None  # (N, 4)
-    object_index: np.ndarray
-    sample_id: np.ndarray
-    shard_of: np.ndarray
-
-    def depth(self, idx) -> "object":
-        import torch
-
-        return torch.from_numpy(self.depth_q[idx].astype(np.float32) * DEPTH_STORE_QUANTUM_M)
-
-
-def quantise_depth(depth_m: np.ndarray) -> np.ndarray:
-    """Metres -> uint16 store units; returns too far (> 8 m) or non-finite depths as 0 (no return)."""
-    d = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    q = np.rint(d / DEPTH_STORE_QUANTUM_M)
-    q[(q < 0) | (q > np.iinfo(np.uint16).max)] = 0
-    return q.astype(np.uint16)
-
-
-def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max_objects: int | None = None,
-                     with_labels: bool = True, object_mask: bool = False, progress: bool = False) -> DenseData:
-    """Read a split into a :class:`DenseData` (labels only if ``with_labels``).  ``object_mask``:
-    the depth outside the object's mask codes (body and parts) is set to no return, as a
-    robot's object segmentation would leave it (scenes and occluders removed)."""
-    import torch
-    from tqdm.auto import tqdm
-
-    from ...rotations import quat_to_matrix
-    from ...shards import open_split
-    from .features import output_labels, resize_depth, scale_intrinsics
-
-    manifest, shards = open_split(split_dir)
-    if not shards:
-        raise DataFormatError(f"{split_dir}: the split has no shards")
-    cols: dict[str, list] = {k: [] for k in ("depth_q", "K", "labels_out", "axis_pose", "q", "part_offset", "geometry",
-                                            "object_index", "sample_id", "shard_of")}
-    bar = tqdm(total=int(manifest.get("n_images", 0)) or None, desc=f"loading {split_dir}", unit="img",
-               disable=not progress, leave=False)
-    for s_idx, sh in enumerate(shards):
-        oi = sh.read("object_index")
-        keep = np.ones(len(oi), bool) if max_objects is None else oi < max_objects
-        idx = np.nonzero(keep)[0]
-        if len(idx) == 0:
-            sh.close()
-            continue
-        K = np.asarray(sh.K, np.float64)
-        for start in range(0, len(idx), LOAD_CHUNK):
-            sel = idx[start : start + LOAD_CHUNK]
-            rows = slice(int(sel[0]), int(sel[-1]) + 1)
-            depth = sh.read("depth", rows)[sel - sel[0]]
-            if object_mask:
-                from ...format import MASK_BODY
-
-                m = sh.read("mask", rows)[sel - sel[0]]
-                depth = np.where((m >= MASK_BODY) & (m <= MASK_BODY + n_joints), depth, 0)
-            src_hw = depth.shape[1:]
-            if tuple(src_hw) != tuple(hw):
-                depth = resize_depth(torch.from_numpy(np.asarray(depth, np.float32)), hw).numpy()
-            cols["depth_q"].append(quantise_depth(depth))
-            cols["K"].append(np.repeat(scale_intrinsics(K, src_hw, hw)[None].astype(np.float32), len(sel), 0))
-            if with_labels:
-                mask = sh.read("mask", rows)[sel - sel[0]]
-                if tuple(src_hw) != tuple(hw):
-                    mask = torch.nn.functional.interpolate(torch.from_numpy(mask[:, None]).float(), size=hw,
-                                                           mode="nearest")[:, 0].numpy().astype(np.uint8)
-                cols["labels_out"].append(output_labels(mask, n_joints))
-            bar.update(len(sel))
-        if with_labels:
-            for k in ("axis_pose", "q", "part_offset", "geometry"):
-                cols[k].append(np.asarray(sh.read(k), np.float64)[idx])
-        cols["object_index"].append(oi[idx].astype(np.int64))
-        cols["sample_id"].append(np.asarray(sh.read("sample_id"))[idx].astype(np.int64))
-        cols["shard_of"].append(np.full(len(idx), s_idx))
-        sh.close()
-    bar.close()
-    if not cols["depth_q"]:
-        raise UserError(f"{split_dir}: no images selected")
-    cat = {k: np.concatenate(v) if v else None for k, v in cols.items()}
-    origin = rot6 = None
-    if with_labels:
-        pose = cat["axis_pose"]
-        R = quat_to_matrix(pose[..., 3:])
-        origin = pose[..., :3].astype(np.float32)
-        rot6 = np.concatenate([R[..., :, 2], R[..., :, 0]], -1).astype(np.float32)
-    f32 = (lambda a: None if a is None else a.astype(np.float32))
-    return DenseData(depth_q=cat["depth_q"], K=cat["K"], labels_out=cat["labels_out"], origin=origin, rot6=rot6,
-                     q=f32(cat["q"]), part_offset=f32(cat["part_offset"]), geometry=f32(cat["geometry"]),
-                     object_index=cat["object_index"], sample_id=cat["sample_id"], shard_of=cat["shard_of"])
 
 
 def dense_loss(model, out, inputs: dict, data: DenseData, idx: np.ndarray, q_scale) -> tuple["object", dict]:
@@ -242,40 +138,6 @@ def atomic_save(obj: dict, path: Path) -> None:
     from ..mdn.checkpoint import atomic_torch_save
 
     atomic_torch_save(obj, path)
-
-
-def load_dense_checkpoint(path: str | Path) -> dict:
-    """Load and check a dense checkpoint (``weights_only``); any problem is one UserError line."""
-    from ..mdn.checkpoint import read_checkpoint_file
-
-    path = Path(path)
-    ckpt = read_checkpoint_file(path)
-    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
-        raise UserError(f"{path}: not an artdata dense-model checkpoint (written by 'artdata train --model dense')")
-    if ckpt.get("version") != CHECKPOINT_VERSION:
-        raise UserError(f"{path}: dense checkpoint version {ckpt.get('version')!r} is not readable "
-                        f"(expected {CHECKPOINT_VERSION})")
-    need = {"class_name": str, "model_config": dict, "train_config": dict, "model_state": dict, "q_scale": list,
-            "joint_types": list}
-    for key, typ in need.items():
-        if not isinstance(ckpt.get(key), typ):
-            raise UserError(f"{path}: checkpoint field {key!r} is missing or not a {typ.__name__}")
-    return ckpt
-
-
-def build_dense_model(ckpt: dict):
-    """The network of a checkpoint, weights loaded, eval mode."""
-    from .model import DenseConfig, DenseNet
-
-    try:
-        model = DenseNet(DenseConfig.from_dict(ckpt["model_config"]))
-        model.load_state_dict(ckpt["model_state"])
-    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
-        raise UserError(f"checkpoint weights do not match its model configuration "
-                        f"({str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__})") from None
-    if model.config.n_joints != len(ckpt["joint_types"]):
-        raise UserError("checkpoint's joint types do not match its model configuration")
-    return model.eval()
 
 
 def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, resume: bool = False,
@@ -448,7 +310,7 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     va_idx = np.nonzero(val_mask)[0]
     if not len(va_idx):
         raise UserError(f"{checkpoint}: trained without validation objects (--val-fraction 0): nothing to fit on")
-    from ...shards import sha256_file
+    from ...format import sha256_file
 
     result = dict(ckpt)
     result.update(fit_inference(model, data_, va_idx, list(ckpt["joint_types"]), progress=progress))

@@ -1,0 +1,46 @@
+"""The dense estimator's checkpoints: the file's format and version, reading and checking one
+(:func:`load_dense_checkpoint`), and the network rebuilt from it (:func:`build_dense_model`).
+Writing is training's (:mod:`articulated_dataset.models.dense.train`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ...errors import UserError
+
+CHECKPOINT_FORMAT = "artdata-dense"
+CHECKPOINT_VERSION = 1
+
+
+def load_dense_checkpoint(path: str | Path) -> dict:
+    """Load and check a dense checkpoint (``weights_only``); any problem is one UserError line."""
+    from ..mdn.checkpoint import read_checkpoint_file
+
+    path = Path(path)
+    ckpt = read_checkpoint_file(path)
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise UserError(f"{path}: not an artdata dense-model checkpoint (written by 'artdata train --model dense')")
+    if ckpt.get("version") != CHECKPOINT_VERSION:
+        raise UserError(f"{path}: dense checkpoint version {ckpt.get('version')!r} is not readable "
+                        f"(expected {CHECKPOINT_VERSION})")
+    need = {"class_name": str, "model_config": dict, "train_config": dict, "model_state": dict, "q_scale": list,
+            "joint_types": list}
+    for key, typ in need.items():
+        if not isinstance(ckpt.get(key), typ):
+            raise UserError(f"{path}: checkpoint field {key!r} is missing or not a {typ.__name__}")
+    return ckpt
+
+
+def build_dense_model(ckpt: dict):
+    """The network of a checkpoint, weights loaded, eval mode."""
+    from .model import DenseConfig, DenseNet
+
+    try:
+        model = DenseNet(DenseConfig.from_dict(ckpt["model_config"]))
+        model.load_state_dict(ckpt["model_state"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise UserError(f"checkpoint weights do not match its model configuration "
+                        f"({str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__})") from None
+    if model.config.n_joints != len(ckpt["joint_types"]):
+        raise UserError("checkpoint's joint types do not match its model configuration")
+    return model.eval()

@@ -1,0 +1,122 @@
+"""The dense estimator's data: a split held in memory at the model resolution
+(:class:`DenseData`, read by :func:`load_dense_split`), for training and for prediction.
+
+Depth is held as uint16 in units of :data:`DEPTH_STORE_QUANTUM_M` (41 KB per 192x108 image,
+2.7 GB for 4,000 objects x 16 images); part labels at the network's output resolution; the
+labels as the loss reads them (axis origin, axis frame as 6-D, q, part offset, geometry).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import DataFormatError, UserError
+
+#: Depth held in memory as uint16 multiples of this (m): 8 m range, 0.12 mm steps (the shards' quantum).
+DEPTH_STORE_QUANTUM_M = 1.0 / 8192
+#: Images read from a shard at a time.
+LOAD_CHUNK = 256
+
+
+@dataclass
+class DenseData:
+    """A split in memory, at the model resolution."""
+
+    depth_q: np.ndarray  # (N, H, W) uint16, DEPTH_STORE_QUANTUM_M units, 0 = no return
+    K: np.ndarray  # (N, 3, 3) float32, scaled to the model resolution
+    labels_out: np.ndarray | None  # (N, h, w) uint8 part labels at the output resolution
+    origin: np.ndarray | None  # (N, J, 3) m
+    rot6: np.ndarray | None  # (N, J, 6): axis (frame z) and frame x
+    q: np.ndarray | None  # (N, J)
+    part_offset: np.ndarray | None  # (N, J, 3) m
+    geometry: np.ndarray | None  # (N, 4)
+    object_index: np.ndarray
+    sample_id: np.ndarray
+    shard_of: np.ndarray
+
+    def depth(self, idx) -> "object":
+        import torch
+
+        return torch.from_numpy(self.depth_q[idx].astype(np.float32) * DEPTH_STORE_QUANTUM_M)
+
+
+def quantise_depth(depth_m: np.ndarray) -> np.ndarray:
+    """Metres -> uint16 store units; returns too far (> 8 m) or non-finite depths as 0 (no return)."""
+    d = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    q = np.rint(d / DEPTH_STORE_QUANTUM_M)
+    q[(q < 0) | (q > np.iinfo(np.uint16).max)] = 0
+    return q.astype(np.uint16)
+
+
+def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max_objects: int | None = None,
+                     with_labels: bool = True, object_mask: bool = False, progress: bool = False) -> DenseData:
+    """Read a split into a :class:`DenseData` (labels only if ``with_labels``).  ``object_mask``:
+    the depth outside the object's mask codes (body and parts) is set to no return, as a
+    robot's object segmentation would leave it (scenes and occluders removed)."""
+    import torch
+    from tqdm.auto import tqdm
+
+    from ...rotations import quat_to_matrix
+    from ...format import open_split
+    from .features import output_labels, resize_depth, scale_intrinsics
+
+    manifest, shards = open_split(split_dir)
+    if not shards:
+        raise DataFormatError(f"{split_dir}: the split has no shards")
+    cols: dict[str, list] = {k: [] for k in ("depth_q", "K", "labels_out", "axis_pose", "q", "part_offset", "geometry",
+                                            "object_index", "sample_id", "shard_of")}
+    bar = tqdm(total=int(manifest.get("n_images", 0)) or None, desc=f"loading {split_dir}", unit="img",
+               disable=not progress, leave=False)
+    for s_idx, sh in enumerate(shards):
+        oi = sh.read("object_index")
+        keep = np.ones(len(oi), bool) if max_objects is None else oi < max_objects
+        idx = np.nonzero(keep)[0]
+        if len(idx) == 0:
+            sh.close()
+            continue
+        K = np.asarray(sh.K, np.float64)
+        for start in range(0, len(idx), LOAD_CHUNK):
+            sel = idx[start : start + LOAD_CHUNK]
+            rows = slice(int(sel[0]), int(sel[-1]) + 1)
+            depth = sh.read("depth", rows)[sel - sel[0]]
+            if object_mask:
+                from ...format import MASK_BODY
+
+                m = sh.read("mask", rows)[sel - sel[0]]
+                depth = np.where((m >= MASK_BODY) & (m <= MASK_BODY + n_joints), depth, 0)
+            src_hw = depth.shape[1:]
+            if tuple(src_hw) != tuple(hw):
+                depth = resize_depth(torch.from_numpy(np.asarray(depth, np.float32)), hw).numpy()
+            cols["depth_q"].append(quantise_depth(depth))
+            cols["K"].append(np.repeat(scale_intrinsics(K, src_hw, hw)[None].astype(np.float32), len(sel), 0))
+            if with_labels:
+                mask = sh.read("mask", rows)[sel - sel[0]]
+                if tuple(src_hw) != tuple(hw):
+                    mask = torch.nn.functional.interpolate(torch.from_numpy(mask[:, None]).float(), size=hw,
+                                                           mode="nearest")[:, 0].numpy().astype(np.uint8)
+                cols["labels_out"].append(output_labels(mask, n_joints))
+            bar.update(len(sel))
+        if with_labels:
+            for k in ("axis_pose", "q", "part_offset", "geometry"):
+                cols[k].append(np.asarray(sh.read(k), np.float64)[idx])
+        cols["object_index"].append(oi[idx].astype(np.int64))
+        cols["sample_id"].append(np.asarray(sh.read("sample_id"))[idx].astype(np.int64))
+        cols["shard_of"].append(np.full(len(idx), s_idx))
+        sh.close()
+    bar.close()
+    if not cols["depth_q"]:
+        raise UserError(f"{split_dir}: no images selected")
+    cat = {k: np.concatenate(v) if v else None for k, v in cols.items()}
+    origin = rot6 = None
+    if with_labels:
+        pose = cat["axis_pose"]
+        R = quat_to_matrix(pose[..., 3:])
+        origin = pose[..., :3].astype(np.float32)
+        rot6 = np.concatenate([R[..., :, 2], R[..., :, 0]], -1).astype(np.float32)
+    f32 = (lambda a: None if a is None else a.astype(np.float32))
+    return DenseData(depth_q=cat["depth_q"], K=cat["K"], labels_out=cat["labels_out"], origin=origin, rot6=rot6,
+                     q=f32(cat["q"]), part_offset=f32(cat["part_offset"]), geometry=f32(cat["geometry"]),
+                     object_index=cat["object_index"], sample_id=cat["sample_id"], shard_of=cat["shard_of"])
