@@ -2,6 +2,15 @@
 
 All functions are pure and vectorised over leading axes.  Label quaternions follow the
 convention w >= 0 (:func:`matrix_to_quat`).
+
+Why ours and not ``scipy.spatial.transform.Rotation`` (issue 16 prefers scipy's rotations
+where ours duplicate them): scipy is an optional dependency (ICP, mixture scoring), while
+generation, the format, the loaders and the metrics need these without it; and the labels of
+every generated split are computed by :func:`matrix_to_quat`, so its exact arithmetic is part
+of the dataset's bytes (``scripts/compare_generated_bytes.sh``).  The package keeps this one
+copy (``quat_axis_z``/``quat_axis_x`` of :mod:`articulated_dataset.benchmark.metrics` compute
+one column of :func:`quat_to_matrix` without the matrix, for scoring's speed);
+``tests/test_metrics.py`` checks them against scipy where it is installed.
 """
 
 from __future__ import annotations

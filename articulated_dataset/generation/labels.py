@@ -112,7 +112,7 @@ def _geom_points_local(model: mujoco.MjModel, g: int) -> np.ndarray:
     return centre + _BOX_CORNERS * half
 
 
-def _geom_corners_world(model: mujoco.MjModel, data: mujoco.MjData, geoms: np.ndarray) -> np.ndarray:
+def geom_corners_world(model: mujoco.MjModel, data: mujoco.MjData, geoms: np.ndarray) -> np.ndarray:
     """World coordinates of points spanning each geom's extent (see :func:`_geom_points_local`)."""
     out = [data.geom_xpos[g] + _geom_points_local(model, g) @ data.geom_xmat[g].reshape(3, 3).T for g in geoms]
     return np.concatenate(out, axis=0)
@@ -149,7 +149,7 @@ def read_object_labels(model: mujoco.MjModel, data: mujoco.MjData, info: ModelIn
         part = info.part_bodies[j]
         geoms = np.nonzero((info.geom_part == MASK_FIRST_PART + j) & ~info.geom_is_handle)[0]
         pos, rot = data.xpos[part], data.xmat[part].reshape(3, 3)
-        lo, hi = _box_in_frame(_geom_corners_world(model, data, geoms), pos, rot)
+        lo, hi = _box_in_frame(geom_corners_world(model, data, geoms), pos, rot)
         centre = pos + rot @ (0.5 * (lo + hi))
         anchor, a = data.xanchor[jid].copy(), _frame_unit(data.xaxis[jid].copy())
         if info.joint_types[j] == PRISMATIC:
@@ -168,7 +168,7 @@ def read_object_labels(model: mujoco.MjModel, data: mujoco.MjData, info: ModelIn
         part_offset[j] = r_axis.T @ (centre - origin)
 
     body_geoms = np.nonzero(info.geom_part == MASK_BODY)[0]
-    lo, hi = _box_in_frame(_geom_corners_world(model, data, body_geoms), base_pos, base_rot)
+    lo, hi = _box_in_frame(geom_corners_world(model, data, body_geoms), base_pos, base_rot)
     size = hi - lo
     chirality = 0
     if obj_class.sided:

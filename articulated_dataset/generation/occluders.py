@@ -105,12 +105,12 @@ class Context:
     def draw(self, data: mujoco.MjData, scale: float = 1.0) -> None:
         """Place every occluder for the model's current configuration (kinematics up to date),
         its drawn sizes multiplied by ``scale``."""
-        from .labels import _geom_corners_world
+        from .labels import geom_corners_world
         from .scene import NEAR_CLIP_M
 
         m, rng = self.model, self.rng
-        near_x = float(_geom_corners_world(m, data, self.object_geoms)[:, 0].min())
-        boxes = [_geom_corners_world(m, data, g) for g in self.part_geoms]
+        near_x = float(geom_corners_world(m, data, self.object_geoms)[:, 0].min())
+        boxes = [geom_corners_world(m, data, g) for g in self.part_geoms]
         boxes = [(b.min(axis=0), b.max(axis=0)) for b in boxes]
         for body, geoms in zip(self.slot_bodies, self.slots):
             kind = KINDS[int(rng.integers(len(KINDS)))]

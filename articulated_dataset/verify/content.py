@@ -45,10 +45,9 @@ def _per_image(bad: np.ndarray) -> np.ndarray:
 
 
 def quat_rotate_z(quat_wxyz: np.ndarray) -> np.ndarray:
-    """z axis of the rotation of unit quaternions (..., 4) (w, x, y, z): the third column of R,
-    ``(2(xz + wy), 2(yz - wx), 1 - 2(x^2 + y^2))``."""
-    w, x, y, z = (quat_wxyz[..., i] for i in range(4))
-    return np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], axis=-1)
+    """z axis of the rotation of unit quaternions (..., 4) (w, x, y, z): the third column of R
+    (:func:`articulated_dataset.rotations.quat_to_matrix`)."""
+    return quat_to_matrix(quat_wxyz)[..., :, 2]
 
 
 def check_content(a: dict, attrs: dict, table, *, J: int, ipo: int, start: int, problems: list,

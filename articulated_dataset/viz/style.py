@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from ..format import PRISMATIC
+from ..rotations import quat_to_matrix
 
 
 #: Perceptually uniform colormap for depth; near pixels get the bright end.
@@ -125,12 +126,7 @@ def extent_along(direction: np.ndarray, object_quat_wxyz: np.ndarray, dims_m: np
     ``sum_i |d . e_i| * dims_i`` with ``e_i`` the object's axes (columns of the rotation of
     ``object_quat_wxyz``) and ``dims = (depth, width, height)``.
     """
-    w, x, y, z = object_quat_wxyz
-    R = np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    R = quat_to_matrix(object_quat_wxyz)
     return float(np.abs(R.T @ np.asarray(direction, np.float64)) @ np.asarray(dims_m, np.float64))
 
 
