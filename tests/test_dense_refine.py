@@ -247,3 +247,90 @@ def test_a_drawer_front_aligns_the_frame(joint_type):
     x = r["xaxis"][0, 0, 0].double().numpy()
     off = math.degrees(math.acos(min(1.0, abs(x @ frame[:, 0]))))
     assert (off < 0.5) if joint_type == "prismatic" else (off > 7.0)
+
+
+def _door_panel_scene(z_lo_m: float, z_hi_m: float, distance_m: float = 1.5, hw=(108, 192)):
+    """Depth of a frontal door panel at ``distance_m`` spanning heights [z_lo, z_hi] (m) and
+    +-0.3 m sideways (nothing else returns), and its K."""
+    H, W = hw
+    f = 100.0
+    K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    y_m, z_m = -(u - K[0, 2]) / f * distance_m, -(v - K[1, 2]) / f * distance_m
+    depth = np.where((z_m >= z_lo_m) & (z_m <= z_hi_m) & (np.abs(y_m) <= 0.3), distance_m, 0.0)
+    return torch.tensor(depth[None], dtype=torch.float32), torch.tensor(K[None], dtype=torch.float32)
+
+
+def _door_refinement(depth, K, origin_z_m: float):
+    inputs = make_inputs(depth, K)
+    h, w = inputs["weight_out"].shape[1:]
+    seg = torch.zeros(1, 2, h, w)
+    seg[:, 1] = 5.0  # every pixel is the door
+    F = torch.eye(3)
+    rot6 = torch.cat([F[:, 2], F[:, 0]]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w)
+    parts = {"seg": seg, "rot6": rot6, "conf": torch.zeros(1, 1, 3, h, w)}
+    origin = torch.tensor([[[[1.5, 0.3, origin_z_m]]]])
+    modes = {"origin": origin, "axis": F[:, 2].reshape(1, 1, 1, 3)}
+    r = {k: v.numpy().astype(np.float64) for k, v in R.refined_quantities(parts, inputs, modes, ["revolute"]).items()}
+    m = {"origin": origin.numpy().astype(np.float64), "weight": np.ones((1, 1, 1))}
+    return m, r
+
+
+def test_hinge_height_is_moved_to_the_door_panels_mid_height():
+    depth, K = _door_panel_scene(-0.1, 0.3)  # mid-height 0.1 m, fully in view
+    m, r = _door_refinement(depth, K, origin_z_m=0.25)
+    assert r["door_cut"][0, 0] == 0
+    ref = R.Refinement(door_extent=True)
+    out = R.apply_refinement(m, r, ref, ["revolute"])
+    assert out["origin"][0, 0, 0, 2] == pytest.approx(0.1, abs=0.01)  # within a pixel (1.5 cm here)
+    assert np.allclose(out["origin"][0, 0, 0, :2], m["origin"][0, 0, 0, :2])  # only along the axis
+    # a gate smaller than the 15 cm move keeps the votes' origin
+    gated = R.apply_refinement(m, r, R.Refinement(door_extent=True, door_extent_gate_m=0.1), ["revolute"])
+    assert gated["origin"][0, 0, 0, 2] == pytest.approx(0.25)
+    # a prismatic joint is never moved
+    assert np.isnan(_door_refinement_prismatic(depth, K))
+
+
+def _door_refinement_prismatic(depth, K):
+    inputs = make_inputs(depth, K)
+    h, w = inputs["weight_out"].shape[1:]
+    seg = torch.zeros(1, 2, h, w)
+    seg[:, 1] = 5.0
+    parts = {"seg": seg, "rot6": torch.tensor([0, 0, 1, 1, 0, 0.0]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w),
+             "conf": torch.zeros(1, 1, 3, h, w)}
+    modes = {"origin": torch.tensor([[[[1.5, 0.3, 0.2]]]]), "axis": torch.tensor([[[[0.0, 0, 1]]]])}
+    return R.refined_quantities(parts, inputs, modes, ["prismatic"])["door_mid"][0, 0].item()
+
+
+def test_hinge_height_leaves_a_door_cut_off_by_the_image_alone():
+    depth, K = _door_panel_scene(-0.1, 5.0)  # runs out of the image's top
+    m, r = _door_refinement(depth, K, origin_z_m=0.25)
+    assert r["door_cut"][0, 0] == 1
+    out = R.apply_refinement(m, r, R.Refinement(door_extent=True), ["revolute"])
+    assert out["origin"][0, 0, 0, 2] == pytest.approx(0.25)
+
+
+def _extent_arrays(N: int, measured_noise_m: float, seed: int):
+    """Validation arrays: origins 4 cm off along a vertical axis, door mid-heights measured with noise."""
+    rng = np.random.default_rng(seed)
+    true_o = rng.normal(0, 0.3, (N, 1, 3))
+    axis = np.repeat(np.array([[[[0.0, 0.0, 1.0]]]]), N, 0)
+    origin = true_o[:, :, None] + np.concatenate([rng.normal(0, 0.005, (N, 1, 1, 2)), rng.normal(0, 0.04, (N, 1, 1, 1))], -1)
+    m = {"origin": origin, "weight": np.ones((N, 1, 1)), "axis": axis, "xaxis": np.repeat(np.array([[[[1.0, 0, 0]]]]), N, 0),
+         "q": np.zeros((N, 1, 1)), "part_offset": np.zeros((N, 1, 1, 3))}
+    r = {"axis": axis, "xaxis": m["xaxis"], "q": np.full((N, 1), np.nan), "door_px": np.zeros((N, 1)),
+         "door_mid": true_o[:, :, 2] + rng.normal(0, measured_noise_m, (N, 1)), "door_cut": np.zeros((N, 1))}
+    truth = {"axis_pose": np.concatenate([true_o, np.tile([1.0, 0, 0, 0], (N, 1, 1))], -1), "q": np.zeros((N, 1))}
+    return m, r, truth
+
+
+def test_fit_uses_the_hinge_height_only_where_it_lowers_the_position_error():
+    m, r, truth = _extent_arrays(300, measured_noise_m=0.005, seed=5)
+    ref, report = R.fit_refinement(m, r, truth, ["revolute"])
+    assert ref.door_extent and report["position_cm"]["votes"] > 2.5
+    out = R.apply_refinement(m, r, ref, ["revolute"])
+    err = M.axis_position_error_cm(out["origin"][:, :, 0], truth["axis_pose"][..., :3])
+    assert err.mean() < 1.0
+    m, r, truth = _extent_arrays(300, measured_noise_m=0.2, seed=6)  # a measurement worse than the votes
+    ref, _ = R.fit_refinement(m, r, truth, ["revolute"])
+    assert not ref.door_extent
