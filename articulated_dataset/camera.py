@@ -14,6 +14,9 @@ vertical field of view ``vfov_deg``.  An intrinsics preset (:data:`INTRINSICS_PR
 ``artdata generate --intrinsics``) instead gives a real sensor's depth-camera matrix at its
 native resolution, scaled to the image size as resizing the sensor's image would
 (:meth:`CameraCalibration.scaled`).
+
+:func:`camera_from_options` is the camera that ``artdata generate``'s options
+(``--width/--height`` or ``--resolution``, ``--vfov`` or ``--intrinsics``, ``--camera``) name.
 """
 
 from __future__ import annotations
@@ -32,6 +35,9 @@ R_CAMERA_TO_OPTICAL = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0
 KINECT_V2_VFOV_DEG = 54.28
 DEFAULT_WIDTH_PX = 192
 DEFAULT_HEIGHT_PX = 108
+#: Largest image side: OpenGL drivers cap offscreen buffers (Mesa's llvmpipe at 16384 px);
+#: larger sizes would fail inside the driver instead of with a message.
+MAX_IMAGE_SIDE_PX = 16384
 
 
 @dataclass(frozen=True)
@@ -156,6 +162,34 @@ class CameraConfig:
         if self.mount == "fixed":
             del d["mount"]
         return d
+
+
+def camera_from_options(width: int | None, height: int | None, resolution: str | None, vfov: float | None,
+                        intrinsics: str | None, mount: str = "fixed") -> CameraConfig:
+    """The camera of ``--width/--height`` or ``--resolution``, ``--vfov`` or ``--intrinsics``
+    and ``--camera``; contradictions and impossible values are one-line UserErrors."""
+    from .errors import UserError
+
+    if resolution is not None:
+        if width is not None or height is not None:
+            raise UserError("give either --resolution or --width/--height, not both")
+        width, height = parse_resolution(resolution)
+    if intrinsics is not None:
+        if vfov is not None:
+            raise UserError("--vfov is for the paper's camera; --intrinsics gives the sensor's own field of view")
+        native = INTRINSICS_PRESETS[intrinsics]
+        width = native.width_px if width is None else width
+        height = native.height_px if height is None else height
+    width = DEFAULT_WIDTH_PX if width is None else width
+    height = DEFAULT_HEIGHT_PX if height is None else height
+    for name, px in (("--width", width), ("--height", height)):
+        if px > MAX_IMAGE_SIDE_PX:
+            name = "--resolution" if resolution is not None else name
+            raise UserError(f"{name} {px} px is larger than the renderer's largest image side ({MAX_IMAGE_SIDE_PX} px)")
+    try:
+        return CameraConfig(width, height, KINECT_V2_VFOV_DEG if vfov is None else vfov, intrinsics=intrinsics, mount=mount)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
 
 
 def backproject(depth_m: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:

@@ -10,12 +10,14 @@ A table may instead give its geometry a joint distribution (``shape``, a
 its ``geometry`` ranges are then the bounds that truncate the mixture.
 
 A table can be overridden from a JSON or TOML file holding any subset of the keys of
-:meth:`SamplingTable.to_dict`, e.g. ``{"geometry": {"height_m": [1.5, 1.8]}}``.
+:meth:`SamplingTable.to_dict`, e.g. ``{"geometry": {"height_m": [1.5, 1.8]}}``;
+:func:`table_from_options` is the table ``artdata generate --table`` names (a table name,
+then files overriding it).
 
-Why one module of ~410 lines (issue 16 asks for a reason above ~400): it is one data type,
+Why one module of ~440 lines (issue 16 asks for a reason above ~400): it is one data type,
 the sampling table, with the two parts of its geometry (independent ranges, the shape
-mixture) and its file format, all checked by the same validators (``_number``,
-``_check_range``, ``_mapping``) against the same sanity bounds.  The manifest, the
+mixture) and its file format (read, and chosen by ``--table``), all checked by the same
+validators (``_number``, ``_check_range``, ``_mapping``) against the same sanity bounds.  The manifest, the
 generators and third-party classes read and write tables as one ``to_dict`` /
 ``from_dict`` round trip; splitting the mixture into its own module would make those
 validators and bounds cross a module border without giving either half a job of its own.
@@ -412,6 +414,32 @@ def load_table_file(path: str | Path) -> dict:
     if not isinstance(data, dict):
         raise UserError(f"sampling table {path} must hold one table (a JSON object), got {type(data).__name__}")
     return data
+
+
+#: Names ``--table`` reads as table files even when they do not exist (the error says so).
+TABLE_FILE_SUFFIXES = (".json", ".toml")
+
+
+def table_from_options(obj_class, values: Sequence[str]) -> SamplingTable:
+    """The table of ``artdata generate --table`` values for ``obj_class`` (an
+    :class:`~articulated_dataset.classes.ObjectClass`): at most one name of :data:`TABLE_NAMES`
+    (default ``paper``), then table files overriding it in order; a value that is neither a
+    name nor a file (an existing path or a ``.json``/``.toml`` name) is a one-line UserError."""
+    names = [v for v in values if v in TABLE_NAMES]
+    if len(names) > 1:
+        raise UserError(f"give one table name (--table {names[0]} or --table {names[1]}), not both")
+    table = obj_class.named_table(names[0] if names else "paper")
+    for value in values:
+        if value in TABLE_NAMES:
+            continue
+        if not (Path(value).suffix.lower() in TABLE_FILE_SUFFIXES or Path(value).exists()):
+            obj_class.named_table(value)  # the one-line "unknown sampling table" error
+        try:
+            table = table.override(load_table_file(value))
+        except UserError as exc:
+            message = str(exc)
+            raise UserError(message if str(value) in message else f"{value}: {message}") from None
+    return table
 
 
 def _reject_constant(name: str):

@@ -6,18 +6,16 @@ import importlib.util
 import os
 import re
 import time
-from pathlib import Path
 
 import click
 
-from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, INTRINSICS_PRESETS, KINECT_V2_VFOV_DEG, CameraConfig, parse_resolution
+from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, INTRINSICS_PRESETS, KINECT_V2_VFOV_DEG, camera_from_options
 from ..errors import UserError
 from ..executors import EXECUTORS, get_executor
 from ..format.manifest import DEFAULT_IMAGES_PER_OBJECT, DEFAULT_OBJECTS_PER_SHARD, DEFAULT_SEED, MAX_OCCLUDERS, SCENE_NAMES
-from ..generation import GenerationConfig, generate_split
+from ..generation import generate_split
+from ..generation.request import DEFAULT_N_OBJECTS, UrdfOptions, config_from_options
 from ..generation.viewpoint import CAMERA_MOUNTS
-from ..registry import get_class, register
-from ..tables import TABLE_NAMES, SamplingTable, load_table_file
 from .options import ClassChoice
 
 
@@ -44,72 +42,8 @@ class _NoiseChoice(click.ParamType):
         return value
 
 
-#: Names ``--table`` reads as table files even when they do not exist (the error says so).
-TABLE_FILE_SUFFIXES = (".json", ".toml")
-#: Objects generated without --n.
-DEFAULT_N_OBJECTS = 100
-#: Largest image side: OpenGL drivers cap offscreen buffers (Mesa's llvmpipe at 16384 px);
-#: larger sizes would fail inside the driver instead of with a message.
-MAX_IMAGE_SIDE_PX = 16384
-
 #: ``--address``: ``auto``, ``HOST:PORT`` or a Ray client address ``ray://HOST:PORT``.
 _ADDRESS = re.compile(r"^(auto|(ray://)?[^\s:/]+:\d+)$")
-
-
-def _split_names(text: str | None) -> list[str] | None:
-    if text is None:
-        return None
-    names = [n.strip() for n in text.split(",") if n.strip()]
-    if not names:
-        raise UserError("--joints needs at least one joint name (NAME,NAME,...)")
-    return names
-
-
-def camera_from_options(width: int | None, height: int | None, resolution: str | None, vfov: float | None,
-                        intrinsics: str | None, mount: str = "fixed") -> CameraConfig:
-    """The camera of ``--width/--height`` or ``--resolution``, ``--vfov`` or ``--intrinsics``
-    and ``--camera``; contradictions and impossible values are one-line UserErrors."""
-    if resolution is not None:
-        if width is not None or height is not None:
-            raise UserError("give either --resolution or --width/--height, not both")
-        width, height = parse_resolution(resolution)
-    if intrinsics is not None:
-        if vfov is not None:
-            raise UserError("--vfov is for the paper's camera; --intrinsics gives the sensor's own field of view")
-        native = INTRINSICS_PRESETS[intrinsics]
-        width = native.width_px if width is None else width
-        height = native.height_px if height is None else height
-    width = DEFAULT_WIDTH_PX if width is None else width
-    height = DEFAULT_HEIGHT_PX if height is None else height
-    for name, px in (("--width", width), ("--height", height)):
-        if px > MAX_IMAGE_SIDE_PX:
-            name = "--resolution" if resolution is not None else name
-            raise UserError(f"{name} {px} px is larger than the renderer's largest image side ({MAX_IMAGE_SIDE_PX} px)")
-    try:
-        return CameraConfig(width, height, KINECT_V2_VFOV_DEG if vfov is None else vfov, intrinsics=intrinsics, mount=mount)
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-
-
-def table_from_options(obj_class, values) -> SamplingTable:
-    """The table of ``--table`` values: at most one name of :data:`TABLE_NAMES` (default
-    ``paper``), then table files overriding it in order; a value that is neither a name nor
-    a file (an existing path or a ``.json``/``.toml`` name) is a one-line UserError."""
-    names = [v for v in values if v in TABLE_NAMES]
-    if len(names) > 1:
-        raise UserError(f"give one table name (--table {names[0]} or --table {names[1]}), not both")
-    table = obj_class.named_table(names[0] if names else "paper")
-    for value in values:
-        if value in TABLE_NAMES:
-            continue
-        if not (Path(value).suffix.lower() in TABLE_FILE_SUFFIXES or Path(value).exists()):
-            obj_class.named_table(value)  # the one-line "unknown sampling table" error
-        try:
-            table = table.override(load_table_file(value))
-        except UserError as exc:
-            message = str(exc)
-            raise UserError(message if str(value) in message else f"{value}: {message}") from None
-    return table
 
 
 @click.command("generate")
@@ -170,35 +104,12 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
                  mean_object, quiet):
     """Generate labelled depth images of one object class (or one URDF object) into HDF5 shards."""
     camera = camera_from_options(width, height, resolution, vfov, intrinsics, camera_mount)
-    third_party = None
-    if urdf_path is not None:
-        if class_name is not None:
-            raise UserError("give either --class or --urdf, not both")
-        from ..urdf_import import import_urdf
-
-        imported = import_urdf(urdf_path, joints=_split_names(joint_names), class_name=urdf_class_name,
-                               skip_missing_meshes=skip_missing_meshes, camera=camera,
-                               scale=1.0 if urdf_scale is None else urdf_scale, mesh_root=urdf_mesh_root)
-        obj_class, third_party = register(imported.obj_class, definition=imported.definition), imported.definition
-        if not quiet:
-            for line in imported.summary():
-                click.echo(line)
-    elif class_name is None:
-        raise UserError("missing --class NAME (or --urdf FILE)")
-    else:
-        unused = [opt for opt, v in (("--joints", joint_names), ("--class-name", urdf_class_name),
-                                     ("--skip-missing-meshes", skip_missing_meshes), ("--scale", urdf_scale is not None),
-                                     ("--mesh-root", urdf_mesh_root)) if v]
-        if unused:
-            raise UserError(f"{unused[0]} is for --urdf objects")
-        obj_class = get_class(class_name)
-    table = table_from_options(obj_class, tables)
-    if mean_object:
-        if n_objects not in (None, 1):
-            raise UserError(f"--mean renders exactly one object (the class's mean object); drop --n {n_objects}")
-        n_objects = 1
-    elif n_objects is None:
-        n_objects = DEFAULT_N_OBJECTS
+    urdf = UrdfOptions(urdf_path, joint_names, urdf_class_name, skip_missing_meshes, urdf_scale, urdf_mesh_root)
+    config = config_from_options(
+        class_name, urdf, camera, tables, n_objects=n_objects, mean=mean_object, echo=None if quiet else click.echo,
+        split=split, seed=seed, images_per_object=images_per_object, objects_per_shard=objects_per_shard, noise=noise,
+        scene=scene, occluders=occluders, rgb=rgb,
+    )
     if workers is not None and workers <= 0:
         raise UserError(f"--workers must be positive, got {workers}")
     if address is not None and not _ADDRESS.match(address):
@@ -206,11 +117,6 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
     if executor == "local" and workers is None:
         workers = os.cpu_count() or 1
     runner = get_executor(executor, workers, address)
-    config = GenerationConfig(
-        class_name=obj_class.name, split=split, n_objects=n_objects, seed=seed, images_per_object=images_per_object,
-        objects_per_shard=objects_per_shard, camera=camera, table=table, mean=mean_object, noise=noise,
-        third_party=third_party, scene=scene, occluders=occluders, rgb=rgb,
-    )
     t0 = time.perf_counter()
     try:
         split_dir = generate_split(config, out_root, workers=workers or 1, resume=resume, overwrite=overwrite,
