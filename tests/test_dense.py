@@ -118,6 +118,31 @@ def test_one_cluster_gives_one_mode_with_all_the_weight_and_its_spread():
     assert np.all(m["origin_std"][0, 0, 0].numpy() < 0.04)
 
 
+def test_split_factor_none_gives_one_mode_the_weighted_mean_of_every_vote():
+    rng = np.random.default_rng(3)
+    left = rng.normal([1.5, 0.3, 0.0], 0.01, (60, 3))
+    right = rng.normal([1.5, -0.3, 0.0], 0.01, (40, 3))
+    parts, pts, valid = _parts(np.concatenate([left, right]), rng.normal(0, 1, 100))
+    one = A.vote_modes(parts, pts, valid, split_factor=None)
+    assert one["weight"][0, 0].numpy() == pytest.approx([1.0, 0.0])
+    mean = A.weighted_mean(parts, pts, valid)["origin"][0, 0].numpy()
+    assert np.allclose(one["origin"][0, 0, 0].numpy(), mean, atol=1e-5)
+    # a factor so large that no gap passes it is the same; the default keeps the two sides apart
+    huge = A.vote_modes(parts, pts, valid, split_factor=1e6)
+    assert torch.equal(huge["origin"], one["origin"]) and torch.equal(huge["weight"], one["weight"])
+    assert A.vote_modes(parts, pts, valid)["weight"][0, 0, 1] > 0.3
+
+
+def test_refinement_records_its_split_factor_and_old_ones_read_the_default():
+    from articulated_dataset.models.dense.refine import Refinement, split_factor_of
+
+    for f in (None, 3.0):
+        ref = Refinement(frame=True, split_factor=f)
+        assert Refinement.from_dict(ref.to_dict()) == ref and split_factor_of(ref.to_dict()) == f
+    old = {"frame": True, "hinge_offset_m": 0.0, "min_door_px": None, "max_turn_deg": None, "version": 2}
+    assert split_factor_of(old) == A.SPLIT_FACTOR == split_factor_of(None)
+
+
 # ----------------------------------------------------------------------------- training
 @pytest.fixture(scope="module")
 def overfit_run(tiny_root, tmp_path_factory):
@@ -163,6 +188,11 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
 
     gates = {f"box_frame_turn<={t:g}deg" for t in TURN_GATE_CANDIDATES_DEG if t is not None}
     assert set(whole["refinement_report"]["rotation_deg"]) == {"votes", "box_frame"} | gates
+    # the vote modes' split factor is chosen there too, from the candidates, each one's error reported
+    from articulated_dataset.models.dense.predict import SPLIT_FACTOR_CANDIDATES
+
+    assert whole["refinement"]["split_factor"] in SPLIT_FACTOR_CANDIDATES
+    assert len(whole["refinement_report"]["split_factor_position_cm"]) == len(SPLIT_FACTOR_CANDIDATES)
 
 
 def test_cli_train_predict_score_show(tiny_root, tmp_path, overfit_run):

@@ -152,7 +152,7 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
 
     from ..camera import CameraConfig
     from .dense.predict import batch_modes, modes_to_arrays
-    from .dense.refine import apply_refinement, as_refinement
+    from .dense.refine import apply_refinement, as_refinement, split_factor_of
     from ..registry import get_class
     from ..real.intrinsics import check_intrinsics
     from ..real.resample import crop_intrinsics, mask_fraction_inside, resample_depth
@@ -183,7 +183,8 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     joint_types = list(obj_class.joint_types)
     modes, refined = batch_modes(net, torch.from_numpy(depth_r.astype(np.float32))[None],
                                  torch.from_numpy(K_dst.astype(np.float32))[None], joint_types=joint_types,
-                                 refine=refinement is not None and refinement.needed)
+                                 refine=refinement is not None and refinement.needed,
+                                 split_factor=split_factor_of(refinement))
     arrays = modes_to_arrays(apply_refinement(modes, refined, refinement, joint_types), np.zeros(1, np.int64), net,
                              ckpt.get("calibration"))
     from ..rotations import quat_to_matrix

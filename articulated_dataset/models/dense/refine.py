@@ -54,8 +54,8 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from .aggregate import gram_schmidt6, softmax_weights
-from .features import OUTPUT_STRIDE
+from .aggregate import SPLIT_FACTOR, gram_schmidt6, softmax_weights
+from .features import OUTPUT_STRIDE, POINT_SCALE_M
 
 #: Manhattan alignment rounds: a normal is matched to a frame axis within these angles (deg).
 INLIER_ANGLES_DEG = (25.0, 10.0, 5.0)
@@ -101,6 +101,9 @@ class Refinement:
     door_extent: bool = False
     #: ... only where that moves it by less than this (m; None: any distance)
     door_extent_gate_m: float | None = None
+    #: the vote modes' split factor (:func:`~.aggregate.vote_modes`; None: one mode per joint), chosen
+    #: on validation objects before the steps above (:func:`~.predict.choose_split_factor`)
+    split_factor: float | None = SPLIT_FACTOR
     version: int = REFINEMENT_VERSION
 
     @property
@@ -120,7 +123,19 @@ class Refinement:
                    min_door_px=None if d["min_door_px"] is None else int(d["min_door_px"]),
                    max_turn_deg=None if turn is None else float(turn), door_extent=bool(d.get("door_extent", False)),
                    door_extent_gate_m=None if gate is None else float(gate),
+                   split_factor=_optional_float(d["split_factor"]) if "split_factor" in d else SPLIT_FACTOR,
                    version=int(d.get("version", REFINEMENT_VERSION)))
+
+
+def _optional_float(v) -> float | None:
+    return None if v is None else float(v)
+
+
+def split_factor_of(refinement) -> float | None:
+    """The vote modes' split factor a checkpoint's refinement (a :class:`Refinement`, its dict or
+    None) asks for (:data:`~.aggregate.SPLIT_FACTOR` when it does not say)."""
+    refinement = as_refinement(refinement)
+    return SPLIT_FACTOR if refinement is None else refinement.split_factor
 
 
 def as_refinement(refinement) -> "Refinement | None":
@@ -145,31 +160,68 @@ def weighted_median(values: torch.Tensor, weights: torch.Tensor) -> torch.Tensor
     return torch.where(total[..., 0] > 0, med, torch.full_like(med, float("nan")))
 
 
+def lower_median(values: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
+    """:func:`weighted_median` with weight 1 on the ``real`` entries (last dimension) and 0 elsewhere:
+    the ``ceil(c / 2)``-th smallest of a row's ``c`` real entries (NaN without any), found by
+    selection (:func:`torch.kthvalue`) instead of a sort.  The other entries become -inf or +inf,
+    so many of each that every row's median lands at the same rank."""
+    count = real.sum(-1, keepdim=True)  # (R, 1)
+    rank = torch.div(count - 1, 2, rounding_mode="floor")  # 0-based rank of the median among the real entries
+    target = int(rank.max()) if rank.numel() else 0
+    # the first (target - rank) entries that are not real go below every real one, the rest above
+    below = (~real).cumsum(-1) <= target - rank
+    filler = torch.where(below, float("-inf"), float("inf")).to(values.dtype)
+    med = torch.kthvalue(torch.where(real, values, filler), max(target, 0) + 1, -1).values
+    return torch.where(count[..., 0] > 0, med, torch.full_like(med, float("nan")))
+
+
+def _quantile_pair(values: torch.Tensor, real: torch.Tensor, q: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``torch.nanquantile`` (linear interpolation) of each row's ``real`` entries at ``q`` and
+    ``1 - q`` (``q`` small), reading only the few smallest and largest entries (:func:`torch.topk`)
+    instead of sorting the rows; NaN for a row without real entries."""
+    count = real.sum(-1, keepdim=True)  # (R, 1)
+    quant = torch.tensor([q, 1 - q], dtype=values.dtype)[:, None, None]
+    ranks = (quant * (count - 1)).clamp_min(0)  # (2, R, 1), as torch.quantile computes them
+    below, above, weight = ranks.long(), ranks.ceil().long(), ranks - ranks.long()
+    k = min(int(math.ceil(q * max(int(count.max()) - 1, 0))) + 2, values.shape[-1])
+    inf = torch.tensor(float("inf"), dtype=values.dtype)
+    smallest = torch.topk(torch.where(real, values, inf), k, -1, largest=False).values  # ascending
+    largest = torch.topk(torch.where(real, values, -inf), k, -1, largest=True).values  # descending
+    # the ascending rank r among the largest entries is position count - 1 - r
+    at = lambda v, r: v.gather(-1, r.clamp(0, k - 1))  # noqa: E731
+    lo = torch.lerp(at(smallest, below[0]), at(smallest, above[0]), weight[0])[..., 0]
+    hi = torch.lerp(at(largest, count - 1 - below[1]), at(largest, count - 1 - above[1]), weight[1])[..., 0]
+    none = count[..., 0] == 0
+    return lo.masked_fill(none, float("nan")), hi.masked_fill(none, float("nan"))
+
+
 def _sign_free_frame(parts: dict, valid: torch.Tensor) -> torch.Tensor:
     """Step 1: (B, J, 3, 3) frames with columns x, y, z from the rotation votes."""
     wr = softmax_weights(parts["conf"][:, :, 1], valid)  # (B, J, N)
-    z_pix, x_pix = gram_schmidt6(parts["rot6"].flatten(3).transpose(-1, -2))  # (B, J, N, 3)
-    scatter = torch.einsum("bjn,bjnc,bjnd->bjcd", wr, z_pix, z_pix)
+    z_pix, x_pix = gram_schmidt6(parts["rot6"].flatten(3), dim=2)  # (B, J, 3, N)
+    scatter = (wr[:, :, None] * z_pix) @ z_pix.transpose(-1, -2)  # sum_i w_i z_i z_i^T
     z = torch.linalg.eigh(scatter)[1][..., -1]  # principal direction, sign arbitrary
-    y = (wr[..., None] * torch.cross(z_pix, x_pix, dim=-1)).sum(2)
+    y = (wr[:, :, None] * torch.cross(z_pix, x_pix, dim=2)).sum(-1)
     y = F.normalize(y - (y * z).sum(-1, keepdim=True) * z, dim=-1, eps=1e-12)
     return torch.stack([torch.cross(y, z, dim=-1), y, z], -1)
 
 
 def _align_to_normals(frame: torch.Tensor, normals: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """Step 2: Manhattan alignment of (B, J, 3, 3) frames to (B, P, 3) normals weighted (B, P)."""
+    """Step 2: Manhattan alignment of (B, J, 3, 3) frames to (B, P, 3) unit normals weighted (B, P).
+
+    A unit normal within an inlier angle (< 45 deg) of a signed frame axis is nearest to that
+    axis, so matching "nearest axis, if within the angle" is the threshold ``|n . a_k| > cos``.
+    """
+    B, J = frame.shape[:2]
     for inlier_deg in INLIER_ANGLES_DEG:
         cos_in = math.cos(math.radians(inlier_deg))
-        c = [torch.einsum("bpc,bjc->bjp", normals, frame[..., k]) for k in range(3)]  # normal in frame coordinates
-        a = [ck.abs() for ck in c]
-        nearest = [(a[0] >= a[1]) & (a[0] >= a[2])]
-        nearest.append(~nearest[0] & (a[1] >= a[2]))
-        nearest.append(~nearest[0] & ~nearest[1])
+        # every normal in every frame's coordinates at once: (B, P, J * 3), column 3 j + k for axis k of joint j
+        c = normals @ frame.permute(0, 2, 1, 3).reshape(B, 3, J * 3)
+        signed = (c > cos_in).to(c.dtype) - (c < -cos_in).to(c.dtype)  # +-1 on the matched signed axis, else 0
         # H = sum_p w_p a_p n_p^T with a_p the matched signed axis (row k: the normals matched to
         # +-axis k), plus the prior (the current axes onto themselves); R = V diag(1, 1, d) U^T
-        rows = [torch.einsum("bjp,bpc->bjc", weights[:, None] * (nearest[k] & (a[k] > cos_in)) * torch.sign(c[k]), normals)
-                for k in range(3)]
-        H = torch.stack(rows, -2) + PRIOR_WEIGHT_PX * frame.transpose(-1, -2)
+        rows = (signed * weights[:, :, None]).transpose(1, 2) @ normals  # (B, J * 3, 3)
+        H = rows.view(B, J, 3, 3) + PRIOR_WEIGHT_PX * frame.transpose(-1, -2)
         U, _, Vh = torch.linalg.svd(H)
         d = torch.sign(torch.linalg.det(Vh.transpose(-1, -2) @ U.transpose(-1, -2)))
         D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
@@ -177,9 +229,41 @@ def _align_to_normals(frame: torch.Tensor, normals: torch.Tensor, weights: torch
     return frame
 
 
+def _compact(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(R, P) bool -> the column indices (R, n) of each row's True entries, in order and padded
+    with 0, and which of them are real (R, n); ``n`` is the largest row count (at least 1)."""
+    counts = mask.sum(1)
+    n = max(int(counts.max()), 1) if len(counts) else 1
+    rows, cols = mask.nonzero(as_tuple=True)
+    pos = torch.arange(len(rows)) - (counts.cumsum(0) - counts)[rows]
+    idx = torch.zeros(mask.shape[0], n, dtype=torch.long)
+    idx[rows, pos] = cols
+    return idx, torch.arange(n) < counts[:, None]
+
+
+def _per_joint(values: torch.Tensor, idx: torch.Tensor, J: int) -> torch.Tensor:
+    """Rows (B, n) or (B, n, C) of each image and column indices (B * J, m) for each of its joints
+    -> (B * J, m) or (B * J, m, C)."""
+    if J > 1:
+        values = values.repeat_interleave(J, 0)
+    if values.dim() == 3:
+        return torch.gather(values, 1, idx[..., None].expand(*idx.shape, values.shape[2]))
+    return torch.gather(values, 1, idx)
+
+
+def _argmax_channels(x: torch.Tensor) -> torch.Tensor:
+    """``x.argmax(1)`` for a few channels (the first on ties), by comparisons: argmax over a
+    middle axis is several times slower."""
+    best, arg = x[:, 0], torch.zeros_like(x[:, 0], dtype=torch.long)
+    for k in range(1, x.shape[1]):
+        better = x[:, k] > best
+        best, arg = torch.where(better, x[:, k], best), arg.masked_fill(better, k)
+    return arg
+
+
 @torch.no_grad()
 def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types) -> dict:
-    """Steps 1-3 and 5 for a batch (see the module docstring).
+    """Steps 1-3, 5 and 6 for a batch (see the module docstring).
 
     ``parts``: :meth:`DenseNet.split` output; ``inputs``: :func:`~.features.make_inputs` output;
     ``modes``: :func:`~.aggregate.vote_modes` output.  Returns ``axis``, ``xaxis`` (B, J, M, 3)
@@ -188,27 +272,36 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types) -> d
     ``door_mid`` (B, J: the door's mid-height as a coordinate along ``axis[:, :, 0]``, m; NaN
     with fewer than :data:`DOOR_EXTENT_MIN_PX` door pixels or for prismatic joints) and
     ``door_cut`` (B, J: 1 where the door's pixels reach the image's top or bottom output row).
+
+    Only the valid pixels (a third of the image or fewer) are read: each image's are gathered to
+    the front of a row (:func:`_compact`), each door's again for the medians and quantiles.
     """
     x = inputs["x"]
     valid = inputs["weight_out"] > 0
     B, J = parts["conf"].shape[:2]
     H, W = x.shape[2:]
-    normals = x[:, 4:7]
-    has_normal = (normals[:, 0] ** 2 + normals[:, 1] ** 2 + normals[:, 2] ** 2) > MIN_NORMAL_NORM**2
-    label = F.interpolate(parts["seg"].argmax(1, keepdim=True).float(), scale_factor=OUTPUT_STRIDE,
-                          mode="nearest")[:, 0, :H, :W].long()  # 0 body, 1 + j part j
-    n_flat = normals.flatten(2).transpose(1, 2)  # (B, P, 3)
-    # the frame fit uses every ALIGN_STRIDE-th row and column (neighbouring normals share pixels)
-    sub = (slice(None), slice(None, None, ALIGN_STRIDE), slice(None, None, ALIGN_STRIDE))
+    idx, ok = _compact(x[:, 3].flatten(1) > 0)  # (B, n): the valid pixels
+    n = idx.shape[1]
+    # channels 0-2 (relative points) and 4-6 (normals) of the valid pixels: (B, n, 7)
+    gathered = torch.gather(x.flatten(2)[:, :7], 2, idx[:, None].expand(B, 7, n)).transpose(1, 2)
+    normals = gathered[..., 4:7].contiguous()
+    has_normal = ok & ((normals[..., 0] ** 2 + normals[..., 1] ** 2 + normals[..., 2] ** 2) > MIN_NORMAL_NORM**2)
+    # each pixel's label is its output pixel's (nearest upsampling): 0 body, 1 + j part j
+    seg = _argmax_channels(parts["seg"]).flatten(1)  # (B, h * w)
+    h_out, w_out = parts["seg"].shape[2:]
+    out_pixel = (torch.arange(H) // OUTPUT_STRIDE * w_out)[:, None] + torch.arange(W) // OUTPUT_STRIDE
+    label = torch.gather(seg, 1, out_pixel.flatten()[idx])  # (B, n)
+    row = idx // W
     # the body's faces, and a drawer's: a prismatic part only translates, so its faces stay parallel
     # to the frame's (the front of a drawer shows the pull axis where the body shows only a rim)
     frame_px = label == 0
     for j, t in enumerate(joint_types):
         if t == "prismatic":
             frame_px = frame_px | (label == 1 + j)
-    body_w = (frame_px & has_normal)[sub].flatten(1).to(x.dtype)
-    n_sub = normals[(slice(None), slice(None)) + sub[1:]].flatten(2).transpose(1, 2)
-    frame = _align_to_normals(_sign_free_frame(parts, valid), n_sub, body_w)
+    frame_px &= has_normal
+    if ALIGN_STRIDE > 1:  # the frame fit uses every ALIGN_STRIDE-th row and column (neighbouring normals share pixels)
+        frame_px &= (row % ALIGN_STRIDE == 0) & (idx % W % ALIGN_STRIDE == 0)
+    frame = _align_to_normals(_sign_free_frame(parts, valid), normals, frame_px.to(x.dtype))
     xf, yf, zf = frame[..., 0], frame[..., 1], frame[..., 2]  # (B, J, 3)
     # step 3: each mode's side
     revolute = torch.tensor([t == "revolute" for t in joint_types])
@@ -217,39 +310,33 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types) -> d
     side_pri = torch.sign((modes["axis"] * zf[:, :, None]).sum(-1))
     side = torch.where(revolute[None, :, None], side_rev, side_pri)
     side = torch.where(side == 0, torch.ones_like(side), side)[..., None]
-    # step 5: door angles
-    nx = torch.einsum("bpc,bjc->bjp", n_flat, xf).abs()
-    ny = torch.einsum("bpc,bjc->bjp", n_flat, yf).abs()
-    door = torch.stack([((label == 1 + j) & has_normal).flatten(1) for j in range(J)], 1).to(x.dtype)
-    q = weighted_median(torch.atan2(nx, ny), door)
+    # step 5: door angles, over each door's pixels with a normal
+    door = torch.stack([label == 1 + j for j in range(J)], 1) & ok[:, None]  # (B, J, n)
+    didx, dok = _compact((door & has_normal[:, None]).flatten(0, 1))  # (B * J, m)
+    proj = _per_joint(normals, didx, J) @ torch.stack([xf, yf], -1).flatten(0, 1)  # (B * J, m, 2): n.x, n.y
+    q = lower_median(torch.atan2(proj[..., 0].abs(), proj[..., 1].abs()), dok).view(B, J)  # equal weights
     q = torch.where(revolute[None], q, torch.full_like(q, float("nan")))
-    door_mid, door_cut = _door_extent(inputs, label, side[:, :, 0, 0, None] * zf, revolute)
-    return {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], "q": q, "door_px": door.sum(-1),
-            "door_mid": door_mid, "door_cut": door_cut}
+    points = gathered[..., 0:3] * POINT_SCALE_M + inputs["anchor"][:, None]  # (B, n, 3) camera frame (m)
+    door_mid, door_cut = _door_extent(points, row, door, side[:, :, 0, 0, None] * zf, revolute, H)
+    return {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], "q": q,
+            "door_px": dok.sum(-1).view(B, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut}
 
 
-def _door_extent(inputs: dict, label: torch.Tensor, axis: torch.Tensor, revolute: torch.Tensor) -> tuple:
-    """Step 6: each door's mid-height along ``axis`` (B, J, 3) and whether it is cut off (B, J)."""
-    from .features import POINT_SCALE_M
-
-    x = inputs["x"]
+def _door_extent(points: torch.Tensor, row: torch.Tensor, door: torch.Tensor, axis: torch.Tensor,
+                 revolute: torch.Tensor, H: int) -> tuple:
+    """Step 6: each door's mid-height along ``axis`` (B, J, 3) and whether it is cut off (B, J), from
+    the valid pixels' points (B, n, 3) m, image rows (B, n) and door membership (B, J, n)."""
     B, J = axis.shape[:2]
-    H = x.shape[2]
-    valid = x[:, 3] > 0
-    points = x[:, 0:3] * POINT_SCALE_M + inputs["anchor"][:, :, None, None]  # camera frame (m)
-    along = torch.einsum("bchw,bjc->bjhw", points, axis)
-    door = torch.stack([(label == 1 + j) & valid for j in range(J)], 1)  # (B, J, H, W)
-    values = torch.where(door, along, torch.full_like(along, float("nan"))).flatten(2)
-    quant = torch.tensor([DOOR_EXTENT_QUANTILE, 1 - DOOR_EXTENT_QUANTILE], dtype=values.dtype)
-    lo, hi = torch.nanquantile(values, quant, dim=-1)
-    enough = revolute[None] & (door.flatten(2).sum(-1) >= DOOR_EXTENT_MIN_PX)
+    didx, dok = _compact(door.flatten(0, 1))  # (B * J, m)
+    along = (_per_joint(points, didx, J) @ axis.reshape(B * J, 3, 1))[..., 0]
+    lo, hi = (v.view(B, J) for v in _quantile_pair(along, dok, DOOR_EXTENT_QUANTILE))
+    enough = revolute[None] & (dok.sum(-1).view(B, J) >= DOOR_EXTENT_MIN_PX)
     mid = torch.where(enough, 0.5 * (lo + hi), torch.full_like(lo, float("nan")))
-    rows = door.any(-1)  # (B, J, H)
-    r = torch.arange(H)
-    top = torch.where(rows, r, H).amin(-1)
-    bottom = torch.where(rows, r, -1).amax(-1)
+    door_row = _per_joint(row, didx, J)
+    top = torch.where(dok, door_row, H).amin(-1).view(B, J)
+    bottom = torch.where(dok, door_row, -1).amax(-1).view(B, J)
     cut = (top <= OUTPUT_STRIDE) | (bottom >= H - 1 - OUTPUT_STRIDE)
-    return mid, cut.to(x.dtype)
+    return mid, cut.to(points.dtype)
 
 
 def hinge_offset_angle(radius_m: np.ndarray, hinge_offset_m: float) -> np.ndarray:
