@@ -11,8 +11,9 @@ pixels (one confidence per quantity: origin, rotation, q).
   point of highest kernel density is the first mode; the votes within :data:`MODE_SEPARATION_M`
   of it are set aside and the search repeats on the rest (while they carry at least
   :data:`MIN_MODE_MASS` of the weight), at most :data:`MAX_MODES` modes per joint; a later mode is
-  kept only when it stands :data:`SPLIT_FACTOR` times the two modes' spreads from the first
-  (one wide cloud is one mode).  Every vote joins its nearest kept
+  kept only when it stands ``split_factor`` (default :data:`SPLIT_FACTOR`; chosen per class on
+  validation objects, see :func:`~.predict.choose_split_factor`) times the two modes' spreads from
+  the first (one wide cloud is one mode; ``None``: one mode, the weighted mean of every vote).  Every vote joins its nearest kept
   mode; a mode's weight is the sum of its votes' ``w_i``, its estimate the weighted mean of
   its own votes (origin, rotation, q, part offset), and its spread their weighted standard
   deviation.  So a two-sided ambiguity (the hinge of a closed door) gives two components
@@ -85,7 +86,7 @@ def _wmean_std(x: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Te
 
 
 @torch.no_grad()
-def vote_modes(parts: dict, points: torch.Tensor, valid: torch.Tensor) -> dict:
+def vote_modes(parts: dict, points: torch.Tensor, valid: torch.Tensor, split_factor: float | None = SPLIT_FACTOR) -> dict:
     """Mode-seeking aggregation per joint (see the module docstring).
 
     Returns, with ``M = MAX_MODES``: ``weight`` (B, J, M) (0 for an unused mode; sums to 1),
@@ -148,14 +149,15 @@ def vote_modes(parts: dict, points: torch.Tensor, valid: torch.Tensor) -> dict:
         wm = w[:, :, None] * member
         return wm / wm.sum(-1, keepdim=True).clamp_min(1e-30), wm.sum(-1)
 
-    # a later mode stays only if it is separated from the first by more than SPLIT_FACTOR times
-    # their spreads (a wide single cloud cut in two halves is not two modes)
+    # a later mode stays only if it is separated from the first by more than split_factor times
+    # their spreads (a wide single cloud cut in two halves is not two modes; None: never)
     member = assign(used)
     w_o, _ = within(wo, member)
     c, c_std = _wmean_std(votes[:, :, None], w_o)  # (B, J, M, 3)
     spread = c_std.norm(dim=-1)
     gap = (c - c[:, :, :1]).norm(dim=-1)
-    used = used & ((gap > SPLIT_FACTOR * (spread + spread[:, :, :1])) | (torch.arange(MAX_MODES) == 0))
+    first = torch.arange(MAX_MODES) == 0
+    used = used & (first if split_factor is None else (gap > split_factor * (spread + spread[:, :, :1])) | first)
     member = assign(used)
     w_o, mass = within(wo, member)
     w_r, _ = within(wr, member)
