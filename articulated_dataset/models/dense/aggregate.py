@@ -41,6 +41,10 @@ SPLIT_FACTOR = 1.5
 MIN_MODE_MASS = 0.05
 #: Logit given to invalid pixels (excluded from every softmax).
 _MASKED_LOGIT = -1e9
+#: Mean-shift kernel exponents are clipped at this: ``exp(-87)`` is float32's smallest normal
+#: number order (1.6e-38), beyond it exp returns subnormals on a ~30x slower path.  The clipped
+#: kernel differs from the exact one by < 2e-38 (far votes' weight), below float noise.
+_MAX_KERNEL_EXPONENT = 87.0
 
 
 def softmax_weights(logits: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -50,12 +54,19 @@ def softmax_weights(logits: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return torch.softmax(logits.flatten(2).masked_fill(~v, _MASKED_LOGIT), -1)
 
 
-def gram_schmidt6(r6: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(..., 6) -> unit axis z = a/|a| and x = normalised (b - (b.z) z)."""
-    a, b = r6[..., :3], r6[..., 3:]
-    z = F.normalize(a, dim=-1, eps=1e-12)
-    x = F.normalize(b - (b * z).sum(-1, keepdim=True) * z, dim=-1, eps=1e-12)
+def gram_schmidt6(r6: torch.Tensor, dim: int = -1) -> tuple[torch.Tensor, torch.Tensor]:
+    """(..., 6) -> unit axis z = a/|a| and x = normalised (b - (b.z) z) (components along ``dim``)."""
+    a, b = r6.narrow(dim, 0, 3), r6.narrow(dim, 3, 3)
+    z = _normalize(a, dim)
+    x = _normalize(b - (b * z).sum(dim, keepdim=True) * z, dim)
     return z, x
+
+
+def _normalize(v: torch.Tensor, dim: int, eps: float = 1e-12) -> torch.Tensor:
+    """``F.normalize`` (``v / max(|v|, eps)``) for 3-vectors along ``dim``, with the norm written
+    out: ``torch.linalg.vector_norm`` over a short strided axis is several times slower."""
+    sq = v * v
+    return v / torch.sqrt(sq.select(dim, 0) + sq.select(dim, 1) + sq.select(dim, 2)).clamp_min(eps).unsqueeze(dim)
 
 
 def weighted_mean(parts: dict, points: torch.Tensor, valid: torch.Tensor) -> dict:
@@ -121,14 +132,17 @@ def vote_modes(parts: dict, points: torch.Tensor, valid: torch.Tensor, split_fac
     inv2bw2 = 1.0 / (2 * BANDWIDTH_M**2)
     remaining = valid_c[:, None].expand(B, J, N).clone()  # (B, J, n)
     centres, used = [], []
+    max_d2 = _MAX_KERNEL_EXPONENT / inv2bw2
     for r in range(MAX_MODES):
         w_rem = wo * remaining
         top = w_rem.topk(S, -1).indices
         modes = torch.gather(vt, 2, top[..., None].expand(B, J, S, 3))  # (B, J, S, 3)
         for _ in range(N_ITERATIONS):
-            # |v - m|^2 = |v|^2 + |m|^2 - 2 m.v, as matrix products (no (S, N, 3) temporaries)
-            d2 = v2 + (modes * modes).sum(-1, keepdim=True) - 2 * modes @ votes  # (B, J, S, n)
-            k = w_rem[:, :, None] * torch.exp(-d2.clamp_min(0) * inv2bw2)
+            # |v - m|^2 = |v|^2 + |m|^2 - 2 m.v, as matrix products (no (S, N, 3) temporaries);
+            # the kernel is computed in place in that one (B, J, S, n) tensor
+            k = torch.baddbmm((v2 + (modes * modes).sum(-1, keepdim=True)).flatten(0, 1), modes.flatten(0, 1),
+                              votes.flatten(0, 1), alpha=-2).view(B, J, S, N)
+            k.clamp_(0, max_d2).mul_(-inv2bw2).exp_().mul_(w_rem[:, :, None])
             density = k.sum(-1)
             modes = (k @ vt) / density[..., None].clamp_min(1e-30)
         best = density.argmax(-1)
@@ -139,11 +153,16 @@ def vote_modes(parts: dict, points: torch.Tensor, valid: torch.Tensor, split_fac
         remaining &= ((votes - centre[..., None]) ** 2).sum(2) > MODE_SEPARATION_M**2
     centres = torch.stack(centres, -1)  # (B, J, 3, M)
     used = torch.stack(used, -1)  # (B, J, M)
-    d2_all = ((votes[:, :, :, None, :] - centres[..., None]) ** 2).sum(2)  # (B, J, M, N)
+    diff = votes[:, :, :, None, :] - centres[..., None]  # (B, J, 3, M, N)
+    d2_all = diff[:, :, 0] ** 2 + diff[:, :, 1] ** 2 + diff[:, :, 2] ** 2  # (B, J, M, N)
 
-    def assign(used):
+    def assign(used):  # one-hot (B, J, M, N) of each vote's nearest used mode (the first on ties)
         d = d2_all.masked_fill(~used[..., None], float("inf"))
-        return F.one_hot(d.argmin(2), MAX_MODES).permute(0, 1, 3, 2).float()  # (B, J, M, N)
+        best_d2, best = d[:, :, 0], torch.zeros_like(d[:, :, 0], dtype=torch.long)
+        for k in range(1, MAX_MODES):  # a loop over the few modes: faster than argmin over a middle axis
+            closer = d[:, :, k] < best_d2
+            best_d2, best = torch.where(closer, d[:, :, k], best_d2), torch.where(closer, k, best)
+        return torch.stack([best == k for k in range(MAX_MODES)], 2).float()
 
     def within(w, member):  # weights restricted to each mode, renormalised
         wm = w[:, :, None] * member
@@ -166,9 +185,9 @@ def vote_modes(parts: dict, points: torch.Tensor, valid: torch.Tensor, split_fac
     r6 = compact(parts["rot6"])[:, :, None]  # (B, J, 1, 6, n)
     r6_mean = (r6 * w_r[..., None, :]).sum(-1)
     axis, xaxis = gram_schmidt6(r6_mean)
-    z_pix, x_pix = gram_schmidt6(r6.transpose(-1, -2))  # (B, J, 1, N, 3)
-    _, axis_std = _wmean_std(z_pix.transpose(-1, -2), w_r)
-    _, xaxis_std = _wmean_std(x_pix.transpose(-1, -2), w_r)
+    z_pix, x_pix = gram_schmidt6(r6, dim=-2)  # (B, J, 1, 3, N)
+    _, axis_std = _wmean_std(z_pix, w_r)
+    _, xaxis_std = _wmean_std(x_pix, w_r)
     q, q_std = _wmean_std(compact(parts["q"])[:, :, None, None], w_q)
     offset, offset_std = _wmean_std(compact(parts["part_offset"])[:, :, None], w_o)
     weight = torch.where(used, mass, torch.zeros_like(mass))

@@ -71,27 +71,51 @@ def backproject_torch(depth_m: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     v = torch.arange(H, dtype=depth_m.dtype, device=depth_m.device)
     fx, fy = K[:, 0, 0].view(B, 1, 1), K[:, 1, 1].view(B, 1, 1)
     cx, cy = K[:, 0, 2].view(B, 1, 1), K[:, 1, 2].view(B, 1, 1)
-    xo = (u.view(1, 1, W) - cx) / fx * depth_m
-    yo = (v.view(1, H, 1) - cy) / fy * depth_m
-    return torch.stack([depth_m, -xo, -yo], 1)
+    # written channel by channel (no stack); -(a d) is computed as (-a) d, the same number
+    pts = depth_m.new_empty(B, 3, H, W)
+    pts[:, 0] = depth_m
+    torch.mul(-((u.view(1, 1, W) - cx) / fx), depth_m, out=pts[:, 1])
+    torch.mul(-((v.view(1, H, 1) - cy) / fy), depth_m, out=pts[:, 2])
+    return pts
 
 
-def surface_normals(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+def surface_normals(points: torch.Tensor, valid: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
     """Unit normals (B, 3, H, W) facing the camera, from central differences of the points;
-    0 where a neighbour is invalid or further than :data:`NORMAL_MAX_STEP_M`."""
-    p = F.pad(points, (1, 1, 1, 1), mode="replicate")
-    v = F.pad(valid.float()[:, None], (1, 1, 1, 1))
-    dx = p[:, :, 1:-1, 2:] - p[:, :, 1:-1, :-2]
-    dy = p[:, :, 2:, 1:-1] - p[:, :, :-2, 1:-1]
-    ok = (v[:, 0, 1:-1, 2:] * v[:, 0, 1:-1, :-2] * v[:, 0, 2:, 1:-1] * v[:, 0, :-2, 1:-1]) > 0
+    0 where a neighbour is invalid or further than :data:`NORMAL_MAX_STEP_M` (so 0 on the image
+    border).  ``out``: an optional (B, 3, H, W) tensor (a view is fine) overwritten and returned.
+
+    Only the pixels whose four neighbours are valid are computed, gathered into a list (objects
+    cover a fraction of the image), each with the same arithmetic as on the whole image.
+    """
+    B, _, H, W = points.shape
+    P = H * W
+    out = points.new_zeros(B, 3, H, W) if out is None else out.zero_()
+    if H < 3 or W < 3:
+        return out
+    inner = valid[:, 1:-1, 2:] & valid[:, 1:-1, :-2] & valid[:, 2:, 1:-1] & valid[:, :-2, 1:-1] & valid[:, 1:-1, 1:-1]
+    candidate = torch.zeros_like(valid)
+    candidate[:, 1:-1, 1:-1] = inner
+    b, p = candidate.flatten(1).nonzero(as_tuple=True)
+    flat = points.contiguous().view(-1)
+    at = b * (3 * P) + p  # channel 0 of each listed pixel in the flat (B, 3, H, W) points
+
+    def point(c, offset):  # channel c of the listed pixels' neighbour at a flat offset
+        return flat[at + (c * P + offset)]
+
+    dx = [point(c, 1) - point(c, -1) for c in range(3)]
+    dy = [point(c, W) - point(c, -W) for c in range(3)]
     max_step2 = (2 * NORMAL_MAX_STEP_M) ** 2
-    ok &= valid & ((dx * dx).sum(1) < max_step2) & ((dy * dy).sum(1) < max_step2)
+    ok = (dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2]) < max_step2
+    ok &= (dy[0] * dy[0] + dy[1] * dy[1] + dy[2] * dy[2]) < max_step2
     # cross product and normalisation written out: 5x faster than torch.cross / F.normalize on dim 1
-    n = torch.stack([dx[:, 1] * dy[:, 2] - dx[:, 2] * dy[:, 1], dx[:, 2] * dy[:, 0] - dx[:, 0] * dy[:, 2],
-                     dx[:, 0] * dy[:, 1] - dx[:, 1] * dy[:, 0]], 1)
-    n = n * torch.rsqrt((n * n).sum(1, keepdim=True).clamp_min(1e-24))
-    n = torch.where(n[:, :1] > 0, -n, n)  # the camera looks along +x: normals point back
-    return n * ok[:, None]
+    n = [dx[1] * dy[2] - dx[2] * dy[1], dx[2] * dy[0] - dx[0] * dy[2], dx[0] * dy[1] - dx[1] * dy[0]]
+    scale = torch.rsqrt((n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).clamp_min(1e-24))
+    # the camera looks along +x: normals point back; 0 where no normal is defined
+    scale = torch.where(n[0] * scale > 0, -scale, scale) * ok
+    out_flat = out.flatten(2)
+    for c in range(3):
+        out_flat[:, c][b, p] = n[c] * scale
+    return out
 
 
 def make_inputs(depth_m: torch.Tensor, K: torch.Tensor) -> dict:
@@ -100,19 +124,31 @@ def make_inputs(depth_m: torch.Tensor, K: torch.Tensor) -> dict:
     ``depth_m`` (B, H, W) float32 metres (0 = no return), ``K`` (B, 3, 3).  Returns a dict:
     ``x`` (B, 9, H, W) input, ``anchor`` (B, 3) m, ``points_out`` (B, 3, h, w) mean point
     of each output pixel (m), ``weight_out`` (B, h, w) fraction of valid pixels under it.
+    The channels are written into one preallocated tensor (no concatenation); the relative
+    points and the normals are computed at the valid pixels only (0 elsewhere).
     """
     valid = depth_m > 0
-    pts = backproject_torch(depth_m, K)
-    w = valid.float()[:, None]
+    w = valid.to(depth_m.dtype)[:, None]
+    # points of the depth with the invalid pixels' zeroed: the same as back-projecting the depth
+    # and multiplying by the validity, in one channel instead of three
+    pts = pts_w = backproject_torch(depth_m * w[:, 0], K)
     n_valid = w.sum((2, 3)).clamp_min(1.0)
-    anchor = (pts * w).sum((2, 3)) / n_valid
-    rel = (pts - anchor[:, :, None, None]) * w / POINT_SCALE_M
+    anchor = pts_w.sum((2, 3)) / n_valid
     B, H, W = depth_m.shape
-    uu = torch.linspace(-1, 1, W, dtype=depth_m.dtype).view(1, 1, 1, W).expand(B, 1, H, W)
-    vv = torch.linspace(-1, 1, H, dtype=depth_m.dtype).view(1, 1, H, 1).expand(B, 1, H, W)
-    x = torch.cat([rel, w, surface_normals(pts, valid), uu, vv], 1)
+    P = H * W
+    x = depth_m.new_empty(B, N_INPUT_CHANNELS, H, W)
+    x_flat = x.flatten(2)
+    x_flat[:, 0:3].zero_()
+    b, p = valid.flatten(1).nonzero(as_tuple=True)
+    pts_flat = pts.view(-1)
+    for c in range(3):  # (p - a) w / s, with w = 1 at the valid pixels
+        x_flat[:, c][b, p] = (pts_flat[b * (3 * P) + (c * P) + p] - anchor[b, c]) / POINT_SCALE_M
+    x[:, 3:4] = w
+    surface_normals(pts, valid, out=x[:, 4:7])
+    x[:, 7] = torch.linspace(-1, 1, W, dtype=depth_m.dtype).view(1, 1, W)
+    x[:, 8] = torch.linspace(-1, 1, H, dtype=depth_m.dtype).view(1, H, 1)
     w_out = F.avg_pool2d(w, OUTPUT_STRIDE, ceil_mode=True)
-    p_out = F.avg_pool2d(pts * w, OUTPUT_STRIDE, ceil_mode=True) / w_out.clamp_min(1e-6)
+    p_out = F.avg_pool2d(pts_w, OUTPUT_STRIDE, ceil_mode=True) / w_out.clamp_min(1e-6)
     return {"x": x, "anchor": anchor, "points_out": p_out, "weight_out": w_out[:, 0]}
 
 

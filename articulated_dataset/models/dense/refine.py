@@ -64,6 +64,9 @@ PRIOR_WEIGHT_PX = 10.0
 #: The frame alignment reads the normals of every this-many-th row and column (2 is ~10% faster
 #: and measured ~0.05 deg worse on microwave validation objects).
 ALIGN_STRIDE = 1
+#: The per-pixel steps run on groups of this many images with similar numbers of valid pixels
+#: (each padded to its group's largest image, not the batch's: objects' sizes vary 10-fold).
+REFINE_GROUP = 16
 #: A normal channel vector shorter than this is "no normal" (the input holds unit normals or 0).
 MIN_NORMAL_NORM = 0.5
 #: Thresholds tried for ``min_door_px`` (door pixels with a normal) by :func:`fit_refinement`.
@@ -273,24 +276,38 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types) -> d
     with fewer than :data:`DOOR_EXTENT_MIN_PX` door pixels or for prismatic joints) and
     ``door_cut`` (B, J: 1 where the door's pixels reach the image's top or bottom output row).
 
-    Only the valid pixels (a third of the image or fewer) are read: each image's are gathered to
-    the front of a row (:func:`_compact`), each door's again for the medians and quantiles.
+    Only the valid pixels (a third of the image or fewer) are read: the images are taken in
+    groups of :data:`REFINE_GROUP` with similar numbers of valid pixels, each image's gathered to
+    the front of a row padded to the group's largest (:func:`_compact`), each door's again for the
+    medians and quantiles.
     """
     x = inputs["x"]
-    valid = inputs["weight_out"] > 0
-    B, J = parts["conf"].shape[:2]
+    valid_px = x[:, 3].flatten(1) > 0  # (B, H * W)
+    frame = _sign_free_frame(parts, inputs["weight_out"] > 0)
+    order = torch.argsort(valid_px.sum(1), stable=True)
+    groups = []
+    for rows in order.split(REFINE_GROUP):
+        groups.append(_refine_images(x, rows, valid_px[rows], parts["seg"][rows], frame[rows], inputs["anchor"][rows],
+                                     modes["origin"][rows], modes["axis"][rows], joint_types))
+    back = torch.argsort(order)
+    return {k: torch.cat([g[k] for g in groups])[back] for k in groups[0]}
+
+
+def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, seg: torch.Tensor, frame: torch.Tensor,
+                   anchor: torch.Tensor, origin: torch.Tensor, voted_axis: torch.Tensor, joint_types) -> dict:
+    """:func:`refined_quantities` of the images ``rows`` of the input ``x``: their valid pixels
+    (R, H * W), segmentation logits, sign-free frames (step 1), anchors and voted origins and axes."""
+    R, J = frame.shape[:2]
     H, W = x.shape[2:]
-    idx, ok = _compact(x[:, 3].flatten(1) > 0)  # (B, n): the valid pixels
-    n = idx.shape[1]
-    # channels 0-2 (relative points) and 4-6 (normals) of the valid pixels: (B, n, 7)
-    gathered = torch.gather(x.flatten(2)[:, :7], 2, idx[:, None].expand(B, 7, n)).transpose(1, 2)
+    idx, ok = _compact(valid_px)  # (R, n): the valid pixels
+    # channels 0-2 (relative points) and 4-6 (normals) of the valid pixels: (R, n, 7)
+    gathered = x.flatten(2)[rows[:, None, None], torch.arange(7)[:, None], idx[:, None]].transpose(1, 2)
     normals = gathered[..., 4:7].contiguous()
     has_normal = ok & ((normals[..., 0] ** 2 + normals[..., 1] ** 2 + normals[..., 2] ** 2) > MIN_NORMAL_NORM**2)
     # each pixel's label is its output pixel's (nearest upsampling): 0 body, 1 + j part j
-    seg = _argmax_channels(parts["seg"]).flatten(1)  # (B, h * w)
-    h_out, w_out = parts["seg"].shape[2:]
+    h_out, w_out = seg.shape[2:]
     out_pixel = (torch.arange(H) // OUTPUT_STRIDE * w_out)[:, None] + torch.arange(W) // OUTPUT_STRIDE
-    label = torch.gather(seg, 1, out_pixel.flatten()[idx])  # (B, n)
+    label = torch.gather(_argmax_channels(seg).flatten(1), 1, out_pixel.flatten()[idx])  # (R, n)
     row = idx // W
     # the body's faces, and a drawer's: a prismatic part only translates, so its faces stay parallel
     # to the frame's (the front of a drawer shows the pull axis where the body shows only a rim)
@@ -301,25 +318,25 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types) -> d
     frame_px &= has_normal
     if ALIGN_STRIDE > 1:  # the frame fit uses every ALIGN_STRIDE-th row and column (neighbouring normals share pixels)
         frame_px &= (row % ALIGN_STRIDE == 0) & (idx % W % ALIGN_STRIDE == 0)
-    frame = _align_to_normals(_sign_free_frame(parts, valid), normals, frame_px.to(x.dtype))
-    xf, yf, zf = frame[..., 0], frame[..., 1], frame[..., 2]  # (B, J, 3)
+    frame = _align_to_normals(frame, normals, frame_px.to(x.dtype))
+    xf, yf, zf = frame[..., 0], frame[..., 1], frame[..., 2]  # (R, J, 3)
     # step 3: each mode's side
     revolute = torch.tensor([t == "revolute" for t in joint_types])
-    to_centre = inputs["anchor"][:, None, None] - modes["origin"]  # (B, J, M, 3)
+    to_centre = anchor[:, None, None] - origin  # (R, J, M, 3)
     side_rev = torch.sign((to_centre * xf[:, :, None]).sum(-1))
-    side_pri = torch.sign((modes["axis"] * zf[:, :, None]).sum(-1))
+    side_pri = torch.sign((voted_axis * zf[:, :, None]).sum(-1))
     side = torch.where(revolute[None, :, None], side_rev, side_pri)
     side = torch.where(side == 0, torch.ones_like(side), side)[..., None]
     # step 5: door angles, over each door's pixels with a normal
-    door = torch.stack([label == 1 + j for j in range(J)], 1) & ok[:, None]  # (B, J, n)
-    didx, dok = _compact((door & has_normal[:, None]).flatten(0, 1))  # (B * J, m)
-    proj = _per_joint(normals, didx, J) @ torch.stack([xf, yf], -1).flatten(0, 1)  # (B * J, m, 2): n.x, n.y
-    q = lower_median(torch.atan2(proj[..., 0].abs(), proj[..., 1].abs()), dok).view(B, J)  # equal weights
+    door = torch.stack([label == 1 + j for j in range(J)], 1) & ok[:, None]  # (R, J, n)
+    didx, dok = _compact((door & has_normal[:, None]).flatten(0, 1))  # (R * J, m)
+    proj = _per_joint(normals, didx, J) @ torch.stack([xf, yf], -1).flatten(0, 1)  # (R * J, m, 2): n.x, n.y
+    q = lower_median(torch.atan2(proj[..., 0].abs(), proj[..., 1].abs()), dok).view(R, J)  # equal weights
     q = torch.where(revolute[None], q, torch.full_like(q, float("nan")))
-    points = gathered[..., 0:3] * POINT_SCALE_M + inputs["anchor"][:, None]  # (B, n, 3) camera frame (m)
+    points = gathered[..., 0:3] * POINT_SCALE_M + anchor[:, None]  # (R, n, 3) camera frame (m)
     door_mid, door_cut = _door_extent(points, row, door, side[:, :, 0, 0, None] * zf, revolute, H)
     return {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], "q": q,
-            "door_px": dok.sum(-1).view(B, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut}
+            "door_px": dok.sum(-1).view(R, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut}
 
 
 def _door_extent(points: torch.Tensor, row: torch.Tensor, door: torch.Tensor, axis: torch.Tensor,
