@@ -54,7 +54,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from .aggregate import SPLIT_FACTOR, gram_schmidt6, softmax_weights
+from .aggregate import SPLIT_FACTOR, gram_schmidt6, image_groups, softmax_weights
 from .features import OUTPUT_STRIDE, POINT_SCALE_M
 
 #: Manhattan alignment rounds: a normal is matched to a frame axis within these angles (deg).
@@ -64,9 +64,6 @@ PRIOR_WEIGHT_PX = 10.0
 #: The frame alignment reads the normals of every this-many-th row and column (2 is ~10% faster
 #: and measured ~0.05 deg worse on microwave validation objects).
 ALIGN_STRIDE = 1
-#: The per-pixel steps run on groups of this many images with similar numbers of valid pixels
-#: (each padded to its group's largest image, not the batch's: objects' sizes vary 10-fold).
-REFINE_GROUP = 16
 #: A normal channel vector shorter than this is "no normal" (the input holds unit normals or 0).
 MIN_NORMAL_NORM = 0.5
 #: Thresholds tried for ``min_door_px`` (door pixels with a normal) by :func:`fit_refinement`.
@@ -277,19 +274,18 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types) -> d
     ``door_cut`` (B, J: 1 where the door's pixels reach the image's top or bottom output row).
 
     Only the valid pixels (a third of the image or fewer) are read: the images are taken in
-    groups of :data:`REFINE_GROUP` with similar numbers of valid pixels, each image's gathered to
-    the front of a row padded to the group's largest (:func:`_compact`), each door's again for the
-    medians and quantiles.
+    groups with similar numbers of valid pixels (:func:`~.aggregate.image_groups`), each image's
+    gathered to the front of a row padded to the group's largest (:func:`_compact`), each door's
+    again for the medians and quantiles.
     """
     x = inputs["x"]
     valid_px = x[:, 3].flatten(1) > 0  # (B, H * W)
     frame = _sign_free_frame(parts, inputs["weight_out"] > 0)
-    order = torch.argsort(valid_px.sum(1), stable=True)
+    rows_of, back = image_groups(valid_px.sum(1))
     groups = []
-    for rows in order.split(REFINE_GROUP):
+    for rows in rows_of:
         groups.append(_refine_images(x, rows, valid_px[rows], parts["seg"][rows], frame[rows], inputs["anchor"][rows],
                                      modes["origin"][rows], modes["axis"][rows], joint_types))
-    back = torch.argsort(order)
     return {k: torch.cat([g[k] for g in groups])[back] for k in groups[0]}
 
 
@@ -300,9 +296,10 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     R, J = frame.shape[:2]
     H, W = x.shape[2:]
     idx, ok = _compact(valid_px)  # (R, n): the valid pixels
-    # channels 0-2 (relative points) and 4-6 (normals) of the valid pixels: (R, n, 7)
-    gathered = x.flatten(2)[rows[:, None, None], torch.arange(7)[:, None], idx[:, None]].transpose(1, 2)
-    normals = gathered[..., 4:7].contiguous()
+    # channels 0-2 (relative points) and 4-6 (normals) of the valid pixels, (R, n, 3) each
+    x_flat, at = x.contiguous().view(-1), rows[:, None] * x[0].numel() + idx
+    relative, normals = ([x_flat[at + c * H * W] for c in channels] for channels in ((0, 1, 2), (4, 5, 6)))
+    relative, normals = torch.stack(relative, -1), torch.stack(normals, -1)
     has_normal = ok & ((normals[..., 0] ** 2 + normals[..., 1] ** 2 + normals[..., 2] ** 2) > MIN_NORMAL_NORM**2)
     # each pixel's label is its output pixel's (nearest upsampling): 0 body, 1 + j part j
     h_out, w_out = seg.shape[2:]
@@ -333,7 +330,7 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     proj = _per_joint(normals, didx, J) @ torch.stack([xf, yf], -1).flatten(0, 1)  # (R * J, m, 2): n.x, n.y
     q = lower_median(torch.atan2(proj[..., 0].abs(), proj[..., 1].abs()), dok).view(R, J)  # equal weights
     q = torch.where(revolute[None], q, torch.full_like(q, float("nan")))
-    points = gathered[..., 0:3] * POINT_SCALE_M + anchor[:, None]  # (R, n, 3) camera frame (m)
+    points = relative * POINT_SCALE_M + anchor[:, None]  # (R, n, 3) camera frame (m)
     door_mid, door_cut = _door_extent(points, row, door, side[:, :, 0, 0, None] * zf, revolute, H)
     return {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], "q": q,
             "door_px": dok.sum(-1).view(R, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut}
