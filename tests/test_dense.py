@@ -222,7 +222,8 @@ def test_cli_train_dense_and_its_errors(tiny_root, tmp_path):
     ckpt = load_dense_checkpoint(out)
     assert ckpt["class_name"] == "toaster" and ckpt["finished"] and ckpt["calibration"] is not None
     for extra, needle in [(["--lr", "nan"], "--lr"), (["--epochs", "0"], "--epochs"), (["--small"], "--model mdn"),
-                          (["--class", "drawer"], "not 'drawer'")]:
+                          (["--class", "drawer"], "not 'drawer'"), (["--origin-weight", "0"], "--origin-weight"),
+                          (["--origin-weight", "inf"], "--origin-weight")]:
         args = ["train", "--model", "dense", "--class", "toaster", "--data", str(tiny_root / "toaster" / "train"),
                 "--out", str(tmp_path / "e.pt")]
         if extra[0] == "--class":
@@ -253,6 +254,24 @@ def test_checkpoints_with_bad_fields_are_one_line(overfit_run, tmp_path, tiny_ro
     torch.save(ckpt, bad)
     code, text = _run(["predict", "--model", str(bad), "--data", str(tiny_root / "microwave" / "test"), "--out", str(tmp_path / "p.h5")])
     assert code == 2 and text.count("\n") == 1 and text.startswith("artdata: error:"), text
+
+
+def test_origin_weight_scales_only_the_origin_terms_of_the_loss(tiny_root):
+    from articulated_dataset.models.dense.data import load_dense_split
+    from articulated_dataset.models.dense.features import make_inputs
+    from articulated_dataset.models.dense.train import dense_loss
+
+    d = load_dense_split(tiny_root / "microwave" / "train", 1, (108, 192), max_objects=1)
+    idx = np.arange(4)
+    torch.manual_seed(0)
+    model = DenseNet(DenseConfig(1, width=4)).eval()
+    inputs = make_inputs(d.depth(idx), torch.from_numpy(d.K[idx]))
+    with torch.no_grad():
+        out = model(inputs["x"])
+    q_scale = torch.ones(1)
+    loss = [float(dense_loss(model, out, inputs, d, idx, q_scale, w)[0]) for w in (1.0, 2.0, 3.0)]
+    assert loss[1] - loss[0] == pytest.approx(loss[2] - loss[1], rel=1e-4) and loss[1] > loss[0]
+    assert float(dense_loss(model, out, inputs, d, idx, q_scale)[0]) == pytest.approx(loss[0])  # default 1
 
 
 # ----------------------------------------------------------------------------- single image

@@ -25,6 +25,8 @@ from .options import ClassChoice, prepare_torch
 @click.option("--width", type=int, default=None, help="dense: base channel width of the network (default 16).")
 @click.option("--init-from", type=click.Path(dir_okay=False), default=None,
               help="dense: start from this checkpoint's weights with a fresh schedule (continue a finished training).")
+@click.option("--origin-weight", type=float, default=None,
+              help="dense: multiplies the axis-origin loss terms (default 1).")
 @click.option("--val-fraction", type=float, default=None,
               help="Fraction of the training split's OBJECTS held out for validation (0: none; default: mdn 0.1, dense 0.05).")
 @click.option("--max-objects", type=int, default=None, help="Train on the first N objects of the split only.")
@@ -33,8 +35,8 @@ from .options import ClassChoice, prepare_torch
 @click.option("--threads", type=int, default=None, help="CPU threads for torch (default: all cores of this process).")
 @click.option("--resume", is_flag=True, help="Continue the interrupted training stored in --out (same options).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or per-epoch lines.")
-def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, components, width, init_from, val_fraction,
-              max_objects, seed, device, threads, resume, quiet):
+def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, components, width, init_from,
+              origin_weight, val_fraction, max_objects, seed, device, threads, resume, quiet):
     """Train one class's estimator on its training split (checkpoints after every epoch; --resume continues)."""
     prepare_torch(threads)
     from ..models.train import TrainingInterrupted, train_model
@@ -42,7 +44,8 @@ def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, 
     t0 = time.perf_counter()
     try:
         run = train_model(model_kind, class_name, data, out, small=small, epochs=epochs, batch_size=batch_size, lr=lr,
-                          components=components, width=width, init_from=init_from, val_fraction=val_fraction,
+                          components=components, width=width, init_from=init_from, origin_weight=origin_weight,
+                          val_fraction=val_fraction,
                           max_objects=max_objects, seed=seed, device=device, resume=resume, progress=not quiet,
                           echo=None if quiet else click.echo)
     except TrainingInterrupted as exc:

@@ -31,13 +31,13 @@ class TrainingRun:
 def train_model(kind: str, class_name: str, data: str | Path, out: str | Path, *, small: bool = False,
                 epochs: int | None = None, batch_size: int | None = None, lr: float | None = None,
                 components: int | None = None, width: int | None = None, init_from: str | None = None,
-                val_fraction: float | None = None, max_objects: int | None = None, seed: int = 0,
+                origin_weight: float | None = None, val_fraction: float | None = None, max_objects: int | None = None, seed: int = 0,
                 device: str = "auto", resume: bool = False, progress: bool = False,
                 echo: Callable[[str], None] | None = None) -> TrainingRun:
     """Train a ``kind`` (``mdn`` or ``dense``) network for ``class_name`` on the training split
     ``data`` into the checkpoint ``out``.  ``None`` settings take the kind's defaults (mdn: the
     ``small`` or full preset and 10% validation objects; dense: :class:`DenseTrainConfig`'s).
-    ``small``/``components`` belong to mdn, ``width``/``init_from`` to dense: given to the other
+    ``small``/``components`` belong to mdn, ``width``/``init_from``/``origin_weight`` to dense: given to the other
     kind they are a :class:`UserError`.  Ctrl-C raises :class:`TrainingInterrupted`."""
     if kind not in KINDS:
         raise UserError(f"unknown model kind {kind!r}; expected one of {', '.join(KINDS)}")
@@ -48,7 +48,8 @@ def train_model(kind: str, class_name: str, data: str | Path, out: str | Path, *
             raise UserError("--small and --components belong to --model mdn")
         from .dense.train import DenseTrainConfig, train_dense
 
-        given = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "width": width, "val_fraction": val_fraction}
+        given = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "width": width, "val_fraction": val_fraction,
+                 "origin_weight": origin_weight}
         config = DenseTrainConfig(class_name=class_name, max_objects=max_objects, seed=seed, init_from=init_from,
                                   **{k: v for k, v in given.items() if v is not None})
         try:
@@ -58,8 +59,8 @@ def train_model(kind: str, class_name: str, data: str | Path, out: str | Path, *
                                       f"plus --resume") from None
         return TrainingRun(ckpt, f"dense {ckpt['class_name']}, {ckpt['step']} steps ({ckpt['data']['n_train_images']} "
                                  f"training / {ckpt['data']['n_val_images']} validation images)")
-    if width is not None or init_from is not None:
-        raise UserError("--width and --init-from belong to --model dense")
+    if width is not None or init_from is not None or origin_weight is not None:
+        raise UserError("--width, --init-from and --origin-weight belong to --model dense")
     from .mdn.config import TrainConfig
     from .mdn.train import train
 

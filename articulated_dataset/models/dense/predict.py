@@ -46,7 +46,7 @@ def _layout_names(J: int) -> list[str]:
 
 def predict_arrays(model, data, idx: np.ndarray, *, joint_types: list[str], calibration: dict | None,
                    refinement=None, batch_size: int = PREDICT_BATCH, progress: bool = False) -> dict:
-    """Predictions of ``model`` for the images ``idx`` of a :class:`~articulated_dataset.models.dense.train.DenseData`.
+    """Predictions of ``model`` for the images ``idx`` of a :class:`~articulated_dataset.models.dense.data.DenseData`.
 
     ``refinement``: the checkpoint's :class:`~articulated_dataset.models.dense.refine.Refinement` (or
     its dict) applied to the vote modes, or None.  Returns the datasets of
@@ -293,7 +293,7 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
     """Run a loaded dense checkpoint on the split at ``data``; ``(class_name, arrays)`` as
     :func:`articulated_dataset.benchmark.predictions.write_predictions` takes them.  Labels are not
     read; with ``object_mask`` the split's mask keeps only the object's pixels
-    (:func:`~.train.load_dense_split`).  A split with a scene or occluders predicted without it
+    (:func:`~.data.load_dense_split`).  A split with a scene or occluders predicted without it
     logs a warning: the model was trained on isolated objects and reads every pixel with depth."""
     from ..mdn.data import resolve_split_dir, split_class
     from .checkpoint import build_dense_model

@@ -64,6 +64,10 @@ class DenseTrainConfig:
     #: Start from this checkpoint's weights (same class and architecture) with a fresh schedule:
     #: how a finished training is continued for more steps (``--init-from``).
     init_from: str | None = None
+    #: Multiplies both axis-origin loss terms (per pixel and per image; ``--origin-weight``): more
+    #: than 1 trades the rotation and q votes, which the geometric refinement measures anyway,
+    #: for the axis position, which it can only partly measure.
+    origin_weight: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "width"):
@@ -72,6 +76,8 @@ class DenseTrainConfig:
                 raise UserError(f"--{name.replace('_', '-')} must be a positive integer, got {v!r}")
         if not (math.isfinite(self.lr) and self.lr > 0):
             raise UserError(f"--lr must be a positive finite number, got {self.lr}")
+        if not (math.isfinite(self.origin_weight) and self.origin_weight > 0):
+            raise UserError(f"--origin-weight must be a positive finite number, got {self.origin_weight}")
         if not (0.0 <= self.val_fraction < 1.0):
             raise UserError(f"--val-fraction must be in [0, 1), got {self.val_fraction}")
         if self.max_objects is not None and self.max_objects <= 0:
@@ -85,8 +91,10 @@ class DenseTrainConfig:
         return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
 
 
-def dense_loss(model, out, inputs: dict, data: DenseData, idx: np.ndarray, q_scale) -> tuple["object", dict]:
-    """The training loss of one batch (module docstring) and its parts as floats."""
+def dense_loss(model, out, inputs: dict, data: DenseData, idx: np.ndarray, q_scale,
+               origin_weight: float = 1.0) -> tuple["object", dict]:
+    """The training loss of one batch (module docstring; ``origin_weight`` multiplies both origin
+    terms) and its parts as floats."""
     import torch
     from torch.nn import functional as F
 
@@ -127,8 +135,8 @@ def dense_loss(model, out, inputs: dict, data: DenseData, idx: np.ndarray, q_sca
     li_q = ((img["q"] - q_t) / q_scale).abs().mean()
     li_po = (img["part_offset"] - po_t).abs().sum(-1).mean() / OFFSET_SCALE_M
     li_g = (img["geometry"][:, :3] - g_t[:, :3]).abs().sum(-1).mean() / GEOMETRY_SCALE_M
-    total = (pix(ce) + ORIGIN_WEIGHT * l_o + l_r + l_q + l_po + l_g + l_c
-             + li_o + li_r + li_q + li_po + li_g)
+    total = (pix(ce) + origin_weight * (ORIGIN_WEIGHT * l_o + li_o) + l_r + l_q + l_po + l_g + l_c
+             + li_r + li_q + li_po + li_g)
     stats = {"loss": float(total.detach()), "seg": float(pix(ce).detach()),
              "origin_cm": float((img["origin"] - o_t).norm(dim=-1).mean().detach()) * 100}
     return total, stats
@@ -245,7 +253,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
             idx = np.sort(order[pos * batch : (pos + 1) * batch])
             inputs = make_inputs(data_.depth(idx), torch.from_numpy(data_.K[idx]))
             out_ = model(inputs["x"])
-            loss, st = dense_loss(model, out_, inputs, data_, idx, q_scale_t)
+            loss, st = dense_loss(model, out_, inputs, data_, idx, q_scale_t, config.origin_weight)
             if not torch.isfinite(loss):
                 raise RuntimeError(f"non-finite training loss at step {step}; lower --lr")
             optimizer.zero_grad(set_to_none=True)
