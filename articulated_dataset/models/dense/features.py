@@ -79,31 +79,30 @@ def backproject_torch(depth_m: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     return pts
 
 
-def surface_normals(points: torch.Tensor, valid: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
-    """Unit normals (B, 3, H, W) facing the camera, from central differences of the points;
-    0 where a neighbour is invalid or further than :data:`NORMAL_MAX_STEP_M` (so 0 on the image
-    border).  ``out``: an optional (B, 3, H, W) tensor (a view is fine) overwritten and returned.
+def _flat_from(t: torch.Tensor, offset: int) -> torch.Tensor:
+    """The contiguous ``t`` flattened, from element ``offset`` on: indexed with flat indices it
+    reads or writes the elements ``offset`` further on (no index arithmetic per element)."""
+    return t.view(-1)[offset:]
 
-    Only the pixels whose four neighbours are valid are computed, gathered into a list (objects
-    cover a fraction of the image), each with the same arithmetic as on the whole image.
-    """
+
+def _listed_normals(points: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, list]:
+    """The normals of :func:`surface_normals` as a list: the images ``b`` and flat pixels ``p``
+    (T,) whose four neighbours are valid (objects cover a fraction of the image) and the
+    normal's three components (T,) there (0 where a neighbour is too far), each computed with the
+    same arithmetic as on the whole image.  ``points`` (B, 3, H, W) contiguous."""
     B, _, H, W = points.shape
     P = H * W
-    out = points.new_zeros(B, 3, H, W) if out is None else out.zero_()
-    if H < 3 or W < 3:
-        return out
     inner = valid[:, 1:-1, 2:] & valid[:, 1:-1, :-2] & valid[:, 2:, 1:-1] & valid[:, :-2, 1:-1] & valid[:, 1:-1, 1:-1]
     candidate = torch.zeros_like(valid)
     candidate[:, 1:-1, 1:-1] = inner
     b, p = candidate.flatten(1).nonzero(as_tuple=True)
-    flat = points.contiguous().view(-1)
-    at = b * (3 * P) + p  # channel 0 of each listed pixel in the flat (B, 3, H, W) points
+    above = b * (3 * P) + p - W  # the pixel above (channel 0): every listed pixel has one
 
-    def point(c, offset):  # channel c of the listed pixels' neighbour at a flat offset
-        return flat[at + (c * P + offset)]
+    def point(c, dy, dx):  # channel c of the listed pixels' neighbour (dy, dx)
+        return _flat_from(points, c * P + (1 + dy) * W + dx)[above]
 
-    dx = [point(c, 1) - point(c, -1) for c in range(3)]
-    dy = [point(c, W) - point(c, -W) for c in range(3)]
+    dx = [point(c, 0, 1) - point(c, 0, -1) for c in range(3)]
+    dy = [point(c, 1, 0) - point(c, -1, 0) for c in range(3)]
     max_step2 = (2 * NORMAL_MAX_STEP_M) ** 2
     ok = (dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2]) < max_step2
     ok &= (dy[0] * dy[0] + dy[1] * dy[1] + dy[2] * dy[2]) < max_step2
@@ -112,9 +111,19 @@ def surface_normals(points: torch.Tensor, valid: torch.Tensor, out: torch.Tensor
     scale = torch.rsqrt((n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).clamp_min(1e-24))
     # the camera looks along +x: normals point back; 0 where no normal is defined
     scale = torch.where(n[0] * scale > 0, -scale, scale) * ok
-    out_flat = out.flatten(2)
-    for c in range(3):
-        out_flat[:, c][b, p] = n[c] * scale
+    return b, p, [nc * scale for nc in n]
+
+
+def surface_normals(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Unit normals (B, 3, H, W) facing the camera, from central differences of the points;
+    0 where a neighbour is invalid or further than :data:`NORMAL_MAX_STEP_M` (so 0 on the image
+    border).  Computed at the pixels with four valid neighbours only (:func:`_listed_normals`)."""
+    B, _, H, W = points.shape
+    out = points.new_zeros(B, 3, H, W)
+    if H >= 3 and W >= 3:
+        b, p, n = _listed_normals(points.contiguous(), valid)
+        for c in range(3):
+            _flat_from(out, c * H * W)[b * (3 * H * W) + p] = n[c]
     return out
 
 
@@ -125,31 +134,56 @@ def make_inputs(depth_m: torch.Tensor, K: torch.Tensor) -> dict:
     ``x`` (B, 9, H, W) input, ``anchor`` (B, 3) m, ``points_out`` (B, 3, h, w) mean point
     of each output pixel (m), ``weight_out`` (B, h, w) fraction of valid pixels under it.
     The channels are written into one preallocated tensor (no concatenation); the relative
-    points and the normals are computed at the valid pixels only (0 elsewhere).
+    points and the normals are computed at the valid pixels only (0 elsewhere), and the output
+    pixels' means are sums over the listed valid pixels: every number as the whole-image
+    formulas give it.
     """
-    valid = depth_m > 0
-    w = valid.to(depth_m.dtype)[:, None]
-    # points of the depth with the invalid pixels' zeroed: the same as back-projecting the depth
-    # and multiplying by the validity, in one channel instead of three
-    pts = pts_w = backproject_torch(depth_m * w[:, 0], K)
-    n_valid = w.sum((2, 3)).clamp_min(1.0)
-    anchor = pts_w.sum((2, 3)) / n_valid
     B, H, W = depth_m.shape
     P = H * W
     x = depth_m.new_empty(B, N_INPUT_CHANNELS, H, W)
-    x_flat = x.flatten(2)
-    x_flat[:, 0:3].zero_()
+    valid = depth_m > 0
+    w = x[:, 3:4]
+    w.copy_(valid[:, None])  # the validity channel (1.0 / 0.0)
+    # points of the depth with the invalid pixels' zeroed: the same as back-projecting the depth
+    # and multiplying by the validity, in one channel instead of three
+    pts = backproject_torch(depth_m * w[:, 0], K)
+    n_valid = w.sum((2, 3)).clamp_min(1.0)
+    anchor = pts.sum((2, 3)) / n_valid
+    x[:, 0:3].zero_()
+    x[:, 4:7].zero_()
     b, p = valid.flatten(1).nonzero(as_tuple=True)
-    pts_flat = pts.view(-1)
+    at, x_at = b * (3 * P) + p, b * (N_INPUT_CHANNELS * P) + p
     for c in range(3):  # (p - a) w / s, with w = 1 at the valid pixels
-        x_flat[:, c][b, p] = (pts_flat[b * (3 * P) + (c * P) + p] - anchor[b, c]) / POINT_SCALE_M
-    x[:, 3:4] = w
-    surface_normals(pts, valid, out=x[:, 4:7])
+        _flat_from(x, c * P)[x_at] = (_flat_from(pts, c * P)[at] - anchor[:, c][b]) / POINT_SCALE_M
+    if H >= 3 and W >= 3:
+        nb, npx, n = _listed_normals(pts, valid)
+        for c in range(3):
+            _flat_from(x, (4 + c) * P)[nb * (N_INPUT_CHANNELS * P) + npx] = n[c]
     x[:, 7] = torch.linspace(-1, 1, W, dtype=depth_m.dtype).view(1, 1, W)
     x[:, 8] = torch.linspace(-1, 1, H, dtype=depth_m.dtype).view(1, H, 1)
-    w_out = F.avg_pool2d(w, OUTPUT_STRIDE, ceil_mode=True)
-    p_out = F.avg_pool2d(pts_w, OUTPUT_STRIDE, ceil_mode=True) / w_out.clamp_min(1e-6)
-    return {"x": x, "anchor": anchor, "points_out": p_out, "weight_out": w_out[:, 0]}
+    w_out, p_out = _output_means(pts, b, p, (B, H, W))
+    return {"x": x, "anchor": anchor, "points_out": p_out, "weight_out": w_out}
+
+
+def _output_means(pts: torch.Tensor, b: torch.Tensor, p: torch.Tensor, bhw: tuple) -> tuple[torch.Tensor, torch.Tensor]:
+    """``avg_pool2d(w, s, ceil_mode=True)`` (B, h, w) and ``avg_pool2d(p w, s, ceil_mode=True) /
+    max(that, 1e-6)`` (B, 3, h, w) for the stride :data:`OUTPUT_STRIDE`, from the valid pixels
+    ``b, p`` only (the others add 0): each window's pixels are summed in the pooling's order
+    (row by row), from 0, and divided by the window's size, as the pooling does."""
+    B, H, W = bhw
+    s = OUTPUT_STRIDE
+    h, w = -(-H // s), -(-W // s)
+    out_px = b * (h * w) + (p // W) // s * w + (p % W) // s
+    counts = torch.zeros(B * h * w, dtype=pts.dtype).index_add_(0, out_px, torch.ones_like(out_px, dtype=pts.dtype))
+    rows = (H - torch.arange(h) * s).clamp_max(s)
+    cols = (W - torch.arange(w) * s).clamp_max(s)
+    size = (rows[:, None] * cols).to(pts.dtype)  # (h, w) pixels per window
+    w_out = counts.view(B, h, w) / size
+    at = b * (3 * H * W) + p
+    sums = [torch.zeros(B * h * w, dtype=pts.dtype).index_add_(0, out_px, _flat_from(pts, c * H * W)[at])
+            for c in range(3)]
+    p_out = torch.stack([sc.view(B, h, w) / size for sc in sums], 1) / w_out[:, None].clamp_min(1e-6)
+    return w_out, p_out
 
 
 def output_labels(mask: np.ndarray, n_joints: int) -> np.ndarray:
