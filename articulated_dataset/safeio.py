@@ -271,6 +271,25 @@ def check_writable_dir(path: str | Path) -> None:
     _remove_quietly(probe)
 
 
+def check_outputs_distinct(inputs: list, outputs: list, names: str = "the outputs") -> None:
+    """Refuse an output path that is one of the inputs (writing it would replace an input) or
+    named twice (the second write would replace the first); ``None``, ``""`` and ``-`` (stdout)
+    outputs are skipped.  ``names`` names the outputs in the message."""
+    def same(a, b) -> bool:
+        try:
+            return Path(a).resolve() == Path(b).resolve()
+        except (OSError, RuntimeError):
+            return False
+
+    files = [o for o in outputs if o and o != "-"]
+    for i, out in enumerate(files):
+        for inp in inputs:
+            if same(out, inp):
+                raise UserError(f"output {out} is also an input (predictions file {inp}); choose another name")
+        if any(same(out, other) for other in files[:i]):
+            raise UserError(f"{names} name the same file {out}; choose two names")
+
+
 def check_can_create(path: str | Path) -> None:
     """Before long work whose result goes to file ``path``: a :class:`WriteError` now if it
     could not be written (read-only filesystem, no permission, a parent that is a file, a

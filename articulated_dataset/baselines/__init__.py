@@ -29,12 +29,28 @@ def baseline_module(name: str):
     return importlib.import_module(f"{__name__}.{BASELINES[name][0]}")
 
 
-def run_baseline(name: str, train_dir, test_dir, out, *, mean_dir=None, workers: int = 1, progress: bool = False,
-                 **options):
+def run_baseline(name: str, train_dir, test_dir, out, *, mean_dir=None, workers: int | None = 1,
+                 progress: bool = False, overwrite: bool = True, **options):
     """Run baseline ``name`` on one class and write ``out`` (predictions.h5); returns the
     :class:`~.common.BaselineResult`.  Every baseline's ``predict`` takes the same arguments
-    (``mean_dir``: the mean-object split, used by ICP only; ``options``: baseline specific)."""
+    (``mean_dir``: the mean-object split, used by ICP only; ``options``: baseline specific).
+    ``workers`` None: all cores.  An existing ``out`` without ``overwrite``, a target that cannot be
+    created and a non-positive ``workers`` are :class:`~articulated_dataset.errors.UserError`,
+    raised before the baseline runs."""
+    import os
+
+    from ..errors import UserError
+    from ..safeio import check_can_create
     from .common import write_result
+
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise UserError(f"{out} exists; pass --overwrite to replace it")
+    check_can_create(out)  # a read-only or full target is one line now, not after the run
+    if workers is None:
+        workers = os.cpu_count() or 1
+    if workers <= 0:
+        raise UserError(f"--workers must be positive, got {workers}")
 
     result = baseline_module(name).predict(train_dir, test_dir, mean_dir=mean_dir, workers=workers,
                                            progress=progress, **options)

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import os
 import time
-from pathlib import Path
 
 import click
 
@@ -35,18 +33,9 @@ def _workers_option(fn):
 def _run(name: str, train_dir, test_dir, out, overwrite: bool, quiet: bool, workers=None, **options) -> None:
     from ..baselines import run_baseline
 
-    from ..safeio import check_can_create
-
-    out = Path(out)
-    if out.exists() and not overwrite:
-        raise UserError(f"{out} exists; pass --overwrite to replace it")
-    check_can_create(out)  # before the baseline runs: a read-only or full target is one line now
-    if workers is None:
-        workers = os.cpu_count() or 1
-    if workers <= 0:
-        raise UserError(f"--workers must be positive, got {workers}")
     t0 = time.perf_counter()
-    result = run_baseline(name, train_dir, test_dir, out, workers=workers, progress=not quiet, **options)
+    result = run_baseline(name, train_dir, test_dir, out, workers=workers, progress=not quiet, overwrite=overwrite,
+                          **options)
     if not quiet:
         n = len(result.predictions["sample_id"])
         click.echo(f"{out}: {result.method} predictions for {n} {result.class_name} test images "

@@ -22,24 +22,6 @@ def _write(path: str, text: str) -> None:
     atomic_write_text(path, text)
 
 
-def _check_outputs(inputs: list[str], outputs: list[str]) -> None:
-    """Refuse an output that is one of the inputs (it would replace a predictions file) or
-    named twice (the second would replace the first)."""
-    def same(a: str, b: str) -> bool:
-        try:
-            return Path(a).resolve() == Path(b).resolve()
-        except (OSError, RuntimeError):
-            return False
-
-    files = [o for o in outputs if o and o != "-"]
-    for i, out in enumerate(files):
-        for inp in inputs:
-            if same(out, inp):
-                raise UserError(f"output {out} is also an input (predictions file {inp}); choose another name")
-        if any(same(out, other) for other in files[:i]):
-            raise UserError(f"--json and --csv name the same file {out}; choose two names")
-
-
 @click.command("score")
 @click.argument("predictions", nargs=-1, required=True, type=click.Path())
 @click.option("--truth", "truth_path", required=True, type=click.Path(),
@@ -62,8 +44,9 @@ def score_cmd(predictions, truth_path, split, json_path, csv_path, require_compl
     of images scored) followed by the standard metrics.  See docs/scoring.md.
     """
     from ..benchmark.scoring import score
+    from ..safeio import check_outputs_distinct
 
-    _check_outputs(list(predictions), [json_path, csv_path])
+    check_outputs_distinct(list(predictions), [json_path, csv_path], "--json and --csv")
     report = score(list(predictions), truth_path, split=split)
     if require_complete:
         partial = [f"{r.class_name} - {r.method} ({r.n_scored}/{r.n_truth})" for r in report.rows if not r.complete]
