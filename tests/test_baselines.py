@@ -316,3 +316,21 @@ def test_worker_processes_give_the_serial_results(tiny_root, icp_objects, monkey
     pooled = icp.predict(train, test, mean_dir=model_dir, workers=2, limit=3)
     for k in LABELS + ("sample_id",):
         np.testing.assert_array_equal(pooled.predictions[k], serial.predictions[k])
+
+
+def test_run_baseline_refuses_before_it_runs(tmp_path):
+    """The library refuses an existing output without overwrite and non-positive workers before it
+    reads any split (the folders here do not exist), as 'artdata baseline' reports them."""
+    from articulated_dataset.baselines import run_baseline
+    from articulated_dataset.errors import UserError
+
+    out = tmp_path / "p.h5"
+    out.write_bytes(b"keep")
+    with pytest.raises(UserError, match="exists; pass --overwrite"):
+        run_baseline("mean", tmp_path / "none", tmp_path / "none", out, overwrite=False)
+    assert out.read_bytes() == b"keep"
+    with pytest.raises(UserError, match="--workers must be positive"):
+        run_baseline("mean", tmp_path / "none", tmp_path / "none", tmp_path / "q.h5", workers=0)
+    res = CliRunner().invoke(main, ["baseline", "mean", "--train", str(tmp_path / "none"), "--test", str(tmp_path / "none"),
+                                    "--out", str(out)])
+    assert res.exit_code == 2 and "exists; pass --overwrite" in res.output and res.output.count("\n") == 1
