@@ -1,12 +1,13 @@
 """Inference speed of the dense estimator on this machine.
 
-    python benchmarks/dense_inference.py [--model dense|PATH] [--class microwave] [--threads 2] [--batch 128]
+    python benchmarks/dense_inference.py [--model dense|PATH] [--class microwave|all] [--threads 2] [--batch 128]
 
-Prints images/s of (a) the network alone on ready inputs, (b) the whole batched pipeline
-from depth images (input features + network + vote modes + mixture), and (c) the
-milliseconds of one ``articulated_dataset.estimate`` call (one image, model loaded).  Uses
-the shipped weights (or a checkpoint) and rendered test images (a small split is generated
-under ``--root`` if needed).
+Prints, per class, images/s of (a) the network alone on ready inputs, (b) the whole batched
+pipeline from depth images (input features + network + vote modes + refinement + mixture), and
+(c) the milliseconds of one ``articulated_dataset.estimate`` call (one image, model loaded);
+then the batch's milliseconds per stage.  Every figure is the mean over ``--repeats`` runs after
+one warm-up run (no one-time cost is timed).  Uses the shipped weights (or a checkpoint) and
+rendered test images (a small split is generated under ``--root`` if needed).
 """
 
 from __future__ import annotations
@@ -20,65 +21,90 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+#: Images of the rendered split per object.
+IMAGES_PER_OBJECT = 16
+#: estimate() is timed on this many images.
+N_SINGLE = 20
+
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--model", default="dense")
-    p.add_argument("--class", dest="class_name", default="microwave")
+    p.add_argument("--class", dest="class_name", default="microwave", help="a class, or 'all'")
     p.add_argument("--root", type=Path, default=Path("data-bench-inference"))
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--batch", type=int, default=128)
     p.add_argument("--repeats", type=int, default=5)
     args = p.parse_args(argv)
 
+    import torch
+
+    from articulated_dataset.registry import class_names
+
+    torch.set_num_threads(args.threads)
+    for name in class_names() if args.class_name == "all" else [args.class_name]:
+        bench_class(args, name)
+    return 0
+
+
+def bench_class(args, class_name: str) -> None:
+    import h5py
     import numpy as np
     import torch
 
     import articulated_dataset as ad
-    from articulated_dataset.models.dense.features import make_inputs
-    from articulated_dataset.models.dense.predict import predict_arrays
+    from articulated_dataset.generation import GenerationConfig, generate_split
+    from articulated_dataset.models import resolve_model
+    from articulated_dataset.models.dense.aggregate import vote_modes
     from articulated_dataset.models.dense.checkpoint import build_dense_model, load_dense_checkpoint
     from articulated_dataset.models.dense.data import load_dense_split
-    from articulated_dataset.models import resolve_model
-    from articulated_dataset.generation import GenerationConfig, generate_split
+    from articulated_dataset.models.dense.features import make_inputs
+    from articulated_dataset.models.dense.predict import modes_to_arrays, predict_arrays
+    from articulated_dataset.models.dense.refine import apply_refinement, as_refinement, refined_quantities, split_factor_of
 
-    torch.set_num_threads(args.threads)
-    n_objects = max(1, -(-args.batch // 16))
-    split = generate_split(GenerationConfig(args.class_name, split="test", n_objects=n_objects, seed=1), args.root,
+    n_objects = max(1, -(-args.batch // IMAGES_PER_OBJECT))
+    split = generate_split(GenerationConfig(class_name, split="test", n_objects=n_objects, seed=1), args.root,
                            resume=True, progress=False)
-    ref = resolve_model(args.model, args.class_name)
+    ref = resolve_model(args.model, class_name)
     ckpt = load_dense_checkpoint(ref.path)
     model = build_dense_model(ckpt)
     c = model.config
     data = load_dense_split(split, c.n_joints, (c.height_px, c.width_px), with_labels=False)
     idx = np.arange(min(args.batch, len(data.sample_id)))
-    with torch.no_grad():
-        x = make_inputs(data.depth(idx), torch.from_numpy(data.K[idx]))["x"]
-        model(x)
+    joint_types, refinement = list(ckpt["joint_types"]), as_refinement(ckpt.get("refinement"))
+
+    def timed(fn):  # mean seconds of fn() over the repeats, after one warm-up call; and its result
+        out = fn()
         t0 = time.perf_counter()
         for _ in range(args.repeats):
-            model(x)
-        net = args.repeats * len(idx) / (time.perf_counter() - t0)
-    predict_arrays(model, data, idx, joint_types=ckpt["joint_types"], calibration=ckpt.get("calibration"),
-                                        refinement=ckpt.get("refinement"))
-    t0 = time.perf_counter()
-    for _ in range(args.repeats):
-        predict_arrays(model, data, idx, joint_types=ckpt["joint_types"], calibration=ckpt.get("calibration"),
-                       refinement=ckpt.get("refinement"), batch_size=args.batch)
-    full = args.repeats * len(idx) / (time.perf_counter() - t0)
-    import h5py
+            out = fn()
+        return (time.perf_counter() - t0) / args.repeats, out
 
+    with torch.inference_mode():
+        t_inputs, inputs = timed(lambda: make_inputs(data.depth(idx), torch.from_numpy(data.K[idx])))
+        t_net, out = timed(lambda: model(inputs["x"]))
+        parts = model.split(out)
+        t_modes, modes = timed(lambda: vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0,
+                                                  split_factor=split_factor_of(refinement)))
+        t_refine, r = timed(lambda: refined_quantities(parts, inputs, modes, joint_types))
+    as_np = lambda d: {k: v.numpy().astype(np.float64) for k, v in d.items()}  # noqa: E731
+    t_mixture, _ = timed(lambda: modes_to_arrays(apply_refinement(as_np(modes), as_np(r), refinement, joint_types),
+                                                 data.sample_id[idx], model, ckpt.get("calibration")))
+    t_full, _ = timed(lambda: predict_arrays(model, data, idx, joint_types=joint_types, calibration=ckpt.get("calibration"),
+                                             refinement=ckpt.get("refinement"), batch_size=args.batch))
     with h5py.File(next(split.glob("shard-*.h5")), "r") as f:
-        depths, K = f["depth"][:20], f["K"][()]
-    ad.estimate(depths[0], K, args.class_name, model=args.model)
+        depths, K = f["depth"][:N_SINGLE], f["K"][()]
+    ad.estimate(depths[0], K, class_name, model=args.model)
     t0 = time.perf_counter()
     for d in depths:
-        ad.estimate(d, K, args.class_name, model=args.model)
+        ad.estimate(d, K, class_name, model=args.model)
     one_ms = 1e3 * (time.perf_counter() - t0) / len(depths)
-    print(f"{args.class_name} {ref.name}: {torch.get_num_threads()} threads, batch {len(idx)}; "
-          f"network {net:.0f} img/s; batched pipeline {full:.0f} img/s; estimate() {one_ms:.1f} ms/image; "
+    n = len(idx)
+    print(f"{class_name} {ref.name}: {torch.get_num_threads()} threads, batch {n}; "
+          f"network {n / t_net:.0f} img/s; batched pipeline {n / t_full:.0f} img/s; estimate() {one_ms:.1f} ms/image; "
           f"load average {os.getloadavg()[0]:.1f}")
-    return 0
+    print(f"  ms per batch: inputs {1e3 * t_inputs:.0f}, network {1e3 * t_net:.0f}, vote modes {1e3 * t_modes:.0f}, "
+          f"refinement {1e3 * t_refine:.0f}, mixture {1e3 * t_mixture:.0f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -81,8 +81,9 @@ def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool,
     from .features import make_inputs
     from .refine import refined_quantities
 
-    model.eval()
-    with torch.no_grad():
+    if model.training:
+        model.eval()
+    with torch.inference_mode():
         inputs = make_inputs(depth_m, K)
         parts = model.split(model(inputs["x"]))
         modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0, split_factor=split_factor)
