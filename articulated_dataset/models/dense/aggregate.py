@@ -23,7 +23,6 @@ pixels (one confidence per quantity: origin, rotation, q).
 from __future__ import annotations
 
 import torch
-from torch.nn import functional as F
 
 #: Mean-shift kernel bandwidth (m).
 BANDWIDTH_M = 0.05
@@ -45,9 +44,9 @@ MIN_MODE_MASS = 0.05
 IMAGE_GROUP = 32
 #: Logit given to invalid pixels (excluded from every softmax).
 _MASKED_LOGIT = -1e9
-#: Mean-shift kernel exponents are clipped at this: ``exp(-87)`` is float32's smallest normal
-#: number order (1.6e-38), beyond it exp returns subnormals on a ~30x slower path.  The clipped
-#: kernel differs from the exact one by < 2e-38 (far votes' weight), below float noise.
+#: Mean-shift kernel exponents are clipped at this: ``exp(-87)`` = 1.6e-38 is just above float32's
+#: smallest normal number (1.2e-38); beyond it exp returns subnormals on a ~30x slower path.  The
+#: clipped kernel differs from the exact one by < 2e-38 (the weight of far votes), below float noise.
 _MAX_KERNEL_EXPONENT = 87.0
 
 
@@ -67,7 +66,7 @@ def gram_schmidt6(r6: torch.Tensor, dim: int = -1) -> tuple[torch.Tensor, torch.
 
 
 def _normalize(v: torch.Tensor, dim: int, eps: float = 1e-12) -> torch.Tensor:
-    """``F.normalize`` (``v / max(|v|, eps)``) for 3-vectors along ``dim``, with the norm written
+    """``torch.nn.functional.normalize`` (``v / max(|v|, eps)``) for 3-vectors along ``dim``, with the norm written
     out: ``torch.linalg.vector_norm`` over a short strided axis is several times slower."""
     sq = v * v
     return v / torch.sqrt(sq.select(dim, 0) + sq.select(dim, 1) + sq.select(dim, 2)).clamp_min(eps).unsqueeze(dim)
