@@ -4,7 +4,7 @@
 
 Loads the checkpoint's training split, takes the validation objects that training held out
 (same ``--val-fraction``, ``--seed`` and ``--max-objects``), chooses the geometric refinement
-(:func:`articulated_dataset.models.dense.refine.fit_refinement`) and refits the calibration on them
+(:func:`articulated_dataset.models.dense.fit.fit_refinement`) and refits the calibration on them
 (:func:`articulated_dataset.models.dense.predict.fit_inference`), and writes the checkpoint to
 ``--out``.  Training does this itself since the refinement exists; this script brings older
 checkpoints (the shipped ones trained before it) up to date.  Prints the validation errors of

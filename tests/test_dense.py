@@ -182,9 +182,9 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
     for k, v in whole["model_state"].items():
         assert torch.equal(v, resumed["model_state"][k]), k
     assert resumed["calibration"] == whole["calibration"]
-    # the refinement is chosen on the validation objects at the end (dense.refine.fit_refinement)
+    # the refinement is chosen on the validation objects at the end (dense.fit.fit_refinement)
     assert whole["refinement"]["version"] == REFINEMENT_VERSION and resumed["refinement"] == whole["refinement"]
-    from articulated_dataset.models.dense.refine import TURN_GATE_CANDIDATES_DEG
+    from articulated_dataset.models.dense.fit import TURN_GATE_CANDIDATES_DEG
 
     gates = {f"box_frame_turn<={t:g}deg" for t in TURN_GATE_CANDIDATES_DEG if t is not None}
     assert set(whole["refinement_report"]["rotation_deg"]) == {"votes", "box_frame"} | gates

@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from articulated_dataset.benchmark import metrics as M  # noqa: E402
 from articulated_dataset.models.dense import refine as R  # noqa: E402
+from articulated_dataset.models.dense.fit import fit_refinement  # noqa: E402
 from articulated_dataset.models.dense.features import make_inputs  # noqa: E402
 from articulated_dataset.rotations import matrix_to_quat  # noqa: E402
 
@@ -166,7 +167,7 @@ def test_fit_chooses_the_box_frame_and_the_hinge_offset_and_they_remove_the_erro
          "q": (q_true + rng.normal(0, 0.01, N))[:, None], "door_px": np.full((N, 1), 500.0)}
     truth = {"axis_pose": np.concatenate([np.zeros((N, 1, 3)), _quat(F)[:, None]], -1), "q": q_true[:, None],
              "part_offset": np.c_[radius, 0 * radius, 0 * radius][:, None]}
-    ref, report = R.fit_refinement(m, r, truth, ["revolute"])
+    ref, report = fit_refinement(m, r, truth, ["revolute"])
     assert ref.frame and ref.hinge_offset_m == pytest.approx(t_m, abs=1e-4)
     assert ref.min_door_px is not None
     out = R.apply_refinement(m, r, ref, ["revolute"])
@@ -187,7 +188,7 @@ def test_fit_keeps_the_votes_where_the_refinement_is_worse():
     r = {"axis": bad[:, None, None, :, 2], "xaxis": bad[:, None, None, :, 0], "q": q_true[:, None] + 0.5,
          "door_px": np.full((N, 1), 500.0)}
     truth = {"axis_pose": np.concatenate([np.zeros((N, 1, 3)), _quat(true)[:, None]], -1), "q": q_true[:, None]}
-    ref, _ = R.fit_refinement(m, r, truth, ["revolute"])
+    ref, _ = fit_refinement(m, r, truth, ["revolute"])
     assert not ref.frame and ref.min_door_px is None
     assert R.apply_refinement(m, r, ref, ["revolute"])["q"] is m["q"]
 
@@ -221,7 +222,7 @@ def test_fit_gates_the_box_frame_where_it_turns_too_far():
          "door_px": np.zeros((N, 1))}
     truth = {"axis_pose": np.concatenate([np.zeros((N, 1, 3)), _quat(true.as_matrix())[:, None]], -1), "q": np.zeros((N, 1)),
              "part_offset": np.c_[np.full(N, 0.3), np.zeros(N), np.zeros(N)][:, None]}
-    ref, report = R.fit_refinement(m, r, truth, ["prismatic"])
+    ref, report = fit_refinement(m, r, truth, ["prismatic"])
     assert ref.frame and ref.max_turn_deg is not None and 5.0 <= ref.max_turn_deg < 20.0
     gated = report["rotation_deg"][f"box_frame_turn<={ref.max_turn_deg:g}deg"]
     assert gated < 0.6 * report["rotation_deg"]["box_frame"]
@@ -326,11 +327,11 @@ def _extent_arrays(N: int, measured_noise_m: float, seed: int):
 
 def test_fit_uses_the_hinge_height_only_where_it_lowers_the_position_error():
     m, r, truth = _extent_arrays(300, measured_noise_m=0.005, seed=5)
-    ref, report = R.fit_refinement(m, r, truth, ["revolute"])
+    ref, report = fit_refinement(m, r, truth, ["revolute"])
     assert ref.door_extent and report["position_cm"]["votes"] > 2.5
     out = R.apply_refinement(m, r, ref, ["revolute"])
     err = M.axis_position_error_cm(out["origin"][:, :, 0], truth["axis_pose"][..., :3])
     assert err.mean() < 1.0
     m, r, truth = _extent_arrays(300, measured_noise_m=0.2, seed=6)  # a measurement worse than the votes
-    ref, _ = R.fit_refinement(m, r, truth, ["revolute"])
+    ref, _ = fit_refinement(m, r, truth, ["revolute"])
     assert not ref.door_extent

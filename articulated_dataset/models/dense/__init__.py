@@ -13,5 +13,7 @@ Modules: :mod:`.features` (depth + K -> network input, labels -> pixel targets),
 :mod:`.model` (the network), :mod:`.aggregate` (votes -> point estimate and mixture),
 :mod:`.data` (a split in memory at the model resolution), :mod:`.checkpoint` (a checkpoint
 read, checked and its network rebuilt), :mod:`.train` (training with checkpoints and
-resume), :mod:`.predict` (splits and single images).
+resume), :mod:`.predict` (splits and single images), :mod:`.refine` (the geometric refinement
+of the voted estimate) and :mod:`.fit` (which refinement steps a model uses, chosen on its
+validation objects).
 """

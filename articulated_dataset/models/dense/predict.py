@@ -245,12 +245,13 @@ def choose_split_factor(model, data, idx: np.ndarray, *, batch_size: int = PREDI
 def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, progress: bool = False) -> dict:
     """Fit what inference needs beyond the weights on validation images ``idx`` (with labels):
     the vote modes' split factor (:func:`choose_split_factor`), the refinement
-    (:func:`~.refine.fit_refinement`), then the uncertainty calibration of the refined predictions
+    (:func:`~.fit.fit_refinement`), then the uncertainty calibration of the refined predictions
     (:func:`fit_calibration`).  Returns ``{"refinement": dict, "calibration": dict,
     "refinement_report": dict}`` for the checkpoint."""
     from dataclasses import replace
 
-    from .refine import apply_refinement, fit_refinement
+    from .fit import fit_refinement
+    from .refine import apply_refinement
 
     split_factor, split_report = choose_split_factor(model, data, idx)
     m, r = predict_modes(model, data, idx, joint_types=joint_types, progress=progress, split_factor=split_factor)

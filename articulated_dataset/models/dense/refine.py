@@ -26,7 +26,7 @@ regressed (:func:`refined_quantities`, per image and joint):
 4. **Hinge offset.**  The label's ``x`` points at the door's centre, which lies a constant
    ``t`` (m) in front of the box face: ``x`` is turned about ``z`` by ``atan2(t, r)``, with ``r``
    the voted radius (``part_offset`` x) and ``t`` fitted on validation objects
-   (:func:`fit_refinement`).
+   (:func:`~.fit.fit_refinement`).
 5. **Door angle.**  A door turned by ``q`` about ``z`` has its normal at ``q`` from ``y``:
    ``q = median_i atan2(|n_i . x|, |n_i . y|)`` over the door's pixels with a normal
    (weighted median; used when at least ``min_door_px`` such pixels exist).
@@ -39,16 +39,15 @@ regressed (:func:`refined_quantities`, per image and joint):
    misjudged door height) and is used only where it lowers the validation position error
    (the microwave's: 2.9 -> 2.2 cm on validation objects).
 
-:func:`fit_refinement` chooses, on the training split's validation objects, whether the box
-frame and the normal-based ``q`` are used (each only where it lowers the validation error) and
-fits ``t``; the choice is stored in the checkpoint (``"refinement"``) and applied by
-:func:`apply_refinement` at inference.
+:func:`~.fit.fit_refinement` chooses, on the training split's validation objects, which steps
+are used (each only where it lowers the validation error) and fits ``t``; the choice is stored
+in the checkpoint (``"refinement"``) and applied by :func:`apply_refinement` at inference.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
@@ -66,28 +65,20 @@ PRIOR_WEIGHT_PX = 10.0
 ALIGN_STRIDE = 1
 #: A normal channel vector shorter than this is "no normal" (the input holds unit normals or 0).
 MIN_NORMAL_NORM = 0.5
-#: Thresholds tried for ``min_door_px`` (door pixels with a normal) by :func:`fit_refinement`.
-DOOR_PX_CANDIDATES = (20, 40, 80, 160, 320)
 #: The voted door radius is clipped below at this (m) before the offset angle is taken.
 MIN_RADIUS_M = 0.05
-#: Offsets (m) fitted from rotations further than this from the truth (deg) are discarded.
-MAX_OFFSET_FIT_ANGLE_DEG = 15.0
-#: Gates tried for ``max_turn_deg`` by :func:`fit_refinement` (None: never gate).
-TURN_GATE_CANDIDATES_DEG = (5.0, 8.0, 10.0, 15.0, 20.0, 30.0, None)
 #: Step 6: the door's extent along the axis is read between these quantiles of its pixels.
 DOOR_EXTENT_QUANTILE = 0.005
 #: Step 6 needs at least this many door pixels.
 DOOR_EXTENT_MIN_PX = 10
-#: Gates tried for ``door_extent_gate_m`` by :func:`fit_refinement` (m; None: never gate).
-DOOR_EXTENT_GATE_CANDIDATES_M = (0.05, 0.1, 0.2, None)
 #: Refinement format version stored in checkpoints (2: ``max_turn_deg``; 3: ``door_extent``;
 #: older versions read as without them).
-REFINEMENT_VERSION = 2  # 3 when the refitted weights are shipped
+REFINEMENT_VERSION = 3
 
 
 @dataclass(frozen=True)
 class Refinement:
-    """What :func:`apply_refinement` changes (fitted per class by :func:`fit_refinement`)."""
+    """What :func:`apply_refinement` changes (fitted per class by :func:`~.fit.fit_refinement`)."""
 
     #: replace the voted axis frame by the box frame (steps 1-4)
     frame: bool = False
@@ -406,78 +397,3 @@ def apply_refinement(m: dict, r: dict, refinement: "Refinement | None", joint_ty
             use &= np.abs(shift) < refinement.door_extent_gate_m
         out["origin"] = m["origin"] + np.where(use, shift, 0.0)[..., None] * z
     return out
-
-
-def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinement", dict]:
-    """Choose and fit the refinement on validation images.
-
-    ``m``/``r``: numpy mode arrays and refined quantities of the validation images; ``truth``:
-    ``axis_pose`` (N, J, 7) and ``q`` (N, J).  The hinge offset is the median over revolute
-    joints (whose box frame is within :data:`MAX_OFFSET_FIT_ANGLE_DEG` of the truth, sides
-    agreeing) of ``r tan(a)``, ``a`` the signed angle from the box frame's ``x`` to the true
-    ``x`` about the true axis and ``r`` the true radius.  The box frame is kept when it lowers
-    the mean axis rotation error of the heaviest mode, with the gate of
-    :data:`TURN_GATE_CANDIDATES_DEG` (keep the votes' frame where the box frame turns it further;
-    a face mistaken for another) that lowers it most; the normal-based angle (with the best of
-    :data:`DOOR_PX_CANDIDATES`) when it lowers the mean configuration error; the hinge height
-    (step 6, with the best gate of :data:`DOOR_EXTENT_GATE_CANDIDATES_M`) when it lowers the mean
-    axis position error of each joint's heaviest mode.  Returns the
-    :class:`Refinement` and the validation errors of every candidate.
-    """
-    from ...benchmark import metrics as M
-    from ...rotations import matrix_to_quat
-    from ...targets import gram_schmidt
-
-    revolute = np.array([t == "revolute" for t in joint_types])
-    prismatic = ~revolute
-    true_q = truth["axis_pose"][..., 3:]
-    tz, tx = M.quat_axis_z(true_q), M.quat_axis_x(true_q)
-    hz, hx = r["axis"][:, :, 0], r["xaxis"][:, :, 0]
-    angle = np.arctan2((np.cross(hx, tx) * tz).sum(-1), (hx * tx).sum(-1))
-    ok = revolute[None] & ((hz * tz).sum(-1) > 0) & (np.abs(angle) < np.radians(MAX_OFFSET_FIT_ANGLE_DEG))
-    radius = truth["part_offset"][..., 0] if "part_offset" in truth else m["part_offset"][:, :, 0, 0]
-    offset = float(np.median((radius * np.tan(angle))[ok])) if ok.any() else 0.0
-
-    def rot_err(mm):
-        frames = gram_schmidt(mm["axis"][:, :, 0], mm["xaxis"][:, :, 0])
-        return float(np.mean(M.axis_rotation_error_deg(matrix_to_quat(frames), true_q)))
-
-    def cfg_err(mm):
-        return float(np.mean(M.configuration_error(mm["q"][:, :, 0], truth["q"], prismatic)))
-
-    report = {"hinge_offset_m": offset, "rotation_deg": {"votes": rot_err(m)}, "configuration": {"votes": cfg_err(m)}}
-    framed = apply_refinement(m, r, Refinement(frame=True, hinge_offset_m=offset), joint_types)
-    report["rotation_deg"]["box_frame"] = rot_err(framed)
-    use_frame = report["rotation_deg"]["box_frame"] < report["rotation_deg"]["votes"]
-    best_turn, best_rot = None, report["rotation_deg"]["box_frame"]
-    for turn in TURN_GATE_CANDIDATES_DEG[:-1]:
-        e = rot_err(apply_refinement(m, r, Refinement(frame=True, hinge_offset_m=offset, max_turn_deg=turn), joint_types))
-        report["rotation_deg"][f"box_frame_turn<={turn:g}deg"] = e
-        if e < best_rot:
-            best_turn, best_rot = turn, e
-    use_frame = best_rot < report["rotation_deg"]["votes"]
-    best_px, best_cfg = None, report["configuration"]["votes"]
-    if revolute.any():
-        for px in DOOR_PX_CANDIDATES:
-            e = cfg_err(apply_refinement(m, r, Refinement(min_door_px=px), joint_types))
-            report["configuration"][f"normals>={px}px"] = e
-            if e < best_cfg:
-                best_px, best_cfg = px, e
-    refinement = Refinement(frame=bool(use_frame), hinge_offset_m=offset if use_frame else 0.0, min_door_px=best_px,
-                            max_turn_deg=best_turn if use_frame else None)
-
-    def pos_err(mm):
-        heaviest = mm["weight"].argmax(-1)[..., None, None]  # (N, J, 1, 1)
-        origin = np.take_along_axis(mm["origin"], heaviest, axis=2)[:, :, 0]
-        return float(np.mean(M.axis_position_error_cm(origin, truth["axis_pose"][..., :3])))
-
-    best_gate, use_extent = None, False
-    if revolute.any() and "door_mid" in r:
-        report["position_cm"] = {"votes": pos_err(apply_refinement(m, r, refinement, joint_types))}
-        best_pos = report["position_cm"]["votes"]
-        for gate in DOOR_EXTENT_GATE_CANDIDATES_M:
-            e = pos_err(apply_refinement(m, r, replace(refinement, door_extent=True, door_extent_gate_m=gate), joint_types))
-            report["position_cm"]["door_extent" + ("" if gate is None else f"_gate<={gate:g}m")] = e
-            if e < best_pos:
-                best_gate, best_pos, use_extent = gate, e, True
-    return replace(refinement, door_extent=use_extent, door_extent_gate_m=best_gate), report

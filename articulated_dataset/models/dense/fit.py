@@ -1,0 +1,98 @@
+"""What the dense estimator's inference needs beyond its weights, chosen on validation objects.
+
+:func:`fit_refinement` decides which steps of the geometric refinement (:mod:`.refine`) a model
+uses and fits the hinge offset ``t``.  Every choice is made on the training split's validation
+objects (never the test split) and stored in the checkpoint's ``"refinement"``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from .refine import Refinement, apply_refinement
+
+#: Thresholds tried for ``min_door_px`` (door pixels with a normal) by :func:`fit_refinement`.
+DOOR_PX_CANDIDATES = (20, 40, 80, 160, 320)
+#: Offsets (m) fitted from rotations further than this from the truth (deg) are discarded.
+MAX_OFFSET_FIT_ANGLE_DEG = 15.0
+#: Gates tried for ``max_turn_deg`` by :func:`fit_refinement` (None: never gate).
+TURN_GATE_CANDIDATES_DEG = (5.0, 8.0, 10.0, 15.0, 20.0, 30.0, None)
+#: Gates tried for ``door_extent_gate_m`` by :func:`fit_refinement` (m; None: never gate).
+DOOR_EXTENT_GATE_CANDIDATES_M = (0.05, 0.1, 0.2, None)
+
+
+def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinement", dict]:
+    """Choose and fit the refinement on validation images.
+
+    ``m``/``r``: numpy mode arrays and refined quantities of the validation images; ``truth``:
+    ``axis_pose`` (N, J, 7) and ``q`` (N, J).  The hinge offset is the median over revolute
+    joints (whose box frame is within :data:`MAX_OFFSET_FIT_ANGLE_DEG` of the truth, sides
+    agreeing) of ``r tan(a)``, ``a`` the signed angle from the box frame's ``x`` to the true
+    ``x`` about the true axis and ``r`` the true radius.  The box frame is kept when it lowers
+    the mean axis rotation error of the heaviest mode, with the gate of
+    :data:`TURN_GATE_CANDIDATES_DEG` (keep the votes' frame where the box frame turns it further;
+    a face mistaken for another) that lowers it most; the normal-based angle (with the best of
+    :data:`DOOR_PX_CANDIDATES`) when it lowers the mean configuration error; the hinge height
+    (step 6, with the best gate of :data:`DOOR_EXTENT_GATE_CANDIDATES_M`) when it lowers the mean
+    axis position error of each joint's heaviest mode.  Returns the
+    :class:`Refinement` and the validation errors of every candidate.
+    """
+    from ...benchmark import metrics as M
+    from ...rotations import matrix_to_quat
+    from ...targets import gram_schmidt
+
+    revolute = np.array([t == "revolute" for t in joint_types])
+    prismatic = ~revolute
+    true_q = truth["axis_pose"][..., 3:]
+    tz, tx = M.quat_axis_z(true_q), M.quat_axis_x(true_q)
+    hz, hx = r["axis"][:, :, 0], r["xaxis"][:, :, 0]
+    angle = np.arctan2((np.cross(hx, tx) * tz).sum(-1), (hx * tx).sum(-1))
+    ok = revolute[None] & ((hz * tz).sum(-1) > 0) & (np.abs(angle) < np.radians(MAX_OFFSET_FIT_ANGLE_DEG))
+    radius = truth["part_offset"][..., 0] if "part_offset" in truth else m["part_offset"][:, :, 0, 0]
+    offset = float(np.median((radius * np.tan(angle))[ok])) if ok.any() else 0.0
+
+    def rot_err(mm):
+        frames = gram_schmidt(mm["axis"][:, :, 0], mm["xaxis"][:, :, 0])
+        return float(np.mean(M.axis_rotation_error_deg(matrix_to_quat(frames), true_q)))
+
+    def cfg_err(mm):
+        return float(np.mean(M.configuration_error(mm["q"][:, :, 0], truth["q"], prismatic)))
+
+    report = {"hinge_offset_m": offset, "rotation_deg": {"votes": rot_err(m)}, "configuration": {"votes": cfg_err(m)}}
+    framed = apply_refinement(m, r, Refinement(frame=True, hinge_offset_m=offset), joint_types)
+    report["rotation_deg"]["box_frame"] = rot_err(framed)
+    use_frame = report["rotation_deg"]["box_frame"] < report["rotation_deg"]["votes"]
+    best_turn, best_rot = None, report["rotation_deg"]["box_frame"]
+    for turn in TURN_GATE_CANDIDATES_DEG[:-1]:
+        e = rot_err(apply_refinement(m, r, Refinement(frame=True, hinge_offset_m=offset, max_turn_deg=turn), joint_types))
+        report["rotation_deg"][f"box_frame_turn<={turn:g}deg"] = e
+        if e < best_rot:
+            best_turn, best_rot = turn, e
+    use_frame = best_rot < report["rotation_deg"]["votes"]
+    best_px, best_cfg = None, report["configuration"]["votes"]
+    if revolute.any():
+        for px in DOOR_PX_CANDIDATES:
+            e = cfg_err(apply_refinement(m, r, Refinement(min_door_px=px), joint_types))
+            report["configuration"][f"normals>={px}px"] = e
+            if e < best_cfg:
+                best_px, best_cfg = px, e
+    refinement = Refinement(frame=bool(use_frame), hinge_offset_m=offset if use_frame else 0.0, min_door_px=best_px,
+                            max_turn_deg=best_turn if use_frame else None)
+
+    def pos_err(mm):
+        heaviest = mm["weight"].argmax(-1)[..., None, None]  # (N, J, 1, 1)
+        origin = np.take_along_axis(mm["origin"], heaviest, axis=2)[:, :, 0]
+        return float(np.mean(M.axis_position_error_cm(origin, truth["axis_pose"][..., :3])))
+
+    best_gate, use_extent = None, False
+    if revolute.any() and "door_mid" in r:
+        report["position_cm"] = {"votes": pos_err(apply_refinement(m, r, refinement, joint_types))}
+        best_pos = report["position_cm"]["votes"]
+        for gate in DOOR_EXTENT_GATE_CANDIDATES_M:
+            e = pos_err(apply_refinement(m, r, replace(refinement, door_extent=True, door_extent_gate_m=gate), joint_types))
+            report["position_cm"]["door_extent" + ("" if gate is None else f"_gate<={gate:g}m")] = e
+            if e < best_pos:
+                best_gate, best_pos, use_extent = gate, e, True
+    return replace(refinement, door_extent=use_extent, door_extent_gate_m=best_gate), report
