@@ -58,6 +58,19 @@ def _previous_record(init_from: str, shipped: list[dict]) -> dict | None:
     return None
 
 
+def _unshipped_record(c: str, init_from: str, shipped) -> dict:
+    """The lineage of a continuation whose starting weights were never shipped: that checkpoint's
+    own training record (itself continued from shipped weights, or trained from scratch), when the
+    file is still there; its name otherwise."""
+    path = Path(init_from)
+    if not path.is_file():
+        return {"checkpoint": path.name}
+    init = torch.load(path, map_location="cpu", weights_only=False)
+    parent = init.get("train_config", {}).get("init_from")
+    previous = _previous_record(parent, shipped) if parent else None
+    return {"checkpoint": path.name, "training": _training_record("dense", c, init, previous, shipped)}
+
+
 def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None, shipped=()) -> dict:
     refit = ckpt.get("refit_of")
     if refit is not None:  # shipped weights whose inference was refitted (scripts/fit_dense_inference.py)
@@ -76,6 +89,8 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
         opts = f" --epochs {tc.get('epochs')}" + (f" --lr {tc.get('lr')}" if tc.get("lr") != 3e-3 else "")
         if tc.get("init_from"):
             opts += f" --init-from {Path(tc['init_from']).name}"
+        if tc.get("origin_weight", 1.0) != 1.0:
+            opts += f" --origin-weight {tc['origin_weight']:g}"
         command = TRAIN_COMMANDS[name].format(c=c, opts=opts).replace("data/", f"{data}/")
     else:
         command = TRAIN_COMMANDS[name].format(c=c, opts="")
@@ -86,7 +101,7 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
     if ckpt.get("selection") is not None:  # which candidate was shipped, chosen on validation objects
         rec["selection"] = ckpt["selection"]
     if name == "dense" and tc.get("init_from"):
-        rec["continued_from"] = previous if previous is not None else {"checkpoint": Path(tc["init_from"]).name}
+        rec["continued_from"] = previous if previous is not None else _unshipped_record(c, tc["init_from"], shipped)
     hist = ckpt.get("history", [])
     if name == "dense":
         rec.update(objects=ckpt["data"]["n_objects"], train_images=ckpt["data"]["n_train_images"],
