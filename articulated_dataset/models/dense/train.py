@@ -210,11 +210,9 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     step = 0
     cpu_seconds = 0.0
     if ckpt is not None:
-        model.load_state_dict(ckpt["model_state"])
-        optimizer.load_state_dict(ckpt["optimizer_state"])
-        scheduler.load_state_dict(ckpt["scheduler_state"])
-        torch.set_rng_state(ckpt["rng_state"])
-        history = list(ckpt["history"])
+        from ..mdn.checkpoint import restore_training_state
+
+        history = restore_training_state(ckpt, model, optimizer, scheduler)
         step = int(ckpt["step"])
         cpu_seconds = float(ckpt.get("cpu_seconds", 0.0))
     log.info("%s: %d train / %d val images, %s parameters", obj_class.name, n_train, len(va_idx),

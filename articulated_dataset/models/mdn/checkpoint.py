@@ -26,6 +26,21 @@ def atomic_torch_save(obj: dict, path: Path) -> None:
     os.replace(tmp, path)
 
 
+def restore_training_state(ckpt: dict, model, optimizer, scheduler, scaler=None) -> list[dict]:
+    """Continue an interrupted training (``--resume``; the MDN's and the dense model's): load the
+    checkpoint's model, optimizer, learning-rate schedule and, when given, AMP gradient-scaler
+    state and torch's CPU random state; returns a copy of its per-epoch history."""
+    import torch
+
+    model.load_state_dict(ckpt["model_state"])
+    optimizer.load_state_dict(ckpt["optimizer_state"])
+    scheduler.load_state_dict(ckpt["scheduler_state"])
+    if scaler is not None:
+        scaler.load_state_dict(ckpt["scaler_state"])
+    torch.set_rng_state(ckpt["rng_state"])
+    return list(ckpt["history"])
+
+
 def read_checkpoint_file(path: str | Path, map_location="cpu"):
     """``torch.load(path, weights_only=True)`` (tensors and plain containers only: nothing in the
     file is executed); a missing or unreadable file is a one-line UserError.  The contents are

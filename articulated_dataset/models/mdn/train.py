@@ -36,7 +36,7 @@ import numpy as np
 
 from ...errors import UserError, check_memory
 from .checkpoint import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, atomic_torch_save, load_checkpoint,
-                         prepare_training_output)
+                         prepare_training_output, restore_training_state)
 from .config import MAX_THREADS_PER_CPU, TrainConfig
 from .data import (active_columns, anchored_columns, expand_active, load_split, resolve_split_dir, shift_anchored,
                    split_by_object)
@@ -226,12 +226,7 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
     history: list[dict] = []
     start_epoch = 0
     if ckpt is not None:
-        model.load_state_dict(ckpt["model_state"])
-        optimizer.load_state_dict(ckpt["optimizer_state"])
-        scheduler.load_state_dict(ckpt["scheduler_state"])
-        scaler.load_state_dict(ckpt["scaler_state"])
-        torch.set_rng_state(ckpt["rng_state"])
-        history = list(ckpt["history"])
+        history = restore_training_state(ckpt, model, optimizer, scheduler, scaler)
         start_epoch = int(ckpt["epoch"])
     log.info("%s: %d train / %d val images, %s parameters, device %s", obj_class.name, n_train, len(va_idx),
              f"{count_parameters(model):,}", dev)
