@@ -65,7 +65,7 @@ def _unshipped_record(c: str, init_from: str, shipped) -> dict:
     path = Path(init_from)
     if not path.is_file():
         return {"checkpoint": path.name}
-    init = torch.load(path, map_location="cpu", weights_only=False)
+    init = torch.load(path, map_location="cpu", weights_only=True)  # tensors and containers: no code runs
     parent = init.get("train_config", {}).get("init_from")
     previous = _previous_record(parent, shipped) if parent else None
     return {"checkpoint": path.name, "training": _training_record("dense", c, init, previous, shipped)}
