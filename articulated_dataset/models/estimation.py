@@ -184,7 +184,8 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     modes, refined = batch_modes(net, torch.from_numpy(depth_r.astype(np.float32))[None],
                                  torch.from_numpy(K_dst.astype(np.float32))[None], joint_types=joint_types,
                                  refine=refinement is not None and refinement.needed,
-                                 split_factor=split_factor_of(refinement))
+                                 split_factor=split_factor_of(refinement),
+                                 handle_max_q_deg=None if refinement is None else refinement.handle_max_q_deg)
     arrays = modes_to_arrays(apply_refinement(modes, refined, refinement, joint_types), np.zeros(1, np.int64), net,
                              ckpt.get("calibration"))
     from ..rotations import quat_to_matrix

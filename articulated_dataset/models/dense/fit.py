@@ -21,6 +21,10 @@ MAX_OFFSET_FIT_ANGLE_DEG = 15.0
 TURN_GATE_CANDIDATES_DEG = (5.0, 8.0, 10.0, 15.0, 20.0, 30.0, None)
 #: Gates tried for ``door_extent_gate_m`` by :func:`fit_refinement` (m; None: never gate).
 DOOR_EXTENT_GATE_CANDIDATES_M = (0.05, 0.1, 0.2, None)
+#: Door angles (deg) below which step 7 (the handle's side) may be used, tried by :func:`fit_refinement`.
+HANDLE_Q_CANDIDATES_DEG = (5.0, 10.0, 15.0, 20.0, 30.0)
+#: Handle pixels step 7 needs, tried by :func:`fit_refinement`.
+HANDLE_PX_CANDIDATES = (1.0, 3.0, 6.0)
 
 
 def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinement", dict]:
@@ -36,7 +40,10 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     a face mistaken for another) that lowers it most; the normal-based angle (with the best of
     :data:`DOOR_PX_CANDIDATES`) when it lowers the mean configuration error; the hinge height
     (step 6, with the best gate of :data:`DOOR_EXTENT_GATE_CANDIDATES_M`) when it lowers the mean
-    axis position error of each joint's heaviest mode.  Returns the
+    axis position error of each joint's heaviest mode; the handle's side (step 7) with the
+    pair of :data:`HANDLE_Q_CANDIDATES_DEG` and :data:`HANDLE_PX_CANDIDATES` that lowers that
+    error most, if any does (``r`` must then hold :func:`~.handle.handle_evidence`'s keys, measured
+    for doors below the largest angle candidate).  Returns the
     :class:`Refinement` and the validation errors of every candidate.
     """
     from ...benchmark import metrics as M
@@ -95,4 +102,16 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
             report["position_cm"]["door_extent" + ("" if gate is None else f"_gate<={gate:g}m")] = e
             if e < best_pos:
                 best_gate, best_pos, use_extent = gate, e, True
-    return replace(refinement, door_extent=use_extent, door_extent_gate_m=best_gate), report
+    refinement = replace(refinement, door_extent=use_extent, door_extent_gate_m=best_gate)
+    if revolute.any() and "handle_px" in r:
+        report.setdefault("position_cm", {})["before_handle"] = best_pos = pos_err(apply_refinement(m, r, refinement, joint_types))
+        best_handle = None
+        for q_deg in HANDLE_Q_CANDIDATES_DEG:
+            for px in HANDLE_PX_CANDIDATES:
+                e = pos_err(apply_refinement(m, r, replace(refinement, handle_max_q_deg=q_deg, handle_min_px=px), joint_types))
+                report["position_cm"][f"handle_q<{q_deg:g}deg_px>={px:g}"] = e
+                if e < best_pos:
+                    best_handle, best_pos = (q_deg, px), e
+        if best_handle is not None:
+            refinement = replace(refinement, handle_max_q_deg=best_handle[0], handle_min_px=best_handle[1])
+    return refinement, report

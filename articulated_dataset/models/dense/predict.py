@@ -58,7 +58,8 @@ def predict_arrays(model, data, idx: np.ndarray, *, joint_types: list[str], cali
 
     refinement = as_refinement(refinement)
     m, r = predict_modes(model, data, idx, joint_types=joint_types, refine=refinement is not None and refinement.needed,
-                         batch_size=batch_size, progress=progress, split_factor=split_factor_of(refinement))
+                         batch_size=batch_size, progress=progress, split_factor=split_factor_of(refinement),
+                         handle_max_q_deg=None if refinement is None else refinement.handle_max_q_deg)
     return modes_to_arrays(apply_refinement(m, r, refinement, joint_types), data.sample_id[idx], model, calibration)
 
 
@@ -70,15 +71,17 @@ def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: dict | N
 
 
 def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool,
-                split_factor: float | None) -> tuple[dict, dict | None]:
+                split_factor: float | None, handle_max_q_deg: float | None = None) -> tuple[dict, dict | None]:
     """One batch of depth images (B, H, W) m and intrinsics (B, 3, 3) at the model's resolution ->
     vote modes (:func:`~.aggregate.vote_modes` with ``split_factor``, a checkpoint's
     :func:`~.refine.split_factor_of`) and, with ``refine``, the refined quantities
-    (:func:`~.refine.refined_quantities`), as float64 numpy arrays."""
+    (:func:`~.refine.refined_quantities`; with ``handle_max_q_deg``, also the handles of the doors
+    whose angle may be below it: :func:`~.handle.handle_evidence`), as float64 numpy arrays."""
     import torch
 
     from .aggregate import vote_modes
     from .features import make_inputs
+    from .handle import handle_candidates_evidence
     from .refine import refined_quantities
 
     if model.training:
@@ -88,13 +91,15 @@ def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool,
         parts = model.split(model(inputs["x"]))
         modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0, split_factor=split_factor)
         r = refined_quantities(parts, inputs, modes, joint_types) if refine else None
+        if r is not None and handle_max_q_deg is not None:
+            r.update(handle_candidates_evidence(parts, inputs, modes, r, joint_types, handle_max_q_deg))
     as_np = lambda d: {k: v.numpy().astype(np.float64) for k, v in d.items()}  # noqa: E731
     return as_np(modes), (as_np(r) if r is not None else None)
 
 
 def predict_modes(model, data, idx: np.ndarray, *, joint_types: list[str], refine: bool = True,
                   batch_size: int = PREDICT_BATCH, progress: bool = False,
-                  split_factor: float | None) -> tuple[dict, dict | None]:
+                  split_factor: float | None, handle_max_q_deg: float | None = None) -> tuple[dict, dict | None]:
     """:func:`batch_modes` over the images ``idx`` of a split in memory, batch by batch, concatenated
     (the refined quantities are None without ``refine``)."""
     import torch
@@ -104,7 +109,7 @@ def predict_modes(model, data, idx: np.ndarray, *, joint_types: list[str], refin
     for s in tqdm(range(0, len(idx), batch_size), desc="predicting", unit="batch", disable=not progress, leave=False):
         b = idx[s : s + batch_size]
         m, r = batch_modes(model, data.depth(b), torch.from_numpy(data.K[b]), joint_types=joint_types, refine=refine,
-                           split_factor=split_factor)
+                           split_factor=split_factor, handle_max_q_deg=handle_max_q_deg)
         ms.append(m)
         rs.append(r)
     cat = lambda chunks: {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}  # noqa: E731
@@ -250,11 +255,12 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, progr
     "refinement_report": dict}`` for the checkpoint."""
     from dataclasses import replace
 
-    from .fit import fit_refinement
+    from .fit import HANDLE_Q_CANDIDATES_DEG, fit_refinement
     from .refine import apply_refinement
 
     split_factor, split_report = choose_split_factor(model, data, idx)
-    m, r = predict_modes(model, data, idx, joint_types=joint_types, progress=progress, split_factor=split_factor)
+    m, r = predict_modes(model, data, idx, joint_types=joint_types, progress=progress, split_factor=split_factor,
+                         handle_max_q_deg=max(HANDLE_Q_CANDIDATES_DEG))
     truth = {"axis_pose": _true_pose(data, idx), "q": data.q[idx].astype(np.float64),
              "part_offset": data.part_offset[idx].astype(np.float64)}
     refinement, report = fit_refinement(m, r, truth, joint_types)

@@ -38,6 +38,8 @@ regressed (:func:`refined_quantities`, per image and joint):
    nor where the move would exceed ``door_extent_gate_m``.  It corrects the votes' tails (a
    misjudged door height) and is used only where it lowers the validation position error
    (the microwave's: 2.9 -> 2.2 cm on validation objects).
+7. **Hinge side from the handle** (:mod:`.handle`).  A closed door whose vote mode puts the hinge
+   at the door's handle is mirrored across the door (the cabinet's one-image side errors).
 
 :func:`~.fit.fit_refinement` chooses, on the training split's validation objects, which steps
 are used (each only where it lowers the validation error) and fits ``t``; the choice is stored
@@ -55,6 +57,7 @@ from torch.nn import functional as F
 
 from .aggregate import SPLIT_FACTOR, gram_schmidt6, image_groups, softmax_weights
 from .features import OUTPUT_STRIDE, POINT_SCALE_M
+from .handle import apply_handle_side
 
 #: Manhattan alignment rounds: a normal is matched to a frame axis within these angles (deg).
 INLIER_ANGLES_DEG = (25.0, 10.0, 5.0)
@@ -72,8 +75,8 @@ DOOR_EXTENT_QUANTILE = 0.005
 #: Step 6 needs at least this many door pixels.
 DOOR_EXTENT_MIN_PX = 10
 #: Refinement format version stored in checkpoints (2: ``max_turn_deg``; 3: ``door_extent``;
-#: older versions read as without them).
-REFINEMENT_VERSION = 3
+#: 4: ``handle_max_q_deg``; older versions read as without them).
+REFINEMENT_VERSION = 4
 
 
 @dataclass(frozen=True)
@@ -95,12 +98,16 @@ class Refinement:
     #: the vote modes' split factor (:func:`~.aggregate.vote_modes`; None: one mode per joint), chosen
     #: on validation objects before the steps above (:func:`~.predict.choose_split_factor`)
     split_factor: float | None = SPLIT_FACTOR
+    #: step 7: mirror a door whose vote mode puts its hinge at its handle, for doors whose angle is
+    #: below this (deg; None: never), with at least ``handle_min_px`` handle pixels
+    handle_max_q_deg: float | None = None
+    handle_min_px: float = 1.0
     version: int = REFINEMENT_VERSION
 
     @property
     def needed(self) -> bool:
         """Whether it changes anything (else the refined quantities need not be computed)."""
-        return self.frame or self.min_door_px is not None or self.door_extent
+        return self.frame or self.min_door_px is not None or self.door_extent or self.handle_max_q_deg is not None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -115,6 +122,8 @@ class Refinement:
                    max_turn_deg=None if turn is None else float(turn), door_extent=bool(d.get("door_extent", False)),
                    door_extent_gate_m=None if gate is None else float(gate),
                    split_factor=_optional_float(d["split_factor"]) if "split_factor" in d else SPLIT_FACTOR,
+                   handle_max_q_deg=_optional_float(d.get("handle_max_q_deg")),
+                   handle_min_px=float(d.get("handle_min_px", 1.0)),
                    version=int(d.get("version", REFINEMENT_VERSION)))
 
 
@@ -396,4 +405,4 @@ def apply_refinement(m: dict, r: dict, refinement: "Refinement | None", joint_ty
         if refinement.door_extent_gate_m is not None:
             use &= np.abs(shift) < refinement.door_extent_gate_m
         out["origin"] = m["origin"] + np.where(use, shift, 0.0)[..., None] * z
-    return out
+    return apply_handle_side(out, r, refinement.handle_max_q_deg, refinement.handle_min_px, joint_types)

@@ -1,0 +1,155 @@
+"""Refinement step 7: a closed door's hinge side from its handle.
+
+A closed door looks the same hinged on the left or on the right except for its handle, which
+every template puts near the door's *free* edge (``common.xacro``'s ``side_door``: a bar
+standing :data:`HANDLE_STANDOFF_M` out of the panel, its centre ``handle_inset_m`` from the free
+edge).  The network decides the side from the image, and on the cabinet (the one class hinged
+on either side) it sometimes puts the hinge at the handle: a mirrored door, about a door's width
+(60-140 cm) and 180 degrees off.  The handle is visible in the depth as door pixels standing a
+few centimetres in front of the door's face, so the side is measured instead:
+
+1. the door's face (:func:`handle_evidence`): the door pixels' normals, turned towards the
+   camera and made perpendicular to the axis line, are averaged (twice: the second time only
+   those within :data:`FACE_INLIER_DEG` of the first mean), giving the face normal ``n``; the
+   face's offset ``c`` is the mean of ``n . p`` over those pixels, trimmed to within
+   :data:`FACE_TRIM_M` of a first mean;
+2. the handle: the door pixels with ``n . p - c`` between :data:`HANDLE_MIN_STANDOFF_M` and
+   :data:`HANDLE_MAX_STANDOFF_M`; their count and mean point;
+3. the side (:func:`apply_handle_side`): a vote mode whose ``x`` (from its hinge towards the
+   door's centre, refinement step 3) puts the handle nearer its hinge than the door's centre,
+   ``(h - o) . x < r`` (``r`` the voted door radius), is on the wrong side.  It is mirrored:
+   its origin moves across the door to ``o + 2 r x`` and its frame becomes ``(-x, y, -z)``
+   (the same axis line, the door now turning the other way), ``q`` and the part offset unchanged.
+
+Only doors whose estimated angle is below ``handle_max_q_deg`` are checked (an open door shows
+its hinge, and the body's edges beside an open door stand in front of the door's plane too)
+and only with at least ``handle_min_px`` handle pixels; both are chosen on validation objects
+by :func:`~.fit.fit_refinement` (never, where checking does not lower the position error).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .features import OUTPUT_STRIDE, POINT_SCALE_M
+
+#: How far a handle bar stands out of its door's face (m): ``handle_standoff_m`` of common.xacro.
+HANDLE_STANDOFF_M = 0.03
+#: Door pixels this far or further in front of the face (m) are taken for the handle ...
+HANDLE_MIN_STANDOFF_M = 0.4 * HANDLE_STANDOFF_M
+#: ... up to this far (m): nearer the camera than that is not the door's.
+HANDLE_MAX_STANDOFF_M = 1.7 * HANDLE_STANDOFF_M
+#: The face's normal is the mean of the door normals within this angle (deg) of their first mean.
+FACE_INLIER_DEG = 10.0
+#: The face's offset is the mean of ``n . p`` within this distance (m) of a first mean.
+FACE_TRIM_M = 0.01
+#: A normal channel vector shorter than this is "no normal" (the input holds unit normals or 0).
+MIN_NORMAL_NORM = 0.5
+#: The voted door radius is clipped below at this (m) before a door is mirrored.
+MIN_RADIUS_M = 0.05
+
+
+def _per_image_mean(values: torch.Tensor, image: torch.Tensor, weight: torch.Tensor, B: int) -> tuple:
+    """Weighted sums per image of listed ``values`` (n, C) with ``weight`` (n,) -> (mean (B, C), total (B,))."""
+    total = torch.zeros(B, dtype=values.dtype).index_add_(0, image, weight)
+    sums = torch.zeros(B, values.shape[1], dtype=values.dtype).index_add_(0, image, values * weight[:, None])
+    return sums / total.clamp_min(1e-12)[:, None], total
+
+
+@torch.no_grad()
+def handle_evidence(parts: dict, inputs: dict, axis_line: torch.Tensor, joint_types, candidates: torch.Tensor) -> dict:
+    """Steps 1-2 for a batch: ``handle_px`` (B, J) handle pixels of each door and ``handle_point``
+    (B, J, 3) their mean camera-frame point (m; both 0 without any, for prismatic joints and where
+    ``candidates`` (B, J) is False: only those doors are measured).
+
+    ``parts``: :meth:`~.model.DenseNet.split` output (its segmentation, upsampled to the input
+    by nearest neighbour); ``inputs``: :func:`~.features.make_inputs` output; ``axis_line``
+    (B, J, 3): each joint's axis direction (its sign does not matter).
+    """
+    x = inputs["x"]
+    B, C, H, W = x.shape
+    J = axis_line.shape[1]
+    dtype = x.dtype
+    handle_px = torch.zeros(B, J, dtype=dtype)
+    handle_point = torch.zeros(B, J, 3, dtype=dtype)
+    h_out, w_out = parts["seg"].shape[2:]
+    for j, joint_type in enumerate(joint_types):
+        images = candidates[:, j].nonzero()[:, 0]
+        if joint_type != "revolute" or len(images) == 0:
+            continue
+        xs = x[images].flatten(2)  # (k, C, H * W)
+        label = parts["seg"][images].argmax(1).flatten(1)  # (k, h * w)
+        b, p = (xs[:, 3] > 0).nonzero(as_tuple=True)  # the valid pixels
+        door = label[b, (p // W) // OUTPUT_STRIDE * w_out + (p % W) // OUTPUT_STRIDE] == 1 + j
+        b, p = b[door], p[door]
+        if len(b) == 0:
+            continue
+        k = len(images)
+        listed = xs.transpose(1, 2)[b, p]  # (n, C)
+        points = listed[:, 0:3] * POINT_SCALE_M + inputs["anchor"][images][b]  # (n, 3) m
+        normals = listed[:, 4:7]
+        z = torch.nn.functional.normalize(axis_line[images, j], dim=-1)[b]
+        has_normal = (normals * normals).sum(-1) > MIN_NORMAL_NORM**2
+        # the normals towards the camera (at the origin) and perpendicular to the axis line
+        facing = torch.where((normals * points).sum(-1, keepdim=True) > 0, -normals, normals)
+        facing = torch.nn.functional.normalize(facing - (facing * z).sum(-1, keepdim=True) * z, dim=-1)
+        weight = has_normal.to(dtype)
+        n, _ = _per_image_mean(facing, b, weight, k)
+        n = torch.nn.functional.normalize(n, dim=-1)
+        inlier = weight * ((facing * n[b]).sum(-1) > math.cos(math.radians(FACE_INLIER_DEG))).to(dtype)
+        n, _ = _per_image_mean(facing, b, inlier, k)
+        n = torch.nn.functional.normalize(n, dim=-1)
+        s = (points * n[b]).sum(-1)  # (n,) each pixel's coordinate along the face normal
+        c, _ = _per_image_mean(s[:, None], b, inlier, k)
+        trimmed = inlier * ((s - c[b, 0]).abs() < FACE_TRIM_M).to(dtype)
+        c, count = _per_image_mean(s[:, None], b, trimmed, k)
+        standoff = s - c[b, 0]
+        handle = ((standoff > HANDLE_MIN_STANDOFF_M) & (standoff < HANDLE_MAX_STANDOFF_M) & (count[b] > 0)).to(dtype)
+        point, px = _per_image_mean(points, b, handle, k)
+        handle_px[images, j] = px
+        handle_point[images, j] = point * (px > 0).to(dtype)[:, None]
+    return {"handle_px": handle_px, "handle_point": handle_point}
+
+
+def handle_candidates_evidence(parts: dict, inputs: dict, modes: dict, refined: dict, joint_types,
+                               max_q_deg: float) -> dict:
+    """:func:`handle_evidence` of the doors that step 7 may check: those with a vote mode, or a
+    normal-based angle (refinement step 5, NaN when unmeasured), below ``max_q_deg``.
+    ``modes``: :func:`~.aggregate.vote_modes` output; ``refined``: :func:`~.refine.refined_quantities`'."""
+    limit = math.radians(max_q_deg)
+    measured = refined["q"]
+    voted = torch.where(modes["weight"] > 0, modes["q"], torch.full_like(modes["q"], math.inf)).amin(-1)
+    candidates = (voted < limit) | (measured < limit) | measured.isnan()
+    return handle_evidence(parts, inputs, refined["axis"][:, :, 0], joint_types, candidates)
+
+
+def mirrored_by_handle(m: dict, r: dict, max_q_deg: float, min_px: float, joint_types) -> np.ndarray:
+    """Step 3's test: (B, J, M) whether each vote mode of ``m`` (numpy mode arrays after the other
+    refinement steps) is on its handle's side, for revolute doors whose mode angle is below
+    ``max_q_deg`` and with at least ``min_px`` handle pixels (``r``: :func:`handle_evidence`'s keys)."""
+    revolute = np.array([t == "revolute" for t in joint_types])
+    radius = np.maximum(m["part_offset"][..., 0], MIN_RADIUS_M)  # (B, J, M)
+    along = ((r["handle_point"][:, :, None] - m["origin"]) * m["xaxis"]).sum(-1) / np.maximum(
+        np.linalg.norm(m["xaxis"], axis=-1), 1e-12)
+    checked = revolute[None, :, None] & (r["handle_px"][..., None] >= min_px) & (m["q"] < math.radians(max_q_deg))
+    return checked & (along < radius)
+
+
+def apply_handle_side(m: dict, r: dict, max_q_deg: float | None, min_px: float, joint_types) -> dict:
+    """Mode arrays ``m`` with every mode on its handle's side mirrored (step 3 of the module
+    docstring); ``m`` itself where ``max_q_deg`` is None or nothing is mirrored."""
+    if max_q_deg is None or "handle_px" not in r:
+        return m
+    wrong = mirrored_by_handle(m, r, max_q_deg, min_px, joint_types)
+    if not wrong.any():
+        return m
+    out = dict(m)
+    x = m["xaxis"] / np.maximum(np.linalg.norm(m["xaxis"], axis=-1, keepdims=True), 1e-12)
+    radius = np.maximum(m["part_offset"][..., 0], MIN_RADIUS_M)
+    out["origin"] = np.where(wrong[..., None], m["origin"] + 2.0 * radius[..., None] * x, m["origin"])
+    out["axis"] = np.where(wrong[..., None], -m["axis"], m["axis"])
+    out["xaxis"] = np.where(wrong[..., None], -m["xaxis"], m["xaxis"])
+    return out
