@@ -63,17 +63,19 @@ def resize_depth(depth_m: torch.Tensor, hw: tuple[int, int]) -> torch.Tensor:
     return torch.where(vs > 0, ds / vs.clamp_min(1e-12), torch.zeros_like(ds))[:, 0]
 
 
-def backproject_torch(depth_m: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+def backproject_torch(depth_m: torch.Tensor, K: torch.Tensor, *, out: torch.Tensor | None = None) -> torch.Tensor:
     """(B, H, W) z-depth and (B, 3, 3) intrinsics -> (B, 3, H, W) camera-frame points
-    (x forward = z_optical, y left = -x_optical, z up = -y_optical); invalid pixels give 0."""
+    (x forward = z_optical, y left = -x_optical, z up = -y_optical); invalid pixels give 0.
+    ``out``: a (B, 3, H, W) tensor (or view) to write them into."""
     B, H, W = depth_m.shape
     u = torch.arange(W, dtype=depth_m.dtype, device=depth_m.device)
     v = torch.arange(H, dtype=depth_m.dtype, device=depth_m.device)
     fx, fy = K[:, 0, 0].view(B, 1, 1), K[:, 1, 1].view(B, 1, 1)
     cx, cy = K[:, 0, 2].view(B, 1, 1), K[:, 1, 2].view(B, 1, 1)
     # written channel by channel (no stack); -(a d) is computed as (-a) d, the same number
-    pts = depth_m.new_empty(B, 3, H, W)
-    pts[:, 0] = depth_m
+    pts = depth_m.new_empty(B, 3, H, W) if out is None else out
+    if pts[:, 0].data_ptr() != depth_m.data_ptr():
+        pts[:, 0] = depth_m
     torch.mul(-((u.view(1, 1, W) - cx) / fx), depth_m, out=pts[:, 1])
     torch.mul(-((v.view(1, H, 1) - cy) / fy), depth_m, out=pts[:, 2])
     return pts
@@ -89,17 +91,20 @@ def _listed_normals(points: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Te
     """The normals of :func:`surface_normals` as a list: the images ``b`` and flat pixels ``p``
     (T,) whose four neighbours are valid (objects cover a fraction of the image) and the
     normal's three components (T,) there (0 where a neighbour is too far), each computed with the
-    same arithmetic as on the whole image.  ``points`` (B, 3, H, W) contiguous."""
-    B, _, H, W = points.shape
+    same arithmetic as on the whole image.  ``points`` (B, C, H, W) contiguous, the points in
+    channels 0-2 (the network input's first channels)."""
+    B, C, H, W = points.shape
     P = H * W
     inner = valid[:, 1:-1, 2:] & valid[:, 1:-1, :-2] & valid[:, 2:, 1:-1] & valid[:, :-2, 1:-1] & valid[:, 1:-1, 1:-1]
     candidate = torch.zeros_like(valid)
     candidate[:, 1:-1, 1:-1] = inner
     b, p = candidate.flatten(1).nonzero(as_tuple=True)
-    above = b * (3 * P) + p - W  # the pixel above (channel 0): every listed pixel has one
+    above = b * (C * P) + p - W  # the pixel above (channel 0): every listed pixel has one
+
+    flat = points.view(-1)
 
     def point(c, dy, dx):  # channel c of the listed pixels' neighbour (dy, dx)
-        return _flat_from(points, c * P + (1 + dy) * W + dx)[above]
+        return flat.index_select(0, above + (c * P + (1 + dy) * W + dx))
 
     dx = [point(c, 0, 1) - point(c, 0, -1) for c in range(3)]
     dy = [point(c, 1, 0) - point(c, -1, 0) for c in range(3)]
@@ -127,63 +132,77 @@ def surface_normals(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def make_inputs(depth_m: torch.Tensor, K: torch.Tensor) -> dict:
+def make_inputs(depth_m: torch.Tensor, K: torch.Tensor, *, out: torch.Tensor | None = None) -> dict:
     """Network input and geometry of a batch at the model resolution.
 
     ``depth_m`` (B, H, W) float32 metres (0 = no return), ``K`` (B, 3, 3).  Returns a dict:
     ``x`` (B, 9, H, W) input, ``anchor`` (B, 3) m, ``points_out`` (B, 3, h, w) mean point
     of each output pixel (m), ``weight_out`` (B, h, w) fraction of valid pixels under it.
-    The channels are written into one preallocated tensor (no concatenation); the relative
-    points and the normals are computed at the valid pixels only (0 elsewhere), and the output
-    pixels' means are sums over the listed valid pixels: every number as the whole-image
-    formulas give it.
+    ``out``: a (B, 9, H, W) tensor to write ``x`` into (a batch loop passes the previous batch's
+    ``x`` once it is done with it: a fresh 95 MB tensor costs more in page faults than filling it).
+
+    The channels are written into one tensor (no concatenation): the back-projection straight into
+    channels 0-2, which are pooled (with the validity, channel 3) to the output pixels' means, give
+    the normals, and are then turned into relative points in place; the normals are computed at the
+    pixels with four valid neighbours only (:func:`_listed_normals`).  Every number as the
+    whole-image formulas give it.
     """
     B, H, W = depth_m.shape
-    P = H * W
-    x = depth_m.new_empty(B, N_INPUT_CHANNELS, H, W)
+    shape = (B, N_INPUT_CHANNELS, H, W)
+    x = out if out is not None and tuple(out.shape) == shape and out.dtype == depth_m.dtype and out.is_contiguous() \
+        else depth_m.new_empty(shape)
     valid = depth_m > 0
-    w = x[:, 3:4]
-    w.copy_(valid[:, None])  # the validity channel (1.0 / 0.0)
-    # points of the depth with the invalid pixels' zeroed: the same as back-projecting the depth
-    # and multiplying by the validity, in one channel instead of three
-    pts = backproject_torch(depth_m * w[:, 0], K)
-    n_valid = w.sum((2, 3)).clamp_min(1.0)
+    w = x[:, 3]
+    w.copy_(valid)  # the validity channel (1.0 / 0.0)
+    # the points of the depth with the invalid pixels' zeroed (the same as back-projecting the depth
+    # and multiplying by the validity), written into channels 0-2
+    pts = backproject_torch(torch.mul(depth_m, w, out=x[:, 0]), K, out=x[:, 0:3])
+    n_valid = w.sum((1, 2)).clamp_min(1.0)[:, None]
     anchor = pts.sum((2, 3)) / n_valid
-    x[:, 0:3].zero_()
+    w_out, p_out = _output_means(x)
     x[:, 4:7].zero_()
-    b, p = valid.flatten(1).nonzero(as_tuple=True)
-    at, x_at = b * (3 * P) + p, b * (N_INPUT_CHANNELS * P) + p
-    for c in range(3):  # (p - a) w / s, with w = 1 at the valid pixels
-        _flat_from(x, c * P)[x_at] = (_flat_from(pts, c * P)[at] - anchor[:, c][b]) / POINT_SCALE_M
     if H >= 3 and W >= 3:
-        nb, npx, n = _listed_normals(pts, valid)
+        nb, npx, n = _listed_normals(x, valid)
         for c in range(3):
-            _flat_from(x, (4 + c) * P)[nb * (N_INPUT_CHANNELS * P) + npx] = n[c]
+            _flat_from(x, (4 + c) * H * W)[nb * (N_INPUT_CHANNELS * H * W) + npx] = n[c]
+    # (p - a) / s at the valid pixels, 0 elsewhere, in place
+    # (multiplying by the validity leaves -0.0 at some invalid pixels: equal to 0, and the same to the network)
+    pts.sub_(anchor[:, :, None, None]).div_(POINT_SCALE_M).mul_(w[:, None])
     x[:, 7] = torch.linspace(-1, 1, W, dtype=depth_m.dtype).view(1, 1, W)
     x[:, 8] = torch.linspace(-1, 1, H, dtype=depth_m.dtype).view(1, H, 1)
-    w_out, p_out = _output_means(pts, b, p, (B, H, W))
     return {"x": x, "anchor": anchor, "points_out": p_out, "weight_out": w_out}
 
 
-def _output_means(pts: torch.Tensor, b: torch.Tensor, p: torch.Tensor, bhw: tuple) -> tuple[torch.Tensor, torch.Tensor]:
+def _output_means(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``avg_pool2d(w, s, ceil_mode=True)`` (B, h, w) and ``avg_pool2d(p w, s, ceil_mode=True) /
-    max(that, 1e-6)`` (B, 3, h, w) for the stride :data:`OUTPUT_STRIDE`, from the valid pixels
-    ``b, p`` only (the others add 0): each window's pixels are summed in the pooling's order
-    (row by row), from 0, and divided by the window's size, as the pooling does."""
-    B, H, W = bhw
+    max(that, 1e-6)`` (B, 3, h, w) for the stride :data:`OUTPUT_STRIDE`, from the input ``x``
+    (B, C, H, W) contiguous holding the zeroed points ``p w`` in channels 0-2 and ``w`` in
+    channel 3.  Where ``s`` divides the image, the windows' pixel counts are summed (integers: any
+    order is exact) and the points summed only over the windows with a valid pixel, each window's
+    pixels in the pooling's order (row by row), from 0, and divided by the window's size, as the
+    pooling does (whose strided kernel is several times slower)."""
+    B, C, H, W = x.shape
     s = OUTPUT_STRIDE
-    h, w = -(-H // s), -(-W // s)
-    out_px = b * (h * w) + (p // W) // s * w + (p % W) // s
-    counts = torch.zeros(B * h * w, dtype=pts.dtype).index_add_(0, out_px, torch.ones_like(out_px, dtype=pts.dtype))
-    rows = (H - torch.arange(h) * s).clamp_max(s)
-    cols = (W - torch.arange(w) * s).clamp_max(s)
-    size = (rows[:, None] * cols).to(pts.dtype)  # (h, w) pixels per window
-    w_out = counts.view(B, h, w) / size
-    at = b * (3 * H * W) + p
-    sums = [torch.zeros(B * h * w, dtype=pts.dtype).index_add_(0, out_px, _flat_from(pts, c * H * W)[at])
-            for c in range(3)]
-    p_out = torch.stack([sc.view(B, h, w) / size for sc in sums], 1) / w_out[:, None].clamp_min(1e-6)
-    return w_out, p_out
+    if H % s or W % s:
+        pooled = F.avg_pool2d(x[:, 0:4], s, ceil_mode=True)
+        return pooled[:, 3].contiguous(), pooled[:, 0:3] / pooled[:, 3:4].clamp_min(1e-6)
+    h, w = H // s, W // s
+    counts = x[:, 3].unflatten(2, (w, s)).sum(-1).unflatten(1, (h, s)).sum(2)  # (B, h, w)
+    w_out = counts / (s * s)
+    window = (counts > 0).view(-1).nonzero()[:, 0]  # flat (b, i, j) of the windows with a valid pixel
+    b, ij = window // (h * w), window % (h * w)
+    first = b * (C * H * W) + ij // w * (s * W) + ij % w * s  # the window's top-left pixel, channel 0
+    first = (first[:, None] + torch.arange(3) * (H * W)).view(-1)  # (n * 3,): channels 0-2
+    flat = x.view(-1)
+    total = flat.index_select(0, first)  # index_select: faster than indexing with a tensor
+    for dy in range(s):  # the window's other pixels, row by row
+        for dx in range(s):
+            if dy or dx:
+                total += flat.index_select(0, first + (dy * W + dx))
+    sums = x.new_zeros(B * h * w, 3)
+    sums[window] = total.view(-1, 3)
+    p_out = (sums.view(B, h, w, 3).permute(0, 3, 1, 2) / (s * s)) / w_out[:, None].clamp_min(1e-6)
+    return w_out, p_out.contiguous()
 
 
 def output_labels(mask: np.ndarray, n_joints: int) -> np.ndarray:

@@ -70,13 +70,15 @@ def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: dict | N
     return mixture_from_modes(m, sample_id, model.config.n_joints, MAX_MODES, calibration)
 
 
-def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool,
-                split_factor: float | None, handle_max_q_deg: float | None = None) -> tuple[dict, dict | None]:
+def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, split_factor: float | None,
+                handle_max_q_deg: float | None = None, workspace: dict | None = None) -> tuple[dict, dict | None]:
     """One batch of depth images (B, H, W) m and intrinsics (B, 3, 3) at the model's resolution ->
     vote modes (:func:`~.aggregate.vote_modes` with ``split_factor``, a checkpoint's
     :func:`~.refine.split_factor_of`) and, with ``refine``, the refined quantities
     (:func:`~.refine.refined_quantities`; with ``handle_max_q_deg``, also the handles of the doors
-    whose angle may be below it: :func:`~.handle.handle_evidence`), as float64 numpy arrays."""
+    whose angle may be below it: :func:`~.handle.handle_evidence`), as float64 numpy arrays.
+    ``workspace``: a dict a loop over batches passes to every call, which keeps the network input's
+    tensor for the next batch to write into (a fresh one costs more in page faults than filling it)."""
     import torch
 
     from .aggregate import vote_modes
@@ -87,12 +89,14 @@ def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool,
     if model.training:
         model.eval()
     with torch.inference_mode():
-        inputs = make_inputs(depth_m, K)
+        inputs = make_inputs(depth_m, K, out=None if workspace is None else workspace.pop("x", None))
         parts = model.split(model(inputs["x"]))
         modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0, split_factor=split_factor)
         r = refined_quantities(parts, inputs, modes, joint_types) if refine else None
         if r is not None and handle_max_q_deg is not None:
             r.update(handle_candidates_evidence(parts, inputs, modes, r, joint_types, handle_max_q_deg))
+    if workspace is not None:
+        workspace["x"] = inputs["x"]
     as_np = lambda d: {k: v.numpy().astype(np.float64) for k, v in d.items()}  # noqa: E731
     return as_np(modes), (as_np(r) if r is not None else None)
 
@@ -105,11 +109,11 @@ def predict_modes(model, data, idx: np.ndarray, *, joint_types: list[str], refin
     import torch
     from tqdm.auto import tqdm
 
-    ms, rs = [], []
+    ms, rs, workspace = [], [], {}
     for s in tqdm(range(0, len(idx), batch_size), desc="predicting", unit="batch", disable=not progress, leave=False):
         b = idx[s : s + batch_size]
         m, r = batch_modes(model, data.depth(b), torch.from_numpy(data.K[b]), joint_types=joint_types, refine=refine,
-                           split_factor=split_factor, handle_max_q_deg=handle_max_q_deg)
+                           split_factor=split_factor, handle_max_q_deg=handle_max_q_deg, workspace=workspace)
         ms.append(m)
         rs.append(r)
     cat = lambda chunks: {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}  # noqa: E731

@@ -218,18 +218,23 @@ def _align_to_normals(frame: torch.Tensor, normals: torch.Tensor, weights: torch
 
     A unit normal within an inlier angle (< 45 deg) of a signed frame axis is nearest to that
     axis, so matching "nearest axis, if within the angle" is the threshold ``|n . a_k| > cos``.
+    The weights multiply the normals before the matched axes' signs (+-1) do: the same numbers as
+    weighting the signs for the 0 / 1 weights of :func:`refined_quantities`.
     """
     B, J = frame.shape[:2]
     normals_t = normals.transpose(1, 2).contiguous()  # (B, 3, P)
-    w = weights[:, None]  # (B, 1, P)
+    weighted = normals * weights[..., None]  # w_p n_p (B, P, 3)
     for inlier_deg in INLIER_ANGLES_DEG:
         cos_in = math.cos(math.radians(inlier_deg))
         # every normal in every frame's coordinates at once: (B, J * 3, P), row 3 j + k for axis k of joint j
         c = frame.transpose(-1, -2).reshape(B, J * 3, 3) @ normals_t
-        signed_w = torch.where(c > cos_in, w, torch.where(c < -cos_in, -w, 0.0))  # +-w_p on the matched signed axis
+        # +-1 on the matched signed axis, 0 elsewhere: sign(|c| - cos) is 1 exactly where |c| > cos (a
+        # difference of floats is never rounded to 0); float operations only (comparisons, bool -> float
+        # conversions and a broadcast torch.where are several times slower)
+        signed = c.abs().sub_(cos_in).sign_().clamp_min_(0.0).mul_(c.sign_())
         # H = sum_p w_p a_p n_p^T with a_p the matched signed axis (row k: the normals matched to
         # +-axis k), plus the prior (the current axes onto themselves); R = V diag(1, 1, d) U^T
-        rows = signed_w @ normals  # (B, J * 3, 3)
+        rows = signed @ weighted  # (B, J * 3, 3)
         H = rows.view(B, J, 3, 3) + PRIOR_WEIGHT_PX * frame.transpose(-1, -2)
         U, _, Vh = torch.linalg.svd(H)
         d = torch.sign(torch.linalg.det(Vh.transpose(-1, -2) @ U.transpose(-1, -2)))
@@ -248,16 +253,6 @@ def _compact(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     idx = torch.zeros(mask.shape[0], n, dtype=torch.long)
     idx[rows, pos] = cols
     return idx, torch.arange(n) < counts[:, None]
-
-
-def _per_joint(values: torch.Tensor, idx: torch.Tensor, J: int) -> torch.Tensor:
-    """Rows (B, n) or (B, n, C) of each image and column indices (B * J, m) for each of its joints
-    -> (B * J, m) or (B * J, m, C)."""
-    if J > 1:
-        values = values.repeat_interleave(J, 0)
-    if values.dim() == 3:
-        return torch.gather(values, 1, idx[..., None].expand(*idx.shape, values.shape[2]))
-    return torch.gather(values, 1, idx)
 
 
 def _argmax_channels(x: torch.Tensor) -> torch.Tensor:
@@ -305,10 +300,13 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     R, J = frame.shape[:2]
     H, W = x.shape[2:]
     idx, ok = _compact(valid_px)  # (R, n): the valid pixels
-    # channels 0-2 (relative points) and 4-6 (normals) of the valid pixels, (R, n, 3) each
-    x_flat, at = x.contiguous().view(-1), rows[:, None] * x[0].numel() + idx
-    relative, normals = ([x_flat[at + c * H * W] for c in channels] for channels in ((0, 1, 2), (4, 5, 6)))
-    relative, normals = torch.stack(relative, -1), torch.stack(normals, -1)
+    n = idx.shape[1]
+    # channels 0-2 (relative points) and 4-6 (normals) of the valid pixels, (R, n, 3) each (index_select:
+    # faster than indexing with a tensor)
+    at = (rows[:, None] * x[0].numel() + idx).view(-1)
+    x_flat = x.contiguous().view(-1)
+    relative, normals = (torch.stack([x_flat[c * H * W:].index_select(0, at) for c in channels], -1).view(R, n, 3)
+                         for channels in ((0, 1, 2), (4, 5, 6)))
     has_normal = ok & ((normals[..., 0] ** 2 + normals[..., 1] ** 2 + normals[..., 2] ** 2) > MIN_NORMAL_NORM**2)
     # each pixel's label is its output pixel's (nearest upsampling): 0 body, 1 + j part j
     h_out, w_out = seg.shape[2:]
@@ -333,31 +331,38 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     side_pri = torch.sign((voted_axis * zf[:, :, None]).sum(-1))
     side = torch.where(revolute[None, :, None], side_rev, side_pri)
     side = torch.where(side == 0, torch.ones_like(side), side)[..., None]
-    # step 5: door angles, over each door's pixels with a normal
+    # each door's pixels, gathered once for steps 5 and 6: (R * J, m) rows of the (R * n) valid pixels
     door = torch.stack([label == 1 + j for j in range(J)], 1) & ok[:, None]  # (R, J, n)
-    didx, dok = _compact((door & has_normal[:, None]).flatten(0, 1))  # (R * J, m)
-    proj = _per_joint(normals, didx, J) @ torch.stack([xf, yf], -1).flatten(0, 1)  # (R * J, m, 2): n.x, n.y
-    q = lower_median(torch.atan2(proj[..., 0].abs(), proj[..., 1].abs()), dok).view(R, J)  # equal weights
+    didx, dok = _compact(door.flatten(0, 1))  # (R * J, m)
+    m = didx.shape[1]
+    door_at = (torch.arange(R).repeat_interleave(J)[:, None] * n + didx).view(-1)
+    # step 5: door angles, over each door's pixels with a normal (the median by value: the other
+    # pixels, which the selection leaves out, may sit anywhere in the row)
+    with_normal = dok & has_normal.view(-1).index_select(0, door_at).view(R * J, m)
+    door_normals = normals.view(R * n, 3).index_select(0, door_at).view(R * J, m, 3)
+    proj = door_normals @ torch.stack([xf, yf], -1).flatten(0, 1)  # (R * J, m, 2): n.x, n.y
+    q = lower_median(torch.atan2(proj[..., 0].abs(), proj[..., 1].abs()), with_normal).view(R, J)  # equal weights
     q = torch.where(revolute[None], q, torch.full_like(q, float("nan")))
-    points = relative * POINT_SCALE_M + anchor[:, None]  # (R, n, 3) camera frame (m)
-    door_mid, door_cut = _door_extent(points, row, door, side[:, :, 0, 0, None] * zf, revolute, H)
+    # step 6: the doors' points in the camera frame (m) and image rows
+    door_relative = relative.reshape(R * n, 3).index_select(0, door_at).view(R * J, m, 3)
+    door_points = door_relative * POINT_SCALE_M + anchor.repeat_interleave(J, 0)[:, None]
+    door_row = row.view(-1).index_select(0, door_at).view(R * J, m)
+    door_mid, door_cut = _door_extent(door_points, door_row, dok, side[:, :, 0, 0, None] * zf, revolute, H)
     return {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], "q": q,
-            "door_px": dok.sum(-1).view(R, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut}
+            "door_px": with_normal.sum(-1).view(R, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut}
 
 
-def _door_extent(points: torch.Tensor, row: torch.Tensor, door: torch.Tensor, axis: torch.Tensor,
+def _door_extent(points: torch.Tensor, row: torch.Tensor, real: torch.Tensor, axis: torch.Tensor,
                  revolute: torch.Tensor, H: int) -> tuple:
     """Step 6: each door's mid-height along ``axis`` (B, J, 3) and whether it is cut off (B, J), from
-    the valid pixels' points (B, n, 3) m, image rows (B, n) and door membership (B, J, n)."""
+    its pixels' points (B * J, m, 3) m, image rows (B * J, m) and which of them are real (B * J, m)."""
     B, J = axis.shape[:2]
-    didx, dok = _compact(door.flatten(0, 1))  # (B * J, m)
-    along = (_per_joint(points, didx, J) @ axis.reshape(B * J, 3, 1))[..., 0]
-    lo, hi = (v.view(B, J) for v in _quantile_pair(along, dok, DOOR_EXTENT_QUANTILE))
-    enough = revolute[None] & (dok.sum(-1).view(B, J) >= DOOR_EXTENT_MIN_PX)
+    along = (points @ axis.reshape(B * J, 3, 1))[..., 0]
+    lo, hi = (v.view(B, J) for v in _quantile_pair(along, real, DOOR_EXTENT_QUANTILE))
+    enough = revolute[None] & (real.sum(-1).view(B, J) >= DOOR_EXTENT_MIN_PX)
     mid = torch.where(enough, 0.5 * (lo + hi), torch.full_like(lo, float("nan")))
-    door_row = _per_joint(row, didx, J)
-    top = torch.where(dok, door_row, H).amin(-1).view(B, J)
-    bottom = torch.where(dok, door_row, -1).amax(-1).view(B, J)
+    top = torch.where(real, row, H).amin(-1).view(B, J)
+    bottom = torch.where(real, row, -1).amax(-1).view(B, J)
     cut = (top <= OUTPUT_STRIDE) | (bottom >= H - 1 - OUTPUT_STRIDE)
     return mid, cut.to(points.dtype)
 

@@ -1,0 +1,197 @@
+"""The dense estimator's fast inference stages against plain references: the network input
+(``features.make_inputs``) against the whole-image formulas, the box-frame alignment against its
+thresholded ``torch.where`` form, and the refined quantities (``refine.refined_quantities``) against
+a loop over images and joints, on random scenes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from torch.nn import functional as F  # noqa: E402
+
+from articulated_dataset.models.dense import refine as R  # noqa: E402
+from articulated_dataset.models.dense.aggregate import image_groups  # noqa: E402
+from articulated_dataset.models.dense.features import (  # noqa: E402
+    N_INPUT_CHANNELS, NORMAL_MAX_STEP_M, OUTPUT_STRIDE, POINT_SCALE_M, backproject_torch, make_inputs)
+
+
+def _random_depth(rng: np.random.Generator, B: int, H: int, W: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Depth images of tilted planes with a step (a depth edge) and holes, one image without any
+    return; and their intrinsics."""
+    v, u = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
+    depth = np.zeros((B, H, W))
+    for b in range(B - 1):
+        d = 1.0 + rng.uniform(0, 1) + rng.uniform(-0.02, 0.02) * u + rng.uniform(-0.02, 0.02) * v
+        d = d + np.where(u > rng.integers(W // 3, W), 0.3, 0.0)  # a step: no normal across it
+        keep = rng.uniform(size=(H, W)) > 0.2
+        keep &= (np.abs(u - rng.uniform(0, W)) < rng.uniform(W / 4, W)) & (np.abs(v - rng.uniform(0, H)) < rng.uniform(H / 4, H))
+        depth[b] = np.where(keep, d, 0.0)
+    f = rng.uniform(20, 40, B)
+    K = np.zeros((B, 3, 3))
+    K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = f, f * 1.1, (W - 1) / 2, (H - 1) / 2 + 1, 1
+    return torch.tensor(depth, dtype=torch.float32), torch.tensor(K, dtype=torch.float32)
+
+
+def _reference_inputs(depth: torch.Tensor, K: torch.Tensor) -> dict:
+    """The network input written as whole-image formulas (no lists of pixels)."""
+    B, H, W = depth.shape
+    valid = depth > 0
+    w = valid.to(depth.dtype)
+    pts = backproject_torch(depth * w, K)
+    anchor = pts.sum((2, 3)) / w.sum((1, 2)).clamp_min(1.0)[:, None]
+    relative = torch.where(valid[:, None], (pts - anchor[:, :, None, None]) / POINT_SCALE_M, 0.0)
+    normals = torch.zeros(B, 3, H, W)
+    dx = pts[:, :, 1:-1, 2:] - pts[:, :, 1:-1, :-2]
+    dy = pts[:, :, 2:, 1:-1] - pts[:, :, :-2, 1:-1]
+    max2 = (2 * NORMAL_MAX_STEP_M) ** 2
+    ok = (dx[:, 0] * dx[:, 0] + dx[:, 1] * dx[:, 1] + dx[:, 2] * dx[:, 2] < max2)
+    ok &= (dy[:, 0] * dy[:, 0] + dy[:, 1] * dy[:, 1] + dy[:, 2] * dy[:, 2] < max2)
+    ok &= valid[:, 1:-1, 2:] & valid[:, 1:-1, :-2] & valid[:, 2:, 1:-1] & valid[:, :-2, 1:-1] & valid[:, 1:-1, 1:-1]
+    n = torch.stack([dx[:, 1] * dy[:, 2] - dx[:, 2] * dy[:, 1], dx[:, 2] * dy[:, 0] - dx[:, 0] * dy[:, 2],
+                     dx[:, 0] * dy[:, 1] - dx[:, 1] * dy[:, 0]], 1)
+    scale = torch.rsqrt((n[:, 0] * n[:, 0] + n[:, 1] * n[:, 1] + n[:, 2] * n[:, 2]).clamp_min(1e-24))
+    scale = torch.where(n[:, 0] * scale > 0, -scale, scale)
+    normals[:, :, 1:-1, 1:-1] = torch.where(ok[:, None], n * scale[:, None], 0.0)
+    pooled = F.avg_pool2d(torch.cat([pts, w[:, None]], 1), OUTPUT_STRIDE, ceil_mode=True)
+    u = torch.linspace(-1, 1, W).view(1, 1, 1, W).expand(B, 1, H, W)
+    v = torch.linspace(-1, 1, H).view(1, 1, H, 1).expand(B, 1, H, W)
+    x = torch.cat([relative, w[:, None], normals, u, v], 1)
+    return {"x": x, "anchor": anchor, "points_out": pooled[:, :3] / pooled[:, 3:4].clamp_min(1e-6),
+            "weight_out": pooled[:, 3]}
+
+
+@pytest.mark.parametrize("hw", [(24, 32), (22, 30)])  # windows that divide the image, and ones that do not
+def test_network_input_matches_the_whole_image_formulas(hw):
+    depth, K = _random_depth(np.random.default_rng(3), 6, *hw)
+    ref = _reference_inputs(depth, K)
+    assert (ref["x"][:, 4:7].abs().sum(1) > 0.5).sum() > 200  # normals exist
+    assert (ref["weight_out"] == 0).any() and ((ref["weight_out"] > 0) & (ref["weight_out"] < 1)).any()
+    got = make_inputs(depth, K)
+    stale = torch.full((6, N_INPUT_CHANNELS, *hw), 7.0)  # a previous batch's input, written over
+    again = make_inputs(depth, K, out=stale)
+    assert again["x"].data_ptr() == stale.data_ptr()
+    for out in (got, again):
+        assert set(out) == set(ref)
+        for key in ref:
+            assert out[key].shape == ref[key].shape, key
+            assert torch.equal(out[key], ref[key]), key  # the same numbers, not merely close
+
+
+def _reference_alignment(frame: torch.Tensor, normals: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Step 2 with the matched signed axes' weights as ``torch.where`` of the thresholds."""
+    B, J = frame.shape[:2]
+    for inlier_deg in R.INLIER_ANGLES_DEG:
+        cos_in = math.cos(math.radians(inlier_deg))
+        c = frame.transpose(-1, -2).reshape(B, J * 3, 3) @ normals.transpose(1, 2).contiguous()
+        w = weights[:, None]
+        signed_w = torch.where(c > cos_in, w, torch.where(c < -cos_in, -w, 0.0))
+        H = (signed_w @ normals).view(B, J, 3, 3) + R.PRIOR_WEIGHT_PX * frame.transpose(-1, -2)
+        U, _, Vh = torch.linalg.svd(H)
+        d = torch.sign(torch.linalg.det(Vh.transpose(-1, -2) @ U.transpose(-1, -2)))
+        D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
+        frame = Vh.transpose(-1, -2) @ D @ U.transpose(-1, -2)
+    return frame
+
+
+def _random_frames(gen: torch.Generator, *shape) -> torch.Tensor:
+    q, _ = torch.linalg.qr(torch.randn(*shape, 3, 3, generator=gen))
+    return q * torch.linalg.det(q)[..., None, None].sign()  # rotations (det +1)
+
+
+def test_frame_alignment_matches_the_thresholded_reference():
+    gen = torch.Generator().manual_seed(5)
+    B, J, P = 4, 2, 500
+    frame = _random_frames(gen, B, J)
+    # normals near the first joint's signed axes (inliers at every angle) plus uniform ones, some absent
+    axes = frame[:, 0].transpose(1, 2)[:, torch.randint(0, 3, (P,), generator=gen)]  # (B, P, 3)
+    signs = torch.randint(0, 2, (B, P, 1), generator=gen) * 2.0 - 1.0
+    normals = F.normalize(signs * axes + 0.08 * torch.randn(B, P, 3, generator=gen), dim=-1)
+    normals[:, ::3] = F.normalize(torch.randn(B, len(range(0, P, 3)), 3, generator=gen), dim=-1)
+    normals[:, ::7] = 0.0
+    weights = (torch.rand(B, P, generator=gen) > 0.3).float()
+    got = R._align_to_normals(frame, normals, weights)
+    ref = _reference_alignment(frame, normals, weights)
+    assert torch.equal(got, ref)
+    assert (got - frame).abs().max() > 1e-3  # the alignment did move the frames
+
+
+def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -> dict:
+    """Steps 1-3, 5 and 6 image by image and joint by joint, from the whole-image input."""
+    x = inputs["x"]
+    B, _, H, W = x.shape
+    J = len(joint_types)
+    frames = R._sign_free_frame(parts, inputs["weight_out"] > 0)
+    label_out = parts["seg"].argmax(1)  # (B, h, w): 0 body, 1 + j part j
+    label = label_out.repeat_interleave(OUTPUT_STRIDE, 1).repeat_interleave(OUTPUT_STRIDE, 2)[:, :H, :W]
+    nan = float("nan")
+    out = {"axis": torch.zeros(B, J, modes["origin"].shape[2], 3), "q": torch.full((B, J), nan),
+           "door_px": torch.zeros(B, J), "door_mid": torch.full((B, J), nan), "door_cut": torch.zeros(B, J)}
+    out["xaxis"] = out["axis"].clone()
+    rows = torch.arange(H)[:, None].expand(H, W)
+    for b in range(B):
+        valid = x[b, 3] > 0
+        normals, relative = x[b, 4:7].permute(1, 2, 0)[valid], x[b, 0:3].permute(1, 2, 0)[valid]  # (n, 3)
+        lab, row = label[b][valid], rows[valid]
+        has_normal = (normals * normals).sum(-1) > R.MIN_NORMAL_NORM**2
+        frame_px = lab == 0
+        for j, t in enumerate(joint_types):
+            if t == "prismatic":
+                frame_px |= lab == 1 + j
+        weights = (frame_px & has_normal).float()
+        frame = _reference_alignment(frames[b:b + 1], normals[None], weights[None])[0]  # (J, 3, 3)
+        points = relative * POINT_SCALE_M + inputs["anchor"][b]
+        for j, t in enumerate(joint_types):
+            xf, yf, zf = frame[j, :, 0], frame[j, :, 1], frame[j, :, 2]
+            if t == "revolute":
+                side = torch.sign(((inputs["anchor"][b] - modes["origin"][b, j]) * xf).sum(-1))
+            else:
+                side = torch.sign((modes["axis"][b, j] * zf).sum(-1))
+            side = torch.where(side == 0, 1.0, side)[:, None]  # (M, 1)
+            out["axis"][b, j], out["xaxis"][b, j] = side * zf, side * xf
+            door = lab == 1 + j
+            with_normal = door & has_normal
+            out["door_px"][b, j] = with_normal.sum()
+            if t == "revolute" and with_normal.any():
+                n = normals[with_normal]
+                angles = torch.sort(torch.atan2((n @ xf).abs(), (n @ yf).abs())).values
+                out["q"][b, j] = angles[(len(angles) + 1) // 2 - 1]  # the lower median
+            if door.any():
+                along = points[door] @ (side[0, 0] * zf)
+                lo, hi = torch.quantile(along, R.DOOR_EXTENT_QUANTILE), torch.quantile(along, 1 - R.DOOR_EXTENT_QUANTILE)
+                if t == "revolute" and door.sum() >= R.DOOR_EXTENT_MIN_PX:
+                    out["door_mid"][b, j] = 0.5 * (lo + hi)
+                out["door_cut"][b, j] = float(row[door].min() <= OUTPUT_STRIDE or row[door].max() >= H - 1 - OUTPUT_STRIDE)
+    return out
+
+
+@pytest.mark.parametrize("joint_types", [["revolute", "revolute"], ["prismatic", "revolute"]])
+def test_refined_quantities_match_a_loop_over_images(joint_types, monkeypatch):
+    rng = np.random.default_rng(11)
+    gen = torch.Generator().manual_seed(11)
+    B, H, W, J, M = 9, 32, 48, len(joint_types), 2
+    depth, K = _random_depth(rng, B, H, W)
+    depth[2, : H // 2] = 0.0  # an image whose doors may reach no edge
+    inputs = make_inputs(depth, K)
+    h, w = H // OUTPUT_STRIDE, W // OUTPUT_STRIDE
+    seg = torch.randn(B, 1 + J, h, w, generator=gen) * 2
+    seg[:, 0, :, : w // 3] += 3.0  # a body on the left
+    parts = {"seg": seg, "rot6": torch.randn(B, J, 6, h, w, generator=gen) + torch.tensor([0, 0, 3.0, 3, 0, 0]).view(1, 1, 6, 1, 1),
+             "conf": torch.randn(B, J, 3, h, w, generator=gen)}
+    modes = {"origin": torch.randn(B, J, M, 3, generator=gen) + torch.tensor([1.5, 0, 0]),
+             "axis": F.normalize(torch.randn(B, J, M, 3, generator=gen), dim=-1)}
+    monkeypatch.setattr(R, "image_groups", lambda counts: image_groups(counts, 4))  # several groups of images
+    got = R.refined_quantities(parts, inputs, modes, joint_types)
+    ref = _reference_refinement(parts, inputs, modes, joint_types)
+    assert set(got) == set(ref)
+    assert torch.isfinite(ref["q"]).sum() >= 6 and torch.isfinite(ref["door_mid"]).sum() >= 4
+    assert ref["door_cut"].sum() >= 1 and (ref["door_cut"] == 0).sum() >= 1
+    for key in ref:
+        assert got[key].shape == ref[key].shape, key
+        assert torch.equal(got[key].isnan(), ref[key].isnan()), key
+        assert torch.allclose(got[key].nan_to_num(), ref[key].nan_to_num(), atol=2e-5), key
+
