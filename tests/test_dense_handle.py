@@ -21,16 +21,16 @@ W_PX, H_PX = 192, 108
 DOOR_DEPTH_M = 1.5
 #: the door spans these columns and rows; the handle bar is a few columns near its left edge
 DOOR_COLS, DOOR_ROWS = (40, 152), (10, 98)
-HANDLE_COLS, HANDLE_ROWS = (46, 48), (45, 60)
+HANDLE_COLS, HANDLE_ROWS = (46, 48), (48, 56)  # about 2.8 x 11 cm at 1.5 m
 
 
-def _scene(handle: bool = True):
+def _scene(handle: bool = True, handle_cols=HANDLE_COLS):
     """A closed door facing the camera (a plane at 1.5 m) with its handle bar near the image-left
     edge, the parts of a network that labels every pixel door, and the door's hinge lines."""
     depth = torch.zeros(1, H_PX, W_PX)
     depth[0, DOOR_ROWS[0] : DOOR_ROWS[1], DOOR_COLS[0] : DOOR_COLS[1]] = DOOR_DEPTH_M
     if handle:
-        depth[0, HANDLE_ROWS[0] : HANDLE_ROWS[1], HANDLE_COLS[0] : HANDLE_COLS[1]] = DOOR_DEPTH_M - HANDLE_STANDOFF_M
+        depth[0, HANDLE_ROWS[0] : HANDLE_ROWS[1], handle_cols[0] : handle_cols[1]] = DOOR_DEPTH_M - HANDLE_STANDOFF_M
     K = torch.from_numpy(CameraConfig(W_PX, H_PX).K.astype(np.float32))[None]
     inputs = make_inputs(depth, K)
     h, w = -(-H_PX // OUTPUT_STRIDE), -(-W_PX // OUTPUT_STRIDE)
@@ -64,6 +64,8 @@ def test_handle_pixels_are_found_in_front_of_the_face():
     found = ev["handle_point"][0, 0].numpy()
     assert abs(found[1] - handle[1]) < 0.02  # across the door: the bar's column
     assert found[0] == pytest.approx(DOOR_DEPTH_M - HANDLE_STANDOFF_M, abs=0.005)
+    length, width = ev["handle_size_m"][0, 0].tolist()
+    assert 0.08 < length < 0.14 and 0.01 < width < 0.045
 
 
 def test_no_handle_no_pixels_and_non_candidates_are_not_measured():
@@ -94,6 +96,14 @@ def test_a_mode_hinged_at_the_handle_is_mirrored_across_the_door():
     assert apply_handle_side(opened, ev, 20.0, 1.0, ["revolute"]) is opened
     assert apply_handle_side(wrong, ev, 20.0, 1e6, ["revolute"]) is wrong
     assert apply_handle_side(wrong, ev, None, 1.0, ["revolute"]) is wrong
+
+
+def test_a_region_wider_than_a_handle_bar_is_not_taken_for_one():
+    inputs, parts, left, right, _ = _scene(handle_cols=(46, 70))  # ~34 cm wide: not a bar
+    ev = {k: v.numpy().astype(np.float64) for k, v in
+          handle_evidence(parts, inputs, torch.tensor([[[0.0, 0.0, 1.0]]]), ["revolute"], torch.ones(1, 1, dtype=torch.bool)).items()}
+    assert ev["handle_px"][0, 0] > 100 and ev["handle_size_m"][0, 0, 1] > 0.2
+    assert not mirrored_by_handle(_modes(left, right), ev, 20.0, 1.0, ["revolute"]).any()
 
 
 def test_refinement_applies_step_7_and_round_trips():

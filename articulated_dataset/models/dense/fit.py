@@ -22,7 +22,7 @@ TURN_GATE_CANDIDATES_DEG = (5.0, 8.0, 10.0, 15.0, 20.0, 30.0, None)
 #: Gates tried for ``door_extent_gate_m`` by :func:`fit_refinement` (m; None: never gate).
 DOOR_EXTENT_GATE_CANDIDATES_M = (0.05, 0.1, 0.2, None)
 #: Door angles (deg) below which step 7 (the handle's side) may be used, tried by :func:`fit_refinement`.
-HANDLE_Q_CANDIDATES_DEG = (5.0, 10.0, 15.0, 20.0, 30.0)
+HANDLE_Q_CANDIDATES_DEG = (5.0, 10.0, 20.0, 30.0, 45.0)
 #: Handle pixels step 7 needs, tried by :func:`fit_refinement`.
 HANDLE_PX_CANDIDATES = (1.0, 3.0, 6.0)
 

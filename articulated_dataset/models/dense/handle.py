@@ -14,7 +14,9 @@ few centimetres in front of the door's face, so the side is measured instead:
    face's offset ``c`` is the mean of ``n . p`` over those pixels, trimmed to within
    :data:`FACE_TRIM_M` of a first mean;
 2. the handle: the door pixels with ``n . p - c`` between :data:`HANDLE_MIN_STANDOFF_M` and
-   :data:`HANDLE_MAX_STANDOFF_M`; their count and mean point;
+   :data:`HANDLE_MAX_STANDOFF_M`; their count, mean point and extent along and across the axis
+   (``sqrt(12 var)``, a uniform bar's length); only a bar-sized one (:data:`HANDLE_MAX_LENGTH_M`,
+   :data:`HANDLE_MAX_WIDTH_M`) is used;
 3. the side (:func:`apply_handle_side`): a vote mode whose ``x`` (from its hinge towards the
    door's centre, refinement step 3) puts the handle nearer its hinge than the door's centre,
    ``(h - o) . x < r`` (``r`` the voted door radius), is on the wrong side.  It is mirrored:
@@ -38,6 +40,15 @@ from .features import OUTPUT_STRIDE, POINT_SCALE_M
 
 #: How far a handle bar stands out of its door's face (m): ``handle_standoff_m`` of common.xacro.
 HANDLE_STANDOFF_M = 0.03
+#: The bar's width across (m) and its length (m): ``handle_bar_m`` and ``handle_len_m`` of common.xacro.
+HANDLE_BAR_M = 0.02
+HANDLE_LEN_M = 0.12
+#: What is taken for a handle must be a bar: seen from the front or obliquely it spans at most its
+#: width and its standoff across (m) ...
+HANDLE_MAX_WIDTH_M = HANDLE_BAR_M + HANDLE_STANDOFF_M
+#: ... and at most this along the axis (m); an open door's neighbouring body edges, or a face
+#: taken for the door's, stand in front of the door's plane over far larger areas.
+HANDLE_MAX_LENGTH_M = 1.5 * HANDLE_LEN_M
 #: Door pixels this far or further in front of the face (m) are taken for the handle ...
 HANDLE_MIN_STANDOFF_M = 0.4 * HANDLE_STANDOFF_M
 #: ... up to this far (m): nearer the camera than that is not the door's.
@@ -61,8 +72,9 @@ def _per_image_mean(values: torch.Tensor, image: torch.Tensor, weight: torch.Ten
 
 @torch.no_grad()
 def handle_evidence(parts: dict, inputs: dict, axis_line: torch.Tensor, joint_types, candidates: torch.Tensor) -> dict:
-    """Steps 1-2 for a batch: ``handle_px`` (B, J) handle pixels of each door and ``handle_point``
-    (B, J, 3) their mean camera-frame point (m; both 0 without any, for prismatic joints and where
+    """Steps 1-2 for a batch: ``handle_px`` (B, J) handle pixels of each door, ``handle_point``
+    (B, J, 3) their mean camera-frame point (m) and ``handle_size_m`` (B, J, 2) their extent along
+    the axis and across it on the door's face (all 0 without any, for prismatic joints and where
     ``candidates`` (B, J) is False: only those doors are measured).
 
     ``parts``: :meth:`~.model.DenseNet.split` output (its segmentation, upsampled to the input
@@ -75,6 +87,7 @@ def handle_evidence(parts: dict, inputs: dict, axis_line: torch.Tensor, joint_ty
     dtype = x.dtype
     handle_px = torch.zeros(B, J, dtype=dtype)
     handle_point = torch.zeros(B, J, 3, dtype=dtype)
+    handle_size = torch.zeros(B, J, 2, dtype=dtype)
     h_out, w_out = parts["seg"].shape[2:]
     for j, joint_type in enumerate(joint_types):
         images = candidates[:, j].nonzero()[:, 0]
@@ -109,9 +122,14 @@ def handle_evidence(parts: dict, inputs: dict, axis_line: torch.Tensor, joint_ty
         standoff = s - c[b, 0]
         handle = ((standoff > HANDLE_MIN_STANDOFF_M) & (standoff < HANDLE_MAX_STANDOFF_M) & (count[b] > 0)).to(dtype)
         point, px = _per_image_mean(points, b, handle, k)
+        rel = points - point[b]
+        across = torch.cross(z, n[b], dim=-1)  # along the face, perpendicular to the axis
+        spread, _ = _per_image_mean(torch.stack([(rel * z).sum(-1) ** 2, (rel * across).sum(-1) ** 2], -1), b, handle, k)
         handle_px[images, j] = px
         handle_point[images, j] = point * (px > 0).to(dtype)[:, None]
-    return {"handle_px": handle_px, "handle_point": handle_point}
+        # the handle's extent along the axis and across it (a uniform bar of length l has variance l^2 / 12)
+        handle_size[images, j] = torch.sqrt(12.0 * spread) * (px > 0).to(dtype)[:, None]
+    return {"handle_px": handle_px, "handle_point": handle_point, "handle_size_m": handle_size}
 
 
 def handle_candidates_evidence(parts: dict, inputs: dict, modes: dict, refined: dict, joint_types,
@@ -129,12 +147,14 @@ def handle_candidates_evidence(parts: dict, inputs: dict, modes: dict, refined: 
 def mirrored_by_handle(m: dict, r: dict, max_q_deg: float, min_px: float, joint_types) -> np.ndarray:
     """Step 3's test: (B, J, M) whether each vote mode of ``m`` (numpy mode arrays after the other
     refinement steps) is on its handle's side, for revolute doors whose mode angle is below
-    ``max_q_deg`` and with at least ``min_px`` handle pixels (``r``: :func:`handle_evidence`'s keys)."""
+    ``max_q_deg`` and with at least ``min_px`` handle pixels of a bar's size (``r``:
+    :func:`handle_evidence`'s keys)."""
     revolute = np.array([t == "revolute" for t in joint_types])
     radius = np.maximum(m["part_offset"][..., 0], MIN_RADIUS_M)  # (B, J, M)
     along = ((r["handle_point"][:, :, None] - m["origin"]) * m["xaxis"]).sum(-1) / np.maximum(
         np.linalg.norm(m["xaxis"], axis=-1), 1e-12)
-    checked = revolute[None, :, None] & (r["handle_px"][..., None] >= min_px) & (m["q"] < math.radians(max_q_deg))
+    bar = (r["handle_size_m"][..., 0] < HANDLE_MAX_LENGTH_M) & (r["handle_size_m"][..., 1] < HANDLE_MAX_WIDTH_M)
+    checked = revolute[None, :, None] & (r["handle_px"][..., None] >= min_px) & bar[..., None] & (m["q"] < math.radians(max_q_deg))
     return checked & (along < radius)
 
 
