@@ -65,7 +65,7 @@ def bench_class(args, class_name: str) -> None:
     from articulated_dataset.models.dense.checkpoint import build_dense_model, load_dense_checkpoint
     from articulated_dataset.models.dense.data import load_dense_split
     from articulated_dataset.models.dense.features import make_inputs
-    from articulated_dataset.models.dense.predict import modes_to_arrays, predict_arrays
+    from articulated_dataset.models.dense.predict import modes_to_arrays, network_outputs, predict_arrays
     from articulated_dataset.models.dense.refine import apply_refinement, as_refinement, refined_quantities, split_factor_of
 
     n_objects = max(1, -(-args.batch // IMAGES_PER_OBJECT))
@@ -90,7 +90,7 @@ def bench_class(args, class_name: str) -> None:
 
     with torch.inference_mode():
         t_inputs, inputs = timed(lambda: make_inputs(data.depth(idx), torch.from_numpy(data.K[idx])))
-        t_net, out = timed(lambda: model(inputs["x"]))
+        t_net, out = timed(lambda: network_outputs(model, inputs["x"]))  # as the pipeline runs it
         parts = model.split(out)
         t_modes, modes = timed(lambda: vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0,
                                                   split_factor=split_factor_of(refinement)))

@@ -87,12 +87,12 @@ def _flat_from(t: torch.Tensor, offset: int) -> torch.Tensor:
     return t.view(-1)[offset:]
 
 
-def _listed_normals(points: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, list]:
-    """The normals of :func:`surface_normals` as a list: the images ``b`` and flat pixels ``p``
-    (T,) whose four neighbours are valid (objects cover a fraction of the image) and the
-    normal's three components (T,) there (0 where a neighbour is too far), each computed with the
-    same arithmetic as on the whole image.  ``points`` (B, C, H, W) contiguous, the points in
-    channels 0-2 (the network input's first channels)."""
+def _listed_normals(points: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, list]:
+    """The normals of :func:`surface_normals` as a list: the flat indices (T,) into ``points`` of
+    channel 0 of the pixels whose four neighbours are valid (objects cover a fraction of the image)
+    and the normal's three components (T,) there (0 where a neighbour is too far), each computed
+    with the same arithmetic as on the whole image.  ``points`` (B, C, H, W) contiguous, the points
+    in channels 0-2 (the network input's first channels)."""
     B, C, H, W = points.shape
     P = H * W
     inner = valid[:, 1:-1, 2:] & valid[:, 1:-1, :-2] & valid[:, 2:, 1:-1] & valid[:, :-2, 1:-1] & valid[:, 1:-1, 1:-1]
@@ -101,10 +101,9 @@ def _listed_normals(points: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Te
     b, p = candidate.flatten(1).nonzero(as_tuple=True)
     above = b * (C * P) + p - W  # the pixel above (channel 0): every listed pixel has one
 
-    flat = points.view(-1)
-
-    def point(c, dy, dx):  # channel c of the listed pixels' neighbour (dy, dx)
-        return flat.index_select(0, above + (c * P + (1 + dy) * W + dx))
+    def point(c, dy, dx):  # channel c of the listed pixels' neighbour (dy, dx): read from a view that
+        # starts that far on (index_select: faster than indexing with a tensor, and no index arithmetic)
+        return _flat_from(points, c * P + (1 + dy) * W + dx).index_select(0, above)
 
     dx = [point(c, 0, 1) - point(c, 0, -1) for c in range(3)]
     dy = [point(c, 1, 0) - point(c, -1, 0) for c in range(3)]
@@ -116,7 +115,15 @@ def _listed_normals(points: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Te
     scale = torch.rsqrt((n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).clamp_min(1e-24))
     # the camera looks along +x: normals point back; 0 where no normal is defined
     scale = torch.where(n[0] * scale > 0, -scale, scale) * ok
-    return b, p, [nc * scale for nc in n]
+    return above + W, [nc * scale for nc in n]
+
+
+def _write_listed(t: torch.Tensor, first_channel: int, at: torch.Tensor, values: list) -> None:
+    """Write ``values[c]`` (T,) into channel ``first_channel + c`` of the contiguous ``t`` at the flat
+    indices ``at`` of channel 0."""
+    P = t.shape[-2] * t.shape[-1]
+    for c, v in enumerate(values):
+        _flat_from(t, (first_channel + c) * P).index_copy_(0, at, v)
 
 
 def surface_normals(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -126,9 +133,8 @@ def surface_normals(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     B, _, H, W = points.shape
     out = points.new_zeros(B, 3, H, W)
     if H >= 3 and W >= 3:
-        b, p, n = _listed_normals(points.contiguous(), valid)
-        for c in range(3):
-            _flat_from(out, c * H * W)[b * (3 * H * W) + p] = n[c]
+        at, n = _listed_normals(points.contiguous(), valid)
+        _write_listed(out, 0, at, n)
     return out
 
 
@@ -162,9 +168,8 @@ def make_inputs(depth_m: torch.Tensor, K: torch.Tensor, *, out: torch.Tensor | N
     w_out, p_out = _output_means(x)
     x[:, 4:7].zero_()
     if H >= 3 and W >= 3:
-        nb, npx, n = _listed_normals(x, valid)
-        for c in range(3):
-            _flat_from(x, (4 + c) * H * W)[nb * (N_INPUT_CHANNELS * H * W) + npx] = n[c]
+        at, n = _listed_normals(x, valid)
+        _write_listed(x, 4, at, n)
     # (p - a) / s at the valid pixels, 0 elsewhere, in place
     # (multiplying by the validity leaves -0.0 at some invalid pixels: equal to 0, and the same to the network)
     pts.sub_(anchor[:, :, None, None]).div_(POINT_SCALE_M).mul_(w[:, None])

@@ -285,7 +285,7 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types) -> d
     x = inputs["x"]
     valid_px = x[:, 3].flatten(1) > 0  # (B, H * W)
     frame = _sign_free_frame(parts, inputs["weight_out"] > 0)
-    rows_of, back = image_groups(valid_px.sum(1))
+    rows_of, back = image_groups(x[:, 3].sum((1, 2)))  # the validity channel's sum: no bool -> int conversion
     groups = []
     for rows in rows_of:
         groups.append(_refine_images(x, rows, valid_px[rows], parts["seg"][rows], frame[rows], inputs["anchor"][rows],
