@@ -119,7 +119,8 @@ def vote_modes(parts: dict, points: torch.Tensor, valid: torch.Tensor, split_fac
     groups, back = image_groups(valid.flatten(1).sum(1))
     if len(groups) == 1:
         return _vote_modes(parts, points, valid, split_factor)
-    out = [_vote_modes({k: v[rows] for k, v in parts.items()}, points[rows], valid[rows], split_factor) for rows in groups]
+    used = ("conf", "offset", "rot6", "q", "part_offset", "geometry", "geometry_conf")  # not the segmentation
+    out = [_vote_modes({k: parts[k][rows] for k in used}, points[rows], valid[rows], split_factor) for rows in groups]
     return {k: torch.cat([o[k] for o in out])[back] for k in out[0]}
 
 
@@ -159,8 +160,9 @@ def _vote_modes(parts: dict, points: torch.Tensor, valid: torch.Tensor, split_fa
         for _ in range(N_ITERATIONS):
             # |v - m|^2 = |v|^2 + |m|^2 - 2 m.v, as matrix products (no (S, N, 3) temporaries);
             # the kernel is computed in place in that one (B, J, S, n) tensor
-            k = torch.baddbmm((v2 + (modes * modes).sum(-1, keepdim=True)).flatten(0, 1), modes.flatten(0, 1),
-                              votes.flatten(0, 1), alpha=-2).view(B, J, S, N)
+            # (the product is added into the |v|^2 + |m|^2 tensor in place: baddbmm would copy it first)
+            k = (v2 + (modes * modes).sum(-1, keepdim=True)).flatten(0, 1).baddbmm_(
+                modes.flatten(0, 1), votes.flatten(0, 1), alpha=-2).view(B, J, S, N)
             k.clamp_(0, max_d2).mul_(-inv2bw2).exp_().mul_(w_rem[:, :, None])
             density = k.sum(-1)
             modes = (k @ vt) / density[..., None].clamp_min(1e-30)
