@@ -88,23 +88,23 @@ def handle_evidence(parts: dict, inputs: dict, axis_line: torch.Tensor, joint_ty
     handle_px = torch.zeros(B, J, dtype=dtype)
     handle_point = torch.zeros(B, J, 3, dtype=dtype)
     handle_size = torch.zeros(B, J, 2, dtype=dtype)
-    h_out, w_out = parts["seg"].shape[2:]
+    seg = parts["seg"]
+    flat = x.reshape(-1)  # a view: the input is contiguous
     for j, joint_type in enumerate(joint_types):
         images = candidates[:, j].nonzero()[:, 0]
         if joint_type != "revolute" or len(images) == 0:
             continue
-        xs = x[images].flatten(2)  # (k, C, H * W)
-        label = parts["seg"][images].argmax(1).flatten(1)  # (k, h * w)
-        b, p = (xs[:, 3] > 0).nonzero(as_tuple=True)  # the valid pixels
-        door = label[b, (p // W) // OUTPUT_STRIDE * w_out + (p % W) // OUTPUT_STRIDE] == 1 + j
-        b, p = b[door], p[door]
+        k = len(images)
+        door = _door_mask(seg[images], 1 + j)  # (k, h, w) at the output resolution
+        door = door.repeat_interleave(OUTPUT_STRIDE, 1).repeat_interleave(OUTPUT_STRIDE, 2)[:, :H, :W]
+        b, p = (door & (x[images, 3] > 0)).flatten(1).nonzero(as_tuple=True)  # its valid pixels (nearest upsampling)
         if len(b) == 0:
             continue
-        k = len(images)
-        listed = xs.transpose(1, 2)[b, p]  # (n, C)
-        points = listed[:, 0:3] * POINT_SCALE_M + inputs["anchor"][images][b]  # (n, 3) m
-        normals = listed[:, 4:7]
-        z = torch.nn.functional.normalize(axis_line[images, j], dim=-1)[b]
+        at = images[b] * (C * H * W) + p
+        points = torch.stack([flat[at + c * H * W] for c in range(3)], -1) * POINT_SCALE_M + inputs["anchor"][images][b]
+        normals = torch.stack([flat[at + c * H * W] for c in range(4, 7)], -1)
+        z_image = torch.nn.functional.normalize(axis_line[images, j], dim=-1)  # (k, 3)
+        z = z_image[b]
         has_normal = (normals * normals).sum(-1) > MIN_NORMAL_NORM**2
         # the normals towards the camera (at the origin) and perpendicular to the axis line
         facing = torch.where((normals * points).sum(-1, keepdim=True) > 0, -normals, normals)
@@ -120,11 +120,14 @@ def handle_evidence(parts: dict, inputs: dict, axis_line: torch.Tensor, joint_ty
         trimmed = inlier * ((s - c[b, 0]).abs() < FACE_TRIM_M).to(dtype)
         c, count = _per_image_mean(s[:, None], b, trimmed, k)
         standoff = s - c[b, 0]
-        handle = ((standoff > HANDLE_MIN_STANDOFF_M) & (standoff < HANDLE_MAX_STANDOFF_M) & (count[b] > 0)).to(dtype)
-        point, px = _per_image_mean(points, b, handle, k)
-        rel = points - point[b]
-        across = torch.cross(z, n[b], dim=-1)  # along the face, perpendicular to the axis
-        spread, _ = _per_image_mean(torch.stack([(rel * z).sum(-1) ** 2, (rel * across).sum(-1) ** 2], -1), b, handle, k)
+        at_handle = ((standoff > HANDLE_MIN_STANDOFF_M) & (standoff < HANDLE_MAX_STANDOFF_M) & (count[b] > 0)).nonzero()[:, 0]
+        hb, hp = b[at_handle], points[at_handle]  # the handle's pixels only from here on
+        ones = torch.ones(len(hb), dtype=dtype)
+        point, px = _per_image_mean(hp, hb, ones, k)
+        rel = hp - point[hb]
+        across = torch.cross(z_image, n, dim=-1)[hb]  # along the face, perpendicular to the axis
+        spread, _ = _per_image_mean(torch.stack([(rel * z_image[hb]).sum(-1) ** 2, (rel * across).sum(-1) ** 2], -1),
+                                    hb, ones, k)
         handle_px[images, j] = px
         handle_point[images, j] = point * (px > 0).to(dtype)[:, None]
         # the handle's extent along the axis and across it (a uniform bar of length l has variance l^2 / 12)
@@ -142,6 +145,17 @@ def handle_candidates_evidence(parts: dict, inputs: dict, modes: dict, refined: 
     voted = torch.where(modes["weight"] > 0, modes["q"], torch.full_like(modes["q"], math.inf)).amin(-1)
     candidates = (voted < limit) | (measured < limit) | measured.isnan()
     return handle_evidence(parts, inputs, refined["axis"][:, :, 0], joint_types, candidates)
+
+
+def _door_mask(seg: torch.Tensor, channel: int) -> torch.Tensor:
+    """Where ``seg.argmax(1) == channel`` (the first of equal maxima), by comparisons: an argmax
+    over the channels of a sliced network output is several times slower."""
+    mine = seg[:, channel]
+    mask = torch.ones_like(mine, dtype=torch.bool)
+    for c in range(seg.shape[1]):
+        if c != channel:
+            mask &= (mine > seg[:, c]) if c < channel else (mine >= seg[:, c])
+    return mask
 
 
 def mirrored_by_handle(m: dict, r: dict, max_q_deg: float, min_px: float, joint_types) -> np.ndarray:
