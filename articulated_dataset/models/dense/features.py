@@ -26,6 +26,8 @@ from torch.nn import functional as F
 
 #: Relative points are divided by this (m): objects span about +-1 m around their anchor.
 POINT_SCALE_M = 0.5
+#: A normal channel vector shorter than this is "no normal" (the input holds unit normals or 0).
+MIN_NORMAL_NORM = 0.5
 #: Neighbouring points further apart than this (m) are a depth edge: no normal there.
 NORMAL_MAX_STEP_M = 0.1
 #: Output pixels are this many input pixels wide.

@@ -36,7 +36,7 @@ import math
 import numpy as np
 import torch
 
-from .features import OUTPUT_STRIDE, POINT_SCALE_M
+from .features import MIN_NORMAL_NORM, OUTPUT_STRIDE, POINT_SCALE_M
 
 #: How far a handle bar stands out of its door's face (m): ``handle_standoff_m`` of common.xacro.
 HANDLE_STANDOFF_M = 0.03
@@ -57,8 +57,6 @@ HANDLE_MAX_STANDOFF_M = 1.7 * HANDLE_STANDOFF_M
 FACE_INLIER_DEG = 10.0
 #: The face's offset is the mean of ``n . p`` within this distance (m) of a first mean.
 FACE_TRIM_M = 0.01
-#: A normal channel vector shorter than this is "no normal" (the input holds unit normals or 0).
-MIN_NORMAL_NORM = 0.5
 #: The voted door radius is clipped below at this (m) before a door is mirrored.
 MIN_RADIUS_M = 0.05
 

@@ -56,7 +56,7 @@ import torch
 from torch.nn import functional as F
 
 from .aggregate import SPLIT_FACTOR, gram_schmidt6, image_groups, softmax_weights
-from .features import OUTPUT_STRIDE, POINT_SCALE_M
+from .features import MIN_NORMAL_NORM, OUTPUT_STRIDE, POINT_SCALE_M
 from .handle import apply_handle_side
 
 #: Manhattan alignment rounds: a normal is matched to a frame axis within these angles (deg).
@@ -66,8 +66,6 @@ PRIOR_WEIGHT_PX = 10.0
 #: The frame alignment reads the normals of every this-many-th row and column (2 is ~10% faster
 #: and measured ~0.05 deg worse on microwave validation objects).
 ALIGN_STRIDE = 1
-#: A normal channel vector shorter than this is "no normal" (the input holds unit normals or 0).
-MIN_NORMAL_NORM = 0.5
 #: The voted door radius is clipped below at this (m) before the offset angle is taken.
 MIN_RADIUS_M = 0.05
 #: Step 6: the door's extent along the axis is read between these quantiles of its pixels.
