@@ -36,6 +36,7 @@ import math
 import numpy as np
 import torch
 
+from .aggregate import argmax_channels
 from .features import MIN_NORMAL_NORM, OUTPUT_STRIDE, POINT_SCALE_M
 
 #: How far a handle bar stands out of its door's face (m): ``handle_standoff_m`` of common.xacro.
@@ -57,7 +58,8 @@ HANDLE_MAX_STANDOFF_M = 1.7 * HANDLE_STANDOFF_M
 FACE_INLIER_DEG = 10.0
 #: The face's offset is the mean of ``n . p`` within this distance (m) of a first mean.
 FACE_TRIM_M = 0.01
-#: The voted door radius is clipped below at this (m) before a door is mirrored.
+#: The voted door radius is clipped below at this (m) before a door is mirrored (and, in
+#: :mod:`.refine`, before the hinge offset's angle is taken).
 MIN_RADIUS_M = 0.05
 
 
@@ -93,7 +95,7 @@ def handle_evidence(parts: dict, inputs: dict, axis_line: torch.Tensor, joint_ty
         if joint_type != "revolute" or len(images) == 0:
             continue
         k = len(images)
-        door = _door_mask(seg[images], 1 + j)  # (k, h, w) at the output resolution
+        door = argmax_channels(seg[images]) == 1 + j  # (k, h, w) at the output resolution
         door = door.repeat_interleave(OUTPUT_STRIDE, 1).repeat_interleave(OUTPUT_STRIDE, 2)[:, :H, :W]
         b, p = (door & (x[images, 3] > 0)).flatten(1).nonzero(as_tuple=True)  # its valid pixels (nearest upsampling)
         if len(b) == 0:
@@ -143,17 +145,6 @@ def handle_candidates_evidence(parts: dict, inputs: dict, modes: dict, refined: 
     voted = torch.where(modes["weight"] > 0, modes["q"], torch.full_like(modes["q"], math.inf)).amin(-1)
     candidates = (voted < limit) | (measured < limit) | measured.isnan()
     return handle_evidence(parts, inputs, refined["axis"][:, :, 0], joint_types, candidates)
-
-
-def _door_mask(seg: torch.Tensor, channel: int) -> torch.Tensor:
-    """Where ``seg.argmax(1) == channel`` (the first of equal maxima), by comparisons: an argmax
-    over the channels of a sliced network output is several times slower."""
-    mine = seg[:, channel]
-    mask = torch.ones_like(mine, dtype=torch.bool)
-    for c in range(seg.shape[1]):
-        if c != channel:
-            mask &= (mine > seg[:, c]) if c < channel else (mine >= seg[:, c])
-    return mask
 
 
 def mirrored_by_handle(m: dict, r: dict, max_q_deg: float, min_px: float, joint_types) -> np.ndarray:

@@ -55,9 +55,9 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from .aggregate import SPLIT_FACTOR, gram_schmidt6, image_groups, softmax_weights
+from .aggregate import SPLIT_FACTOR, argmax_channels, gram_schmidt6, image_groups, softmax_weights
 from .features import MIN_NORMAL_NORM, OUTPUT_STRIDE, POINT_SCALE_M
-from .handle import apply_handle_side
+from .handle import MIN_RADIUS_M, apply_handle_side
 
 #: Manhattan alignment rounds: a normal is matched to a frame axis within these angles (deg).
 INLIER_ANGLES_DEG = (25.0, 10.0, 5.0)
@@ -66,8 +66,6 @@ PRIOR_WEIGHT_PX = 10.0
 #: The frame alignment reads the normals of every this-many-th row and column (2 is ~10% faster
 #: and measured ~0.05 deg worse on microwave validation objects).
 ALIGN_STRIDE = 1
-#: The voted door radius is clipped below at this (m) before the offset angle is taken.
-MIN_RADIUS_M = 0.05
 #: Step 6: the door's extent along the axis is read between these quantiles of its pixels.
 DOOR_EXTENT_QUANTILE = 0.005
 #: Step 6 needs at least this many door pixels.
@@ -260,16 +258,6 @@ def _compact(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return idx[:, :n], torch.arange(n) < counts[:, None]
 
 
-def _argmax_channels(x: torch.Tensor) -> torch.Tensor:
-    """``x.argmax(1)`` for a few channels (the first on ties), by comparisons: argmax over a
-    middle axis is several times slower."""
-    best, arg = x[:, 0], torch.zeros_like(x[:, 0], dtype=torch.long)
-    for k in range(1, x.shape[1]):
-        better = x[:, k] > best
-        best, arg = torch.where(better, x[:, k], best), arg.masked_fill(better, k)
-    return arg
-
-
 @torch.no_grad()
 def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types) -> dict:
     """Steps 1-3, 5 and 6 for a batch (see the module docstring).
@@ -315,7 +303,7 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     # each pixel's label is its output pixel's (nearest upsampling): 0 body, 1 + j part j
     h_out, w_out = seg.shape[2:]
     out_pixel = (torch.arange(H) // OUTPUT_STRIDE * w_out)[:, None] + torch.arange(W) // OUTPUT_STRIDE
-    label = torch.gather(_argmax_channels(seg).flatten(1), 1, out_pixel.flatten()[idx])  # (R, n)
+    label = torch.gather(argmax_channels(seg).flatten(1), 1, out_pixel.flatten()[idx])  # (R, n)
     row = idx // W
     # the body's faces, and a drawer's: a prismatic part only translates, so its faces stay parallel
     # to the frame's (the front of a drawer shows the pull axis where the body shows only a rim)
