@@ -52,6 +52,13 @@ class ObjectClass:
     order: listing order (the paper's order for the built-ins); ties broken by name.
     realistic_table: the joint size distribution of ``--table realistic`` (same pose, q
         and chirality as ``table``), or None where the class has none (third-party classes).
+    mirror_joints: where the class's mirror image (the scene reflected left-right) is again an
+        object of the class, the joint order of that image: its joint ``k`` is this object's
+        joint ``mirror_joints[k]`` (the cabinet hinged on either side: ``(0,)``; the two-door
+        cabinet, whose left door becomes the right one: ``(1, 0)``).  None where mirror images are
+        not objects of the class (the microwave is always hinged on its left).  The dense
+        estimator may average an image's estimate with its mirror image's
+        (:mod:`articulated_dataset.models.dense.mirror`).
     """
 
     name: str
@@ -63,6 +70,15 @@ class ObjectClass:
     description: str = ""
     order: int = 100
     realistic_table: SamplingTable | None = None
+    mirror_joints: tuple[int, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if self.mirror_joints is not None:
+            perm = tuple(self.mirror_joints)
+            if sorted(perm) != list(range(len(self.joints))) or any(perm[perm[k]] != k for k in range(len(perm))):
+                raise ValueError(f"mirror_joints must pair the joints up (a permutation of 0..{len(self.joints) - 1} that "
+                                 f"is its own inverse), got {self.mirror_joints!r}")
+            object.__setattr__(self, "mirror_joints", perm)
 
     def named_table(self, name: str) -> SamplingTable:
         """The table ``artdata generate --table NAME`` picks: ``paper`` (the class's default

@@ -25,4 +25,5 @@ CLASS = ObjectClass(
     description="1 revolute door, hinged on the left or right front edge",
     order=0,
     realistic_table=REALISTIC_TABLE,
+    mirror_joints=(0,),
 )

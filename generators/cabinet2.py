@@ -23,4 +23,5 @@ CLASS = ObjectClass(
     description="two-door cabinet: left door (joint 0) and right door (joint 1)",
     order=4,
     realistic_table=REALISTIC_TABLE,
+    mirror_joints=(1, 0),
 )

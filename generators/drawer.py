@@ -23,4 +23,5 @@ CLASS = ObjectClass(
     description="1 prismatic drawer sliding out of a hollow shell",
     order=1,
     realistic_table=REALISTIC_TABLE,
+    mirror_joints=(0,),
 )

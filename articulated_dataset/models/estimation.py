@@ -151,8 +151,7 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     import torch
 
     from ..camera import CameraConfig
-    from .dense.predict import batch_modes, modes_to_arrays
-    from .dense.refine import apply_refinement, as_refinement, split_factor_of
+    from .dense.predict import modes_to_arrays, refined_batch
     from ..registry import get_class
     from ..real.intrinsics import check_intrinsics
     from ..real.resample import crop_intrinsics, mask_fraction_inside, resample_depth
@@ -179,15 +178,11 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     if int((depth_r > 0).sum()) < MIN_OBJECT_PIXELS:
         raise UserError(f"only {int((depth_r > 0).sum())} object pixels remain on the model's {cfg.width_px}x{cfg.height_px} "
                         f"camera (need {MIN_OBJECT_PIXELS}); is the object in view and are the intrinsics right?")
-    refinement = as_refinement(ckpt.get("refinement"))
     joint_types = list(obj_class.joint_types)
-    modes, refined = batch_modes(net, torch.from_numpy(depth_r.astype(np.float32))[None],
-                                 torch.from_numpy(K_dst.astype(np.float32))[None], joint_types=joint_types,
-                                 refine=refinement is not None and refinement.needed,
-                                 split_factor=split_factor_of(refinement),
-                                 handle_max_q_deg=None if refinement is None else refinement.handle_max_q_deg)
-    arrays = modes_to_arrays(apply_refinement(modes, refined, refinement, joint_types), np.zeros(1, np.int64), net,
-                             ckpt.get("calibration"))
+    modes = refined_batch(net, torch.from_numpy(depth_r.astype(np.float32))[None],
+                          torch.from_numpy(K_dst.astype(np.float32))[None], joint_types=joint_types,
+                          refinement=ckpt.get("refinement"))
+    arrays = modes_to_arrays(modes, np.zeros(1, np.int64), net, ckpt.get("calibration"))
     from ..rotations import quat_to_matrix
 
     pose = arrays["axis_pose"][0]

@@ -57,13 +57,43 @@ def predict_arrays(model, data, idx: np.ndarray, *, joint_types: list[str], cali
     ``q``, ``geometry``, ``part_offset``, ``mixture_*``, ``mixture_layout``) plus ``spread``
     (N, M, D), the raw vote spreads.
     """
+    import torch
+    from tqdm.auto import tqdm
+
+    from .refine import as_refinement
+
+    refinement = as_refinement(refinement)
+    chunks, workspace = [], {}
+    for s in tqdm(range(0, len(idx), batch_size), desc="predicting", unit="batch", disable=not progress, leave=False):
+        b = idx[s : s + batch_size]
+        chunks.append(refined_batch(model, data.depth(b), torch.from_numpy(data.K[b]), joint_types=joint_types,
+                                    refinement=refinement, workspace=workspace))
+    m = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+    return modes_to_arrays(m, data.sample_id[idx], model, calibration)
+
+
+def refined_batch(model, depth_m, K, *, joint_types: list[str], refinement, workspace: dict | None = None) -> dict:
+    """One batch of depth images (B, H, W) m and intrinsics (B, 3, 3) at the model's resolution ->
+    the refined vote modes (numpy) the checkpoint's ``refinement`` (a
+    :class:`~.refine.Refinement`, its dict or None) asks for: :func:`batch_modes`, then
+    :func:`~.refine.apply_refinement` (steps 1-7), then, where it names ``mirror_joints``, the
+    average with the mirror images' (step 8, :func:`~.mirror.merge_mirrored`)."""
+    from .mirror import merge_mirrored, mirror_inputs
     from .refine import apply_refinement, as_refinement, split_factor_of
 
     refinement = as_refinement(refinement)
-    m, r = predict_modes(model, data, idx, joint_types=joint_types, refine=refinement is not None and refinement.needed,
-                         batch_size=batch_size, progress=progress, split_factor=split_factor_of(refinement),
-                         handle_max_q_deg=None if refinement is None else refinement.handle_max_q_deg)
-    return modes_to_arrays(apply_refinement(m, r, refinement, joint_types), data.sample_id[idx], model, calibration)
+
+    def one(depth, intrinsics):
+        m, r = batch_modes(model, depth, intrinsics, joint_types=joint_types,
+                           refine=refinement is not None and refinement.needed, split_factor=split_factor_of(refinement),
+                           handle_max_q_deg=None if refinement is None else refinement.handle_max_q_deg,
+                           workspace=workspace)
+        return apply_refinement(m, r, refinement, joint_types)
+
+    m = one(depth_m, K)
+    if refinement is not None and refinement.mirror_joints is not None:
+        m = merge_mirrored(m, one(*mirror_inputs(depth_m, K)), refinement.mirror_joints)
+    return m
 
 
 def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: dict | None) -> dict:
@@ -263,15 +293,19 @@ def choose_split_factor(model, data, idx: np.ndarray, *, batch_size: int = PREDI
     return best, {("never" if c is None else f"{c:g}"): e for c, e in mean.items()}
 
 
-def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, progress: bool = False) -> dict:
+def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirror_joints=None,
+                  progress: bool = False) -> dict:
     """Fit what inference needs beyond the weights on validation images ``idx`` (with labels):
     the vote modes' split factor (:func:`choose_split_factor`), the refinement
-    (:func:`~.fit.fit_refinement`), then the uncertainty calibration of the refined predictions
+    (:func:`~.fit.fit_refinement`; then, where the class's ``mirror_joints`` is given, whether
+    averaging with the mirror images lowers the position error by at least
+    :data:`~.mirror.MIRROR_MIN_GAIN`), then the uncertainty calibration of the refined predictions
     (:func:`fit_calibration`).  Returns ``{"refinement": dict, "calibration": dict,
     "refinement_report": dict}`` for the checkpoint."""
     from dataclasses import replace
 
     from .fit import HANDLE_Q_CANDIDATES_DEG, fit_refinement
+    from .mirror import MIRROR_MIN_GAIN, merge_mirrored, mirrored_data
     from .refine import apply_refinement
 
     split_factor, split_report = choose_split_factor(model, data, idx)
@@ -282,7 +316,18 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, progr
     refinement, report = fit_refinement(m, r, truth, joint_types)
     refinement = replace(refinement, split_factor=split_factor)
     report["split_factor_position_cm"] = split_report
-    arrays = modes_to_arrays(apply_refinement(m, r, refinement, joint_types), data.sample_id[idx], model, None)
+    refined = apply_refinement(m, r, refinement, joint_types)
+    if mirror_joints is not None:
+        mm, mr = predict_modes(model, mirrored_data(data), idx, joint_types=joint_types, progress=progress,
+                               refine=refinement.needed, split_factor=split_factor,
+                               handle_max_q_deg=refinement.handle_max_q_deg)
+        merged = merge_mirrored(refined, apply_refinement(mm, mr, refinement, joint_types), mirror_joints)
+        pos = {name: quick_errors(modes_to_arrays(x, data.sample_id[idx], model, None), data, idx, joint_types)["pos_cm"]
+               for name, x in (("without", refined), ("with", merged))}
+        report["mirror_position_cm"] = pos
+        if pos["with"] < pos["without"] * (1 - MIRROR_MIN_GAIN):
+            refinement, refined = replace(refinement, mirror_joints=tuple(mirror_joints)), merged
+    arrays = modes_to_arrays(refined, data.sample_id[idx], model, None)
     return {"refinement": refinement.to_dict(), "calibration": fit_calibration(arrays, data, idx),
             "refinement_report": report}
 

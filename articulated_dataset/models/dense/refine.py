@@ -40,6 +40,9 @@ regressed (:func:`refined_quantities`, per image and joint):
    (the microwave's: 2.9 -> 2.2 cm on validation objects).
 7. **Hinge side from the handle** (:mod:`.handle`).  A closed door whose vote mode puts the hinge
    at the door's handle is mirrored across the door (the cabinet's one-image side errors).
+8. **Mirror image** (:mod:`.mirror`).  Where the class's mirror image is again an object of the
+   class, the estimate's origins and ``q`` are averaged with those of the image reflected
+   left-right (run through the network and steps 1-7 too, then reflected back).
 
 :func:`~.fit.fit_refinement` chooses, on the training split's validation objects, which steps
 are used (each only where it lowers the validation error) and fits ``t``; the choice is stored
@@ -72,7 +75,7 @@ DOOR_EXTENT_QUANTILE = 0.005
 DOOR_EXTENT_MIN_PX = 10
 #: Refinement format version stored in checkpoints (2: ``max_turn_deg``; 3: ``door_extent``;
 #: 4: ``handle_max_q_deg``; older versions read as without them).
-REFINEMENT_VERSION = 4
+REFINEMENT_VERSION = 5
 
 
 @dataclass(frozen=True)
@@ -98,6 +101,9 @@ class Refinement:
     #: below this (deg; None: never), with at least ``handle_min_px`` handle pixels
     handle_max_q_deg: float | None = None
     handle_min_px: float = 1.0
+    #: step 8 (:mod:`.mirror`): average with the mirror image's estimate, whose joint ``k`` is joint
+    #: ``mirror_joints[k]`` (None: never)
+    mirror_joints: tuple[int, ...] | None = None
     version: int = REFINEMENT_VERSION
 
     @property
@@ -106,7 +112,9 @@ class Refinement:
         return self.frame or self.min_door_px is not None or self.door_extent or self.handle_max_q_deg is not None
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        d["mirror_joints"] = None if self.mirror_joints is None else [int(k) for k in self.mirror_joints]
+        return d
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "Refinement | None":
@@ -120,6 +128,7 @@ class Refinement:
                    split_factor=_optional_float(d["split_factor"]) if "split_factor" in d else SPLIT_FACTOR,
                    handle_max_q_deg=_optional_float(d.get("handle_max_q_deg")),
                    handle_min_px=float(d.get("handle_min_px", 1.0)),
+                   mirror_joints=None if d.get("mirror_joints") is None else tuple(int(k) for k in d["mirror_joints"]),
                    version=int(d.get("version", REFINEMENT_VERSION)))
 
 

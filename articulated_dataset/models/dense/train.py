@@ -287,7 +287,8 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
         return checkpoint(finished=False)
     result = checkpoint(finished=True)
     if len(va_idx):  # refinement choice and uncertainty calibration on the validation objects
-        result.update(fit_inference(model.eval(), data_, va_idx, list(obj_class.joint_types)))
+        result.update(fit_inference(model.eval(), data_, va_idx, list(obj_class.joint_types),
+                                    mirror_joints=obj_class.mirror_joints))
     result["load_seconds"] = round(t_load, 1)
     atomic_save(result, out)
     return result
@@ -299,6 +300,7 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     training held out: its ``val_fraction``, ``seed`` and ``max_objects``), and write the result
     to ``out`` atomically.  For checkpoints trained before a refinement existed."""
     from ..mdn.data import resolve_split_dir, split_by_object, split_class
+    from ...registry import get_class
     from .predict import fit_inference
 
     ckpt = load_dense_checkpoint(checkpoint)
@@ -319,7 +321,8 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     from ...format import sha256_file
 
     result = dict(ckpt)
-    result.update(fit_inference(model, data_, va_idx, list(ckpt["joint_types"]), progress=progress))
+    result.update(fit_inference(model, data_, va_idx, list(ckpt["joint_types"]),
+                                mirror_joints=get_class(ckpt["class_name"]).mirror_joints, progress=progress))
     result["refit_of"] = {"file": Path(checkpoint).name, "sha256": sha256_file(Path(checkpoint))}
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
