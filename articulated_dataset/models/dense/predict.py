@@ -78,6 +78,8 @@ def refined_batch(model, depth_m, K, *, joint_types: list[str], refinement, work
     :class:`~.refine.Refinement`, its dict or None) asks for: :func:`batch_modes`, then
     :func:`~.refine.apply_refinement` (steps 1-7), then, where it names ``mirror_joints``, the
     average with the mirror images' (step 8, :func:`~.mirror.merge_mirrored`)."""
+    import torch
+
     from .mirror import merge_mirrored, mirror_inputs
     from .refine import apply_refinement, as_refinement, split_factor_of
 
@@ -90,10 +92,15 @@ def refined_batch(model, depth_m, K, *, joint_types: list[str], refinement, work
                            workspace=workspace)
         return apply_refinement(m, r, refinement, joint_types)
 
-    m = one(depth_m, K)
-    if refinement is not None and refinement.mirror_joints is not None:
-        m = merge_mirrored(m, one(*mirror_inputs(depth_m, K)), refinement.mirror_joints)
-    return m
+    if refinement is None or refinement.mirror_joints is None:
+        return one(depth_m, K)
+    # the images and their mirror images in one batch: one network call (a single image's
+    # estimate() pays the per-call costs once)
+    B = len(depth_m)
+    depth_2, K_2 = mirror_inputs(depth_m, K)
+    both = one(torch.cat([depth_m, depth_2]), torch.cat([K, K_2]))
+    return merge_mirrored({k: v[:B] for k, v in both.items()}, {k: v[B:] for k, v in both.items()},
+                          refinement.mirror_joints)
 
 
 def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: dict | None) -> dict:
