@@ -66,6 +66,11 @@ def _unshipped_record(c: str, init_from: str, shipped) -> dict:
     if not path.is_file():
         return {"checkpoint": path.name}
     init = torch.load(path, map_location="cpu", weights_only=True)  # tensors and containers: no code runs
+    if init.get("transplant") is not None:  # another class's weights (scripts/transplant_dense.py)
+        t = init["transplant"]
+        return {"checkpoint": path.name, "transplant": t,
+                "command": f"python scripts/transplant_dense.py --from {t['from']['file']} --like {t['like']['file']} "
+                           f"--out {path.name}"}
     parent = init.get("train_config", {}).get("init_from")
     previous = _previous_record(parent, shipped) if parent else None
     return {"checkpoint": path.name, "training": _training_record("dense", c, init, previous, shipped)}
