@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -171,3 +173,11 @@ def write_flap_urdf(folder):
     <axis xyz="0 0 1"/><limit lower="0" upper="1.5" effort="1" velocity="1"/></joint>
 </robot>""")
     return path
+
+
+def load_script(path: Path, name: str):
+    """A script of the repository (benchmarks/, scripts/: not a package) imported as module ``name``."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

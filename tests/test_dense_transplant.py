@@ -1,6 +1,5 @@
 """scripts/transplant_dense.py: another class's weights as a dense model's starting point."""
 
-import importlib.util
 from pathlib import Path
 
 import pytest
@@ -10,15 +9,13 @@ torch = pytest.importorskip("torch")
 from articulated_dataset.models.dense.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, build_dense_model  # noqa: E402
 from articulated_dataset.models.dense.model import GEOMETRY_CHANNELS, JOINT_CHANNELS, DenseConfig, DenseNet  # noqa: E402
 from articulated_dataset.models.dense.train import load_dense_checkpoint  # noqa: E402
+from helpers_core import load_script  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("transplant_dense", ROOT / "scripts" / "transplant_dense.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(ROOT / "scripts" / "transplant_dense.py", "transplant_dense")
 
 
 def _ckpt(class_name, joint_types, seed, width=4):

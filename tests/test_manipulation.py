@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 from pathlib import Path
@@ -19,6 +18,7 @@ from articulated_dataset.registry import PRISMATIC, REVOLUTE, all_classes
 from articulated_dataset.units import parse_quantity
 from articulated_dataset.rotations import axis_angle_quat, quat_multiply, quat_to_matrix
 from articulated_dataset.generation.scene import set_configuration
+from helpers_core import load_script
 
 CLASSES = [c.name for c in all_classes()]
 REVOLUTE_CLASSES = [c.name for c in all_classes() if c.joint_types[0] == REVOLUTE]
@@ -343,9 +343,7 @@ def test_cli_plan_bad_data_and_unpredicted_sample(tiny_root, tmp_path):
 # --------------------------------------------------------------------------------------
 
 def test_benchmark_script_truth_and_predictions(tiny_root, tmp_path, capsys):
-    spec = importlib.util.spec_from_file_location("manipulation_benchmark", BENCHMARK)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_script(BENCHMARK, "manipulation_benchmark")
     preds = tmp_path / "shifted.h5"
     _oracle_predictions(tiny_root, "cabinet", preds, shift_m=0.10)
     out = tmp_path / "m.json"
@@ -550,9 +548,7 @@ def test_cli_plan_real_split_from_estimate(tiny_root, dense_ckpt, tmp_path):
 
 
 def test_benchmark_script_models_and_closed_loop(tiny_root, dense_ckpt, tmp_path):
-    spec = importlib.util.spec_from_file_location("manipulation_benchmark", BENCHMARK)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_script(BENCHMARK, "manipulation_benchmark")
     out = tmp_path / "m.json"
     assert bench.main(["--data", str(tiny_root), "--classes", "microwave", "drawer", "--objects", "1",
                        "--model", f"dense={dense_ckpt}", "--closed-loop", "--json", str(out), "-q",

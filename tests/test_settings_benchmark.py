@@ -4,7 +4,6 @@ depth), stays a valid split, and is reused; the table lists every (setting, mode
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -15,15 +14,13 @@ from click.testing import CliRunner
 from articulated_dataset.cli import main
 from articulated_dataset.format import Split
 from articulated_dataset.verify import verify_split
+from helpers_core import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def load_benchmark():
-    spec = importlib.util.spec_from_file_location("settings_benchmark", ROOT / "benchmarks" / "settings.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(ROOT / "benchmarks" / "settings.py", "settings_benchmark")
 
 
 @pytest.fixture(scope="module")
