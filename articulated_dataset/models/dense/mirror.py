@@ -37,13 +37,18 @@ MIRROR_MIN_GAIN = 0.03
 MIRROR_AXIS = 1
 
 
+def mirror_intrinsics(K, width_px: int):
+    """Intrinsics (B, 3, 3) (torch or numpy; a new array) that back-project the mirror images of
+    ``width_px``-wide images to the reflected points: ``c_x' = W - 1 - c_x``."""
+    K2 = K.clone() if hasattr(K, "clone") else K.copy()
+    K2[:, 0, 2] = (width_px - 1) - K[:, 0, 2]
+    return K2
+
+
 def mirror_inputs(depth_m, K):
     """A batch of depth images (B, H, W) and intrinsics (B, 3, 3) (torch) -> their mirror images
     (reflected left-right) and the intrinsics that back-project them to the reflected points."""
-    W = depth_m.shape[-1]
-    K2 = K.clone()
-    K2[:, 0, 2] = (W - 1) - K[:, 0, 2]
-    return depth_m.flip(-1), K2
+    return depth_m.flip(-1), mirror_intrinsics(K, depth_m.shape[-1])
 
 
 def merge_mirrored(m: dict, mirrored: dict, mirror_joints) -> dict:
@@ -71,7 +76,6 @@ def mirrored_data(data):
     the originals)."""
     from dataclasses import replace
 
-    K = data.K.copy()
-    K[:, 0, 2] = (data.depth_q.shape[-1] - 1) - K[:, 0, 2]
-    return replace(data, depth_q=np.ascontiguousarray(data.depth_q[:, :, ::-1]), K=K, labels_out=None, origin=None,
+    return replace(data, depth_q=np.ascontiguousarray(data.depth_q[:, :, ::-1]),
+                   K=mirror_intrinsics(data.K, data.depth_q.shape[-1]), labels_out=None, origin=None,
                    rot6=None, q=None, part_offset=None, geometry=None)

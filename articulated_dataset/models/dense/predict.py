@@ -57,19 +57,30 @@ def predict_arrays(model, data, idx: np.ndarray, *, joint_types: list[str], cali
     ``q``, ``geometry``, ``part_offset``, ``mixture_*``, ``mixture_layout``) plus ``spread``
     (N, M, D), the raw vote spreads.
     """
-    import torch
-    from tqdm.auto import tqdm
-
     from .refine import as_refinement
 
     refinement = as_refinement(refinement)
-    chunks, workspace = [], {}
+    chunks = _over_batches(data, idx, batch_size, progress, lambda depth, K, workspace: refined_batch(
+        model, depth, K, joint_types=joint_types, refinement=refinement, workspace=workspace))
+    return modes_to_arrays(_concatenated(chunks), data.sample_id[idx], model, calibration)
+
+
+def _over_batches(data, idx: np.ndarray, batch_size: int, progress: bool, fn) -> list:
+    """``fn(depth_m, K, workspace)`` of every batch of the images ``idx`` of a split in memory, in
+    order (``workspace``: one dict for the whole loop, see :func:`batch_modes`)."""
+    import torch
+    from tqdm.auto import tqdm
+
+    out, workspace = [], {}
     for s in tqdm(range(0, len(idx), batch_size), desc="predicting", unit="batch", disable=not progress, leave=False):
         b = idx[s : s + batch_size]
-        chunks.append(refined_batch(model, data.depth(b), torch.from_numpy(data.K[b]), joint_types=joint_types,
-                                    refinement=refinement, workspace=workspace))
-    m = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
-    return modes_to_arrays(m, data.sample_id[idx], model, calibration)
+        out.append(fn(data.depth(b), torch.from_numpy(data.K[b]), workspace))
+    return out
+
+
+def _concatenated(chunks: list) -> dict:
+    """Per-batch dicts of arrays -> one dict, concatenated along the images."""
+    return {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
 
 
 def refined_batch(model, depth_m, K, *, joint_types: list[str], refinement, workspace: dict | None = None) -> dict:
@@ -155,18 +166,10 @@ def predict_modes(model, data, idx: np.ndarray, *, joint_types: list[str], refin
                   split_factor: float | None, handle_max_q_deg: float | None = None) -> tuple[dict, dict | None]:
     """:func:`batch_modes` over the images ``idx`` of a split in memory, batch by batch, concatenated
     (the refined quantities are None without ``refine``)."""
-    import torch
-    from tqdm.auto import tqdm
-
-    ms, rs, workspace = [], [], {}
-    for s in tqdm(range(0, len(idx), batch_size), desc="predicting", unit="batch", disable=not progress, leave=False):
-        b = idx[s : s + batch_size]
-        m, r = batch_modes(model, data.depth(b), torch.from_numpy(data.K[b]), joint_types=joint_types, refine=refine,
-                           split_factor=split_factor, handle_max_q_deg=handle_max_q_deg, workspace=workspace)
-        ms.append(m)
-        rs.append(r)
-    cat = lambda chunks: {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}  # noqa: E731
-    return cat(ms), (cat(rs) if refine else None)
+    chunks = _over_batches(data, idx, batch_size, progress, lambda depth, K, workspace: batch_modes(
+        model, depth, K, joint_types=joint_types, refine=refine, split_factor=split_factor,
+        handle_max_q_deg=handle_max_q_deg, workspace=workspace))
+    return _concatenated([m for m, _ in chunks]), (_concatenated([r for _, r in chunks]) if refine else None)
 
 
 def mixture_from_modes(m: dict, sample_id: np.ndarray, J: int, n_modes: int, calibration: dict | None) -> dict:
