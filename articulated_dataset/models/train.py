@@ -53,7 +53,7 @@ def train_model(kind: str, class_name: str, data: str | Path, out: str | Path, *
         config = DenseTrainConfig(class_name=class_name, max_objects=max_objects, seed=seed, init_from=init_from,
                                   **{k: v for k, v in given.items() if v is not None})
         try:
-            ckpt = train_dense(data, out, config, resume=resume, progress=progress, echo=echo)
+            ckpt = train_dense(data, out, config, resume=resume, progress=progress, echo=echo, device=device)
         except KeyboardInterrupt:
             raise TrainingInterrupted(f"interrupted; the last checkpoint is in {out}. Continue with the same command "
                                       f"plus --resume") from None

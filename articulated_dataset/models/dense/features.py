@@ -175,8 +175,8 @@ def make_inputs(depth_m: torch.Tensor, K: torch.Tensor, *, out: torch.Tensor | N
     # (p - a) / s at the valid pixels, 0 elsewhere, in place
     # (multiplying by the validity leaves -0.0 at some invalid pixels: equal to 0, and the same to the network)
     pts.sub_(anchor[:, :, None, None]).div_(POINT_SCALE_M).mul_(w[:, None])
-    x[:, 7] = torch.linspace(-1, 1, W, dtype=depth_m.dtype).view(1, 1, W)
-    x[:, 8] = torch.linspace(-1, 1, H, dtype=depth_m.dtype).view(1, H, 1)
+    x[:, 7] = torch.linspace(-1, 1, W, dtype=depth_m.dtype, device=depth_m.device).view(1, 1, W)
+    x[:, 8] = torch.linspace(-1, 1, H, dtype=depth_m.dtype, device=depth_m.device).view(1, H, 1)
     return {"x": x, "anchor": anchor, "points_out": p_out, "weight_out": w_out}
 
 
@@ -199,7 +199,7 @@ def _output_means(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     window = (counts > 0).view(-1).nonzero()[:, 0]  # flat (b, i, j) of the windows with a valid pixel
     b, ij = window // (h * w), window % (h * w)
     first = b * (C * H * W) + ij // w * (s * W) + ij % w * s  # the window's top-left pixel, channel 0
-    first = (first[:, None] + torch.arange(3) * (H * W)).view(-1)  # (n * 3,): channels 0-2
+    first = (first[:, None] + torch.arange(3, device=x.device) * (H * W)).view(-1)  # (n * 3,): channels 0-2
     flat = x.view(-1)
     total = flat.index_select(0, first)  # index_select: faster than indexing with a tensor
     for dy in range(s):  # the window's other pixels, row by row

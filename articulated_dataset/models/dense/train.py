@@ -47,6 +47,7 @@ MIN_Q_SCALE = 1e-3
 WEIGHT_DECAY = 1e-4
 GRAD_CLIP_NORM = 10.0
 WARMUP_FRACTION = 0.1
+MIN_SCHEDULE_STEPS = 4
 CHECKPOINT_EVERY_STEPS = 200
 EPOCH_SEED_STRIDE = 1_000_003
 
@@ -105,12 +106,10 @@ def dense_loss(model, out, inputs: dict, data: DenseData, idx: np.ndarray, q_sca
     w_pix = inputs["weight_out"]
     valid = w_pix > 0
     norm = w_pix.sum().clamp_min(1.0)
-    lab = torch.from_numpy(data.labels_out[idx]).long()
-    o_t = torch.from_numpy(data.origin[idx])
-    r_t = torch.from_numpy(data.rot6[idx])
-    q_t = torch.from_numpy(data.q[idx])
-    po_t = torch.from_numpy(data.part_offset[idx])
-    g_t = torch.from_numpy(data.geometry[idx])
+    dev = out.device
+    lab = torch.from_numpy(data.labels_out[idx]).to(dev).long()
+    o_t, r_t, q_t, po_t, g_t = (torch.from_numpy(a[idx]).to(dev) for a in
+                                (data.origin, data.rot6, data.q, data.part_offset, data.geometry))
 
     def pix(x):  # (B, J, H, W) or (B, H, W) per-pixel loss -> weighted mean
         if x.dim() == 4:
@@ -149,10 +148,15 @@ def atomic_save(obj: dict, path: Path) -> None:
 
 
 def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, resume: bool = False,
-                progress: bool = True, echo=None, stop_after_steps: int | None = None) -> dict:
+                progress: bool = True, echo=None, stop_after_steps: int | None = None, device: str | None = "cpu",
+                fit: bool = True) -> dict:
     """Train (or resume) the dense estimator of ``config.class_name`` on the split at ``data``.
 
     ``stop_after_steps`` stops early (checkpointed, resumable) after that many steps in total.
+    ``device``: where the training steps run (``cpu``, ``cuda``, ``cuda:N`` or ``auto``); the
+    per-epoch validation and the inference fit always run on the CPU, as inference does, and the
+    checkpoint holds CPU tensors.  ``fit=False`` leaves the refinement choice and calibration out
+    of the finished checkpoint (:func:`refit_inference` adds them later, on another machine).
     Returns the last checkpoint.
     """
     import torch
@@ -160,12 +164,14 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
 
     from ..mdn.checkpoint import prepare_training_output
     from ..mdn.data import resolve_split_dir, split_by_object
+    from ..mdn.train import resolve_device
     from ...registry import get_class
     from .features import make_inputs
     from .model import DenseConfig, DenseNet, count_parameters
     from .predict import fit_inference, predict_arrays, quick_errors
 
     out = Path(out)
+    dev = resolve_device(device)
     obj_class = get_class(config.class_name)
     split_dir = resolve_split_dir(data)
     ckpt = prepare_training_output(split_dir, obj_class.name, out, resume=resume, load=load_dense_checkpoint,
@@ -201,11 +207,16 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
         if "q_scale" in init:
             q_scale = np.asarray(init["q_scale"], np.float64)
             q_scale_t = torch.tensor(q_scale, dtype=torch.float32)
+    model.to(dev)
+    q_scale_t = q_scale_t.to(dev)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=WEIGHT_DECAY)
     steps_per_epoch = n_train // batch
     total_steps = steps_per_epoch * config.epochs
-    scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=config.lr, total_steps=total_steps,
-                                                    pct_start=WARMUP_FRACTION)
+    # the warm-up spans at least 2 steps and the schedule at least MIN_SCHEDULE_STEPS (OneCycleLR divides
+    # by each phase's length: a run of a few steps would otherwise fail)
+    schedule_steps = max(total_steps, MIN_SCHEDULE_STEPS)
+    scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=config.lr, total_steps=schedule_steps,
+                                                    pct_start=min(0.5, max(WARMUP_FRACTION, 2.0 / schedule_steps)))
     history: list[dict] = []
     step = 0
     cpu_seconds = 0.0
@@ -227,14 +238,15 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
                      "n_objects": int(len(np.unique(data_.object_index)))},
             "step": step, "total_steps": total_steps, "finished": finished, "history": history,
             "cpu_seconds": cpu_seconds, "calibration": calibration,
-            "model_state": model.state_dict(), "optimizer_state": optimizer.state_dict(),
+            "model_state": _on_cpu(model.state_dict()), "optimizer_state": _on_cpu(optimizer.state_dict()),
             "scheduler_state": scheduler.state_dict(), "rng_state": torch.get_rng_state(),
         }
 
     def validate() -> dict:
         if not len(va_idx):
             return {}
-        arrays = predict_arrays(model, data_, va_idx, joint_types=list(obj_class.joint_types), calibration=None)
+        arrays = predict_arrays(_cpu_copy(model), data_, va_idx, joint_types=list(obj_class.joint_types),
+                                calibration=None)
         return quick_errors(arrays, data_, va_idx, list(obj_class.joint_types))
 
     end = total_steps if stop_after_steps is None else min(total_steps, stop_after_steps)
@@ -249,7 +261,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
         model.train()
         while pos < steps_per_epoch and step < end:
             idx = np.sort(order[pos * batch : (pos + 1) * batch])
-            inputs = make_inputs(data_.depth(idx), torch.from_numpy(data_.K[idx]))
+            inputs = make_inputs(data_.depth(idx).to(dev), torch.from_numpy(data_.K[idx]).to(dev))
             out_ = model(inputs["x"])
             loss, st = dense_loss(model, out_, inputs, data_, idx, q_scale_t, config.origin_weight)
             if not torch.isfinite(loss):
@@ -286,12 +298,34 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     if step < total_steps:
         return checkpoint(finished=False)
     result = checkpoint(finished=True)
-    if len(va_idx):  # refinement choice and uncertainty calibration on the validation objects
-        result.update(fit_inference(model.eval(), data_, va_idx, list(obj_class.joint_types),
+    if fit and len(va_idx):  # refinement choice and uncertainty calibration on the validation objects
+        result.update(fit_inference(_cpu_copy(model).eval(), data_, va_idx, list(obj_class.joint_types),
                                     mirror_joints=obj_class.mirror_joints))
     result["load_seconds"] = round(t_load, 1)
     atomic_save(result, out)
     return result
+
+
+def _on_cpu(state):
+    """A state dict (nested dicts and lists of tensors) with every tensor on the CPU."""
+    import torch
+
+    if isinstance(state, torch.Tensor):
+        return state.detach().cpu()
+    if isinstance(state, dict):
+        return {k: _on_cpu(v) for k, v in state.items()}
+    if isinstance(state, (list, tuple)):
+        return type(state)(_on_cpu(v) for v in state)
+    return state
+
+
+def _cpu_copy(model):
+    """``model`` itself when on the CPU, else a CPU copy (validation and inference run there)."""
+    import copy
+
+    if next(model.parameters()).device.type == "cpu":
+        return model
+    return copy.deepcopy(model).cpu()
 
 
 def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *, progress: bool = True) -> dict:
