@@ -33,11 +33,13 @@ FILES = {"dense": "dense-{c}.pt", "mdn-small": "mdn-small-{c}.pt"}
 
 
 def _data_command(c: str, ckpt: dict) -> tuple[str, int]:
-    """The generate command of the checkpoint's training split (from its manifest when it is still
-    there; the shipped recipe's seed-0 split otherwise) and its seed."""
+    """The generate command of the checkpoint's training split (the generation settings the
+    checkpoint recorded; else from the split's manifest when it is still there; else the shipped
+    recipe's seed-0 split) and its seed."""
+    generated = ckpt.get("data", {}).get("generated")
     split_dir = Path(ckpt.get("data", {}).get("split_dir", ""))
     try:
-        cfg = read_manifest(split_dir)["config"]
+        cfg = generated if generated else read_manifest(split_dir)["config"]
         n, seed = int(cfg["n_objects"]), int(cfg["seed"])
     except Exception:  # noqa: BLE001 - the split is gone: the documented default recipe
         n, seed = 4000, 0
@@ -96,10 +98,17 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
             opts += f" --init-from {Path(tc['init_from']).name}"
         if tc.get("origin_weight", 1.0) != 1.0:
             opts += f" --origin-weight {tc['origin_weight']:g}"
+        if tc.get("batch_size", 64) != 64:
+            opts += f" --batch-size {tc['batch_size']}"
+        if tc.get("val_fraction", 0.05) != 0.05:
+            opts += f" --val-fraction {tc['val_fraction']:g}"
+        if "GPU" in str(ckpt.get("machine", "")) or "NVIDIA" in str(ckpt.get("machine", "")):
+            opts += " --device cuda"
         command = TRAIN_COMMANDS[name].format(c=c, opts=opts).replace("data/", f"{data}/")
     else:
         command = TRAIN_COMMANDS[name].format(c=c, opts="")
-    rec = {"data_command": data_command, "command": command, "seed": int(tc.get("seed", 0)), "machine": MACHINE}
+    rec = {"data_command": data_command, "command": command, "seed": int(tc.get("seed", 0)),
+           "machine": ckpt.get("machine") or MACHINE}
     if ckpt.get("refinement") is not None:
         rec["refinement"] = ckpt["refinement"]
         rec["refinement_validation"] = ckpt.get("refinement_report")

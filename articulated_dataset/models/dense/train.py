@@ -226,8 +226,10 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
         history = restore_training_state(ckpt, model, optimizer, scheduler)
         step = int(ckpt["step"])
         cpu_seconds = float(ckpt.get("cpu_seconds", 0.0))
-    log.info("%s: %d train / %d val images, %s parameters", obj_class.name, n_train, len(va_idx),
-             f"{count_parameters(model):,}")
+    log.info("%s: %d train / %d val images, %s parameters, device %s", obj_class.name, n_train, len(va_idx),
+             f"{count_parameters(model):,}", dev)
+    generated = split_generation(split_dir)
+    machine = machine_description(dev)
 
     def checkpoint(finished: bool, calibration=None) -> dict:
         return {
@@ -235,7 +237,8 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
             "joint_types": list(obj_class.joint_types), "model_config": model_config.to_dict(),
             "train_config": config.to_dict(), "q_scale": [float(v) for v in q_scale],
             "data": {"split_dir": str(split_dir), "n_train_images": int(n_train), "n_val_images": int(len(va_idx)),
-                     "n_objects": int(len(np.unique(data_.object_index)))},
+                     "n_objects": int(len(np.unique(data_.object_index))), "generated": generated},
+            "machine": machine,
             "step": step, "total_steps": total_steps, "finished": finished, "history": history,
             "cpu_seconds": cpu_seconds, "calibration": calibration,
             "model_state": _on_cpu(model.state_dict()), "optimizer_state": _on_cpu(optimizer.state_dict()),
@@ -304,6 +307,32 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     result["load_seconds"] = round(t_load, 1)
     atomic_save(result, out)
     return result
+
+
+def split_generation(split_dir: Path) -> dict | None:
+    """The generation settings of a split (class, seed, objects), from its manifest: how the
+    training data of a checkpoint is made again once the folder is gone."""
+    from ...format import read_manifest
+
+    try:
+        cfg = read_manifest(split_dir)["config"]
+        return {"class_name": str(cfg.get("class_name", "")), "seed": int(cfg["seed"]),
+                "n_objects": int(cfg["n_objects"])}
+    except Exception:  # noqa: BLE001 - a split without a readable manifest: nothing to record
+        return None
+
+
+def machine_description(dev) -> str:
+    """One line naming where training ran: the CPU's cores, the GPU if used, PyTorch's version."""
+    import os
+    import platform
+
+    import torch
+
+    text = f"{platform.machine()} CPU, {os.cpu_count()} cores"
+    if dev.type == "cuda":
+        text += f", {torch.cuda.get_device_name(dev)}"
+    return f"{text}, PyTorch {torch.__version__}"
 
 
 def _on_cpu(state):
