@@ -195,6 +195,32 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
     assert len(whole["refinement_report"]["split_factor_position_cm"]) == len(SPLIT_FACTOR_CANDIDATES)
 
 
+def test_a_two_step_run_trains_records_its_data_and_machine_and_fits_later(tiny_root, tmp_path):
+    """Two steps in all (OneCycleLR's warm-up would be empty: it used to fail); ``fit=False`` leaves
+    the inference fit out, and refit_inference then gives what training's own fit gives."""
+    from articulated_dataset.errors import UserError
+    from articulated_dataset.format import read_manifest
+    from articulated_dataset.models.dense.train import refit_inference
+
+    torch.set_num_threads(1)
+    split = tiny_root / "drawer" / "train"
+    cfg = DenseTrainConfig("drawer", epochs=1, batch_size=16, width=4, val_fraction=0.2, max_objects=3)
+    unfit = train_dense(split, tmp_path / "a.pt", cfg, progress=False, fit=False)
+    assert unfit["finished"] and unfit["step"] == 2 and unfit.get("calibration") is None and "refinement" not in unfit
+    whole = train_dense(split, tmp_path / "b.pt", cfg, progress=False, device="cpu")
+    for k, v in whole["model_state"].items():
+        assert torch.equal(v, unfit["model_state"][k]), k
+    refit = refit_inference(tmp_path / "a.pt", split, tmp_path / "c.pt", progress=False)
+    assert refit["refinement"] == whole["refinement"] and refit["calibration"] == whole["calibration"]
+    cfg_made = read_manifest(split)["config"]
+    assert whole["data"]["generated"] == {"class_name": "drawer", "seed": cfg_made["seed"],
+                                          "n_objects": cfg_made["n_objects"]}
+    assert "PyTorch" in whole["machine"] and "cores" in whole["machine"]
+    if not torch.cuda.is_available():
+        with pytest.raises(UserError, match="no CUDA GPU"):
+            train_dense(split, tmp_path / "d.pt", cfg, progress=False, device="cuda")
+
+
 def test_cli_train_predict_score_show(tiny_root, tmp_path, overfit_run):
     ckpt_path = overfit_run[0]
     preds = tmp_path / "p.h5"
