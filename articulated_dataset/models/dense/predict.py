@@ -100,6 +100,7 @@ def refined_batch(model, depth_m, K, *, joint_types: list[str], refinement, work
         m, r = batch_modes(model, depth, intrinsics, joint_types=joint_types,
                            refine=refinement is not None and refinement.needed, split_factor=split_factor_of(refinement),
                            handle_max_q_deg=None if refinement is None else refinement.handle_max_q_deg,
+                           frame_min_prob=None if refinement is None else refinement.frame_min_prob,
                            workspace=workspace)
         return apply_refinement(m, r, refinement, joint_types)
 
@@ -122,12 +123,14 @@ def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: dict | N
 
 
 def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, split_factor: float | None,
-                handle_max_q_deg: float | None = None, workspace: dict | None = None) -> tuple[dict, dict | None]:
+                handle_max_q_deg: float | None = None, frame_min_prob: float | None = None,
+                workspace: dict | None = None) -> tuple[dict, dict | None]:
     """One batch of depth images (B, H, W) m and intrinsics (B, 3, 3) at the model's resolution ->
     vote modes (:func:`~.aggregate.vote_modes` with ``split_factor``, a checkpoint's
     :func:`~.refine.split_factor_of`) and, with ``refine``, the refined quantities
     (:func:`~.refine.refined_quantities`; with ``handle_max_q_deg``, also the handles of the doors
-    whose angle may be below it: :func:`~.handle.handle_evidence`), as float64 numpy arrays.
+    whose angle may be below it: :func:`~.handle.handle_evidence`; ``frame_min_prob``: the box
+    frame's pixel threshold, :attr:`~.refine.Refinement.frame_min_prob`), as float64 numpy arrays.
     ``workspace``: a dict a loop over batches passes to every call, which keeps the network input's
     tensor for the next batch to write into (a fresh one costs more in page faults than filling it)."""
     import torch
@@ -143,7 +146,7 @@ def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, spli
         inputs = make_inputs(depth_m, K, out=None if workspace is None else workspace.pop("x", None))
         parts = model.split(network_outputs(model, inputs["x"]))
         modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0, split_factor=split_factor)
-        r = refined_quantities(parts, inputs, modes, joint_types) if refine else None
+        r = refined_quantities(parts, inputs, modes, joint_types, frame_min_prob) if refine else None
         if r is not None and handle_max_q_deg is not None:
             r.update(handle_candidates_evidence(parts, inputs, modes, r, joint_types, handle_max_q_deg))
     if workspace is not None:
@@ -163,12 +166,13 @@ def network_outputs(model, x):
 
 def predict_modes(model, data, idx: np.ndarray, *, joint_types: list[str], refine: bool = True,
                   batch_size: int = PREDICT_BATCH, progress: bool = False,
-                  split_factor: float | None, handle_max_q_deg: float | None = None) -> tuple[dict, dict | None]:
+                  split_factor: float | None, handle_max_q_deg: float | None = None,
+                  frame_min_prob: float | None = None) -> tuple[dict, dict | None]:
     """:func:`batch_modes` over the images ``idx`` of a split in memory, batch by batch, concatenated
     (the refined quantities are None without ``refine``)."""
     chunks = _over_batches(data, idx, batch_size, progress, lambda depth, K, workspace: batch_modes(
         model, depth, K, joint_types=joint_types, refine=refine, split_factor=split_factor,
-        handle_max_q_deg=handle_max_q_deg, workspace=workspace))
+        handle_max_q_deg=handle_max_q_deg, frame_min_prob=frame_min_prob, workspace=workspace))
     return _concatenated([m for m, _ in chunks]), (_concatenated([r for _, r in chunks]) if refine else None)
 
 
@@ -314,23 +318,36 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     "refinement_report": dict}`` for the checkpoint."""
     from dataclasses import replace
 
-    from .fit import HANDLE_Q_CANDIDATES_DEG, fit_refinement
+    from .fit import (FRAME_PROB_CANDIDATES, HANDLE_Q_CANDIDATES_DEG, configuration_error, fit_refinement,
+                      rotation_error_deg)
     from .mirror import MIRROR_MIN_GAIN, merge_mirrored, mirrored_data
     from .refine import apply_refinement
 
     split_factor, split_report = choose_split_factor(model, data, idx)
-    m, r = predict_modes(model, data, idx, joint_types=joint_types, progress=progress, split_factor=split_factor,
-                         handle_max_q_deg=max(HANDLE_Q_CANDIDATES_DEG))
     truth = {"axis_pose": _true_pose(data, idx), "q": data.q[idx].astype(np.float64),
              "part_offset": data.part_offset[idx].astype(np.float64)}
-    refinement, report = fit_refinement(m, r, truth, joint_types)
-    refinement = replace(refinement, split_factor=split_factor)
+    # the refinement fitted once per box-frame pixel threshold; the one with the lowest rotation
+    # error kept (the configuration decides between equal rotations: the box frame unused)
+    fits, frame_report = [], {}
+    for p in FRAME_PROB_CANDIDATES:
+        m_p, r_p = predict_modes(model, data, idx, joint_types=joint_types, progress=progress,
+                                 split_factor=split_factor, handle_max_q_deg=max(HANDLE_Q_CANDIDATES_DEG),
+                                 frame_min_prob=p)
+        refinement_p, report_p = fit_refinement(m_p, r_p, truth, joint_types)
+        refined_p = apply_refinement(m_p, r_p, refinement_p, joint_types)
+        errors = (round(rotation_error_deg(refined_p, truth), 9), configuration_error(refined_p, truth, joint_types))
+        frame_report["all pixels" if p is None else f"probability>{p:g}"] = {"rotation_deg": errors[0],
+                                                                             "configuration": errors[1]}
+        fits.append((errors, p, m_p, r_p, refinement_p, report_p))
+    _, p, m, r, refinement, report = min(fits, key=lambda f: f[0])
+    refinement = replace(refinement, split_factor=split_factor, frame_min_prob=p)
+    report["frame_min_prob"] = frame_report
     report["split_factor_position_cm"] = split_report
     refined = apply_refinement(m, r, refinement, joint_types)
     if mirror_joints is not None:
         mm, mr = predict_modes(model, mirrored_data(data), idx, joint_types=joint_types, progress=progress,
                                refine=refinement.needed, split_factor=split_factor,
-                               handle_max_q_deg=refinement.handle_max_q_deg)
+                               handle_max_q_deg=refinement.handle_max_q_deg, frame_min_prob=p)
         merged = merge_mirrored(refined, apply_refinement(mm, mr, refinement, joint_types), mirror_joints)
         pos = {name: quick_errors(modes_to_arrays(x, data.sample_id[idx], model, None), data, idx, joint_types)["pos_cm"]
                for name, x in (("without", refined), ("with", merged))}

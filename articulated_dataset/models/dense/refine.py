@@ -74,8 +74,9 @@ DOOR_EXTENT_QUANTILE = 0.005
 #: Step 6 needs at least this many door pixels.
 DOOR_EXTENT_MIN_PX = 10
 #: Refinement format version stored in checkpoints (2: ``max_turn_deg``; 3: ``door_extent``;
-#: 4: ``handle_max_q_deg``; older versions read as without them).
-REFINEMENT_VERSION = 5
+#: 4: ``handle_max_q_deg``; 5: ``mirror_joints``; 6: ``frame_min_prob``; older versions read as
+#: without them).
+REFINEMENT_VERSION = 6
 
 
 @dataclass(frozen=True)
@@ -90,6 +91,9 @@ class Refinement:
     min_door_px: int | None = None
     #: keep a mode's voted frame where the box frame turns it by more than this (deg; None: never)
     max_turn_deg: float | None = None
+    #: step 2 fits the box frame to the pixels whose segmentation probability of their label
+    #: exceeds this (None: every pixel of the body and of prismatic parts)
+    frame_min_prob: float | None = None
     #: move a door's axis origin to the door's mid-height (step 6)
     door_extent: bool = False
     #: ... only where that moves it by less than this (m; None: any distance)
@@ -124,6 +128,7 @@ class Refinement:
         return cls(frame=bool(d["frame"]), hinge_offset_m=float(d["hinge_offset_m"]),
                    min_door_px=None if d["min_door_px"] is None else int(d["min_door_px"]),
                    max_turn_deg=None if turn is None else float(turn), door_extent=bool(d.get("door_extent", False)),
+                   frame_min_prob=_optional_float(d.get("frame_min_prob")),
                    door_extent_gate_m=None if gate is None else float(gate),
                    split_factor=_optional_float(d["split_factor"]) if "split_factor" in d else SPLIT_FACTOR,
                    handle_max_q_deg=_optional_float(d.get("handle_max_q_deg")),
@@ -268,8 +273,9 @@ def _compact(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 @torch.no_grad()
-def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types) -> dict:
-    """Steps 1-3, 5 and 6 for a batch (see the module docstring).
+def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, frame_min_prob: float | None = None) -> dict:
+    """Steps 1-3, 5 and 6 for a batch (see the module docstring); step 2 on the pixels whose
+    label's segmentation probability exceeds ``frame_min_prob`` (None: all of them).
 
     ``parts``: :meth:`DenseNet.split` output; ``inputs``: :func:`~.features.make_inputs` output;
     ``modes``: :func:`~.aggregate.vote_modes` output.  Returns ``axis``, ``xaxis`` (B, J, M, 3)
@@ -291,12 +297,13 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types) -> d
     groups = []
     for rows in rows_of:
         groups.append(_refine_images(x, rows, valid_px[rows], parts["seg"][rows], frame[rows], inputs["anchor"][rows],
-                                     modes["origin"][rows], modes["axis"][rows], joint_types))
+                                     modes["origin"][rows], modes["axis"][rows], joint_types, frame_min_prob))
     return {k: torch.cat([g[k] for g in groups])[back] for k in groups[0]}
 
 
 def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, seg: torch.Tensor, frame: torch.Tensor,
-                   anchor: torch.Tensor, origin: torch.Tensor, voted_axis: torch.Tensor, joint_types) -> dict:
+                   anchor: torch.Tensor, origin: torch.Tensor, voted_axis: torch.Tensor, joint_types,
+                   frame_min_prob: float | None = None) -> dict:
     """:func:`refined_quantities` of the images ``rows`` of the input ``x``: their valid pixels
     (R, H * W), segmentation logits, sign-free frames (step 1), anchors and voted origins and axes."""
     R, J = frame.shape[:2]
@@ -321,6 +328,10 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
         if t == "prismatic":
             frame_px = frame_px | (label == 1 + j)
     frame_px &= has_normal
+    if frame_min_prob is not None:  # only the pixels the segmentation is sure of (an open door's pixels
+        # taken for the body's would pull the frame towards the door's face)
+        confidence = torch.softmax(seg, 1).amax(1).flatten(1)  # (R, h * w): the label's probability
+        frame_px &= torch.gather(confidence, 1, out_pixel.flatten()[idx]) > frame_min_prob
     if ALIGN_STRIDE > 1:  # the frame fit uses every ALIGN_STRIDE-th row and column (neighbouring normals share pixels)
         frame_px &= (row % ALIGN_STRIDE == 0) & (idx % W % ALIGN_STRIDE == 0)
     frame = _align_to_normals(frame, normals, frame_px.to(x.dtype))
