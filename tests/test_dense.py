@@ -193,6 +193,11 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
 
     assert whole["refinement"]["split_factor"] in SPLIT_FACTOR_CANDIDATES
     assert len(whole["refinement_report"]["split_factor_position_cm"]) == len(SPLIT_FACTOR_CANDIDATES)
+    # and the box frame's pixel threshold (refinement version 6), each candidate's errors reported
+    from articulated_dataset.models.dense.fit import FRAME_PROB_CANDIDATES
+
+    assert whole["refinement"]["frame_min_prob"] in FRAME_PROB_CANDIDATES
+    assert len(whole["refinement_report"]["frame_min_prob"]) == len(FRAME_PROB_CANDIDATES)
 
 
 def test_a_two_step_run_trains_records_its_data_and_machine_and_fits_later(tiny_root, tmp_path):

@@ -335,3 +335,35 @@ def test_fit_uses_the_hinge_height_only_where_it_lowers_the_position_error():
     m, r, truth = _extent_arrays(300, measured_noise_m=0.2, seed=6)  # a measurement worse than the votes
     ref, _ = fit_refinement(m, r, truth, ["revolute"])
     assert not ref.door_extent
+
+
+@pytest.mark.parametrize("part_logit, min_prob, aligned", [(5.0, None, True), (5.0, 0.9, True), (1.0, 0.9, False),
+                                                           (5.0, 0.995, False)])
+def test_box_frame_uses_only_the_pixels_the_segmentation_is_sure_of(part_logit, min_prob, aligned):
+    """Step 2 with ``frame_min_prob`` (refinement version 6): a drawer front whose pixels' label
+    probability (softmax of logits 0 / ``part_logit``: 0.73 or 0.9933) is not above the threshold
+    does not move the frame, which keeps the votes' 8 degrees; at or above it, it aligns the frame."""
+    depth, K, frame = _door_scene(0.0)
+    inputs = make_inputs(depth, K)
+    h, w = inputs["weight_out"].shape[1:]
+    seg = torch.zeros(1, 2, h, w)
+    seg[:, 1] = part_logit
+    votes = torch.tensor(Rotation.from_euler("z", 8, degrees=True).as_matrix() @ frame, dtype=torch.float32)
+    rot6 = torch.cat([votes[:, 2], votes[:, 0]]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w)
+    parts = {"seg": seg, "rot6": rot6, "conf": torch.zeros(1, 1, 3, h, w)}
+    modes = {"origin": torch.tensor([[[[1.5, 0.5, 0.0]]]]), "axis": votes[:, 2].reshape(1, 1, 1, 3)}
+    r = R.refined_quantities(parts, inputs, modes, ["prismatic"], frame_min_prob=min_prob)
+    x = r["xaxis"][0, 0, 0].double().numpy()
+    off = math.degrees(math.acos(min(1.0, abs(x @ frame[:, 0]))))
+    assert (off < 0.5) if aligned else (7.5 < off < 8.5)
+    if min_prob is None:  # a threshold every label probability passes changes nothing, bit for bit
+        same = R.refined_quantities(parts, inputs, modes, ["prismatic"], frame_min_prob=0.0)
+        for k, v in r.items():
+            assert torch.equal(v.nan_to_num(-7.0), same[k].nan_to_num(-7.0)), k
+
+
+def test_refinement_dict_reads_version_5_without_the_frame_threshold():
+    ref = R.Refinement(frame=True, hinge_offset_m=-0.01, frame_min_prob=0.9, mirror_joints=(0,))
+    assert R.Refinement.from_dict(ref.to_dict()) == ref and ref.version == R.REFINEMENT_VERSION == 6
+    old = {k: v for k, v in ref.to_dict().items() if k != "frame_min_prob"} | {"version": 5}
+    assert R.Refinement.from_dict(old).frame_min_prob is None
