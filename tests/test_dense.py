@@ -353,3 +353,17 @@ def test_init_from_continues_a_finished_training(overfit_run, tiny_root, tmp_pat
     wrong = DenseTrainConfig("drawer", epochs=1, batch_size=16, width=8, val_fraction=0.0, max_objects=1, init_from=str(src))
     with pytest.raises(Exception, match="init-from"):
         train_dense(tiny_root / "drawer" / "train", tmp_path / "d.pt", wrong, progress=False)
+
+
+def test_a_split_read_in_two_processes_is_the_same_arrays(tiny_root):
+    """load_dense_split(workers=2) reads the shards in processes: the arrays, their order and the
+    object selection are those of the one-process read."""
+    from articulated_dataset.models.dense.data import load_dense_split
+
+    split = tiny_root / "drawer" / "train"
+    one = load_dense_split(split, 1, (108, 192), max_objects=5, workers=1)
+    two = load_dense_split(split, 1, (108, 192), max_objects=5, workers=2)
+    assert len(np.unique(one.shard_of)) == 2 and set(np.unique(one.object_index)) == set(range(5))
+    for name in one.__dataclass_fields__:
+        a, b = getattr(one, name), getattr(two, name)
+        assert (a is None and b is None) or (a.dtype == b.dtype and np.array_equal(a, b)), name

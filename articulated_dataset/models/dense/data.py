@@ -19,6 +19,9 @@ from ...errors import DataFormatError, UserError
 DEPTH_STORE_QUANTUM_M = 1.0 / 8192
 #: Images read from a shard at a time.
 LOAD_CHUNK = 256
+#: ``load_dense_split(workers=None)`` reads splits of at least this many shards in one process per
+#: CPU (a spawned worker costs about a second to start: small splits read faster in one process).
+PARALLEL_LOAD_MIN_SHARDS = 16
 
 
 @dataclass
@@ -52,32 +55,77 @@ def quantise_depth(depth_m: np.ndarray) -> np.ndarray:
 
 
 def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max_objects: int | None = None,
-                     with_labels: bool = True, object_mask: bool = False, progress: bool = False) -> DenseData:
+                     with_labels: bool = True, object_mask: bool = False, progress: bool = False,
+                     workers: int | None = None) -> DenseData:
     """Read a split into a :class:`DenseData` (labels only if ``with_labels``).  ``object_mask``:
     the depth outside the object's mask codes (body and parts) is set to no return, as a
-    robot's object segmentation would leave it (scenes and occluders removed)."""
-    import torch
+    robot's object segmentation would leave it (scenes and occluders removed).  ``workers`` > 1
+    reads the shards in that many processes (the same arrays, in the same order); None: one per
+    CPU for splits of at least :data:`PARALLEL_LOAD_MIN_SHARDS` shards, else one."""
+    import os
+
     from tqdm.auto import tqdm
 
-    from ...rotations import quat_to_matrix
+    from ...executors import process_map
     from ...format import open_split
-    from .features import output_labels, resize_depth, scale_intrinsics
+    from ...rotations import quat_to_matrix
 
     manifest, shards = open_split(split_dir)
     if not shards:
         raise DataFormatError(f"{split_dir}: the split has no shards")
-    cols: dict[str, list] = {k: [] for k in ("depth_q", "K", "labels_out", "axis_pose", "q", "part_offset", "geometry",
-                                            "object_index", "sample_id", "shard_of")}
+    tasks = [(sh.path, s_idx, n_joints, tuple(hw), max_objects, with_labels, object_mask)
+             for s_idx, sh in enumerate(shards)]
+    if workers is None:
+        workers = (os.cpu_count() or 1) if len(shards) >= PARALLEL_LOAD_MIN_SHARDS else 1
+    workers = min(workers, len(tasks))
     bar = tqdm(total=int(manifest.get("n_images", 0)) or None, desc=f"loading {split_dir}", unit="img",
                disable=not progress, leave=False)
-    for s_idx, sh in enumerate(shards):
+    parts = []
+    results = map(_load_shard, tasks) if workers <= 1 else process_map(_load_shard, tasks, workers, ordered=True)
+    for part in results:
+        bar.update(int(part["n_read"]))
+        if part["object_index"] is not None:
+            parts.append(part)
+    bar.close()
+    if not parts:
+        raise UserError(f"{split_dir}: no images selected")
+    keys = ("depth_q", "K", "labels_out", "axis_pose", "q", "part_offset", "geometry", "object_index", "sample_id",
+            "shard_of")
+    cat = {k: None if parts[0][k] is None else np.concatenate([p[k] for p in parts]) for k in keys}
+    origin = rot6 = None
+    if with_labels:
+        pose = cat["axis_pose"]
+        R = quat_to_matrix(pose[..., 3:])
+        origin = pose[..., :3].astype(np.float32)
+        rot6 = np.concatenate([R[..., :, 2], R[..., :, 0]], -1).astype(np.float32)
+    f32 = (lambda a: None if a is None else a.astype(np.float32))
+    return DenseData(depth_q=cat["depth_q"], K=cat["K"], labels_out=cat["labels_out"], origin=origin, rot6=rot6,
+                     q=f32(cat["q"]), part_offset=f32(cat["part_offset"]), geometry=f32(cat["geometry"]),
+                     object_index=cat["object_index"], sample_id=cat["sample_id"], shard_of=cat["shard_of"])
+
+
+def _load_shard(task) -> dict:
+    """One shard's arrays for :func:`load_dense_split` (a top-level function: process workers run
+    it): ``task`` = (path, shard index, n_joints, hw, max_objects, with_labels, object_mask).
+    ``object_index`` is None when no image of the shard is selected; ``n_read`` counts its images read."""
+    import torch
+
+    from ...format.shards import Shard
+    from .features import output_labels, resize_depth, scale_intrinsics
+
+    path, s_idx, n_joints, hw, max_objects, with_labels, object_mask = task
+    out: dict = {k: None for k in ("depth_q", "K", "labels_out", "axis_pose", "q", "part_offset", "geometry",
+                                   "object_index", "sample_id", "shard_of")}
+    sh = Shard(path)
+    try:
         oi = sh.read("object_index")
         keep = np.ones(len(oi), bool) if max_objects is None else oi < max_objects
         idx = np.nonzero(keep)[0]
+        out["n_read"] = len(idx)
         if len(idx) == 0:
-            sh.close()
-            continue
+            return out
         K = np.asarray(sh.K, np.float64)
+        cols: dict[str, list] = {"depth_q": [], "K": [], "labels_out": []}
         for start in range(0, len(idx), LOAD_CHUNK):
             sel = idx[start : start + LOAD_CHUNK]
             rows = slice(int(sel[0]), int(sel[-1]) + 1)
@@ -98,25 +146,14 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
                     mask = torch.nn.functional.interpolate(torch.from_numpy(mask[:, None]).float(), size=hw,
                                                            mode="nearest")[:, 0].numpy().astype(np.uint8)
                 cols["labels_out"].append(output_labels(mask, n_joints))
-            bar.update(len(sel))
+        for k, v in cols.items():
+            out[k] = np.concatenate(v) if v else None
         if with_labels:
             for k in ("axis_pose", "q", "part_offset", "geometry"):
-                cols[k].append(np.asarray(sh.read(k), np.float64)[idx])
-        cols["object_index"].append(oi[idx].astype(np.int64))
-        cols["sample_id"].append(np.asarray(sh.read("sample_id"))[idx].astype(np.int64))
-        cols["shard_of"].append(np.full(len(idx), s_idx))
+                out[k] = np.asarray(sh.read(k), np.float64)[idx]
+        out["object_index"] = oi[idx].astype(np.int64)
+        out["sample_id"] = np.asarray(sh.read("sample_id"))[idx].astype(np.int64)
+        out["shard_of"] = np.full(len(idx), s_idx)
+        return out
+    finally:
         sh.close()
-    bar.close()
-    if not cols["depth_q"]:
-        raise UserError(f"{split_dir}: no images selected")
-    cat = {k: np.concatenate(v) if v else None for k, v in cols.items()}
-    origin = rot6 = None
-    if with_labels:
-        pose = cat["axis_pose"]
-        R = quat_to_matrix(pose[..., 3:])
-        origin = pose[..., :3].astype(np.float32)
-        rot6 = np.concatenate([R[..., :, 2], R[..., :, 0]], -1).astype(np.float32)
-    f32 = (lambda a: None if a is None else a.astype(np.float32))
-    return DenseData(depth_q=cat["depth_q"], K=cat["K"], labels_out=cat["labels_out"], origin=origin, rot6=rot6,
-                     q=f32(cat["q"]), part_offset=f32(cat["part_offset"]), geometry=f32(cat["geometry"]),
-                     object_index=cat["object_index"], sample_id=cat["sample_id"], shard_of=cat["shard_of"])
