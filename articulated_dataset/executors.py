@@ -133,6 +133,24 @@ def process_map(fn: Callable, tasks: Iterable, workers: int, *, ordered: bool = 
         pool.shutdown(wait=True, cancel_futures=True)
 
 
+#: :func:`ordered_map` runs at least this many tasks (a split's shards) in one process per CPU by
+#: default: a spawned worker costs about a second to start, so a small split reads faster in one.
+PARALLEL_MIN_TASKS = 16
+
+
+def ordered_map(fn: Callable, tasks: list, workers: int | None = None) -> Iterator:
+    """``fn(task)`` for every task, in the tasks' order: in this process (``workers`` <= 1) or in
+    ``workers`` spawned processes (:func:`process_map`); None: one per CPU when there are at least
+    :data:`PARALLEL_MIN_TASKS` tasks, else this process.  How the model loaders read a split's
+    shards (``fn`` a module-level function: workers import it)."""
+    if workers is None:
+        workers = (os.cpu_count() or 1) if len(tasks) >= PARALLEL_MIN_TASKS else 1
+    workers = min(workers, len(tasks))
+    if workers <= 1:
+        return map(fn, tasks)
+    return process_map(fn, tasks, workers, ordered=True)
+
+
 class ProcessExecutor:
     """Run tasks in ``workers`` local processes (:func:`process_map`).
 

@@ -135,7 +135,7 @@ def mdn_worker(a) -> None:
     config = TrainConfig(class_name=a.class_name, preset="full", seed=a.train_seed).resolved()
     layout = TargetLayout.for_class(a.class_name)
     t0 = time.time()
-    prepared = load_split(split_dir, layout, config.input_config(), max_objects=a.max_objects)
+    prepared = load_split(split_dir, layout, config.input_config(), max_objects=a.max_objects, workers=a.threads)
     load_s = time.time() - t0
     dev = torch.device(a.device)
     n_out = prepared.targets.shape[1]

@@ -341,3 +341,24 @@ def test_predict_split_refuses_bad_batch_sizes_and_estimates(tiny_root, tmp_path
                           ({"estimate": "median"}, "unknown estimate")):
         with pytest.raises(UserError, match=match):
             predict_split(model, tiny_root / "cabinet" / "test", progress=False, **kwargs)
+
+
+def test_a_split_read_in_two_processes_is_the_same_inputs(tiny_root):
+    """load_split(workers=2): the same planes, scalars, anchors, targets and order as one process."""
+    import torch
+
+    from articulated_dataset.models.mdn.config import TrainConfig
+    from articulated_dataset.models.mdn.data import load_split
+    from articulated_dataset.targets import TargetLayout
+
+    split = tiny_root / "drawer" / "train"
+    cfg = TrainConfig(class_name="drawer", preset="small").resolved()
+    one = load_split(split, TargetLayout.for_class("drawer"), cfg.input_config(), max_objects=5)
+    two = load_split(split, TargetLayout.for_class("drawer"), cfg.input_config(), max_objects=5, workers=2)
+    assert len(np.unique(one.shard_of)) == 2 and set(np.unique(one.object_index)) == set(range(5))
+    for name in one.__dataclass_fields__:
+        a, b = getattr(one, name), getattr(two, name)
+        if isinstance(a, torch.Tensor):
+            assert a.dtype == b.dtype and torch.equal(a, b), name
+        else:
+            assert a.dtype == b.dtype and np.array_equal(a, b), name

@@ -19,9 +19,6 @@ from ...errors import DataFormatError, UserError
 DEPTH_STORE_QUANTUM_M = 1.0 / 8192
 #: Images read from a shard at a time.
 LOAD_CHUNK = 256
-#: ``load_dense_split(workers=None)`` reads splits of at least this many shards in one process per
-#: CPU (a spawned worker costs about a second to start: small splits read faster in one process).
-PARALLEL_LOAD_MIN_SHARDS = 16
 
 
 @dataclass
@@ -61,12 +58,10 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
     the depth outside the object's mask codes (body and parts) is set to no return, as a
     robot's object segmentation would leave it (scenes and occluders removed).  ``workers`` > 1
     reads the shards in that many processes (the same arrays, in the same order); None: one per
-    CPU for splits of at least :data:`PARALLEL_LOAD_MIN_SHARDS` shards, else one."""
-    import os
-
+    CPU for splits of at least :data:`~articulated_dataset.executors.PARALLEL_MIN_TASKS` shards."""
     from tqdm.auto import tqdm
 
-    from ...executors import process_map
+    from ...executors import ordered_map
     from ...format import open_split
     from ...rotations import quat_to_matrix
 
@@ -75,14 +70,10 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
         raise DataFormatError(f"{split_dir}: the split has no shards")
     tasks = [(sh.path, s_idx, n_joints, tuple(hw), max_objects, with_labels, object_mask)
              for s_idx, sh in enumerate(shards)]
-    if workers is None:
-        workers = (os.cpu_count() or 1) if len(shards) >= PARALLEL_LOAD_MIN_SHARDS else 1
-    workers = min(workers, len(tasks))
     bar = tqdm(total=int(manifest.get("n_images", 0)) or None, desc=f"loading {split_dir}", unit="img",
                disable=not progress, leave=False)
     parts = []
-    results = map(_load_shard, tasks) if workers <= 1 else process_map(_load_shard, tasks, workers, ordered=True)
-    for part in results:
+    for part in ordered_map(_load_shard, tasks, workers):
         bar.update(int(part["n_read"]))
         if part["object_index"] is not None:
             parts.append(part)
