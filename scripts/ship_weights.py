@@ -22,7 +22,8 @@ import torch
 
 from articulated_dataset.models import MODELS_MANIFEST, WEIGHTS_DIR, strip_for_shipping
 from articulated_dataset.registry import class_names
-from articulated_dataset.format import read_manifest, sha256_file
+from articulated_dataset.format import sha256_file
+from articulated_dataset.models.dense.train import split_generation
 
 MACHINE = "2-core x86_64 CPU VM shared with other jobs, no GPU, PyTorch 2.13.0 CPU"
 TRAIN_COMMANDS = {
@@ -36,13 +37,10 @@ def _data_command(c: str, ckpt: dict) -> tuple[str, int]:
     """The generate command of the checkpoint's training split (the generation settings the
     checkpoint recorded; else from the split's manifest when it is still there; else the shipped
     recipe's seed-0 split) and its seed."""
-    generated = ckpt.get("data", {}).get("generated")
-    split_dir = Path(ckpt.get("data", {}).get("split_dir", ""))
-    try:
-        cfg = generated if generated else read_manifest(split_dir)["config"]
-        n, seed = int(cfg["n_objects"]), int(cfg["seed"])
-    except Exception:  # noqa: BLE001 - the split is gone: the documented default recipe
-        n, seed = 4000, 0
+    data = ckpt.get("data", {})
+    generated = data.get("generated") or split_generation(Path(data.get("split_dir", "")))
+    # the split is gone and nothing was recorded: the documented default recipe
+    n, seed = (int(generated["n_objects"]), int(generated["seed"])) if generated else (4000, 0)
     data = "data" if seed == 0 else f"data-seed{seed}"
     return f"artdata generate --class {c} --n {n} --split train --seed {seed} --out {data}", seed
 
@@ -102,7 +100,7 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
             opts += f" --batch-size {tc['batch_size']}"
         if tc.get("val_fraction", 0.05) != 0.05:
             opts += f" --val-fraction {tc['val_fraction']:g}"
-        if "GPU" in str(ckpt.get("machine", "")) or "NVIDIA" in str(ckpt.get("machine", "")):
+        if ckpt.get("device") == "cuda":
             opts += " --device cuda"
         command = TRAIN_COMMANDS[name].format(c=c, opts=opts).replace("data/", f"{data}/")
     else:

@@ -220,7 +220,7 @@ def test_a_two_step_run_trains_records_its_data_and_machine_and_fits_later(tiny_
     cfg_made = read_manifest(split)["config"]
     assert whole["data"]["generated"] == {"class_name": "drawer", "seed": cfg_made["seed"],
                                           "n_objects": cfg_made["n_objects"]}
-    assert "PyTorch" in whole["machine"] and "cores" in whole["machine"]
+    assert "PyTorch" in whole["machine"] and "cores" in whole["machine"] and whole["device"] == "cpu"
     if not torch.cuda.is_available():
         with pytest.raises(UserError, match="no CUDA GPU"):
             train_dense(split, tmp_path / "d.pt", cfg, progress=False, device="cuda")

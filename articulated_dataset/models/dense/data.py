@@ -19,6 +19,9 @@ from ...errors import DataFormatError, UserError
 DEPTH_STORE_QUANTUM_M = 1.0 / 8192
 #: Images read from a shard at a time.
 LOAD_CHUNK = 256
+#: The arrays each shard contributes to a :class:`DenseData` (before the labels' conversion).
+_COLUMNS = ("depth_q", "K", "labels_out", "axis_pose", "q", "part_offset", "geometry", "object_index", "sample_id",
+            "shard_of")
 
 
 @dataclass
@@ -80,9 +83,7 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
     bar.close()
     if not parts:
         raise UserError(f"{split_dir}: no images selected")
-    keys = ("depth_q", "K", "labels_out", "axis_pose", "q", "part_offset", "geometry", "object_index", "sample_id",
-            "shard_of")
-    cat = {k: None if parts[0][k] is None else np.concatenate([p[k] for p in parts]) for k in keys}
+    cat = {k: None if parts[0][k] is None else np.concatenate([p[k] for p in parts]) for k in _COLUMNS}
     origin = rot6 = None
     if with_labels:
         pose = cat["axis_pose"]
@@ -105,8 +106,7 @@ def _load_shard(task) -> dict:
     from .features import output_labels, resize_depth, scale_intrinsics
 
     path, s_idx, n_joints, hw, max_objects, with_labels, object_mask = task
-    out: dict = {k: None for k in ("depth_q", "K", "labels_out", "axis_pose", "q", "part_offset", "geometry",
-                                   "object_index", "sample_id", "shard_of")}
+    out: dict = dict.fromkeys(_COLUMNS)
     sh = Shard(path)
     try:
         oi = sh.read("object_index")
