@@ -24,7 +24,6 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 #: Images of the rendered split per object.
 IMAGES_PER_OBJECT = 16
@@ -43,6 +42,9 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=5)
     args = p.parse_args(argv)
 
+    from articulated_dataset.executors import configure_openmp_wait
+
+    configure_openmp_wait(args.threads)  # before torch loads its OpenMP runtime: the commands' choice
     import torch
 
     from articulated_dataset.registry import class_names
@@ -127,12 +129,19 @@ def bench_class(args, class_name: str) -> None:
     print(f"{class_name} {ref.name}: {torch.get_num_threads()} threads, batch {n}; "
           f"network {n / t_net:.0f} img/s; batched pipeline {n / t_full:.0f} img/s (one batch), "
           f"{args.batches * n / t_split:.0f} img/s ({args.batches} batches); estimate() {one_ms:.1f} ms/image; "
-          f"load average {os.getloadavg()[0]:.1f}")
+          f"load average {os.getloadavg()[0]:.1f}; OpenMP wait: {wait_policy()}")
     mirrored = getattr(refinement, "mirror_joints", None) is not None  # step 8: every stage but the mixture twice
     other = t_full - ((2 if mirrored else 1) * (t_inputs + t_net + t_modes + t_refine) + t_mixture)
     print(f"  ms per batch{' (x 2: the mirror image too)' if mirrored else ''}: inputs {1e3 * t_inputs:.0f}, "
           f"network {1e3 * t_net:.0f}, vote modes {1e3 * t_modes:.0f}, refinement {1e3 * t_refine:.0f}, "
           f"mixture {1e3 * t_mixture:.0f}, other {1e3 * other:.0f}", flush=True)
+
+
+def wait_policy() -> str:
+    """The OpenMP wait settings in effect (:func:`articulated_dataset.executors.configure_openmp_wait`)."""
+    from articulated_dataset.executors import OPENMP_WAIT_VARIABLES
+
+    return ", ".join(f"{v}={os.environ[v]}" for v in OPENMP_WAIT_VARIABLES if v in os.environ) or "libgomp's default"
 
 
 if __name__ == "__main__":

@@ -23,7 +23,9 @@ import platform
 import statistics
 import time
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads its OpenMP runtime
+from articulated_dataset.executors import configure_openmp_wait  # noqa: E402
+
+configure_openmp_wait()  # before torch loads its OpenMP runtime: the commands' wait policy
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402

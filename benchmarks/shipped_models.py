@@ -22,7 +22,9 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from articulated_dataset.executors import configure_openmp_wait  # noqa: E402
+
+configure_openmp_wait()  # before torch loads its OpenMP runtime: the commands' wait policy
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from reproduce_table1 import PAPER_TABLE1  # noqa: E402

@@ -22,7 +22,9 @@ import platform
 import time
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads its OpenMP runtime
+from articulated_dataset.executors import configure_openmp_wait  # noqa: E402
+
+configure_openmp_wait()  # before torch loads its OpenMP runtime: the commands' wait policy
 
 PAPER_METRICS = ("axis_position_error_cm", "axis_rotation_error_deg", "configuration_error")
 

@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-import os
-
 import click
 
 from ..errors import UserError
@@ -30,9 +28,13 @@ class ClassChoice(click.ParamType):
 
 
 def prepare_torch(threads: int | None) -> int:
-    """Import torch once for the command (with passive OpenMP waiting unless the user chose
-    a policy: spinning threads slow a busy 2-core machine ten-fold) and set its threads."""
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    """Import torch once for the command and set its threads, with the OpenMP wait policy
+    :func:`~articulated_dataset.executors.configure_openmp_wait` chooses (threads that spin
+    between operations where the machine has a free CPU for each, else passive waiting: spinning
+    threads slow a busy 2-core machine ten-fold) unless the user set one."""
+    from ..executors import configure_openmp_wait
+
+    configure_openmp_wait(threads if threads is not None and threads > 0 else None)
     try:
         import torch  # noqa: F401
     except ImportError:

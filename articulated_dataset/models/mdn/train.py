@@ -81,10 +81,9 @@ def configure_threads(n_threads: int | None = None) -> int:
     import torch
 
     if n_threads is None:
-        try:
-            n_threads = len(os.sched_getaffinity(0))
-        except AttributeError:  # pragma: no cover - non-Linux
-            n_threads = os.cpu_count() or 1
+        from ...executors import usable_cpus
+
+        n_threads = usable_cpus()
     most = MAX_THREADS_PER_CPU * (os.cpu_count() or 1)
     if n_threads > most:
         raise UserError(f"--threads {n_threads} is more than {MAX_THREADS_PER_CPU} per logical CPU of this machine "
