@@ -40,6 +40,7 @@ def main(argv=None) -> int:
     p.add_argument("--batch", type=int, default=128)
     p.add_argument("--batches", type=int, default=3)
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--no-mirror", action="store_true", help="skip the refinement's mirror image (predict --no-mirror)")
     args = p.parse_args(argv)
 
     from articulated_dataset.executors import configure_openmp_wait
@@ -73,7 +74,7 @@ def bench_class(args, class_name: str) -> None:
     except ImportError:  # pragma: no cover - comparing with older code
         def network_outputs(model, x):
             return model(x)
-    from articulated_dataset.models.dense.refine import apply_refinement, as_refinement, refined_quantities, split_factor_of
+    from articulated_dataset.models.dense.refine import apply_refinement, refined_quantities, split_factor_of
 
     n_objects = max(1, -(-args.batch // IMAGES_PER_OBJECT))
     split = generate_split(GenerationConfig(class_name, split="test", n_objects=n_objects, seed=1), args.root,
@@ -84,7 +85,13 @@ def bench_class(args, class_name: str) -> None:
     c = model.config
     data = load_dense_split(split, c.n_joints, (c.height_px, c.width_px), with_labels=False)
     idx = np.arange(min(args.batch, len(data.sample_id)))
-    joint_types, refinement = list(ckpt["joint_types"]), as_refinement(ckpt.get("refinement"))
+    try:
+        from articulated_dataset.models.dense.mirror import with_mirror
+    except ImportError:  # pragma: no cover - comparing with older code
+        def with_mirror(refinement, mirror):
+            return refinement
+    refinement = with_mirror(ckpt.get("refinement"), not args.no_mirror)
+    joint_types = list(ckpt["joint_types"])
 
     def timed(fn):  # the fastest of the repeats' seconds, after one warm-up call; and its result
         out = fn()
@@ -114,16 +121,17 @@ def bench_class(args, class_name: str) -> None:
                                                  data.sample_id[idx], model, ckpt.get("calibration")))
     def pipeline(images):
         return predict_arrays(model, data, images, joint_types=joint_types, calibration=ckpt.get("calibration"),
-                              refinement=ckpt.get("refinement"), batch_size=args.batch)
+                              refinement=refinement, batch_size=args.batch)
 
     t_full, _ = timed(lambda: pipeline(idx))
     t_split, _ = timed(lambda: pipeline(np.tile(idx, args.batches)))
     with h5py.File(next(split.glob("shard-*.h5")), "r") as f:
         depths, K = f["depth"][:N_SINGLE], f["K"][()]
-    ad.estimate(depths[0], K, class_name, model=args.model)
+    options = {"mirror": False} if args.no_mirror else {}
+    ad.estimate(depths[0], K, class_name, model=args.model, **options)
     t0 = time.perf_counter()
     for d in depths:
-        ad.estimate(d, K, class_name, model=args.model)
+        ad.estimate(d, K, class_name, model=args.model, **options)
     one_ms = 1e3 * (time.perf_counter() - t0) / len(depths)  # the mean over the images
     n = len(idx)
     print(f"{class_name} {ref.name}: {torch.get_num_threads()} threads, batch {n}; "

@@ -40,6 +40,8 @@ def main(argv=None) -> int:
     p.add_argument("--classes", nargs="+", default=None)
     p.add_argument("--models", nargs="+", default=["dense", "mdn-small"])
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    p.add_argument("--no-mirror", action="store_true",
+                   help="Dense: skip the refinement's mirror image (predict --no-mirror); predictions go to <class>-<model>-no-mirror.h5")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--quiet", "-q", action="store_true")
     args = p.parse_args(argv)
@@ -61,13 +63,14 @@ def main(argv=None) -> int:
         split_dir = generate_split(cfg, args.root, workers=args.workers, resume=True, progress=not args.quiet)
         for name in args.models:
             ref = resolve_model(name, cls)
-            out = args.root / "predictions" / f"{cls}-{name}.h5"
+            out = args.root / "predictions" / f"{cls}-{name}{'-no-mirror' if args.no_mirror else ''}.h5"
             out.parent.mkdir(parents=True, exist_ok=True)
             t0 = time.perf_counter()
             if ref.kind == "dense":
                 from articulated_dataset.models.dense.predict import predict_arrays
                 from articulated_dataset.models.dense.checkpoint import build_dense_model, load_dense_checkpoint
                 from articulated_dataset.models.dense.data import load_dense_split
+                from articulated_dataset.models.dense.mirror import with_mirror
                 import numpy as np
 
                 ckpt = load_dense_checkpoint(ref.path)
@@ -77,7 +80,7 @@ def main(argv=None) -> int:
                 t1 = time.perf_counter()
                 arrays = predict_arrays(model, data, np.arange(len(data.sample_id)), joint_types=ckpt["joint_types"],
                                         calibration=ckpt.get("calibration"),
-                                        refinement=ckpt.get("refinement"))
+                                        refinement=with_mirror(ckpt.get("refinement"), not args.no_mirror))
                 arrays.pop("spread")
                 speed = len(data.sample_id) / (time.perf_counter() - t1)
                 method = "dense"
@@ -91,6 +94,7 @@ def main(argv=None) -> int:
             row = score(out, split_dir).rows[0]
             m = row.metrics
             rec = {"class": cls, "model": name, "method": method, "n_images": row.n_scored,
+                   "mirror": not (args.no_mirror and ref.kind == "dense"),
                    **{k: m[k][0] for k in TABLE_METRICS}, "coverage_90": m.get("coverage_90", (float("nan"),))[0],
                    "images_per_s": speed, "test_seed": args.seed, "test_objects": args.test_objects,
                    "all_metrics": {k: v[0] for k, v in m.items()}}

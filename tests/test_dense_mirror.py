@@ -156,3 +156,87 @@ def test_the_pipeline_runs_the_mirror_image_when_the_refinement_says_so(monkeypa
         refined_batch(model, *mirror_inputs(depth_t, K_t), joint_types=joints, refinement=ref), data.sample_id, model,
         None)["mixture_means"])
     assert not np.allclose(both["axis_pose"], plain["axis_pose"])  # something was averaged
+
+
+def test_with_mirror_drops_only_step_8():
+    from articulated_dataset.models.dense.mirror import with_mirror
+
+    ref = Refinement(frame=True, mirror_joints=(0,))
+    assert with_mirror(ref, True) == ref
+    assert with_mirror(ref.to_dict(), False) == replace(ref, mirror_joints=None)
+    assert with_mirror(None, False) is None
+    plain = Refinement(frame=True)
+    assert with_mirror(plain, False) == plain
+
+
+@pytest.fixture(scope="module")
+def cabinet_split(tmp_path_factory):
+    from click.testing import CliRunner
+
+    from articulated_dataset.cli import main
+
+    root = tmp_path_factory.mktemp("nomirror")
+    r = CliRunner().invoke(main, ["generate", "--class", "cabinet", "--n", "1", "--split", "test", "--seed", "5",
+                                  "--out", str(root), "-q"])
+    assert r.exit_code == 0, r.output
+    return root / "cabinet" / "test"
+
+
+def _cli(*args):
+    from click.testing import CliRunner
+
+    from articulated_dataset.cli import main
+
+    return CliRunner().invoke(main, list(args))
+
+
+def test_predict_no_mirror_skips_the_mirror_image(cabinet_split, tmp_path):
+    """The shipped cabinet model averages with the mirror image; --no-mirror gives the
+    estimate of the image alone (the pipeline without step 8) and says so in the file."""
+    from articulated_dataset.benchmark.predictions import read_predictions
+    from articulated_dataset.models import resolve_model
+    from articulated_dataset.models.dense.checkpoint import build_dense_model, load_dense_checkpoint
+    from articulated_dataset.models.dense.data import load_dense_split
+
+    ckpt = load_dense_checkpoint(resolve_model("dense", "cabinet").path)
+    if Refinement.from_dict(ckpt["refinement"]).mirror_joints is None:
+        pytest.skip("the shipped cabinet model does not use the mirror image")
+    outs = {}
+    for name, extra in (("with", []), ("without", ["--no-mirror"])):
+        out = tmp_path / f"{name}.h5"
+        r = _cli("predict", "--model", "dense", "--data", str(cabinet_split), "--out", str(out), "--threads", "1", "-q",
+                 *extra)
+        assert r.exit_code == 0, r.output
+        attrs, arrays = read_predictions(out)
+        outs[name] = arrays["cabinet"]
+        assert int(attrs["mirror"]) == (name == "with")
+    model = build_dense_model(ckpt)
+    c = model.config
+    data = load_dense_split(cabinet_split, c.n_joints, (c.height_px, c.width_px), with_labels=False)
+    idx = np.arange(len(data.sample_id))
+    alone = predict_arrays(model, data, idx, joint_types=list(ckpt["joint_types"]), calibration=ckpt.get("calibration"),
+                           refinement=replace(Refinement.from_dict(ckpt["refinement"]), mirror_joints=None))
+    assert np.allclose(outs["without"]["axis_pose"], alone["axis_pose"], atol=1e-6)
+    assert np.allclose(outs["without"]["q"], alone["q"], atol=1e-6)
+    assert not np.allclose(outs["with"]["axis_pose"][..., :3], alone["axis_pose"][..., :3], atol=1e-4)
+
+
+def test_no_mirror_is_for_the_dense_model(cabinet_split, tmp_path):
+    r = _cli("predict", "--model", "mdn-small", "--data", str(cabinet_split), "--out", str(tmp_path / "p.h5"),
+             "--no-mirror", "-q")
+    assert r.exit_code == 2 and r.output.strip() == "artdata: error: --no-mirror applies to the dense model"
+
+
+def test_estimate_no_mirror(cabinet_split):
+    """One image: articulated_dataset.estimate(mirror=False) is the image's own estimate, and the
+    default averages it with the mirror image's."""
+    import h5py
+
+    import articulated_dataset as ad
+
+    with h5py.File(sorted(cabinet_split.glob("shard-*.h5"))[0], "r") as f:
+        depth, K = f["depth"][0], f["K"][()]
+    both, alone = ad.estimate(depth, K, "cabinet"), ad.estimate(depth, K, "cabinet", mirror=False)
+    again = ad.estimate(depth, K, "cabinet", mirror=False)
+    assert np.array_equal(alone.axis_origin_m, again.axis_origin_m)
+    assert not np.allclose(both.axis_origin_m, alone.axis_origin_m, atol=1e-5)

@@ -37,6 +37,20 @@ MIRROR_MIN_GAIN = 0.03
 MIRROR_AXIS = 1
 
 
+def with_mirror(refinement, mirror: bool):
+    """A checkpoint's refinement (a :class:`~.refine.Refinement`, its dict or None) as a
+    :class:`~.refine.Refinement`, without this step unless ``mirror`` (``predict --no-mirror``:
+    half the work of the classes that use it, for their 4-6% higher position error)."""
+    from dataclasses import replace
+
+    from .refine import as_refinement
+
+    refinement = as_refinement(refinement)
+    if mirror or refinement is None or refinement.mirror_joints is None:
+        return refinement
+    return replace(refinement, mirror_joints=None)
+
+
 def mirror_intrinsics(K, width_px: int):
     """Intrinsics (B, 3, 3) (torch or numpy; a new array) that back-project the mirror images of
     ``width_px``-wide images to the reflected points: ``c_x' = W - 1 - c_x``."""

@@ -385,15 +385,17 @@ def _quat_from_rot6(r6: np.ndarray) -> np.ndarray:
 
 
 def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BATCH, object_mask: bool = False,
-                  progress: bool = True) -> tuple[str, dict]:
+                  mirror: bool = True, progress: bool = True) -> tuple[str, dict]:
     """Run a loaded dense checkpoint on the split at ``data``; ``(class_name, arrays)`` as
     :func:`articulated_dataset.benchmark.predictions.write_predictions` takes them.  Labels are not
     read; with ``object_mask`` the split's mask keeps only the object's pixels
     (:func:`~.data.load_dense_split`).  A split with a scene or occluders predicted without it
-    logs a warning: the model was trained on isolated objects and reads every pixel with depth."""
+    logs a warning: the model was trained on isolated objects and reads every pixel with depth.
+    ``mirror=False`` skips the refinement's mirror image (:func:`~.mirror.with_mirror`)."""
     from ..mdn.data import resolve_split_dir, split_class
     from .checkpoint import build_dense_model
     from .data import load_dense_split
+    from .mirror import with_mirror
 
     if batch_size <= 0:
         raise UserError(f"--batch-size must be positive, got {batch_size}")
@@ -417,8 +419,8 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
                          object_mask=object_mask, progress=progress)
     t0 = time.perf_counter()
     arrays = predict_arrays(model, d, np.arange(len(d.sample_id)), joint_types=list(ckpt["joint_types"]),
-                            calibration=ckpt.get("calibration"), refinement=ckpt.get("refinement"),
-                            batch_size=batch_size, progress=progress)
+                            calibration=ckpt.get("calibration"),
+                            refinement=with_mirror(ckpt.get("refinement"), mirror), batch_size=batch_size, progress=progress)
     log.info("dense: %d images in %.1f s", len(d.sample_id), time.perf_counter() - t0)
     arrays.pop("spread")
     return class_name, arrays
