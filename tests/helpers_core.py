@@ -181,3 +181,15 @@ def load_script(path: Path, name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def generated_split(root: Path, class_name: str, n_objects: int, seed: int) -> Path:
+    """``artdata generate`` of ``n_objects`` test objects of ``class_name`` under ``root``, as a user runs it; the split's folder."""
+    from click.testing import CliRunner
+
+    from articulated_dataset.cli import main
+
+    r = CliRunner().invoke(main, ["generate", "--class", class_name, "--n", str(n_objects), "--split", "test",
+                                  "--seed", str(seed), "--out", str(root), "-q"])
+    assert r.exit_code == 0, r.output
+    return Path(root) / class_name / "test"

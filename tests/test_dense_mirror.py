@@ -22,7 +22,7 @@ from articulated_dataset.models.dense.model import DenseConfig, DenseNet  # noqa
 from articulated_dataset.models.dense.predict import modes_to_arrays, predict_arrays, refined_batch  # noqa: E402
 from articulated_dataset.models.dense.refine import Refinement  # noqa: E402
 from articulated_dataset.registry import REVOLUTE, all_classes, get_class  # noqa: E402
-from helpers_core import compile_object, final_object, render_at  # noqa: E402
+from helpers_core import compile_object, final_object, generated_split, render_at  # noqa: E402
 
 MIRRORED = [c for c in all_classes() if c.mirror_joints is not None]
 #: Depth agreement (m) of a pixel of the mirrored object's image and the reflected image.
@@ -171,15 +171,7 @@ def test_with_mirror_drops_only_step_8():
 
 @pytest.fixture(scope="module")
 def cabinet_split(tmp_path_factory):
-    from click.testing import CliRunner
-
-    from articulated_dataset.cli import main
-
-    root = tmp_path_factory.mktemp("nomirror")
-    r = CliRunner().invoke(main, ["generate", "--class", "cabinet", "--n", "1", "--split", "test", "--seed", "5",
-                                  "--out", str(root), "-q"])
-    assert r.exit_code == 0, r.output
-    return root / "cabinet" / "test"
+    return generated_split(tmp_path_factory.mktemp("nomirror"), "cabinet", 1, 5)
 
 
 def _cli(*args):
