@@ -31,54 +31,56 @@ CM_PER_M = 100.0
 
 
 def per_image_errors(predictions: Path, truth: Path):
-    """(class, per-image errors and image facts) of ``predictions`` against the split ``truth``."""
-    import h5py
+    """(class, prismatic joints, per-image errors and image facts) of ``predictions`` against the split
+    ``truth``, row i the predictions' image i: the scorer's own truth reading, alignment and per-joint
+    metrics (:func:`~articulated_dataset.benchmark.scoring.image_metrics`), plus each image's
+    body pixels and where its moving parts meet the image's edge (read from the shards' masks)."""
     import numpy as np
 
-    from articulated_dataset.benchmark import metrics as M
     from articulated_dataset.benchmark.predictions import read_predictions
-    from articulated_dataset.format import MASK_FIRST_PART
-    from articulated_dataset.registry import get_class
+    from articulated_dataset.benchmark.scoring import image_metrics
+    from articulated_dataset.benchmark.truth import align, load_truth_set
+    from articulated_dataset.errors import UserError
+    from articulated_dataset.format import MASK_FIRST_PART, Split
     from articulated_dataset.rotations import quat_to_matrix
 
     _, by_class = read_predictions(predictions)
     if len(by_class) != 1:
-        raise SystemExit(f"{predictions}: expected one class, found {sorted(by_class)}")
+        raise UserError(f"{predictions}: expected one class, found {sorted(by_class)}")
     (class_name, pred), = by_class.items()
-    row_of = {int(s): i for i, s in enumerate(pred["sample_id"])}
-    shards = sorted(Path(truth).glob("shard-*.h5"))
-    if not shards:
-        raise SystemExit(f"{truth}: no shard-*.h5")
-    J = get_class(class_name).n_joints
-    cols = {k: [] for k in ("rows", "pose", "q", "body_px", "top", "bottom", "seen")}
-    for path in shards:
-        with h5py.File(path, "r") as f:
-            ids = f["sample_id"][:]
-            mask = f["mask"][:]
-            cols["rows"].append(np.array([row_of.get(int(s), -1) for s in ids]))
-            cols["pose"].append(f["axis_pose"][:])
-            cols["q"].append(f["q"][:])
-            cols["body_px"].append(f["visible_pixels"][:, 0])
+    labels = load_truth_set(truth)
+    if labels.class_name != class_name:
+        raise UserError(f"{predictions}: class {class_name!r}, but {truth} holds {labels.class_name!r}")
+    idx = align(pred["sample_id"], labels.arrays["sample_id"], str(predictions), str(truth))
+    if len(np.unique(idx)) != labels.n_images:
+        raise UserError(f"{predictions}: {labels.n_images - len(np.unique(idx))} images of {truth} have no prediction")
+    t = {k: v[idx] for k, v in labels.arrays.items()}
+    with np.errstate(all="ignore"):  # as the scorer: NaN truth stays NaN
+        _, per_joint = image_metrics(pred, t, labels.joint_types, str(predictions))
+    J = len(labels.joint_types)
+    facts = {k: [] for k in ("sample_id", "body_px", "top", "bottom", "seen")}
+    with Split(truth) as split:
+        for shard in split.shards:
+            mask = shard.read("mask")
             part = np.stack([mask == MASK_FIRST_PART + j for j in range(J)], 1)  # (N, J, H, W)
-            cols["top"].append(part[:, :, 0, :].any(-1))
-            cols["bottom"].append(part[:, :, -1, :].any(-1))
-            cols["seen"].append(part.any((-1, -2)))
-    c = {k: np.concatenate(v) for k, v in cols.items()}
-    if (c["rows"] < 0).any():
-        raise SystemExit(f"{predictions}: {(c['rows'] < 0).sum()} images of {truth} have no prediction")
-    pose, q = pred["axis_pose"][c["rows"]].astype(np.float64), pred["q"][c["rows"]].astype(np.float64)
-    true_pose = c["pose"].astype(np.float64)
-    prismatic = np.array([t == "prismatic" for t in get_class(class_name).joint_types])
-    diff = pose[..., :3] - true_pose[..., :3]
-    z = quat_to_matrix(true_pose[..., 3:])[..., :, 2]  # (N, J, 3): the true joint axes
+            facts["sample_id"].append(shard.read("sample_id").astype(np.int64))
+            facts["body_px"].append(shard.read("visible_pixels")[:, 0])
+            facts["top"].append(part[:, :, 0, :].any(-1))
+            facts["bottom"].append(part[:, :, -1, :].any(-1))
+            facts["seen"].append(part.any((-1, -2)))
+    facts = {k: np.concatenate(v) for k, v in facts.items()}
+    order = np.argsort(facts["sample_id"], kind="stable")[idx]  # the truth's order (sorted ids), then idx
+    prismatic = np.array([jt == "prismatic" for jt in labels.joint_types])
+    diff = pred["axis_pose"][..., :3] - t["axis_pose"][..., :3]
+    z = quat_to_matrix(t["axis_pose"][..., 3:])[..., :, 2]  # (N, J, 3): the true joint axes
     along = (diff * z).sum(-1)
     out = {
-        "pos": M.axis_position_error_cm(pose[..., :3], true_pose[..., :3]),
-        "rot": M.axis_rotation_error_deg(pose[..., 3:], true_pose[..., 3:]),
-        "config": M.configuration_error(q, c["q"].astype(np.float64), prismatic),
+        "pos": per_joint["axis_position_error_cm"],
+        "rot": per_joint["axis_rotation_error_deg"],
+        "config": per_joint["configuration_error"],
         "along": CM_PER_M * np.abs(along),
         "across": CM_PER_M * np.linalg.norm(diff - along[..., None] * z, axis=-1),
-        "body_px": c["body_px"], "top": c["top"], "bottom": c["bottom"], "seen": c["seen"],
+        **{k: facts[k][order] for k in ("body_px", "top", "bottom", "seen")},
     }
     return class_name, prismatic, out
 
@@ -91,7 +93,13 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     import numpy as np
 
-    class_name, prismatic, e = per_image_errors(args.predictions, args.truth)
+    from articulated_dataset.errors import UserError
+
+    try:
+        class_name, prismatic, e = per_image_errors(args.predictions, args.truth)
+    except UserError as exc:  # a missing or malformed file: one line, as the commands report it
+        print(f"error_sources: error: {exc}", file=sys.stderr)
+        return 2
     pos, rot, cfg = (e[k].mean(1) for k in ("pos", "rot", "config"))
     n = len(pos)
     unit = "cm" if prismatic.all() else "deg" if not prismatic.any() else "deg|cm"

@@ -51,3 +51,11 @@ def test_prints_both_tables(predicted, capsys):
     text = capsys.readouterr().out
     assert text.startswith("cabinet2: 32 images; mean position")
     assert "by the body's visible pixels" in text and "joint 1:" in text
+
+
+def test_a_missing_truth_folder_is_one_line(predicted, tmp_path, capsys):
+    bench = load_script(ROOT / "benchmarks" / "error_sources.py", "error_sources")
+    out, _ = predicted
+    assert bench.main(["--predictions", str(out), "--truth", str(tmp_path / "nope")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error_sources: error: ") and "manifest.json" in err and "\n" not in err
