@@ -6,7 +6,7 @@ import json
 
 import click
 
-from .options import ClassChoice, prepare_torch
+from .options import ClassChoice, no_mirror_option, prepare_torch
 
 
 @click.command("estimate")
@@ -20,10 +20,7 @@ from .options import ClassChoice, prepare_torch
 @click.option("--depth-units", type=click.Choice(["auto", "m", "mm"]), default="auto", show_default=True,
               help="Units of the depth values (auto: 16-bit PNG = mm, float EXR/npy = m).")
 @click.option("--model", default="dense", show_default=True, help="'dense' (shipped weights) or a dense checkpoint file.")
-@click.option("--no-mirror", is_flag=True,
-              help="Dense model: skip the mirror image (the image reflected left-right, estimated too and averaged "
-                   "with it by the cabinet, two-door cabinet and drawer models): about twice as fast for those "
-                   "classes, with a 4-6% higher position error.")
+@no_mirror_option
 @click.option("--json", "as_json", is_flag=True, help="Print the estimate as JSON.")
 @click.option("--threads", type=int, default=1, show_default=True,
               help="CPU threads for torch (one image gains little from more, and loses much on a busy machine).")

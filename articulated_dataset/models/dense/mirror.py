@@ -40,7 +40,7 @@ MIRROR_AXIS = 1
 def with_mirror(refinement, mirror: bool):
     """A checkpoint's refinement (a :class:`~.refine.Refinement`, its dict or None) as a
     :class:`~.refine.Refinement`, without this step unless ``mirror`` (``predict --no-mirror``:
-    half the work of the classes that use it, for their 4-6% higher position error)."""
+    half the work of the classes that use it, for their 4-7% higher position error)."""
     from dataclasses import replace
 
     from .refine import as_refinement
