@@ -109,8 +109,10 @@ def bench_class(args, class_name: str) -> None:
         t_modes, modes = timed(lambda: vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0,
                                                   split_factor=split_factor_of(refinement)))
         t_refine, r = timed(lambda: refined_quantities(parts, inputs, modes, joint_types))
-        handle_deg = None if refinement is None else getattr(refinement, "handle_max_q_deg", None)
-        if handle_deg is not None:  # refinement step 7 (the doors' handles) is part of the refinement
+        # refinement steps 7 and 9 (the doors' handles) are part of the refinement
+        handle_deg = None if refinement is None else getattr(refinement, "handle_evidence_max_q_deg",
+                                                              getattr(refinement, "handle_max_q_deg", None))
+        if handle_deg is not None:
             from articulated_dataset.models.dense.handle import handle_candidates_evidence
 
             t_handle, h = timed(lambda: handle_candidates_evidence(parts, inputs, modes, r, joint_types, handle_deg))

@@ -1,4 +1,5 @@
-"""Refinement step 7 (models/dense/handle.py): a closed door's hinge side from its handle."""
+"""Refinement steps 7 and 9 (models/dense/handle.py): a closed door's hinge side, and a door's
+hinge height, from its handle."""
 
 import math
 
@@ -10,7 +11,9 @@ torch = pytest.importorskip("torch")
 from articulated_dataset.camera import CameraConfig  # noqa: E402
 from articulated_dataset.models.dense.features import OUTPUT_STRIDE, make_inputs  # noqa: E402
 from articulated_dataset.models.dense.handle import (  # noqa: E402
+    EVERY_DOOR_DEG,
     HANDLE_STANDOFF_M,
+    apply_handle_height,
     apply_handle_side,
     handle_evidence,
     mirrored_by_handle,
@@ -117,3 +120,91 @@ def test_refinement_applies_step_7_and_round_trips():
     # a checkpoint written before step 7 (refinement version 3) reads as without it
     old = {k: v for k, v in Refinement(frame=True).to_dict().items() if not k.startswith("handle")}
     assert Refinement.from_dict(old).handle_max_q_deg is None
+
+
+# step 9: the hinge's height from the handle
+
+def _evidence(inputs, parts):
+    return {k: v.numpy().astype(np.float64) for k, v in
+            handle_evidence(parts, inputs, torch.tensor([[[0.0, 0.0, 1.0]]]), ["revolute"], torch.ones(1, 1, dtype=torch.bool)).items()}
+
+
+def test_the_origin_moves_along_the_axis_to_the_handles_height():
+    inputs, parts, left, right, handle = _scene()
+    ev = _evidence(inputs, parts)
+    low = np.array([right[0], right[1], handle[2] - 0.07])  # the votes put the hinge 7 cm below the handle
+    modes = _modes(low, left)
+    out = apply_handle_height(modes, ev, 0.1, ["revolute"])
+    assert out["origin"][0, 0, 0, 2] == pytest.approx(ev["handle_point"][0, 0, 2], abs=1e-9)
+    assert out["origin"][0, 0, 0, 2] == pytest.approx(handle[2], abs=0.01)  # the bar's rows
+    assert np.allclose(out["origin"][0, 0, 0, :2], low[:2])  # only along the axis
+    for key in ("axis", "xaxis", "q", "weight", "part_offset"):
+        assert out[key] is modes[key]
+    # the refinement applies it (after step 6, before step 7), and reads it back
+    ref = Refinement(handle_height_gate_m=0.1)
+    assert ref.needed and Refinement.from_dict(ref.to_dict()) == ref and ref.handle_evidence_max_q_deg == EVERY_DOOR_DEG
+    assert np.allclose(apply_refinement(modes, ev, ref, ["revolute"])["origin"], out["origin"])
+    assert Refinement(handle_max_q_deg=20.0).handle_evidence_max_q_deg == 20.0
+    assert Refinement().handle_evidence_max_q_deg is None
+
+
+def test_the_handles_height_is_not_used_past_its_gates():
+    inputs, parts, left, right, handle = _scene()
+    ev = _evidence(inputs, parts)
+    low = _modes(np.array([right[0], right[1], handle[2] - 0.07]), left)
+    assert apply_handle_height(low, ev, 0.1, ["revolute"]) is not low
+    assert apply_handle_height(low, ev, 0.05, ["revolute"]) is low  # further than the gate: another handle
+    assert apply_handle_height(low, ev, None, ["revolute"]) is low  # the step not chosen
+    assert apply_handle_height(low, ev, 0.1, ["prismatic"]) is low  # a drawer's pull is not at its axis
+    assert apply_handle_height(low, {}, 0.1, ["revolute"]) is low  # no handle measured
+    # a bar cut by the image's top row (its centre is elsewhere) and a region wider than a bar
+    for rows, cols in (((0, 5), HANDLE_COLS), (HANDLE_ROWS, (46, 70))):
+        ev2 = _evidence(*_scene_with_handle(rows, cols))
+        assert ev2["handle_px"][0, 0] > 0
+        assert apply_handle_height(low, ev2, 0.4, ["revolute"]) is low, (rows, cols)
+    # a checkpoint written before step 9 (refinement version 6) reads as without it
+    old = {k: v for k, v in Refinement(frame=True).to_dict().items() if k != "handle_height_gate_m"} | {"version": 6}
+    assert Refinement.from_dict(old).handle_height_gate_m is None
+
+
+def _scene_with_handle(rows, cols):
+    """:func:`_scene`'s door, taller (from the image's top row), with its handle bar at ``rows`` x
+    ``cols``: the network input and parts."""
+    _, parts, *_ = _scene(handle=False)
+    depth = torch.zeros(1, H_PX, W_PX)
+    depth[0, : DOOR_ROWS[1], DOOR_COLS[0] : DOOR_COLS[1]] = DOOR_DEPTH_M
+    depth[0, rows[0] : rows[1], cols[0] : cols[1]] = DOOR_DEPTH_M - HANDLE_STANDOFF_M
+    K = torch.from_numpy(CameraConfig(W_PX, H_PX).K.astype(np.float32))[None]
+    return make_inputs(depth, K), parts
+
+
+#: Step 9 assumes ``side_door``'s handle is centred at its door's labelled axis origin height; the
+#: toaster's door (hinged along its bottom edge, a bar along its top) and the drawer do not.
+SIDE_DOOR_CLASSES = ("cabinet", "cabinet2", "microwave", "refrigerator")
+#: Agreement (m) of a whole bar's mean point with the origin along the axis (pixels 1-3 cm tall).
+HANDLE_HEIGHT_TOL_M = 0.02
+
+
+@pytest.mark.parametrize("class_name", SIDE_DOOR_CLASSES)
+def test_rendered_handles_seen_whole_are_at_the_labelled_origins_height(class_name, tmp_path):
+    """Labels against rendered pixels: a generated split's doors, segmented by their true masks,
+    whose handle step 9 would use have it at the labelled origin's height along the true axis."""
+    from articulated_dataset.models.dense.data import load_dense_split
+    from articulated_dataset.models.dense.handle import HANDLE_MAX_LENGTH_M, HANDLE_MAX_WIDTH_M, HANDLE_MIN_WHOLE_LENGTH_M
+    from articulated_dataset.registry import get_class
+    from helpers_core import generated_split
+
+    n_joints = get_class(class_name).n_joints
+    data = load_dense_split(generated_split(tmp_path, class_name, 4, seed=5), n_joints, (H_PX, W_PX))
+    idx = np.arange(len(data.sample_id))
+    inputs = make_inputs(data.depth(idx), torch.from_numpy(data.K))
+    labels = torch.from_numpy(data.labels_out.astype(np.int64))  # 0 background, 1 body, 2 + j door j
+    parts = {"seg": torch.nn.functional.one_hot((labels - 1).clamp_min(0), 1 + n_joints).permute(0, 3, 1, 2).float()}
+    axis = torch.from_numpy(data.rot6[..., :3])
+    ev = handle_evidence(parts, inputs, axis, ["revolute"] * n_joints, torch.ones(len(idx), n_joints, dtype=torch.bool))
+    length, width = ev["handle_size_m"][..., 0].numpy(), ev["handle_size_m"][..., 1].numpy()
+    whole = (ev["handle_px"].numpy() > 0) & (length >= HANDLE_MIN_WHOLE_LENGTH_M) & (length < HANDLE_MAX_LENGTH_M) \
+        & (width < HANDLE_MAX_WIDTH_M)
+    assert whole.sum() >= 4, "too few handles seen whole to check"
+    along = ((ev["handle_point"].numpy() - data.origin) * data.rot6[..., :3]).sum(-1)
+    assert np.abs(along[whole]).max() < HANDLE_HEIGHT_TOL_M, np.round(along[whole], 3)

@@ -25,6 +25,11 @@ DOOR_EXTENT_GATE_CANDIDATES_M = (0.05, 0.1, 0.2, None)
 HANDLE_Q_CANDIDATES_DEG = (5.0, 10.0, 20.0, 30.0, 45.0)
 #: Handle pixels step 7 needs, tried by :func:`fit_refinement`.
 HANDLE_PX_CANDIDATES = (1.0, 3.0, 6.0)
+#: Gates (m) tried for step 9 (the hinge's height from the handle) by :func:`fit_refinement`.
+HANDLE_HEIGHT_GATE_CANDIDATES_M = (0.05, 0.1, 0.2, 0.4)
+#: ... which is used only where it lowers the validation position error by at least this fraction
+#: (it measures the handle of every door: 5-10% of the inference time).
+HANDLE_HEIGHT_MIN_GAIN = 0.01
 #: Segmentation probabilities a pixel needs to enter the box-frame fit (step 2), tried by
 #: :func:`~.predict.fit_inference` (None: every body pixel).  On the refrigerator's validation
 #: objects 0.9 took the rotation error from 0.77 to 0.46 deg: an open door's pixels taken for the
@@ -47,8 +52,10 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     (step 6, with the best gate of :data:`DOOR_EXTENT_GATE_CANDIDATES_M`) when it lowers the mean
     axis position error of each joint's heaviest mode; the handle's side (step 7) with the
     pair of :data:`HANDLE_Q_CANDIDATES_DEG` and :data:`HANDLE_PX_CANDIDATES` that lowers that
-    error most, if any does (``r`` must then hold :func:`~.handle.handle_evidence`'s keys, measured
-    for doors below the largest angle candidate).  Returns the
+    error most, if any does; the hinge's height from the handle (step 9) with the gate of
+    :data:`HANDLE_HEIGHT_GATE_CANDIDATES_M` that lowers it most, if that is by at least
+    :data:`HANDLE_HEIGHT_MIN_GAIN` (``r`` must hold :func:`~.handle.handle_evidence`'s keys for
+    steps 7 and 9, measured for every door).  Returns the
     :class:`Refinement` and the validation errors of every candidate.
     """
     from ...benchmark import metrics as M
@@ -115,6 +122,14 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
                     best_handle, best_pos = (q_deg, px), e
         if best_handle is not None:
             refinement = replace(refinement, handle_max_q_deg=best_handle[0], handle_min_px=best_handle[1])
+        report["position_cm"]["before_handle_height"] = before = best_pos
+        best_gate = None
+        for gate in HANDLE_HEIGHT_GATE_CANDIDATES_M:
+            e = pos_err(apply_refinement(m, r, replace(refinement, handle_height_gate_m=gate), joint_types))
+            report["position_cm"][f"handle_height_gate<={gate:g}m"] = e
+            if e < best_pos and e <= before * (1 - HANDLE_HEIGHT_MIN_GAIN):
+                best_gate, best_pos = gate, e
+        refinement = replace(refinement, handle_height_gate_m=best_gate)
     return refinement, report
 
 

@@ -27,6 +27,16 @@ Only doors whose estimated angle is below ``handle_max_q_deg`` are checked (an o
 its hinge, and the body's edges beside an open door stand in front of the door's plane too)
 and only with at least ``handle_min_px`` handle pixels; both are chosen on validation objects
 by :func:`~.fit.fit_refinement` (never, where checking does not lower the position error).
+
+The same bar gives the hinge's height (refinement step 9, :func:`apply_handle_height`): ``side_door``
+(the doors of the cabinet, two-door cabinet, microwave and refrigerator) centres the handle on the
+hinge frame's ``z = 0``, the door's mid-height, which is where a door's axis origin is labelled.  Turning the door about its axis moves the handle round
+the axis, never along it, so wherever the handle is seen whole, its mean point's coordinate along
+the axis is the origin's, however far the door is open and however much of the door the image
+cuts off (the votes must infer a cut door's height).  The handle is measured on every door for
+this step, open ones included; a bar seen shorter than :data:`HANDLE_MIN_WHOLE_LENGTH_M` (cut by
+the image's border or hidden in part) is not used, nor one whose height is further than a fitted
+gate from the vote mode's.
 """
 
 from __future__ import annotations
@@ -50,6 +60,13 @@ HANDLE_MAX_WIDTH_M = HANDLE_BAR_M + HANDLE_STANDOFF_M
 #: ... and at most this along the axis (m); an open door's neighbouring body edges, or a face
 #: taken for the door's, stand in front of the door's plane over far larger areas.
 HANDLE_MAX_LENGTH_M = 1.5 * HANDLE_LEN_M
+#: Step 9 uses a handle only where its pixels span at least this much along the axis (m): a bar
+#: cut by the image's border or partly hidden has its centre elsewhere.  (Every template's bar is
+#: ``min(handle_len_m, door_h / 2)`` long, at least 0.11 m for the tables' doors.)
+HANDLE_MIN_WHOLE_LENGTH_M = 0.75 * HANDLE_LEN_M
+#: The door angle limit (deg) under which :func:`handle_candidates_evidence` measures every door
+#: (step 9 reads the handles of open doors too).
+EVERY_DOOR_DEG = 180.0
 #: Door pixels this far or further in front of the face (m) are taken for the handle ...
 HANDLE_MIN_STANDOFF_M = 0.4 * HANDLE_STANDOFF_M
 #: ... up to this far (m): nearer the camera than that is not the door's.
@@ -90,6 +107,10 @@ def handle_evidence(parts: dict, inputs: dict, axis_line: torch.Tensor, joint_ty
     handle_size = torch.zeros(B, J, 2, dtype=dtype)
     seg = parts["seg"]
     flat = x.reshape(-1)  # a view: the input is contiguous
+    P = H * W
+    cos_inlier = math.cos(math.radians(FACE_INLIER_DEG))
+    # written component by component on the listed pixels (no (n, 3) stacks and reductions over
+    # their last axis, several times slower), the same arithmetic as the vector formulas
     for j, joint_type in enumerate(joint_types):
         images = candidates[:, j].nonzero()[:, 0]
         if joint_type != "revolute" or len(images) == 0:
@@ -100,34 +121,42 @@ def handle_evidence(parts: dict, inputs: dict, axis_line: torch.Tensor, joint_ty
         b, p = (door & (x[images, 3] > 0)).flatten(1).nonzero(as_tuple=True)  # its valid pixels (nearest upsampling)
         if len(b) == 0:
             continue
-        at = images[b] * (C * H * W) + p
-        points = torch.stack([flat[at + c * H * W] for c in range(3)], -1) * POINT_SCALE_M + inputs["anchor"][images][b]
-        normals = torch.stack([flat[at + c * H * W] for c in range(4, 7)], -1)
+        at = images[b] * (C * P) + p
+        anchor = inputs["anchor"][images]
+        pts = [flat[c * P:].index_select(0, at) * POINT_SCALE_M + anchor[:, c].index_select(0, b) for c in range(3)]
+        nrm = [flat[(4 + c) * P:].index_select(0, at) for c in range(3)]
         z_image = torch.nn.functional.normalize(axis_line[images, j], dim=-1)  # (k, 3)
-        z = z_image[b]
-        has_normal = (normals * normals).sum(-1) > MIN_NORMAL_NORM**2
+        z = [z_image[:, c].index_select(0, b) for c in range(3)]
+        has_normal = (nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2]) > MIN_NORMAL_NORM**2
         # the normals towards the camera (at the origin) and perpendicular to the axis line
-        facing = torch.where((normals * points).sum(-1, keepdim=True) > 0, -normals, normals)
-        facing = torch.nn.functional.normalize(facing - (facing * z).sum(-1, keepdim=True) * z, dim=-1)
+        sign = torch.where(nrm[0] * pts[0] + nrm[1] * pts[1] + nrm[2] * pts[2] > 0, -1.0, 1.0).to(dtype)
+        f = [sign * v for v in nrm]
+        fz = f[0] * z[0] + f[1] * z[1] + f[2] * z[2]
+        f = [f[c] - fz * z[c] for c in range(3)]
+        inv = torch.rsqrt((f[0] * f[0] + f[1] * f[1] + f[2] * f[2]).clamp_min(1e-24))
+        facing = torch.stack([v * inv for v in f], -1)  # (n, 3)
         weight = has_normal.to(dtype)
         n, _ = _per_image_mean(facing, b, weight, k)
         n = torch.nn.functional.normalize(n, dim=-1)
-        inlier = weight * ((facing * n[b]).sum(-1) > math.cos(math.radians(FACE_INLIER_DEG))).to(dtype)
+        nb = [n[:, c].index_select(0, b) for c in range(3)]
+        inlier = weight * ((facing[:, 0] * nb[0] + facing[:, 1] * nb[1] + facing[:, 2] * nb[2]) > cos_inlier).to(dtype)
         n, _ = _per_image_mean(facing, b, inlier, k)
         n = torch.nn.functional.normalize(n, dim=-1)
-        s = (points * n[b]).sum(-1)  # (n,) each pixel's coordinate along the face normal
-        c, _ = _per_image_mean(s[:, None], b, inlier, k)
-        trimmed = inlier * ((s - c[b, 0]).abs() < FACE_TRIM_M).to(dtype)
+        s = pts[0] * n[:, 0].index_select(0, b) + pts[1] * n[:, 1].index_select(0, b) + pts[2] * n[:, 2].index_select(0, b)
+        c, _ = _per_image_mean(s[:, None], b, inlier, k)  # each pixel's coordinate along the face normal
+        trimmed = inlier * ((s - c[:, 0].index_select(0, b)).abs() < FACE_TRIM_M).to(dtype)
         c, count = _per_image_mean(s[:, None], b, trimmed, k)
-        standoff = s - c[b, 0]
-        at_handle = ((standoff > HANDLE_MIN_STANDOFF_M) & (standoff < HANDLE_MAX_STANDOFF_M) & (count[b] > 0)).nonzero()[:, 0]
-        hb, hp = b[at_handle], points[at_handle]  # the handle's pixels only from here on
+        standoff = s - c[:, 0].index_select(0, b)
+        at_handle = ((standoff > HANDLE_MIN_STANDOFF_M) & (standoff < HANDLE_MAX_STANDOFF_M)
+                     & (count.index_select(0, b) > 0)).nonzero()[:, 0]
+        hb = b.index_select(0, at_handle)  # the handle's pixels only from here on
+        hp = torch.stack([v.index_select(0, at_handle) for v in pts], -1)
         ones = torch.ones(len(hb), dtype=dtype)
         point, px = _per_image_mean(hp, hb, ones, k)
-        rel = hp - point[hb]
-        across = torch.cross(z_image, n, dim=-1)[hb]  # along the face, perpendicular to the axis
-        spread, _ = _per_image_mean(torch.stack([(rel * z_image[hb]).sum(-1) ** 2, (rel * across).sum(-1) ** 2], -1),
-                                    hb, ones, k)
+        rel = hp - point.index_select(0, hb)
+        across = torch.cross(z_image, n, dim=-1).index_select(0, hb)  # along the face, perpendicular to the axis
+        spread, _ = _per_image_mean(torch.stack([(rel * z_image.index_select(0, hb)).sum(-1) ** 2,
+                                                 (rel * across).sum(-1) ** 2], -1), hb, ones, k)
         handle_px[images, j] = px
         handle_point[images, j] = point * (px > 0).to(dtype)[:, None]
         # the handle's extent along the axis and across it (a uniform bar of length l has variance l^2 / 12)
@@ -176,3 +205,31 @@ def apply_handle_side(m: dict, r: dict, max_q_deg: float | None, min_px: float, 
     out["axis"] = np.where(wrong[..., None], -m["axis"], m["axis"])
     out["xaxis"] = np.where(wrong[..., None], -m["xaxis"], m["xaxis"])
     return out
+
+
+def handle_height_shift(m: dict, r: dict, gate_m: float, joint_types) -> np.ndarray:
+    """Step 9's move (B, J, M) of each vote mode's origin along its axis (m; 0 where unused): the
+    handle's mean point's coordinate along the axis minus the origin's, for revolute doors whose
+    handle is a bar (:data:`HANDLE_MAX_LENGTH_M`, :data:`HANDLE_MAX_WIDTH_M`) seen at least
+    :data:`HANDLE_MIN_WHOLE_LENGTH_M` long, where the move is shorter than ``gate_m``.
+    ``m``: numpy mode arrays after the other refinement steps; ``r``: :func:`handle_evidence`'s keys."""
+    revolute = np.array([t == "revolute" for t in joint_types])
+    z = m["axis"] / np.maximum(np.linalg.norm(m["axis"], axis=-1, keepdims=True), 1e-12)  # (B, J, M, 3)
+    shift = ((r["handle_point"][:, :, None] - m["origin"]) * z).sum(-1)
+    length, width = r["handle_size_m"][..., 0], r["handle_size_m"][..., 1]
+    whole = revolute[None] & (r["handle_px"] > 0) & (length >= HANDLE_MIN_WHOLE_LENGTH_M) & (length < HANDLE_MAX_LENGTH_M) \
+        & (width < HANDLE_MAX_WIDTH_M)
+    return np.where(whole[..., None] & (np.abs(shift) < gate_m), shift, 0.0)
+
+
+def apply_handle_height(m: dict, r: dict, gate_m: float | None, joint_types) -> dict:
+    """Mode arrays ``m`` with each origin moved along its axis to its door's handle's height
+    (step 9, :func:`handle_height_shift`); ``m`` itself where ``gate_m`` is None, the handles
+    were not measured, or nothing moves."""
+    if gate_m is None or "handle_px" not in r:
+        return m
+    shift = handle_height_shift(m, r, gate_m, joint_types)
+    if not shift.any():
+        return m
+    z = m["axis"] / np.maximum(np.linalg.norm(m["axis"], axis=-1, keepdims=True), 1e-12)
+    return dict(m, origin=m["origin"] + shift[..., None] * z)

@@ -99,7 +99,7 @@ def refined_batch(model, depth_m, K, *, joint_types: list[str], refinement, work
     def one(depth, intrinsics):
         m, r = batch_modes(model, depth, intrinsics, joint_types=joint_types,
                            refine=refinement is not None and refinement.needed, split_factor=split_factor_of(refinement),
-                           handle_max_q_deg=None if refinement is None else refinement.handle_max_q_deg,
+                           handle_max_q_deg=None if refinement is None else refinement.handle_evidence_max_q_deg,
                            frame_min_prob=None if refinement is None else refinement.frame_min_prob,
                            workspace=workspace)
         return apply_refinement(m, r, refinement, joint_types)
@@ -318,8 +318,8 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     "refinement_report": dict}`` for the checkpoint."""
     from dataclasses import replace
 
-    from .fit import (FRAME_PROB_CANDIDATES, HANDLE_Q_CANDIDATES_DEG, configuration_error, fit_refinement,
-                      rotation_error_deg)
+    from .fit import FRAME_PROB_CANDIDATES, configuration_error, fit_refinement, rotation_error_deg
+    from .handle import EVERY_DOOR_DEG
     from .mirror import MIRROR_MIN_GAIN, merge_mirrored, mirrored_data
     from .refine import apply_refinement
 
@@ -331,7 +331,7 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     fits, frame_report = [], {}
     for p in FRAME_PROB_CANDIDATES:
         m_p, r_p = predict_modes(model, data, idx, joint_types=joint_types, progress=progress,
-                                 split_factor=split_factor, handle_max_q_deg=max(HANDLE_Q_CANDIDATES_DEG),
+                                 split_factor=split_factor, handle_max_q_deg=EVERY_DOOR_DEG,
                                  frame_min_prob=p)
         refinement_p, report_p = fit_refinement(m_p, r_p, truth, joint_types)
         refined_p = apply_refinement(m_p, r_p, refinement_p, joint_types)
@@ -347,7 +347,7 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     if mirror_joints is not None:
         mm, mr = predict_modes(model, mirrored_data(data), idx, joint_types=joint_types, progress=progress,
                                refine=refinement.needed, split_factor=split_factor,
-                               handle_max_q_deg=refinement.handle_max_q_deg, frame_min_prob=p)
+                               handle_max_q_deg=refinement.handle_evidence_max_q_deg, frame_min_prob=p)
         merged = merge_mirrored(refined, apply_refinement(mm, mr, refinement, joint_types), mirror_joints)
         pos = {name: quick_errors(modes_to_arrays(x, data.sample_id[idx], model, None), data, idx, joint_types)["pos_cm"]
                for name, x in (("without", refined), ("with", merged))}

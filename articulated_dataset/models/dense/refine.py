@@ -42,7 +42,12 @@ regressed (:func:`refined_quantities`, per image and joint):
    at the door's handle is mirrored across the door (the cabinet's one-image side errors).
 8. **Mirror image** (:mod:`.mirror`).  Where the class's mirror image is again an object of the
    class, the estimate's origins and ``q`` are averaged with those of the image reflected
-   left-right (run through the network and steps 1-7 too, then reflected back).
+   left-right (run through the network and steps 1-7 and 9 too, then reflected back).
+9. **Hinge height from the handle** (:mod:`.handle`, applied after step 6, before 7).  A door's
+   handle is centred at its mid-height: where the handle is seen whole, the origin is moved along
+   the axis to the handle's height (behind a fitted gate).  It is used only where it lowers the
+   validation position error by at least :data:`~.fit.HANDLE_HEIGHT_MIN_GAIN` (it measures the
+   handle of every door, a cost at inference).
 
 :func:`~.fit.fit_refinement` chooses, on the training split's validation objects, which steps
 are used (each only where it lowers the validation error) and fits ``t``; the choice is stored
@@ -60,7 +65,7 @@ from torch.nn import functional as F
 
 from .aggregate import SPLIT_FACTOR, argmax_channels, gram_schmidt6, image_groups, softmax_weights
 from .features import MIN_NORMAL_NORM, OUTPUT_STRIDE, POINT_SCALE_M
-from .handle import MIN_RADIUS_M, apply_handle_side
+from .handle import EVERY_DOOR_DEG, MIN_RADIUS_M, apply_handle_height, apply_handle_side
 
 #: Manhattan alignment rounds: a normal is matched to a frame axis within these angles (deg).
 INLIER_ANGLES_DEG = (25.0, 10.0, 5.0)
@@ -74,9 +79,9 @@ DOOR_EXTENT_QUANTILE = 0.005
 #: Step 6 needs at least this many door pixels.
 DOOR_EXTENT_MIN_PX = 10
 #: Refinement format version stored in checkpoints (2: ``max_turn_deg``; 3: ``door_extent``;
-#: 4: ``handle_max_q_deg``; 5: ``mirror_joints``; 6: ``frame_min_prob``; older versions read as
-#: without them).
-REFINEMENT_VERSION = 6
+#: 4: ``handle_max_q_deg``; 5: ``mirror_joints``; 6: ``frame_min_prob``; 7: ``handle_height_gate_m``;
+#: older versions read as without them).
+REFINEMENT_VERSION = 7
 
 
 @dataclass(frozen=True)
@@ -105,6 +110,9 @@ class Refinement:
     #: below this (deg; None: never), with at least ``handle_min_px`` handle pixels
     handle_max_q_deg: float | None = None
     handle_min_px: float = 1.0
+    #: step 9: move a door's axis origin to its handle's height where that moves it by less than
+    #: this (m; None: never)
+    handle_height_gate_m: float | None = None
     #: step 8 (:mod:`.mirror`): average with the mirror image's estimate, whose joint ``k`` is joint
     #: ``mirror_joints[k]`` (None: never)
     mirror_joints: tuple[int, ...] | None = None
@@ -113,7 +121,15 @@ class Refinement:
     @property
     def needed(self) -> bool:
         """Whether it changes anything (else the refined quantities need not be computed)."""
-        return self.frame or self.min_door_px is not None or self.door_extent or self.handle_max_q_deg is not None
+        return (self.frame or self.min_door_px is not None or self.door_extent or self.handle_max_q_deg is not None
+                or self.handle_height_gate_m is not None)
+
+    @property
+    def handle_evidence_max_q_deg(self) -> float | None:
+        """The door angle (deg) below which inference measures the doors' handles
+        (:func:`~.handle.handle_candidates_evidence`): every door's for step 9, step 7's limit
+        otherwise (None: no handle is measured)."""
+        return EVERY_DOOR_DEG if self.handle_height_gate_m is not None else self.handle_max_q_deg
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -133,6 +149,7 @@ class Refinement:
                    split_factor=_optional_float(d["split_factor"]) if "split_factor" in d else SPLIT_FACTOR,
                    handle_max_q_deg=_optional_float(d.get("handle_max_q_deg")),
                    handle_min_px=float(d.get("handle_min_px", 1.0)),
+                   handle_height_gate_m=_optional_float(d.get("handle_height_gate_m")),
                    mirror_joints=None if d.get("mirror_joints") is None else tuple(int(k) for k in d["mirror_joints"]),
                    version=int(d.get("version", REFINEMENT_VERSION)))
 
@@ -423,4 +440,5 @@ def apply_refinement(m: dict, r: dict, refinement: "Refinement | None", joint_ty
         if refinement.door_extent_gate_m is not None:
             use &= np.abs(shift) < refinement.door_extent_gate_m
         out["origin"] = m["origin"] + np.where(use, shift, 0.0)[..., None] * z
+    out = apply_handle_height(out, r, refinement.handle_height_gate_m, joint_types)
     return apply_handle_side(out, r, refinement.handle_max_q_deg, refinement.handle_min_px, joint_types)
