@@ -367,3 +367,24 @@ def test_a_split_read_in_two_processes_is_the_same_arrays(tiny_root):
     for name in one.__dataclass_fields__:
         a, b = getattr(one, name), getattr(two, name)
         assert (a is None and b is None) or (a.dtype == b.dtype and np.array_equal(a, b)), name
+
+
+def test_a_split_read_for_some_objects_is_the_full_reads_images_of_them(tiny_root):
+    """load_dense_split(objects=...) (a refit's validation objects) gives exactly the full read's
+    rows of those objects, in order; split_object_indices lists the full read's object indices."""
+    from articulated_dataset.models.dense.data import load_dense_split, split_object_indices
+
+    split = tiny_root / "drawer" / "train"
+    full = load_dense_split(split, 1, (108, 192), max_objects=5, workers=1)
+    assert np.array_equal(split_object_indices(split, max_objects=5), full.object_index)
+    wanted = np.array([3, 1])
+    some = load_dense_split(split, 1, (108, 192), max_objects=5, objects=wanted, workers=1)
+    rows = np.isin(full.object_index, wanted)
+    assert set(np.unique(some.object_index)) == {1, 3} and len(some.sample_id) == rows.sum()
+    for name in full.__dataclass_fields__:
+        a, b = getattr(full, name), getattr(some, name)
+        assert (a is None and b is None) or np.array_equal(a[rows], b), name
+    from articulated_dataset.errors import UserError
+
+    with pytest.raises(UserError, match="no images selected"):
+        load_dense_split(split, 1, (108, 192), max_objects=5, objects=np.array([7]), workers=1)

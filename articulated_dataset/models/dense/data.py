@@ -54,10 +54,30 @@ def quantise_depth(depth_m: np.ndarray) -> np.ndarray:
     return q.astype(np.uint16)
 
 
+def split_object_indices(split_dir: Path, max_objects: int | None = None) -> np.ndarray:
+    """The object index of every image of a split, in :func:`load_dense_split`'s order (read from
+    the shards' ``object_index`` column only), those of the first ``max_objects`` objects."""
+    from ...format import open_split
+    from ...format.shards import Shard
+
+    _, shards = open_split(split_dir)
+    out = []
+    for info in shards:
+        sh = Shard(info.path)
+        try:
+            oi = np.asarray(sh.read("object_index"), np.int64)
+        finally:
+            sh.close()
+        out.append(oi if max_objects is None else oi[oi < max_objects])
+    return np.concatenate(out) if out else np.zeros(0, np.int64)
+
+
 def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max_objects: int | None = None,
-                     with_labels: bool = True, object_mask: bool = False, progress: bool = False,
-                     workers: int | None = None) -> DenseData:
-    """Read a split into a :class:`DenseData` (labels only if ``with_labels``).  ``object_mask``:
+                     objects: np.ndarray | None = None, with_labels: bool = True, object_mask: bool = False,
+                     progress: bool = False, workers: int | None = None) -> DenseData:
+    """Read a split into a :class:`DenseData` (labels only if ``with_labels``); ``objects``: only
+    the images of these object indices (a refit reads its validation objects, not the split: a
+    10,000-object split would take 13 GB on the way).  ``object_mask``:
     the depth outside the object's mask codes (body and parts) is set to no return, as a
     robot's object segmentation would leave it (scenes and occluders removed).  ``workers`` > 1
     reads the shards in that many processes (the same arrays, in the same order); None: one per
@@ -71,7 +91,8 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
     manifest, shards = open_split(split_dir)
     if not shards:
         raise DataFormatError(f"{split_dir}: the split has no shards")
-    tasks = [(sh.path, s_idx, n_joints, tuple(hw), max_objects, with_labels, object_mask)
+    wanted = None if objects is None else np.unique(np.asarray(objects, np.int64))
+    tasks = [(sh.path, s_idx, n_joints, tuple(hw), max_objects, with_labels, object_mask, wanted)
              for s_idx, sh in enumerate(shards)]
     bar = tqdm(total=int(manifest.get("n_images", 0)) or None, desc=f"loading {split_dir}", unit="img",
                disable=not progress, leave=False)
@@ -98,19 +119,21 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
 
 def _load_shard(task) -> dict:
     """One shard's arrays for :func:`load_dense_split` (a top-level function: process workers run
-    it): ``task`` = (path, shard index, n_joints, hw, max_objects, with_labels, object_mask).
+    it): ``task`` = (path, shard index, n_joints, hw, max_objects, with_labels, object_mask, objects or None).
     ``object_index`` is None when no image of the shard is selected; ``n_read`` counts its images read."""
     import torch
 
     from ...format.shards import Shard
     from .features import output_labels, resize_depth, scale_intrinsics
 
-    path, s_idx, n_joints, hw, max_objects, with_labels, object_mask = task
+    path, s_idx, n_joints, hw, max_objects, with_labels, object_mask, objects = task
     out: dict = dict.fromkeys(_COLUMNS)
     sh = Shard(path)
     try:
         oi = sh.read("object_index")
         keep = np.ones(len(oi), bool) if max_objects is None else oi < max_objects
+        if objects is not None:
+            keep &= np.isin(oi, objects)
         idx = np.nonzero(keep)[0]
         out["n_read"] = len(idx)
         if len(idx) == 0:

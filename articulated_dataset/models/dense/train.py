@@ -32,7 +32,7 @@ import numpy as np
 
 from ...errors import UserError
 from .checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, build_dense_model, load_dense_checkpoint
-from .data import DenseData, load_dense_split
+from .data import DenseData, load_dense_split, split_object_indices
 
 log = logging.getLogger(__name__)
 
@@ -375,12 +375,14 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     config = DenseTrainConfig.from_dict(ckpt["train_config"])
     model = build_dense_model(ckpt)
     c = model.config
-    data_ = load_dense_split(split_dir, c.n_joints, (c.height_px, c.width_px), max_objects=config.max_objects,
-                             progress=progress)
-    _, val_mask = split_by_object(data_.object_index, config.val_fraction, config.seed)
-    va_idx = np.nonzero(val_mask)[0]
-    if not len(va_idx):
+    # the objects training held out (split_by_object depends on the set of objects only), then only their images
+    objects = np.unique(split_object_indices(split_dir, config.max_objects))
+    _, val_mask = split_by_object(objects, config.val_fraction, config.seed)
+    if not val_mask.any():
         raise UserError(f"{checkpoint}: trained without validation objects (--val-fraction 0): nothing to fit on")
+    data_ = load_dense_split(split_dir, c.n_joints, (c.height_px, c.width_px), max_objects=config.max_objects,
+                             objects=objects[val_mask], progress=progress)
+    va_idx = np.arange(len(data_.sample_id))
     from ...format import sha256_file
 
     result = dict(ckpt)
