@@ -112,6 +112,8 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
         rec["refinement_validation"] = ckpt.get("refinement_report")
     if ckpt.get("selection") is not None:  # which candidate was shipped, chosen on validation objects
         rec["selection"] = ckpt["selection"]
+    if refit is not None:  # a refit of a full checkpoint (not of a shipped file): its own record, marked
+        rec["refit"] = "scripts/fit_dense_inference.py on the same validation objects"
     if name == "dense" and tc.get("init_from"):
         rec["continued_from"] = previous if previous is not None else _unshipped_record(c, tc["init_from"], shipped)
     hist = ckpt.get("history", [])
