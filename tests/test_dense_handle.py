@@ -190,7 +190,7 @@ def test_rendered_handles_seen_whole_are_at_the_labelled_origins_height(class_na
     """Labels against rendered pixels: a generated split's doors, segmented by their true masks,
     whose handle step 9 would use have it at the labelled origin's height along the true axis."""
     from articulated_dataset.models.dense.data import load_dense_split
-    from articulated_dataset.models.dense.handle import HANDLE_MAX_LENGTH_M, HANDLE_MAX_WIDTH_M, HANDLE_MIN_WHOLE_LENGTH_M
+    from articulated_dataset.models.dense.handle import handle_seen_whole
     from articulated_dataset.registry import get_class
     from helpers_core import generated_split
 
@@ -202,9 +202,7 @@ def test_rendered_handles_seen_whole_are_at_the_labelled_origins_height(class_na
     parts = {"seg": torch.nn.functional.one_hot((labels - 1).clamp_min(0), 1 + n_joints).permute(0, 3, 1, 2).float()}
     axis = torch.from_numpy(data.rot6[..., :3])
     ev = handle_evidence(parts, inputs, axis, ["revolute"] * n_joints, torch.ones(len(idx), n_joints, dtype=torch.bool))
-    length, width = ev["handle_size_m"][..., 0].numpy(), ev["handle_size_m"][..., 1].numpy()
-    whole = (ev["handle_px"].numpy() > 0) & (length >= HANDLE_MIN_WHOLE_LENGTH_M) & (length < HANDLE_MAX_LENGTH_M) \
-        & (width < HANDLE_MAX_WIDTH_M)
+    whole = handle_seen_whole(ev["handle_px"].numpy(), ev["handle_size_m"].numpy())
     assert whole.sum() >= 4, "too few handles seen whole to check"
     along = ((ev["handle_point"].numpy() - data.origin) * data.rot6[..., :3]).sum(-1)
     assert np.abs(along[whole]).max() < HANDLE_HEIGHT_TOL_M, np.round(along[whole], 3)

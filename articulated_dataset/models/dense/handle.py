@@ -185,7 +185,7 @@ def mirrored_by_handle(m: dict, r: dict, max_q_deg: float, min_px: float, joint_
     radius = np.maximum(m["part_offset"][..., 0], MIN_RADIUS_M)  # (B, J, M)
     along = ((r["handle_point"][:, :, None] - m["origin"]) * m["xaxis"]).sum(-1) / np.maximum(
         np.linalg.norm(m["xaxis"], axis=-1), 1e-12)
-    bar = (r["handle_size_m"][..., 0] < HANDLE_MAX_LENGTH_M) & (r["handle_size_m"][..., 1] < HANDLE_MAX_WIDTH_M)
+    bar = _bar_sized(r["handle_size_m"])
     checked = revolute[None, :, None] & (r["handle_px"][..., None] >= min_px) & bar[..., None] & (m["q"] < math.radians(max_q_deg))
     return checked & (along < radius)
 
@@ -199,7 +199,7 @@ def apply_handle_side(m: dict, r: dict, max_q_deg: float | None, min_px: float, 
     if not wrong.any():
         return m
     out = dict(m)
-    x = m["xaxis"] / np.maximum(np.linalg.norm(m["xaxis"], axis=-1, keepdims=True), 1e-12)
+    x = _unit(m["xaxis"])
     radius = np.maximum(m["part_offset"][..., 0], MIN_RADIUS_M)
     out["origin"] = np.where(wrong[..., None], m["origin"] + 2.0 * radius[..., None] * x, m["origin"])
     out["axis"] = np.where(wrong[..., None], -m["axis"], m["axis"])
@@ -207,19 +207,35 @@ def apply_handle_side(m: dict, r: dict, max_q_deg: float | None, min_px: float, 
     return out
 
 
-def handle_height_shift(m: dict, r: dict, gate_m: float, joint_types) -> np.ndarray:
-    """Step 9's move (B, J, M) of each vote mode's origin along its axis (m; 0 where unused): the
-    handle's mean point's coordinate along the axis minus the origin's, for revolute doors whose
-    handle is a bar (:data:`HANDLE_MAX_LENGTH_M`, :data:`HANDLE_MAX_WIDTH_M`) seen at least
-    :data:`HANDLE_MIN_WHOLE_LENGTH_M` long, where the move is shorter than ``gate_m``.
+def _unit(v: np.ndarray) -> np.ndarray:
+    """Vectors (..., 3) scaled to unit length (a zero vector stays zero)."""
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def _bar_sized(size_m: np.ndarray) -> np.ndarray:
+    """Whether handle regions of ``handle_size_m`` (..., 2) (along, across) fit a bar
+    (:data:`HANDLE_MAX_LENGTH_M`, :data:`HANDLE_MAX_WIDTH_M`)."""
+    return (size_m[..., 0] < HANDLE_MAX_LENGTH_M) & (size_m[..., 1] < HANDLE_MAX_WIDTH_M)
+
+
+def handle_seen_whole(handle_px: np.ndarray, size_m: np.ndarray) -> np.ndarray:
+    """Whether each door's handle (:func:`handle_evidence`'s ``handle_px`` (B, J) and
+    ``handle_size_m`` (B, J, 2)) is a bar seen at least :data:`HANDLE_MIN_WHOLE_LENGTH_M` long:
+    the handles step 9 uses."""
+    return (handle_px > 0) & (size_m[..., 0] >= HANDLE_MIN_WHOLE_LENGTH_M) & _bar_sized(size_m)
+
+
+def handle_height_shift(m: dict, r: dict, gate_m: float, joint_types) -> tuple[np.ndarray, np.ndarray]:
+    """Step 9's move (B, J, M) of each vote mode's origin along its unit axis (B, J, M, 3) (m; 0
+    where unused), and that axis: the handle's mean point's coordinate along the axis minus the
+    origin's, for revolute doors whose handle is seen whole (:func:`handle_seen_whole`), where the
+    move is shorter than ``gate_m``.
     ``m``: numpy mode arrays after the other refinement steps; ``r``: :func:`handle_evidence`'s keys."""
     revolute = np.array([t == "revolute" for t in joint_types])
-    z = m["axis"] / np.maximum(np.linalg.norm(m["axis"], axis=-1, keepdims=True), 1e-12)  # (B, J, M, 3)
+    z = _unit(m["axis"])
     shift = ((r["handle_point"][:, :, None] - m["origin"]) * z).sum(-1)
-    length, width = r["handle_size_m"][..., 0], r["handle_size_m"][..., 1]
-    whole = revolute[None] & (r["handle_px"] > 0) & (length >= HANDLE_MIN_WHOLE_LENGTH_M) & (length < HANDLE_MAX_LENGTH_M) \
-        & (width < HANDLE_MAX_WIDTH_M)
-    return np.where(whole[..., None] & (np.abs(shift) < gate_m), shift, 0.0)
+    whole = revolute[None] & handle_seen_whole(r["handle_px"], r["handle_size_m"])
+    return np.where(whole[..., None] & (np.abs(shift) < gate_m), shift, 0.0), z
 
 
 def apply_handle_height(m: dict, r: dict, gate_m: float | None, joint_types) -> dict:
@@ -228,8 +244,7 @@ def apply_handle_height(m: dict, r: dict, gate_m: float | None, joint_types) -> 
     were not measured, or nothing moves."""
     if gate_m is None or "handle_px" not in r:
         return m
-    shift = handle_height_shift(m, r, gate_m, joint_types)
+    shift, z = handle_height_shift(m, r, gate_m, joint_types)
     if not shift.any():
         return m
-    z = m["axis"] / np.maximum(np.linalg.norm(m["axis"], axis=-1, keepdims=True), 1e-12)
     return dict(m, origin=m["origin"] + shift[..., None] * z)
