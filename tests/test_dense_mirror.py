@@ -1,4 +1,5 @@
-"""Refinement step 8 (models/dense/mirror.py): the estimate averaged with its mirror image's.
+"""Refinement step 8 (models/dense/mirror.py): the network's outputs averaged with its outputs on
+the mirror image.
 
 The classes' ``mirror_joints`` registrations are checked against rendered pixels and labels: the
 mirrored object (pose and hinge side reflected, joints' openings paired) renders as the reflected
@@ -14,12 +15,12 @@ torch = pytest.importorskip("torch")
 
 from articulated_dataset.camera import CameraConfig  # noqa: E402
 from articulated_dataset.classes import JointSpec, ObjectClass  # noqa: E402
-from articulated_dataset.models.dense.features import backproject_torch  # noqa: E402
+from articulated_dataset.models.dense.features import backproject_torch, make_inputs  # noqa: E402
 from articulated_dataset.models.dense.data import DenseData, quantise_depth  # noqa: E402
-from articulated_dataset.models.dense.mirror import (MIRROR_AXIS, MIRROR_GATE_M, merge_mirrored, mirror_inputs,  # noqa: E402
-                                                     mirrored_data)
+from articulated_dataset.models.dense.mirror import (MIRROR_AXIS, merge_mirrored_outputs, mirror_inputs,  # noqa: E402
+                                                     mirror_network_input)
 from articulated_dataset.models.dense.model import DenseConfig, DenseNet  # noqa: E402
-from articulated_dataset.models.dense.predict import modes_to_arrays, predict_arrays, refined_batch  # noqa: E402
+from articulated_dataset.models.dense.predict import predict_arrays  # noqa: E402
 from articulated_dataset.models.dense.refine import Refinement  # noqa: E402
 from articulated_dataset.registry import REVOLUTE, all_classes, get_class  # noqa: E402
 from helpers_core import compile_object, final_object, generated_split, render_at  # noqa: E402
@@ -82,40 +83,71 @@ def test_mirror_inputs_back_project_to_the_reflected_points():
     assert torch.equal(K, torch.tensor([[[50.0, 0, 3.7], [0, 50.0, 2.5], [0, 0, 1]], [[40.0, 0, 4.0], [0, 45.0, 3.0], [0, 0, 1]]]))
 
 
-def _modes(origins, q, weight):
-    origins = np.asarray(origins, float)  # (B, J, M, 3)
-    return {"origin": origins, "q": np.asarray(q, float), "weight": np.asarray(weight, float),
-            "axis": np.zeros_like(origins), "xaxis": np.zeros_like(origins)}
+def _box_depths(n, H, W):
+    depth = np.zeros((n, H, W), np.float32)
+    for i in range(n):  # a slanted box face, off centre (so its mirror image differs)
+        depth[i, H // 4 : 3 * H // 4, W // 5 + 10 * i : 4 * W // 5] = 1.4 + 0.002 * np.arange(W // 5 + 10 * i, 4 * W // 5)
+    return depth
 
 
-def test_merge_averages_paired_modes_and_leaves_other_hypotheses():
-    # one image, two joints, two modes each; the mirror image's joint 0 is the original's joint 1
-    m = _modes([[[[0.5, 0.2, 0.0], [0.5, -0.4, 0.0]], [[0.6, -0.3, 0.1], [9, 9, 9]]]],
-               [[[0.2, 0.2], [0.5, 0.0]]], [[[0.7, 0.3], [1.0, 0.0]]])
-    g = 0.5 * MIRROR_GATE_M
-    mir = _modes([[[[0.6 + 0.02, 0.3, 0.1], [0.6, 3.0, 0.1]], [[0.5, -0.2 - 0.04, 0.0], [0.5, 0.4 + 4 * g, 0.0]]]],
-                 [[[0.7, 0.1], [0.4, 0.3]]], [[[0.8, 0.2], [0.6, 0.4]]])
-    out = merge_mirrored(m, mir, (1, 0))
-    # joint 0 mode 0 pairs with the mirror's joint 1 mode 0, reflected to (0.5, 0.24, 0.0)
-    assert np.allclose(out["origin"][0, 0, 0], [0.5, 0.22, 0.0])
-    assert out["q"][0, 0, 0] == pytest.approx(0.3)
-    # joint 0 mode 1 (the other side) has no mirrored mode within the gate: unchanged
-    assert np.allclose(out["origin"][0, 0, 1], [0.5, -0.4, 0.0]) and out["q"][0, 0, 1] == 0.2
-    # joint 1 pairs with the mirror's joint 0 mode 0, reflected to (0.62, -0.3, 0.1)
-    assert np.allclose(out["origin"][0, 1, 0], [0.61, -0.3, 0.1])
-    assert out["q"][0, 1, 0] == pytest.approx(0.6)
-    # an unused mode stays as it was; frames and weights are the original's
-    assert np.allclose(out["origin"][0, 1, 1], [9, 9, 9])
-    assert out["weight"] is m["weight"] and out["axis"] is m["axis"]
-    # read without the pairing the joints are mixed up: nothing within the gate for joint 0
-    unpaired = merge_mirrored(m, mir, (0, 1))
-    assert np.allclose(unpaired["origin"][0, 0, 0], m["origin"][0, 0, 0])
+def test_the_mirror_network_input_is_the_input_of_the_mirror_image():
+    """Reflecting the input equals computing it from the reflected depth and intrinsics."""
+    cam = CameraConfig()
+    depth = torch.from_numpy(_box_depths(3, cam.height_px, cam.width_px))
+    K = torch.from_numpy(np.repeat(cam.K[None].astype(np.float32), 3, 0))
+    K[1, 0, 2] += 7.3  # an off-centre principal point too
+    x = make_inputs(depth, K)["x"]
+    expected = make_inputs(*mirror_inputs(depth, K))["x"]
+    got = mirror_network_input(x)
+    assert torch.allclose(got, expected, atol=1e-5)
+    assert not torch.allclose(x.flip(-1), expected, atol=1e-3)  # the y channels' signs matter
 
 
-def test_unused_mirrored_modes_are_never_paired():
-    m = _modes([[[[0.5, 0.2, 0.0], [0, 0, 0]]]], [[[0.2, 0.0]]], [[[1.0, 0.0]]])
-    mir = _modes([[[[0.5, -0.2, 0.0], [0, 0, 0]]]], [[[0.4, 0.0]]], [[[0.0, 1.0]]])
-    assert np.allclose(merge_mirrored(m, mir, (0,))["origin"], m["origin"])
+def _mirror_of(out, n_joints, perm):
+    """The outputs a mirror-equivariant network would give on the mirror image (the inverse of the
+    reflection merge_mirrored_outputs applies)."""
+    m = out.flip(-1).clone()
+    first = 1 + n_joints
+    C = (out.shape[1] - first - 5) // n_joints
+    for j in range(n_joints):  # the mirror's part perm[j] is the original's part j
+        m[:, 1 + perm[j]] = out.flip(-1)[:, 1 + j]
+        m[:, first + perm[j] * C : first + (perm[j] + 1) * C] = out.flip(-1)[:, first + j * C : first + (j + 1) * C]
+        m[:, first + perm[j] * C + MIRROR_AXIS] *= -1  # offset's y
+    return m
+
+
+@pytest.mark.parametrize("perm", [(0,), (1, 0)])
+def test_merging_the_outputs_of_an_equivariant_network_changes_nothing(perm):
+    J = len(perm)
+    rng = np.random.default_rng(1)
+    n_out = 1 + J + 16 * J + 5
+    out = torch.from_numpy(rng.normal(size=(2, n_out, 3, 4)).astype(np.float32))
+    mirror = _mirror_of(out, J, perm)
+    assert torch.allclose(merge_mirrored_outputs(out.clone(), mirror, J, perm), out, atol=1e-6)
+    if J == 2:  # read without the pairing, the joints are mixed up (the test can fail)
+        assert not torch.allclose(merge_mirrored_outputs(out.clone(), mirror, J, (0, 1)), out, atol=1e-3)
+
+
+def test_merge_averages_the_listed_channels_only():
+    """Hand-worked: one joint, one row of two output pixels."""
+    J = 1
+    n_out = 1 + J + 16 * J + 5
+    out = torch.zeros(1, n_out, 1, 2)
+    mirror = torch.zeros(1, n_out, 1, 2)
+    mirror[0, 1, 0, 1] = 4.0  # part logit at the mirror's right pixel = the original's left pixel
+    mirror[0, 2 + 1, 0, 1] = 0.2  # offset y
+    mirror[0, 2 + 0, 0, 0] = 0.6  # offset x at the right pixel
+    mirror[0, 2 + 9, 0, 1] = 1.0  # q
+    mirror[0, 2 + 3, 0, 1] = 5.0  # rot6: not averaged
+    mirror[0, 2 + 13, 0, 1] = 2.0  # a vote confidence
+    mirror[0, -1, 0, 1] = 3.0  # geometry: not averaged
+    got = merge_mirrored_outputs(out, mirror, J, (0,))
+    assert got[0, 1, 0, 0] == 2.0 and got[0, 1, 0, 1] == 0.0
+    assert got[0, 2 + 1, 0, 0] == pytest.approx(-0.1)
+    assert got[0, 2 + 0, 0, 1] == pytest.approx(0.3)
+    assert got[0, 2 + 9, 0, 0] == 0.5 and got[0, 2 + 13, 0, 0] == 1.0
+    assert got[0, 2 + 3].abs().sum() == 0 and got[0, -1].abs().sum() == 0
+    assert got is out
 
 
 def test_refinement_round_trips_step_8_and_older_checkpoints_read_without_it():
@@ -128,34 +160,37 @@ def test_refinement_round_trips_step_8_and_older_checkpoints_read_without_it():
     assert Refinement.from_dict(old).mirror_joints is None
 
 
-def test_the_pipeline_runs_the_mirror_image_when_the_refinement_says_so(monkeypatch):
-    import articulated_dataset.models.dense.mirror as mirror
+class _Averaged(DenseNet):
+    """A network whose outputs are another's averaged with its outputs on the mirror images."""
 
-    monkeypatch.setattr(mirror, "MIRROR_GATE_M", 100.0)  # an untrained network's votes: pair every mode
+    def __init__(self, net, perm):
+        super().__init__(net.config)
+        self.load_state_dict(net.state_dict())
+        self.perm = perm
+
+    def forward(self, x):
+        return merge_mirrored_outputs(super().forward(x), super().forward(mirror_network_input(x)),
+                                      self.config.n_joints, self.perm)
+
+
+def test_the_pipeline_runs_the_mirror_image_when_the_refinement_says_so():
     torch.manual_seed(0)
     model = DenseNet(DenseConfig(n_joints=2, width=4)).eval()
     cam = CameraConfig()
-    depth = np.zeros((3, cam.height_px, cam.width_px))
-    for i in range(3):  # a slanted box face, off centre (so its mirror image differs)
-        depth[i, 30:80, 40 + 10 * i:150] = 1.4 + 0.002 * np.arange(40 + 10 * i, 150)
+    depth = _box_depths(3, cam.height_px, cam.width_px)
     n = len(depth)
     data = DenseData(quantise_depth(depth), np.repeat(cam.K[None].astype(np.float32), n, 0), None, None, None, None,
                      None, None, object_index=np.arange(n), sample_id=np.arange(n), shard_of=np.zeros(n, int))
     idx = np.arange(n)
     joints = ["revolute", "revolute"]
-    ref = Refinement()
+    ref = Refinement(frame=True)
     plain = predict_arrays(model, data, idx, joint_types=joints, calibration=None, refinement=ref)
     both = predict_arrays(model, data, idx, joint_types=joints, calibration=None,
                           refinement=replace(ref, mirror_joints=(1, 0)).to_dict())
-    depth_t, K_t = data.depth(idx), torch.from_numpy(data.K)
-    expected = merge_mirrored(refined_batch(model, depth_t, K_t, joint_types=joints, refinement=ref),
-                              refined_batch(model, *mirror_inputs(depth_t, K_t), joint_types=joints, refinement=ref), (1, 0))
-    assert np.allclose(both["mixture_means"], modes_to_arrays(expected, data.sample_id, model, None)["mixture_means"])
-    mirror_alone = predict_arrays(model, mirrored_data(data), idx, joint_types=joints, calibration=None, refinement=ref)
-    assert np.allclose(mirror_alone["mixture_means"], modes_to_arrays(
-        refined_batch(model, *mirror_inputs(depth_t, K_t), joint_types=joints, refinement=ref), data.sample_id, model,
-        None)["mixture_means"])
-    assert not np.allclose(both["axis_pose"], plain["axis_pose"])  # something was averaged
+    averaged = predict_arrays(_Averaged(model, (1, 0)).eval(), data, idx, joint_types=joints, calibration=None,
+                              refinement=ref)
+    assert np.allclose(both["mixture_means"], averaged["mixture_means"], atol=1e-5)
+    assert not np.allclose(both["axis_pose"][..., :3], plain["axis_pose"][..., :3], atol=1e-4)  # something was averaged
 
 
 def test_with_mirror_drops_only_step_8():

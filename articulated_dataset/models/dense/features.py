@@ -32,8 +32,12 @@ MIN_NORMAL_NORM = 0.5
 NORMAL_MAX_STEP_M = 0.1
 #: Output pixels are this many input pixels wide.
 OUTPUT_STRIDE = 4
-#: Relative points (3), validity (1), normals (3), pixel coordinates (2).
+#: Relative points (3), validity (1), normals (3), pixel coordinates ``u, v`` (2).
 N_INPUT_CHANNELS = 9
+POINT_CHANNELS = slice(0, 3)
+VALIDITY_CHANNEL = 3
+NORMAL_CHANNELS = slice(4, 7)
+PIXEL_CHANNELS = slice(7, 9)
 #: Mask codes of the shards: 0 background, 1 body, 2 + j moving part j.
 MASK_BODY = 1
 
@@ -160,23 +164,23 @@ def make_inputs(depth_m: torch.Tensor, K: torch.Tensor, *, out: torch.Tensor | N
     x = out if out is not None and tuple(out.shape) == shape and out.dtype == depth_m.dtype and out.is_contiguous() \
         else depth_m.new_empty(shape)
     valid = depth_m > 0
-    w = x[:, 3]
+    w = x[:, VALIDITY_CHANNEL]
     w.copy_(valid)  # the validity channel (1.0 / 0.0)
     # the points of the depth with the invalid pixels' zeroed (the same as back-projecting the depth
     # and multiplying by the validity), written into channels 0-2
-    pts = backproject_torch(torch.mul(depth_m, w, out=x[:, 0]), K, out=x[:, 0:3])
+    pts = backproject_torch(torch.mul(depth_m, w, out=x[:, POINT_CHANNELS.start]), K, out=x[:, POINT_CHANNELS])
     n_valid = w.sum((1, 2)).clamp_min(1.0)[:, None]
     anchor = pts.sum((2, 3)) / n_valid
     w_out, p_out = _output_means(x)
-    x[:, 4:7].zero_()
+    x[:, NORMAL_CHANNELS].zero_()
     if H >= 3 and W >= 3:
         at, n = _listed_normals(x, valid)
-        _write_listed(x, 4, at, n)
+        _write_listed(x, NORMAL_CHANNELS.start, at, n)
     # (p - a) / s at the valid pixels, 0 elsewhere, in place
     # (multiplying by the validity leaves -0.0 at some invalid pixels: equal to 0, and the same to the network)
     pts.sub_(anchor[:, :, None, None]).div_(POINT_SCALE_M).mul_(w[:, None])
-    x[:, 7] = torch.linspace(-1, 1, W, dtype=depth_m.dtype, device=depth_m.device).view(1, 1, W)
-    x[:, 8] = torch.linspace(-1, 1, H, dtype=depth_m.dtype, device=depth_m.device).view(1, H, 1)
+    x[:, PIXEL_CHANNELS.start] = torch.linspace(-1, 1, W, dtype=depth_m.dtype, device=depth_m.device).view(1, 1, W)
+    x[:, PIXEL_CHANNELS.start + 1] = torch.linspace(-1, 1, H, dtype=depth_m.dtype, device=depth_m.device).view(1, H, 1)
     return {"x": x, "anchor": anchor, "points_out": p_out, "weight_out": w_out}
 
 

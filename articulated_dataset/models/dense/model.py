@@ -27,8 +27,14 @@ from .features import N_INPUT_CHANNELS
 
 #: Offsets are predicted in units of this (m).
 OFFSET_SCALE_M = 0.5
-#: Per-joint channels: offset 3, rot6 6, q 1, part offset 3, confidences 3.
+#: Per-joint channels: offset 3, rot6 6, q 1, part offset 3, confidences 3 (in this order: the
+#: slices below, within a joint's block).
 JOINT_CHANNELS = 16
+OFFSET_CHANNELS = slice(0, 3)
+ROT6_CHANNELS = slice(3, 9)
+Q_CHANNEL = 9
+PART_OFFSET_CHANNELS = slice(10, 13)
+CONF_CHANNELS = slice(13, 16)
 #: Geometry channels: depth, width, height, chirality logit, confidence.
 GEOMETRY_CHANNELS = 5
 
@@ -100,11 +106,11 @@ class DenseNet(nn.Module):
         g = out[:, 1 + J + J * JOINT_CHANNELS :]
         return {
             "seg": out[:, : 1 + J],
-            "offset": r[:, :, 0:3] * OFFSET_SCALE_M,
-            "rot6": r[:, :, 3:9],
-            "q": r[:, :, 9],
-            "part_offset": r[:, :, 10:13] * OFFSET_SCALE_M,
-            "conf": r[:, :, 13:16],
+            "offset": r[:, :, OFFSET_CHANNELS] * OFFSET_SCALE_M,
+            "rot6": r[:, :, ROT6_CHANNELS],
+            "q": r[:, :, Q_CHANNEL],
+            "part_offset": r[:, :, PART_OFFSET_CHANNELS] * OFFSET_SCALE_M,
+            "conf": r[:, :, CONF_CHANNELS],
             "geometry": g[:, 0:4],
             "geometry_conf": g[:, 4],
         }

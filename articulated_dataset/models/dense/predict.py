@@ -86,33 +86,18 @@ def _concatenated(chunks: list) -> dict:
 def refined_batch(model, depth_m, K, *, joint_types: list[str], refinement, workspace: dict | None = None) -> dict:
     """One batch of depth images (B, H, W) m and intrinsics (B, 3, 3) at the model's resolution ->
     the refined vote modes (numpy) the checkpoint's ``refinement`` (a
-    :class:`~.refine.Refinement`, its dict or None) asks for: :func:`batch_modes`, then
-    :func:`~.refine.apply_refinement` (steps 1-7), then, where it names ``mirror_joints``, the
-    average with the mirror images' (step 8, :func:`~.mirror.merge_mirrored`)."""
-    import torch
-
-    from .mirror import merge_mirrored, mirror_inputs
+    :class:`~.refine.Refinement`, its dict or None) asks for: :func:`batch_modes` (where it names
+    ``mirror_joints``, on the network's outputs averaged with its outputs on the mirror images:
+    step 8, :mod:`.mirror`), then :func:`~.refine.apply_refinement` (steps 1-7)."""
     from .refine import apply_refinement, as_refinement, split_factor_of
 
     refinement = as_refinement(refinement)
-
-    def one(depth, intrinsics):
-        m, r = batch_modes(model, depth, intrinsics, joint_types=joint_types,
-                           refine=refinement is not None and refinement.needed, split_factor=split_factor_of(refinement),
-                           handle_max_q_deg=None if refinement is None else refinement.handle_evidence_max_q_deg,
-                           frame_min_prob=None if refinement is None else refinement.frame_min_prob,
-                           workspace=workspace)
-        return apply_refinement(m, r, refinement, joint_types)
-
-    if refinement is None or refinement.mirror_joints is None:
-        return one(depth_m, K)
-    # the images and their mirror images in one batch: one network call (a single image's
-    # estimate() pays the per-call costs once)
-    B = len(depth_m)
-    depth_2, K_2 = mirror_inputs(depth_m, K)
-    both = one(torch.cat([depth_m, depth_2]), torch.cat([K, K_2]))
-    return merge_mirrored({k: v[:B] for k, v in both.items()}, {k: v[B:] for k, v in both.items()},
-                          refinement.mirror_joints)
+    m, r = batch_modes(model, depth_m, K, joint_types=joint_types,
+                       refine=refinement is not None and refinement.needed, split_factor=split_factor_of(refinement),
+                       handle_max_q_deg=None if refinement is None else refinement.handle_evidence_max_q_deg,
+                       frame_min_prob=None if refinement is None else refinement.frame_min_prob,
+                       mirror_joints=None if refinement is None else refinement.mirror_joints, workspace=workspace)
+    return apply_refinement(m, r, refinement, joint_types)
 
 
 def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: dict | None) -> dict:
@@ -124,7 +109,7 @@ def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: dict | N
 
 def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, split_factor: float | None,
                 handle_max_q_deg: float | None = None, frame_min_prob: float | None = None,
-                workspace: dict | None = None) -> tuple[dict, dict | None]:
+                mirror_joints=None, workspace: dict | None = None) -> tuple[dict, dict | None]:
     """One batch of depth images (B, H, W) m and intrinsics (B, 3, 3) at the model's resolution ->
     vote modes (:func:`~.aggregate.vote_modes` with ``split_factor``, a checkpoint's
     :func:`~.refine.split_factor_of`) and, with ``refine``, the refined quantities
@@ -144,7 +129,7 @@ def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, spli
         model.eval()
     with torch.inference_mode():
         inputs = make_inputs(depth_m, K, out=None if workspace is None else workspace.pop("x", None))
-        parts = model.split(network_outputs(model, inputs["x"]))
+        parts = model.split(network_outputs(model, inputs["x"], mirror_joints))
         modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0, split_factor=split_factor)
         r = refined_quantities(parts, inputs, modes, joint_types, frame_min_prob) if refine else None
         if r is not None and handle_max_q_deg is not None:
@@ -155,24 +140,35 @@ def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, spli
     return as_np(modes), (as_np(r) if r is not None else None)
 
 
-def network_outputs(model, x):
-    """``model(x)`` for a batch of inputs, :data:`NETWORK_CHUNK` images at a time."""
+def network_outputs(model, x, mirror_joints=None):
+    """``model(x)`` for a batch of inputs, :data:`NETWORK_CHUNK` images at a time; with
+    ``mirror_joints``, averaged with its outputs on the mirror images
+    (:func:`~.mirror.merge_mirrored_outputs`)."""
     import torch
 
-    if len(x) <= NETWORK_CHUNK:
-        return model(x)
-    return torch.cat([model(chunk) for chunk in x.split(NETWORK_CHUNK)])
+    from .mirror import merge_mirrored_outputs, mirror_network_input
+
+    def run(inputs):
+        if len(inputs) <= NETWORK_CHUNK:
+            return model(inputs)
+        return torch.cat([model(chunk) for chunk in inputs.split(NETWORK_CHUNK)])
+
+    out = run(x)
+    if mirror_joints is None:
+        return out
+    return merge_mirrored_outputs(out, run(mirror_network_input(x)), model.config.n_joints, mirror_joints)
 
 
 def predict_modes(model, data, idx: np.ndarray, *, joint_types: list[str], refine: bool = True,
                   batch_size: int = PREDICT_BATCH, progress: bool = False,
                   split_factor: float | None, handle_max_q_deg: float | None = None,
-                  frame_min_prob: float | None = None) -> tuple[dict, dict | None]:
+                  frame_min_prob: float | None = None, mirror_joints=None) -> tuple[dict, dict | None]:
     """:func:`batch_modes` over the images ``idx`` of a split in memory, batch by batch, concatenated
     (the refined quantities are None without ``refine``)."""
     chunks = _over_batches(data, idx, batch_size, progress, lambda depth, K, workspace: batch_modes(
         model, depth, K, joint_types=joint_types, refine=refine, split_factor=split_factor,
-        handle_max_q_deg=handle_max_q_deg, frame_min_prob=frame_min_prob, workspace=workspace))
+        handle_max_q_deg=handle_max_q_deg, frame_min_prob=frame_min_prob, mirror_joints=mirror_joints,
+        workspace=workspace))
     return _concatenated([m for m, _ in chunks]), (_concatenated([r for _, r in chunks]) if refine else None)
 
 
@@ -312,7 +308,8 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     """Fit what inference needs beyond the weights on validation images ``idx`` (with labels):
     the vote modes' split factor (:func:`choose_split_factor`), the refinement
     (:func:`~.fit.fit_refinement`; then, where the class's ``mirror_joints`` is given, whether
-    averaging with the mirror images lowers the position error by at least
+    averaging the network's outputs with its outputs on the mirror images (:mod:`.mirror`) lowers
+    the position error by at least
     :data:`~.mirror.MIRROR_MIN_GAIN`), then the uncertainty calibration of the refined predictions
     (:func:`fit_calibration`).  Returns ``{"refinement": dict, "calibration": dict,
     "refinement_report": dict}`` for the checkpoint."""
@@ -320,7 +317,7 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
 
     from .fit import FRAME_PROB_CANDIDATES, configuration_error, fit_refinement, rotation_error_deg
     from .handle import EVERY_DOOR_DEG
-    from .mirror import MIRROR_MIN_GAIN, merge_mirrored, mirrored_data
+    from .mirror import MIRROR_MIN_GAIN
     from .refine import apply_refinement
 
     split_factor, split_report = choose_split_factor(model, data, idx)
@@ -345,10 +342,11 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     report["split_factor_position_cm"] = split_report
     refined = apply_refinement(m, r, refinement, joint_types)
     if mirror_joints is not None:
-        mm, mr = predict_modes(model, mirrored_data(data), idx, joint_types=joint_types, progress=progress,
+        mm, mr = predict_modes(model, data, idx, joint_types=joint_types, progress=progress,
                                refine=refinement.needed, split_factor=split_factor,
-                               handle_max_q_deg=refinement.handle_evidence_max_q_deg, frame_min_prob=p)
-        merged = merge_mirrored(refined, apply_refinement(mm, mr, refinement, joint_types), mirror_joints)
+                               handle_max_q_deg=refinement.handle_evidence_max_q_deg, frame_min_prob=p,
+                               mirror_joints=mirror_joints)
+        merged = apply_refinement(mm, mr, refinement, joint_types)
         pos = {name: quick_errors(modes_to_arrays(x, data.sample_id[idx], model, None), data, idx, joint_types)["pos_cm"]
                for name, x in (("without", refined), ("with", merged))}
         report["mirror_position_cm"] = pos

@@ -41,8 +41,9 @@ regressed (:func:`refined_quantities`, per image and joint):
 7. **Hinge side from the handle** (:mod:`.handle`).  A closed door whose vote mode puts the hinge
    at the door's handle is mirrored across the door (the cabinet's one-image side errors).
 8. **Mirror image** (:mod:`.mirror`).  Where the class's mirror image is again an object of the
-   class, the estimate's origins and ``q`` are averaged with those of the image reflected
-   left-right (run through the network and steps 1-7 and 9 too, then reflected back).
+   class, the network's part logits, origin offsets, ``q`` and vote confidences are averaged with
+   its outputs on the image reflected left-right (reflected back) before the votes are counted:
+   every other step runs once, on the averaged outputs.
 9. **Hinge height from the handle** (:mod:`.handle`, applied after step 6, before 7).  A door's
    handle is centred at its mid-height: where the handle is seen whole, the origin is moved along
    the axis to the handle's height (behind a fitted gate).  It is used only where it lowers the
@@ -80,7 +81,9 @@ DOOR_EXTENT_QUANTILE = 0.005
 DOOR_EXTENT_MIN_PX = 10
 #: Refinement format version stored in checkpoints (2: ``max_turn_deg``; 3: ``door_extent``;
 #: 4: ``handle_max_q_deg``; 5: ``mirror_joints``; 6: ``frame_min_prob``; 7: ``handle_height_gate_m``;
-#: older versions read as without them).
+#: older versions read as without them).  The stored fields, not their implementation: since the tenth
+#: session every version's ``mirror_joints`` averages the network's outputs (:mod:`.mirror`), not the
+#: refined vote modes of two passes.
 REFINEMENT_VERSION = 7
 
 
