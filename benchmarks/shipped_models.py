@@ -93,7 +93,9 @@ def main(argv=None) -> int:
             write_predictions(out, method, {cls: arrays})
             row = score(out, split_dir).rows[0]
             m = row.metrics
-            rec = {"class": cls, "model": name, "method": method, "n_images": row.n_scored,
+            from articulated_dataset.format import sha256_file
+
+            rec = {"class": cls, "model": name, "method": method, "sha256": sha256_file(ref.path), "n_images": row.n_scored,
                    "mirror": not (args.no_mirror and ref.kind == "dense"),
                    **{k: m[k][0] for k in TABLE_METRICS}, "coverage_90": m.get("coverage_90", (float("nan"),))[0],
                    "images_per_s": speed, "test_seed": args.seed, "test_objects": args.test_objects,

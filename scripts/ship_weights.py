@@ -1,6 +1,7 @@
 """Package trained checkpoints as the shipped models (maintainers' tool; see docs/model.md).
 
     python scripts/ship_weights.py --dense-dir RUNS --mdn-dir RUNS [--results shipped.json]
+    python scripts/ship_weights.py --dense-dir RUNS --mdn-dir RUNS --classes cabinet --update [--results shipped.json]
 
 Reads ``RUNS/dense-<class>.pt`` (``artdata train --model dense``) and
 ``RUNS/mdn-small-<class>.pt`` (``artdata train --small``), keeps what inference needs
@@ -8,7 +9,9 @@ Reads ``RUNS/dense-<class>.pt`` (``artdata train --model dense``) and
 state), writes ``articulated_dataset/weights/<model>-<class>.pt`` and
 ``articulated_dataset/weights/models.json`` (file, SHA-256, size, training data and
 recipe, history, and the test figures of ``benchmarks/shipped_models.py --json`` when
-``--results`` is given).  Only finished trainings are shipped.
+``--results`` is given).  Only finished trainings are shipped.  ``--update`` keeps the manifest's
+other entries (the models not shipped now) and updates their test figures from ``--results``
+where those were measured on the same file (SHA-256).
 """
 
 from __future__ import annotations
@@ -128,6 +131,14 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
     return rec
 
 
+def _test_record(r: dict, metric_version: int) -> dict:
+    """A model's ``test`` entry from its ``benchmarks/shipped_models.py --json`` record."""
+    return {"pos_cm": r["axis_position_error_cm"], "rot_deg": r["axis_rotation_error_deg"],
+            "config": r["configuration_error"], "coverage_90": r["coverage_90"],
+            "images": r["n_images"], "objects": r["test_objects"], "seed": r["test_seed"],
+            "images_per_s": r["images_per_s"], "metric_version": metric_version}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--dense-dir", type=Path, required=True)
@@ -137,6 +148,9 @@ def main(argv=None) -> int:
     p.add_argument("--previous", type=Path, action="append", default=None,
                    help="models.json of weights shipped before (repeatable; default: the current one); "
                         "continuations and refits of those weights keep their training record from it")
+    p.add_argument("--update", action="store_true",
+                   help="keep the current manifest's entries of the models not shipped now (their test figures "
+                        "updated from --results where measured on the same file)")
     args = p.parse_args(argv)
     results = {}
     if args.results is not None:
@@ -168,13 +182,19 @@ def main(argv=None) -> int:
                      "config_unit": "cm" if "prismatic" in str(ckpt.get("joint_types", "")) or c == "drawer" else "deg",
                      "training": _training_record(name, c, ckpt, previous, shipped)}
             r = results.get((name, c))
-            if r is not None:
-                entry["test"] = {"pos_cm": r["axis_position_error_cm"], "rot_deg": r["axis_rotation_error_deg"],
-                                 "config": r["configuration_error"], "coverage_90": r["coverage_90"],
-                                 "images": r["n_images"], "objects": r["test_objects"], "seed": r["test_seed"],
-                                 "images_per_s": r["images_per_s"], "metric_version": metric_version}
+            if r is not None and r.get("sha256", entry["sha256"]) == entry["sha256"]:
+                entry["test"] = _test_record(r, metric_version)
             entries.append(entry)
             print(f"{dst}: {entry['bytes'] / 1e6:.2f} MB")
+    if args.update and MODELS_MANIFEST.is_file():
+        shipped_now = {(e["name"], e["class_name"]) for e in entries}
+        kept = [e for e in json.loads(MODELS_MANIFEST.read_text())["models"] if (e["name"], e["class_name"]) not in shipped_now]
+        for e in kept:
+            r = results.get((e["name"], e["class_name"]))
+            if r is not None and r.get("sha256") == e["sha256"]:
+                e["test"] = _test_record(r, metric_version)
+        order = {(n, c): i for i, (c, n) in enumerate((c, n) for c in class_names() for n in FILES)}
+        entries = sorted(entries + kept, key=lambda e: order.get((e["name"], e["class_name"]), len(order)))
     MODELS_MANIFEST.write_text(json.dumps({"models": entries}, indent=1) + "\n")
     total = sum(e["bytes"] for e in entries)
     print(f"{MODELS_MANIFEST}: {len(entries)} models, {total / 1e6:.1f} MB of weights")
