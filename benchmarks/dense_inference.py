@@ -9,7 +9,8 @@ batch and (c) on ``--batches`` batches in a row (the rendered batch repeated: a 
 state, where every batch after the first writes its input into the previous one's tensor), and
 (d) the milliseconds of one ``articulated_dataset.estimate`` call (one image, model loaded);
 then the batch's milliseconds per stage ("other": the one-batch pipeline's time beyond the
-stages: reading the depth, conversions to numpy).  Every figure is the fastest of ``--repeats``
+stages: reading the depth, conversions to numpy; where the model uses the mirror image, refinement
+step 8, the network's time is also given with its second pass and the outputs' average).  Every figure is the fastest of ``--repeats``
 runs after one warm-up run (no one-time cost is timed; on a shared machine the fastest run is the
 one least disturbed by other processes).  Uses the shipped weights (or a checkpoint) and
 rendered test images (a small split is generated under ``--root`` if needed).
@@ -105,6 +106,10 @@ def bench_class(args, class_name: str) -> None:
     with torch.inference_mode():
         t_inputs, inputs = timed(lambda: make_inputs(data.depth(idx), torch.from_numpy(data.K[idx])))
         t_net, out = timed(lambda: network_outputs(model, inputs["x"]))  # as the pipeline runs it
+        mirror_joints = getattr(refinement, "mirror_joints", None)
+        t_net_pipeline = t_net
+        if mirror_joints is not None:  # step 8: the network on the mirror images too, outputs averaged
+            t_net_pipeline, out = timed(lambda: network_outputs(model, inputs["x"], mirror_joints))
         parts = model.split(out)
         t_modes, modes = timed(lambda: vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0,
                                                   split_factor=split_factor_of(refinement)))
@@ -140,11 +145,11 @@ def bench_class(args, class_name: str) -> None:
           f"network {n / t_net:.0f} img/s; batched pipeline {n / t_full:.0f} img/s (one batch), "
           f"{args.batches * n / t_split:.0f} img/s ({args.batches} batches); estimate() {one_ms:.1f} ms/image; "
           f"load average {os.getloadavg()[0]:.1f}; OpenMP wait: {wait_policy()}")
-    mirrored = getattr(refinement, "mirror_joints", None) is not None  # step 8: every stage but the mixture twice
-    other = t_full - ((2 if mirrored else 1) * (t_inputs + t_net + t_modes + t_refine) + t_mixture)
-    print(f"  ms per batch{' (x 2: the mirror image too)' if mirrored else ''}: inputs {1e3 * t_inputs:.0f}, "
-          f"network {1e3 * t_net:.0f}, vote modes {1e3 * t_modes:.0f}, refinement {1e3 * t_refine:.0f}, "
-          f"mixture {1e3 * t_mixture:.0f}, other {1e3 * other:.0f}", flush=True)
+    other = t_full - (t_inputs + t_net_pipeline + t_modes + t_refine + t_mixture)
+    network = f"network {1e3 * t_net:.0f}" + ("" if mirror_joints is None else
+                                              f" (with the mirror images and their average: {1e3 * t_net_pipeline:.0f})")
+    print(f"  ms per batch: inputs {1e3 * t_inputs:.0f}, {network}, vote modes {1e3 * t_modes:.0f}, "
+          f"refinement {1e3 * t_refine:.0f}, mixture {1e3 * t_mixture:.0f}, other {1e3 * other:.0f}", flush=True)
 
 
 def wait_policy() -> str:
