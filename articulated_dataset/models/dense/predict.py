@@ -153,10 +153,15 @@ def network_outputs(model, x, mirror_joints=None):
             return model(inputs)
         return torch.cat([model(chunk) for chunk in inputs.split(NETWORK_CHUNK)])
 
-    out = run(x)
     if mirror_joints is None:
-        return out
-    return merge_mirrored_outputs(out, run(mirror_network_input(x)), model.config.n_joints, mirror_joints)
+        return run(x)
+    x_mirror = mirror_network_input(x)
+    if 2 * len(x) <= NETWORK_CHUNK:  # a few images (estimate()): one call for both, its fixed costs paid once
+        both = run(torch.cat([x, x_mirror]))
+        out, out_mirror = both[: len(x)], both[len(x) :]
+    else:
+        out, out_mirror = run(x), run(x_mirror)
+    return merge_mirrored_outputs(out, out_mirror, model.config.n_joints, mirror_joints)
 
 
 def predict_modes(model, data, idx: np.ndarray, *, joint_types: list[str], refine: bool = True,
