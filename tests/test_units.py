@@ -30,7 +30,9 @@ def test_normalise_arithmetic_is_the_labels_and_readers():
     singles = np.stack([normalise(x) for x in v])
     np.testing.assert_array_equal(singles, np.stack([x / np.linalg.norm(x) for x in v]))
     np.testing.assert_array_equal(normalise(v), v / np.linalg.norm(v, axis=-1, keepdims=True))
-    assert (singles != normalise(v)).any()  # so the first check can fail
+    if not (singles != normalise(v)).any():  # so the first check can fail (on most machines)
+        pytest.skip("this machine's numpy gives norm(v) and norm(v, axis=-1) the same bits for all "
+                    "2,000 vectors: the two arithmetics cannot be told apart here")
 
 
 def test_normalise_checked():

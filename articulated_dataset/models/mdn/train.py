@@ -207,7 +207,12 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
     check_memory(float(config.n_components) * (model_config.head_hidden + 1) * (2 * len(active) + 1)
                  * BYTES_PER_TRAINED_PARAMETER, f"a mixture head of {config.n_components} components")
     torch.manual_seed(config.seed)
-    model = MixtureDensityNetwork(model_config).to(dev, memory_format=torch.channels_last)
+    # channels-last only on a GPU (tensor-core kernels).  On the CPU, oneDNN's channels-last
+    # backward pass of this network corrupts the heap with one thread on AVX2-only machines
+    # (glibc aborts: "corrupted size vs. prev_size"; reproduced with ONEDNN_MAX_CPU_ISA=AVX2,
+    # tests/test_mdn.py::test_cpu_training_keeps_the_default_layout), so the CPU keeps the default layout.
+    layout = torch.channels_last if dev.type == "cuda" else torch.contiguous_format
+    model = MixtureDensityNetwork(model_config).to(dev, memory_format=layout)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=WEIGHT_DECAY)
     batch = min(config.batch_size, n_train)
     steps_per_epoch = n_train // batch  # the last incomplete batch is dropped (BatchNorm needs > 1 sample)
@@ -254,7 +259,7 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
         running, n_seen = 0.0, 0
         for step in bar:
             idx = order[step * batch : (step + 1) * batch].to(planes_tr.device)
-            x = assemble_inputs(planes_tr[idx].to(dev, non_blocking=True), input_config).contiguous(memory_format=torch.channels_last)
+            x = assemble_inputs(planes_tr[idx].to(dev, non_blocking=True), input_config).contiguous(memory_format=layout)
             s = scalars_tr[idx].to(dev, non_blocking=True)
             y = y_tr[idx].to(dev, non_blocking=True)
             with amp():
