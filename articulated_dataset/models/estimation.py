@@ -147,7 +147,7 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     image (OpenCV convention, pixel centres at integers); ``mask``: optional (H, W) boolean object
     mask (pixels outside it are ignored).  ``model``: ``"dense"`` (shipped weights) or a dense
     checkpoint path.  ``mirror=False`` skips the refinement's mirror image where the model uses
-    it (cabinet, two-door cabinet, drawer: faster, a 4-7% higher position error).  Bad input
+    it (cabinet, two-door cabinet, drawer: faster, a 4-6% higher position error).  Bad input
     raises :class:`~articulated_dataset.errors.UserError`.
     """
     import torch

@@ -42,7 +42,7 @@ MIRROR_AXIS = 1
 def with_mirror(refinement, mirror: bool):
     """A checkpoint's refinement (a :class:`~.refine.Refinement`, its dict or None) as a
     :class:`~.refine.Refinement`, without this step unless ``mirror`` (``predict --no-mirror``:
-    one network pass instead of two, for a 4-7% higher position error)."""
+    one network pass instead of two, for a 4-6% higher position error)."""
     from dataclasses import replace
 
     from .refine import as_refinement
