@@ -258,7 +258,7 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
 def test_cpu_training_keeps_the_default_layout(tiny_root, tmp_path):
     """On the CPU the MDN trains in the default memory layout: in channels-last, oneDNN's
     backward pass of the tiny network corrupted the heap with one thread on AVX2 kernels (glibc
-    aborted the process; CI's machines are AVX2).  The run is a subprocess pinned to AVX2 and
+    aborted the process, as in a CI run).  The run is a subprocess pinned to AVX2 and
     one thread, the conditions that aborted it 3 times in 3 before the fix."""
     import os
     import subprocess
