@@ -12,9 +12,11 @@ from articulated_dataset.camera import CameraConfig  # noqa: E402
 from articulated_dataset.models.dense.features import OUTPUT_STRIDE, make_inputs  # noqa: E402
 from articulated_dataset.models.dense.handle import (  # noqa: E402
     EVERY_DOOR_DEG,
+    HANDLE_LEN_M,
     HANDLE_STANDOFF_M,
     apply_handle_height,
     apply_handle_side,
+    handle_cut_usable,
     handle_evidence,
     mirrored_by_handle,
 )
@@ -167,6 +169,31 @@ def test_the_handles_height_is_not_used_past_its_gates():
     assert Refinement.from_dict(old).handle_height_gate_m is None
 
 
+def test_a_bar_cut_by_the_images_top_gives_its_centre_from_its_visible_end():
+    """Step 9's cut bars: a bar whose pixels reach the image's top row is centred half a bar's
+    length above its lowest visible point, and only ``cut_bars`` uses it."""
+    inputs, parts = _scene_with_handle((0, 5), HANDLE_COLS)
+    ev = _evidence(inputs, parts)
+    assert ev["handle_cut"][0, 0] == 1 and handle_cut_usable(ev)[0, 0]
+    K = CameraConfig(W_PX, H_PX).K
+    bar_bottom_z = -(5 - 1 - K[1, 2]) / K[1, 1] * (DOOR_DEPTH_M - HANDLE_STANDOFF_M)  # the lowest bar row's centre
+    assert ev["handle_end_centre"][0, 0, 2] == pytest.approx(bar_bottom_z + 0.5 * HANDLE_LEN_M, abs=1e-4)
+    assert ev["handle_end_centre"][0, 0, 1] == pytest.approx(ev["handle_point"][0, 0, 1], abs=1e-9)  # only along the axis
+    low = _modes(np.array([0.0, 0.0, bar_bottom_z - 0.1]), np.array([0.0, 1.0, bar_bottom_z - 0.1]))
+    out = apply_handle_height(low, ev, 0.4, ["revolute"], cut_bars=True)
+    assert out["origin"][0, 0, 0, 2] == pytest.approx(ev["handle_end_centre"][0, 0, 2], abs=1e-9)
+    assert apply_handle_height(low, ev, 0.4, ["revolute"]) is low  # not without cut_bars
+    ref = Refinement(handle_height_gate_m=0.4, handle_cut_bars=True)
+    assert Refinement.from_dict(ref.to_dict()) == ref
+    assert np.allclose(apply_refinement(low, ev, ref, ["revolute"])["origin"], out["origin"])
+    # refinement version 7 (no handle_cut_bars) reads as without it
+    old = {k: v for k, v in ref.to_dict().items() if k != "handle_cut_bars"} | {"version": 7}
+    assert not Refinement.from_dict(old).handle_cut_bars
+    # a bar inside the image is not cut; a few pixels at the border give no end
+    assert _evidence(*_scene_with_handle(HANDLE_ROWS, HANDLE_COLS))["handle_cut"][0, 0] == 0
+    assert not handle_cut_usable(_evidence(*_scene_with_handle((0, 1), HANDLE_COLS)))[0, 0]
+
+
 def _scene_with_handle(rows, cols):
     """:func:`_scene`'s door, taller (from the image's top row), with its handle bar at ``rows`` x
     ``cols``: the network input and parts."""
@@ -188,7 +215,8 @@ HANDLE_HEIGHT_TOL_M = 0.02
 @pytest.mark.parametrize("class_name", SIDE_DOOR_CLASSES)
 def test_rendered_handles_seen_whole_are_at_the_labelled_origins_height(class_name, tmp_path):
     """Labels against rendered pixels: a generated split's doors, segmented by their true masks,
-    whose handle step 9 would use have it at the labelled origin's height along the true axis."""
+    whose handle step 9 would use have it (seen whole: its mean point; cut by the image's border:
+    half a bar's length from its visible end) at the labelled origin's height along the true axis."""
     from articulated_dataset.models.dense.data import load_dense_split
     from articulated_dataset.models.dense.handle import handle_seen_whole
     from articulated_dataset.registry import get_class
@@ -206,3 +234,9 @@ def test_rendered_handles_seen_whole_are_at_the_labelled_origins_height(class_na
     assert whole.sum() >= 4, "too few handles seen whole to check"
     along = ((ev["handle_point"].numpy() - data.origin) * data.rot6[..., :3]).sum(-1)
     assert np.abs(along[whole]).max() < HANDLE_HEIGHT_TOL_M, np.round(along[whole], 3)
+    # a bar cut by the image's top or bottom border: its centre half a bar's length from its visible end
+    ev = {k: v.numpy().astype(np.float64) for k, v in ev.items()}
+    cut = handle_cut_usable(ev)
+    assert cut.sum() >= 2, "too few bars cut by the border to check"
+    along = ((ev["handle_end_centre"] - data.origin) * data.rot6[..., :3]).sum(-1)
+    assert np.abs(along[cut]).max() < HANDLE_HEIGHT_TOL_M, np.round(along[cut], 3)

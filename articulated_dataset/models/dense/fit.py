@@ -55,7 +55,8 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     axis position error of each joint's heaviest mode; the handle's side (step 7) with the
     pair of :data:`HANDLE_Q_CANDIDATES_DEG` and :data:`HANDLE_PX_CANDIDATES` that lowers that
     error most, if any does; the hinge's height from the handle (step 9) with the gate of
-    :data:`HANDLE_HEIGHT_GATE_CANDIDATES_M` that lowers it most, if that is by at least
+    :data:`HANDLE_HEIGHT_GATE_CANDIDATES_M`, from whole bars only or also from bars the image's
+    border cuts (``handle_cut_bars``), that lowers it most, if that is by at least
     :data:`HANDLE_HEIGHT_MIN_GAIN` (``r`` must hold :func:`~.handle.handle_evidence`'s keys for
     steps 7 and 9, measured for every door).  Returns the
     :class:`Refinement` and the validation errors of every candidate.
@@ -125,13 +126,15 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
         if best_handle is not None:
             refinement = replace(refinement, handle_max_q_deg=best_handle[0], handle_min_px=best_handle[1])
         report["position_cm"]["before_handle_height"] = before = best_pos
-        best_gate = None
-        for gate in HANDLE_HEIGHT_GATE_CANDIDATES_M:
-            e = pos_err(apply_refinement(m, r, replace(refinement, handle_height_gate_m=gate), joint_types))
-            report["position_cm"][f"handle_height_gate<={gate:g}m"] = e
-            if e < best_pos and e <= before * (1 - HANDLE_HEIGHT_MIN_GAIN):
-                best_gate, best_pos = gate, e
-        refinement = replace(refinement, handle_height_gate_m=best_gate)
+        best_gate, best_cut = None, False
+        for cut in (False, True) if "handle_cut" in r else (False,):
+            for gate in HANDLE_HEIGHT_GATE_CANDIDATES_M:
+                e = pos_err(apply_refinement(m, r, replace(refinement, handle_height_gate_m=gate, handle_cut_bars=cut),
+                                             joint_types))
+                report["position_cm"][f"handle_height_gate<={gate:g}m" + ("_cut_bars" if cut else "")] = e
+                if e < best_pos and e <= before * (1 - HANDLE_HEIGHT_MIN_GAIN):
+                    best_gate, best_cut, best_pos = gate, cut, e
+        refinement = replace(refinement, handle_height_gate_m=best_gate, handle_cut_bars=best_cut)
     return refinement, report
 
 

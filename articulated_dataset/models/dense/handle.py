@@ -36,7 +36,9 @@ the axis is the origin's, however far the door is open and however much of the d
 cuts off (the votes must infer a cut door's height).  The handle is measured on every door for
 this step, open ones included; a bar seen shorter than :data:`HANDLE_MIN_WHOLE_LENGTH_M` (cut by
 the image's border or hidden in part) is not used, nor one whose height is further than a fitted
-gate from the vote mode's.
+gate from the vote mode's.  Where the fit chooses it (``Refinement.handle_cut_bars``, refinement
+version 8), a bar that the image's top or bottom border cuts is used too: its centre lies half a
+bar's length from its other, visible end (:func:`handle_cut_usable`).
 """
 
 from __future__ import annotations
@@ -64,6 +66,12 @@ HANDLE_MAX_LENGTH_M = 1.5 * HANDLE_LEN_M
 #: cut by the image's border or partly hidden has its centre elsewhere.  (Every template's bar is
 #: ``min(handle_len_m, door_h / 2)`` long, at least 0.11 m for the tables' doors.)
 HANDLE_MIN_WHOLE_LENGTH_M = 0.75 * HANDLE_LEN_M
+#: A handle with pixels in this many rows at the image's top or bottom is cut by the border:
+#: step 9 may then place its centre half a bar's length from its other, visible end.
+BORDER_ROWS_PX = 2
+#: ... where the bar is seen at least this long (m): a few pixels at the border give no end (the
+#: generated splits' bars seen 2 cm long put their centre 10 cm off, a bar's length, in 2 of 32).
+HANDLE_MIN_CUT_LENGTH_M = 0.03
 #: The door angle limit (deg) under which :func:`handle_candidates_evidence` measures every door
 #: (step 9 reads the handles of open doors too).
 EVERY_DOOR_DEG = 180.0
@@ -105,6 +113,8 @@ def handle_evidence(parts: dict, inputs: dict, axis_line: torch.Tensor, joint_ty
     handle_px = torch.zeros(B, J, dtype=dtype)
     handle_point = torch.zeros(B, J, 3, dtype=dtype)
     handle_size = torch.zeros(B, J, 2, dtype=dtype)
+    handle_cut = torch.zeros(B, J, dtype=dtype)
+    handle_end_centre = torch.zeros(B, J, 3, dtype=dtype)
     seg = parts["seg"]
     flat = x.reshape(-1)  # a view: the input is contiguous
     P = H * W
@@ -157,11 +167,27 @@ def handle_evidence(parts: dict, inputs: dict, axis_line: torch.Tensor, joint_ty
         across = torch.cross(z_image, n, dim=-1).index_select(0, hb)  # along the face, perpendicular to the axis
         spread, _ = _per_image_mean(torch.stack([(rel * z_image.index_select(0, hb)).sum(-1) ** 2,
                                                  (rel * across).sum(-1) ** 2], -1), hb, ones, k)
+        # a bar cut by the image's top or bottom border (step 9's cut bars): its centre is half
+        # a bar's length from its one visible end, the end away from the border
+        s_along = (hp * z_image.index_select(0, hb)).sum(-1)
+        row = p.index_select(0, at_handle) // W
+        border = ((row < BORDER_ROWS_PX) | (row >= H - BORDER_ROWS_PX)).to(dtype)
+        s_border, n_border = _per_image_mean(s_along[:, None], hb, border, k)
+        s_min = torch.full((k,), math.inf, dtype=dtype).scatter_reduce(0, hb, s_along, "amin")
+        s_max = torch.full((k,), -math.inf, dtype=dtype).scatter_reduce(0, hb, s_along, "amax")
+        border_at_max = (s_border[:, 0] - s_min).abs() > (s_border[:, 0] - s_max).abs()
+        centre_s = torch.where(border_at_max, s_min + 0.5 * HANDLE_LEN_M, s_max - 0.5 * HANDLE_LEN_M)
+        s_mean = (point * z_image).sum(-1)
+        cut = (n_border > 0) & (px > 0)
+        handle_cut[images, j] = cut.to(dtype)
+        handle_end_centre[images, j] = torch.where(cut[:, None], point + (centre_s - s_mean)[:, None] * z_image,
+                                                   torch.zeros_like(point))
         handle_px[images, j] = px
         handle_point[images, j] = point * (px > 0).to(dtype)[:, None]
         # the handle's extent along the axis and across it (a uniform bar of length l has variance l^2 / 12)
         handle_size[images, j] = torch.sqrt(12.0 * spread) * (px > 0).to(dtype)[:, None]
-    return {"handle_px": handle_px, "handle_point": handle_point, "handle_size_m": handle_size}
+    return {"handle_px": handle_px, "handle_point": handle_point, "handle_size_m": handle_size,
+            "handle_cut": handle_cut, "handle_end_centre": handle_end_centre}
 
 
 def handle_candidates_evidence(parts: dict, inputs: dict, modes: dict, refined: dict, joint_types,
@@ -225,26 +251,45 @@ def handle_seen_whole(handle_px: np.ndarray, size_m: np.ndarray) -> np.ndarray:
     return (handle_px > 0) & (size_m[..., 0] >= HANDLE_MIN_WHOLE_LENGTH_M) & _bar_sized(size_m)
 
 
-def handle_height_shift(m: dict, r: dict, gate_m: float, joint_types) -> tuple[np.ndarray, np.ndarray]:
+def handle_cut_usable(r: dict) -> np.ndarray:
+    """Whether each door's handle (:func:`handle_evidence`'s keys) is a bar cut by the image's top
+    or bottom border whose visible end is seen at least :data:`HANDLE_MIN_CUT_LENGTH_M` long: its
+    centre is then ``handle_end_centre``, half a bar's length from that end."""
+    if "handle_cut" not in r:
+        return np.zeros(r["handle_px"].shape, dtype=bool)
+    size = r["handle_size_m"]
+    return (r["handle_cut"] > 0) & (r["handle_px"] > 0) & (size[..., 0] >= HANDLE_MIN_CUT_LENGTH_M) & _bar_sized(size)
+
+
+def handle_height_shift(m: dict, r: dict, gate_m: float, joint_types, cut_bars: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Step 9's move (B, J, M) of each vote mode's origin along its unit axis (B, J, M, 3) (m; 0
-    where unused), and that axis: the handle's mean point's coordinate along the axis minus the
-    origin's, for revolute doors whose handle is seen whole (:func:`handle_seen_whole`), where the
-    move is shorter than ``gate_m``.
+    where unused), and that axis: the handle's centre's coordinate along the axis minus the
+    origin's, for revolute doors whose handle is seen whole (:func:`handle_seen_whole`; its mean
+    point) or, with ``cut_bars``, cut by the image's border (:func:`handle_cut_usable`; half a
+    bar's length from its visible end, which takes the place of the mean point of a bar seen
+    whole but touching the border), where the move is shorter than ``gate_m``.
     ``m``: numpy mode arrays after the other refinement steps; ``r``: :func:`handle_evidence`'s keys."""
     revolute = np.array([t == "revolute" for t in joint_types])
     z = _unit(m["axis"])
-    shift = ((r["handle_point"][:, :, None] - m["origin"]) * z).sum(-1)
-    whole = revolute[None] & handle_seen_whole(r["handle_px"], r["handle_size_m"])
-    return np.where(whole[..., None] & (np.abs(shift) < gate_m), shift, 0.0), z
+    use = handle_seen_whole(r["handle_px"], r["handle_size_m"])
+    centre = r["handle_point"]
+    if cut_bars:
+        cut = handle_cut_usable(r)
+        use = use | cut
+        centre = np.where(cut[..., None], r["handle_end_centre"], centre)
+    shift = ((centre[:, :, None] - m["origin"]) * z).sum(-1)
+    use = revolute[None] & use
+    return np.where(use[..., None] & (np.abs(shift) < gate_m), shift, 0.0), z
 
 
-def apply_handle_height(m: dict, r: dict, gate_m: float | None, joint_types) -> dict:
+def apply_handle_height(m: dict, r: dict, gate_m: float | None, joint_types, cut_bars: bool = False) -> dict:
     """Mode arrays ``m`` with each origin moved along its axis to its door's handle's height
-    (step 9, :func:`handle_height_shift`); ``m`` itself where ``gate_m`` is None, the handles
-    were not measured, or nothing moves."""
+    (step 9, :func:`handle_height_shift`, with ``cut_bars`` also from bars the image's border
+    cuts); ``m`` itself where ``gate_m`` is None, the handles were not measured, or nothing moves."""
     if gate_m is None or "handle_px" not in r:
         return m
-    shift, z = handle_height_shift(m, r, gate_m, joint_types)
+    shift, z = handle_height_shift(m, r, gate_m, joint_types, cut_bars)
     if not shift.any():
         return m
     return dict(m, origin=m["origin"] + shift[..., None] * z)
+

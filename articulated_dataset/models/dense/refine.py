@@ -46,7 +46,9 @@ regressed (:func:`refined_quantities`, per image and joint):
    every other step runs once, on the averaged outputs.
 9. **Hinge height from the handle** (:mod:`.handle`, applied after step 6, before 7).  A door's
    handle is centred at its mid-height: where the handle is seen whole, the origin is moved along
-   the axis to the handle's height (behind a fitted gate).  It is used only where it lowers the
+   the axis to the handle's height (behind a fitted gate); where the fit chooses it, also where
+   the image's top or bottom border cuts the bar (its centre half a bar's length from its visible
+   end).  It is used only where it lowers the
    validation position error by at least :data:`~.fit.HANDLE_HEIGHT_MIN_GAIN` (it measures the
    handle of every door, a cost at inference).
 
@@ -81,10 +83,10 @@ DOOR_EXTENT_QUANTILE = 0.005
 DOOR_EXTENT_MIN_PX = 10
 #: Refinement format version stored in checkpoints (2: ``max_turn_deg``; 3: ``door_extent``;
 #: 4: ``handle_max_q_deg``; 5: ``mirror_joints``; 6: ``frame_min_prob``; 7: ``handle_height_gate_m``;
-#: older versions read as without them).  The stored fields, not their implementation: since the tenth
+#: 8: ``handle_cut_bars``; older versions read as without them).  The stored fields, not their implementation: since the tenth
 #: session every version's ``mirror_joints`` averages the network's outputs (:mod:`.mirror`), not the
 #: refined vote modes of two passes.
-REFINEMENT_VERSION = 7
+REFINEMENT_VERSION = 8
 
 
 @dataclass(frozen=True)
@@ -116,6 +118,9 @@ class Refinement:
     #: step 9: move a door's axis origin to its handle's height where that moves it by less than
     #: this (m; None: never)
     handle_height_gate_m: float | None = None
+    #: ... also from a bar the image's top or bottom border cuts: its centre half a bar's length
+    #: from its visible end (:func:`~.handle.handle_cut_usable`)
+    handle_cut_bars: bool = False
     #: step 8 (:mod:`.mirror`): average with the mirror image's estimate, whose joint ``k`` is joint
     #: ``mirror_joints[k]`` (None: never)
     mirror_joints: tuple[int, ...] | None = None
@@ -153,6 +158,7 @@ class Refinement:
                    handle_max_q_deg=_optional_float(d.get("handle_max_q_deg")),
                    handle_min_px=float(d.get("handle_min_px", 1.0)),
                    handle_height_gate_m=_optional_float(d.get("handle_height_gate_m")),
+                   handle_cut_bars=bool(d.get("handle_cut_bars", False)),
                    mirror_joints=None if d.get("mirror_joints") is None else tuple(int(k) for k in d["mirror_joints"]),
                    version=int(d.get("version", REFINEMENT_VERSION)))
 
@@ -443,5 +449,5 @@ def apply_refinement(m: dict, r: dict, refinement: "Refinement | None", joint_ty
         if refinement.door_extent_gate_m is not None:
             use &= np.abs(shift) < refinement.door_extent_gate_m
         out["origin"] = m["origin"] + np.where(use, shift, 0.0)[..., None] * z
-    out = apply_handle_height(out, r, refinement.handle_height_gate_m, joint_types)
+    out = apply_handle_height(out, r, refinement.handle_height_gate_m, joint_types, refinement.handle_cut_bars)
     return apply_handle_side(out, r, refinement.handle_max_q_deg, refinement.handle_min_px, joint_types)
