@@ -69,15 +69,15 @@ CM_PER_M = 100.0
 
 
 def door_facts(truth: Path):
-    """Per image and door: the class, sample ids (N,), and arrays (N, J) of the door's highest visible
-    point of the object above the door's bottom (m), whether the object's top is out of view, whether its
-    handle is found, the visible extent (lowest, highest, m above the bottom) of the strip where the
+    """Per image and door: the class, sample ids (N,), and arrays (N, J) of the object's highest
+    visible point above the door's bottom (m), whether the object's top is out of view, whether its
+    handle is found (in the split's masks at the network's output resolution, as training labels them), the visible extent (lowest, highest, m above the bottom) of the strip where the
     handle would be (NaN without enough pixels), and the true half height (m)."""
     import numpy as np
     import torch
 
     from articulated_dataset.format import MASK_FIRST_PART, Split
-    from articulated_dataset.models.dense.features import OUTPUT_STRIDE, backproject_torch, make_inputs
+    from articulated_dataset.models.dense.features import backproject_torch, make_inputs, output_labels
     from articulated_dataset.models.dense.handle import handle_evidence
     from articulated_dataset.rotations import quat_to_matrix
 
@@ -101,29 +101,27 @@ def door_facts(truth: Path):
             xq = np.cos(q)[..., None] * x + np.sin(q)[..., None] * np.cross(z, x)
             # handles in the doors' true pixels, as refinement step 9 finds them
             inputs = make_inputs(torch.from_numpy(depth), torch.from_numpy(K))
-            seg = np.zeros((N, 1 + J, H, W), np.float32)
-            for j in range(J):
-                seg[:, 1 + j] = mask == MASK_FIRST_PART + j
-            seg[:, 0] = 0.5  # the rest: body (the door channels win where they are 1)
-            seg_out = torch.from_numpy(seg[:, :, ::OUTPUT_STRIDE, ::OUTPUT_STRIDE].copy())
-            ev = handle_evidence({"seg": seg_out}, inputs, torch.from_numpy(z.astype(np.float32)),
+            labels = torch.from_numpy(output_labels(mask, J).astype(np.int64))  # 0 background, 1 body, 2 + j door j
+            seg = torch.nn.functional.one_hot((labels - 1).clamp_min(0), 1 + J).permute(0, 3, 1, 2).float()
+            ev = handle_evidence({"seg": seg}, inputs, torch.from_numpy(z.astype(np.float32)),
                                  ["revolute"] * J, torch.ones(N, J, dtype=torch.bool))
             found = ev["handle_px"].numpy() > 0
             facts = {k: np.full((N, J), np.nan) for k in ("top_m", "strip_lo_m", "strip_hi_m", "half_m")}
             cut = np.zeros((N, J), bool)
             for i in range(N):
+                true_half_m = 0.5 * float(height_m[i])  # full-height doors
+                # every pixel of the object (body and doors) lies at or below its top: an open
+                # door shows the body's inside, whose back edge the image may show below a cut door
+                obj = (mask[i] >= 1) & (mask[i] < MASK_FIRST_PART + J) & (depth[i] > 0)
+                p_obj = pts[i][:, obj].T
                 for j in range(J):
                     door = (mask[i] == MASK_FIRST_PART + j) & (depth[i] > 0)
                     if not door.any():
                         continue
                     p = pts[i][:, door].T  # (n, 3)
-                    true_half_m = 0.5 * float(height_m[i])  # full-height doors
                     up = z[i, j] * np.sign(z[i, j, 2])  # the hinge line, pointing up (camera z is up)
                     s = (p - pose[i, j, :3]) @ up  # height above the origin (the mid-height)
-                    # every pixel of the object (body and doors) lies at or below its top: an open
-                    # door shows the body's inside, whose back edge the image may show below a cut door
-                    obj = (mask[i] >= 1) & (mask[i] < MASK_FIRST_PART + J) & (depth[i] > 0)
-                    u_obj = (pts[i][:, obj].T - pose[i, j, :3]) @ up + true_half_m
+                    u_obj = (p_obj - pose[i, j, :3]) @ up + true_half_m
                     facts["top_m"][i, j] = u_obj.max()
                     cut[i, j] = bool(u_obj.max() < 2.0 * true_half_m - TOP_SEEN_TOL_M)  # the top out of view
                     u = s + true_half_m  # heights above the door's bottom, which the oracle knows

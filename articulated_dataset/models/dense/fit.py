@@ -127,7 +127,7 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
             refinement = replace(refinement, handle_max_q_deg=best_handle[0], handle_min_px=best_handle[1])
         report["position_cm"]["before_handle_height"] = before = best_pos
         best_gate, best_cut = None, False
-        for cut in (False, True) if "handle_cut" in r else (False,):
+        for cut in (False, True):
             for gate in HANDLE_HEIGHT_GATE_CANDIDATES_M:
                 e = pos_err(apply_refinement(m, r, replace(refinement, handle_height_gate_m=gate, handle_cut_bars=cut),
                                              joint_types))

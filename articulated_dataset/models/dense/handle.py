@@ -165,23 +165,20 @@ def handle_evidence(parts: dict, inputs: dict, axis_line: torch.Tensor, joint_ty
         point, px = _per_image_mean(hp, hb, ones, k)
         rel = hp - point.index_select(0, hb)
         across = torch.cross(z_image, n, dim=-1).index_select(0, hb)  # along the face, perpendicular to the axis
-        spread, _ = _per_image_mean(torch.stack([(rel * z_image.index_select(0, hb)).sum(-1) ** 2,
-                                                 (rel * across).sum(-1) ** 2], -1), hb, ones, k)
+        along = (rel * z_image.index_select(0, hb)).sum(-1)  # each handle pixel's height above the bar's mean point
+        spread, _ = _per_image_mean(torch.stack([along ** 2, (rel * across).sum(-1) ** 2], -1), hb, ones, k)
         # a bar cut by the image's top or bottom border (step 9's cut bars): its centre is half
         # a bar's length from its one visible end, the end away from the border
-        s_along = (hp * z_image.index_select(0, hb)).sum(-1)
         row = p.index_select(0, at_handle) // W
         border = ((row < BORDER_ROWS_PX) | (row >= H - BORDER_ROWS_PX)).to(dtype)
-        s_border, n_border = _per_image_mean(s_along[:, None], hb, border, k)
-        s_min = torch.full((k,), math.inf, dtype=dtype).scatter_reduce(0, hb, s_along, "amin")
-        s_max = torch.full((k,), -math.inf, dtype=dtype).scatter_reduce(0, hb, s_along, "amax")
-        border_at_max = (s_border[:, 0] - s_min).abs() > (s_border[:, 0] - s_max).abs()
-        centre_s = torch.where(border_at_max, s_min + 0.5 * HANDLE_LEN_M, s_max - 0.5 * HANDLE_LEN_M)
-        s_mean = (point * z_image).sum(-1)
+        at_border, n_border = _per_image_mean(along[:, None], hb, border, k)
+        low = torch.full((k,), math.inf, dtype=dtype).scatter_reduce(0, hb, along, "amin")
+        high = torch.full((k,), -math.inf, dtype=dtype).scatter_reduce(0, hb, along, "amax")
+        border_at_high = (at_border[:, 0] - low).abs() > (at_border[:, 0] - high).abs()
+        centre = torch.where(border_at_high, low + 0.5 * HANDLE_LEN_M, high - 0.5 * HANDLE_LEN_M)
         cut = (n_border > 0) & (px > 0)
         handle_cut[images, j] = cut.to(dtype)
-        handle_end_centre[images, j] = torch.where(cut[:, None], point + (centre_s - s_mean)[:, None] * z_image,
-                                                   torch.zeros_like(point))
+        handle_end_centre[images, j] = torch.where(cut[:, None], point + centre[:, None] * z_image, torch.zeros_like(point))
         handle_px[images, j] = px
         handle_point[images, j] = point * (px > 0).to(dtype)[:, None]
         # the handle's extent along the axis and across it (a uniform bar of length l has variance l^2 / 12)
@@ -255,8 +252,6 @@ def handle_cut_usable(r: dict) -> np.ndarray:
     """Whether each door's handle (:func:`handle_evidence`'s keys) is a bar cut by the image's top
     or bottom border whose visible end is seen at least :data:`HANDLE_MIN_CUT_LENGTH_M` long: its
     centre is then ``handle_end_centre``, half a bar's length from that end."""
-    if "handle_cut" not in r:
-        return np.zeros(r["handle_px"].shape, dtype=bool)
     size = r["handle_size_m"]
     return (r["handle_cut"] > 0) & (r["handle_px"] > 0) & (size[..., 0] >= HANDLE_MIN_CUT_LENGTH_M) & _bar_sized(size)
 
@@ -292,4 +287,3 @@ def apply_handle_height(m: dict, r: dict, gate_m: float | None, joint_types, cut
     if not shift.any():
         return m
     return dict(m, origin=m["origin"] + shift[..., None] * z)
-
