@@ -129,7 +129,8 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -
     label_out = parts["seg"].argmax(1)  # (B, h, w): 0 body, 1 + j part j
     label = label_out.repeat_interleave(OUTPUT_STRIDE, 1).repeat_interleave(OUTPUT_STRIDE, 2)[:, :H, :W]
     nan = float("nan")
-    out = {"axis": torch.zeros(B, J, modes["origin"].shape[2], 3), "q": torch.full((B, J), nan),
+    voted_q = (modes["weight"] * modes["q"]).sum(-1)  # (B, J)
+    out = {"axis": torch.zeros(B, J, modes["origin"].shape[2], 3), "q": torch.full((B, J), nan), "q_folded": torch.full((B, J), nan),
            "door_px": torch.zeros(B, J), "door_mid": torch.full((B, J), nan), "door_cut": torch.zeros(B, J)}
     out["xaxis"] = out["axis"].clone()
     rows = torch.arange(H)[:, None].expand(H, W)
@@ -160,6 +161,10 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -
                 n = normals[with_normal]
                 angles = torch.sort(torch.atan2((n @ xf).abs(), (n @ yf).abs())).values
                 out["q"][b, j] = angles[(len(angles) + 1) // 2 - 1]  # the lower median
+                near = voted_q[b, j]
+                folded = torch.sort(torch.where((math.pi / 2 - angles - near).abs() < (angles - near).abs(),
+                                                math.pi / 2 - angles, angles)).values
+                out["q_folded"][b, j] = folded[(len(folded) + 1) // 2 - 1]
             if door.any():
                 along = points[door] @ (side[0, 0] * zf)
                 lo, hi = torch.quantile(along, R.DOOR_EXTENT_QUANTILE), torch.quantile(along, 1 - R.DOOR_EXTENT_QUANTILE)
@@ -183,7 +188,9 @@ def test_refined_quantities_match_a_loop_over_images(joint_types, monkeypatch):
     parts = {"seg": seg, "rot6": torch.randn(B, J, 6, h, w, generator=gen) + torch.tensor([0, 0, 3.0, 3, 0, 0]).view(1, 1, 6, 1, 1),
              "conf": torch.randn(B, J, 3, h, w, generator=gen)}
     modes = {"origin": torch.randn(B, J, M, 3, generator=gen) + torch.tensor([1.5, 0, 0]),
-             "axis": F.normalize(torch.randn(B, J, M, 3, generator=gen), dim=-1)}
+             "axis": F.normalize(torch.randn(B, J, M, 3, generator=gen), dim=-1),
+             "weight": torch.softmax(torch.randn(B, J, M, generator=gen), -1),
+             "q": torch.rand(B, J, M, generator=gen) * (math.pi / 2)}
     monkeypatch.setattr(R, "image_groups", lambda counts: image_groups(counts, 4))  # several groups of images
     got = R.refined_quantities(parts, inputs, modes, joint_types)
     ref = _reference_refinement(parts, inputs, modes, joint_types)

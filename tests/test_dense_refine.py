@@ -111,6 +111,13 @@ def test_box_frame_alignment_keeps_what_no_face_constrains():
     assert np.allclose(got, start.as_matrix(), atol=0.02)  # the free rotation stayed where it was
 
 
+def _modes(origin: torch.Tensor, axis: torch.Tensor, q_rad: float = 0.0) -> dict:
+    """The vote modes :func:`R.refined_quantities` reads: one mode per joint at ``origin`` and
+    ``axis`` (1, J, 1, 3), voting the door angle ``q_rad``."""
+    shape = origin.shape[:3]
+    return {"origin": origin, "axis": axis, "weight": torch.ones(shape), "q": torch.full(shape, q_rad)}
+
+
 def _door_scene(q_rad: float, distance_m: float = 1.5, hw=(108, 192)):
     """Depth of a plane through (distance, 0, 0) whose normal is the camera's -x turned by q about
     the vertical, and the frame x (lateral), y (towards the camera), z (up) of its box."""
@@ -128,9 +135,9 @@ def _door_scene(q_rad: float, distance_m: float = 1.5, hw=(108, 192)):
     return torch.tensor(depth[None], dtype=torch.float32), torch.tensor(K[None], dtype=torch.float32), frame
 
 
-@pytest.mark.parametrize("q_deg", [0.0, 17.0, 48.0, 80.0])
-def test_door_angle_is_read_from_the_door_normals(q_deg):
-    depth, K, frame = _door_scene(math.radians(q_deg))
+def _door_refined(depth, K, frame, voted_q_rad: float = 0.0) -> dict:
+    """:func:`R.refined_quantities` of a scene whose every pixel the segmentation calls the door,
+    with the rotation votes on the box ``frame`` and one vote mode voting ``voted_q_rad``."""
     inputs = make_inputs(depth, K)
     h, w = inputs["weight_out"].shape[1:]
     seg = torch.zeros(1, 2, h, w)
@@ -138,12 +145,62 @@ def test_door_angle_is_read_from_the_door_normals(q_deg):
     F = torch.tensor(frame, dtype=torch.float32)
     rot6 = torch.cat([F[:, 2], F[:, 0]]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w)
     parts = {"seg": seg, "rot6": rot6, "conf": torch.zeros(1, 1, 3, h, w)}
-    modes = {"origin": torch.tensor([[[[1.5, 0.5, 0.0]]]]), "axis": F[:, 2].reshape(1, 1, 1, 3)}
-    r = R.refined_quantities(parts, inputs, modes, ["revolute"])
+    modes = _modes(torch.tensor([[[[1.5, 0.5, 0.0]]]]), F[:, 2].reshape(1, 1, 1, 3), voted_q_rad)
+    return R.refined_quantities(parts, inputs, modes, ["revolute"])
+
+
+@pytest.mark.parametrize("q_deg", [0.0, 17.0, 48.0, 80.0])
+def test_door_angle_is_read_from_the_door_normals(q_deg):
+    depth, K, frame = _door_scene(math.radians(q_deg))
+    r = _door_refined(depth, K, frame)
     assert math.degrees(r["q"][0, 0].item()) == pytest.approx(q_deg, abs=0.3)
     assert r["door_px"][0, 0].item() > 0.5 * (depth > 0).sum().item() > 1000
     # the anchor (object centre) is at y = 0, the origin at y = +0.5: x must point to -y (camera right)
     assert r["xaxis"][0, 0, 0, 1].item() < -0.99
+
+
+@pytest.mark.parametrize("voted_deg, expected_deg", [(55.0, 62.0), (35.0, 28.0)])
+def test_folded_door_angle_takes_each_face_the_votes_are_nearest(voted_deg, expected_deg):
+    # a door at 62 deg whose narrower left part shows its front face and whose wider right part a
+    # face at 90 - 62 = 28 deg from the box's y (as a door's edge, or one seen edge-on, shows)
+    q = math.radians(62.0)
+    front, frame = _door_scene(q)[0], _door_scene(q)[2]
+    edge, K, _ = _door_scene(math.pi / 2 - q)
+    depth = torch.where(torch.arange(192) < 70, front, edge)
+    r = _door_refined(depth, K, frame, math.radians(voted_deg))
+    assert math.degrees(r["q"][0, 0].item()) == pytest.approx(28.0, abs=0.5)  # the wider face's, whatever the votes
+    assert math.degrees(r["q_folded"][0, 0].item()) == pytest.approx(expected_deg, abs=0.5)
+    m = {"q": np.full((1, 1, 1), math.radians(voted_deg)), "origin": np.zeros((1, 1, 1, 3))}
+    rn = {k: v.numpy().astype(np.float64) for k, v in r.items()}
+    for folded, want in ((False, 28.0), (True, expected_deg)):
+        out = R.apply_refinement(m, rn, R.Refinement(min_door_px=20, door_angle_folded=folded), ["revolute"])
+        assert math.degrees(out["q"][0, 0, 0]) == pytest.approx(want, abs=0.5)
+
+
+def test_fit_folds_the_door_angle_only_where_it_lowers_the_configuration_error():
+    rng = np.random.default_rng(5)
+    N = 300
+    q_true = rng.uniform(0, math.pi / 2, N)
+    votes = q_true + np.radians(rng.normal(0, 3, N))
+    edge_on = rng.random(N) < 0.3  # these images' normals show the door's other face: pi / 2 - q
+    measured = np.where(edge_on, math.pi / 2 - q_true, q_true) + np.radians(rng.normal(0, 0.2, N))
+    frames = Rotation.from_euler("z", rng.uniform(-45, 45, (N, 1)), degrees=True).as_matrix()
+    m = {"q": votes[:, None, None], "weight": np.ones((N, 1, 1)), "origin": np.zeros((N, 1, 1, 3)),
+         "axis": frames[:, None, None, :, 2], "xaxis": frames[:, None, None, :, 0],
+         "part_offset": np.full((N, 1, 1, 3), 0.3)}
+    truth = {"axis_pose": np.concatenate([np.zeros((N, 1, 3)), _quat(frames)[:, None]], -1), "q": q_true[:, None]}
+
+    def refined(q_folded):
+        return {"axis": m["axis"], "xaxis": m["xaxis"], "q": measured[:, None], "q_folded": q_folded[:, None],
+                "door_px": np.full((N, 1), 1000.0)}
+
+    folded = np.where(np.abs(math.pi / 2 - measured - votes) < np.abs(measured - votes), math.pi / 2 - measured, measured)
+    refinement, report = fit_refinement(m, refined(folded), truth, ["revolute"])
+    assert refinement.door_angle_folded and refinement.min_door_px is not None
+    assert report["configuration"]["normals>=20px_folded"] < 0.2 * report["configuration"]["normals>=20px"]
+    # where folding does not help (its angles are the plain ones, a little worse), it is not chosen
+    refinement, _ = fit_refinement(m, {**refined(measured + 1e-3), "q": folded[:, None]}, truth, ["revolute"])
+    assert not refinement.door_angle_folded and refinement.min_door_px is not None
 
 
 def _quat(frames: np.ndarray) -> np.ndarray:
@@ -243,7 +300,7 @@ def test_a_drawer_front_aligns_the_frame(joint_type):
     votes = torch.tensor(Rotation.from_euler("z", 8, degrees=True).as_matrix() @ frame, dtype=torch.float32)
     rot6 = torch.cat([votes[:, 2], votes[:, 0]]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w)
     parts = {"seg": seg, "rot6": rot6, "conf": torch.zeros(1, 1, 3, h, w)}
-    modes = {"origin": torch.tensor([[[[1.5, 0.5, 0.0]]]]), "axis": votes[:, 2].reshape(1, 1, 1, 3)}
+    modes = _modes(torch.tensor([[[[1.5, 0.5, 0.0]]]]), votes[:, 2].reshape(1, 1, 1, 3))
     r = R.refined_quantities(parts, inputs, modes, [joint_type])
     x = r["xaxis"][0, 0, 0].double().numpy()
     off = math.degrees(math.acos(min(1.0, abs(x @ frame[:, 0]))))
@@ -271,7 +328,7 @@ def _door_refinement(depth, K, origin_z_m: float):
     rot6 = torch.cat([F[:, 2], F[:, 0]]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w)
     parts = {"seg": seg, "rot6": rot6, "conf": torch.zeros(1, 1, 3, h, w)}
     origin = torch.tensor([[[[1.5, 0.3, origin_z_m]]]])
-    modes = {"origin": origin, "axis": F[:, 2].reshape(1, 1, 1, 3)}
+    modes = _modes(origin, F[:, 2].reshape(1, 1, 1, 3))
     r = {k: v.numpy().astype(np.float64) for k, v in R.refined_quantities(parts, inputs, modes, ["revolute"]).items()}
     m = {"origin": origin.numpy().astype(np.float64), "weight": np.ones((1, 1, 1))}
     return m, r
@@ -299,7 +356,7 @@ def _door_refinement_prismatic(depth, K):
     seg[:, 1] = 5.0
     parts = {"seg": seg, "rot6": torch.tensor([0, 0, 1, 1, 0, 0.0]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w),
              "conf": torch.zeros(1, 1, 3, h, w)}
-    modes = {"origin": torch.tensor([[[[1.5, 0.3, 0.2]]]]), "axis": torch.tensor([[[[0.0, 0, 1]]]])}
+    modes = _modes(torch.tensor([[[[1.5, 0.3, 0.2]]]]), torch.tensor([[[[0.0, 0, 1]]]]))
     return R.refined_quantities(parts, inputs, modes, ["prismatic"])["door_mid"][0, 0].item()
 
 
@@ -351,7 +408,7 @@ def test_box_frame_uses_only_the_pixels_the_segmentation_is_sure_of(part_logit, 
     votes = torch.tensor(Rotation.from_euler("z", 8, degrees=True).as_matrix() @ frame, dtype=torch.float32)
     rot6 = torch.cat([votes[:, 2], votes[:, 0]]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w)
     parts = {"seg": seg, "rot6": rot6, "conf": torch.zeros(1, 1, 3, h, w)}
-    modes = {"origin": torch.tensor([[[[1.5, 0.5, 0.0]]]]), "axis": votes[:, 2].reshape(1, 1, 1, 3)}
+    modes = _modes(torch.tensor([[[[1.5, 0.5, 0.0]]]]), votes[:, 2].reshape(1, 1, 1, 3))
     r = R.refined_quantities(parts, inputs, modes, ["prismatic"], frame_min_prob=min_prob)
     x = r["xaxis"][0, 0, 0].double().numpy()
     off = math.degrees(math.acos(min(1.0, abs(x @ frame[:, 0]))))
@@ -364,6 +421,13 @@ def test_box_frame_uses_only_the_pixels_the_segmentation_is_sure_of(part_logit, 
 
 def test_refinement_dict_reads_version_5_without_the_frame_threshold():
     ref = R.Refinement(frame=True, hinge_offset_m=-0.01, frame_min_prob=0.9, mirror_joints=(0,))
-    assert R.Refinement.from_dict(ref.to_dict()) == ref and ref.version == R.REFINEMENT_VERSION == 8
+    assert R.Refinement.from_dict(ref.to_dict()) == ref and ref.version == R.REFINEMENT_VERSION == 9
     old = {k: v for k, v in ref.to_dict().items() if k != "frame_min_prob"} | {"version": 5}
     assert R.Refinement.from_dict(old).frame_min_prob is None
+
+
+def test_refinement_dict_reads_version_8_without_the_folded_door_angle():
+    ref = R.Refinement(min_door_px=160, door_angle_folded=True)
+    assert R.Refinement.from_dict(ref.to_dict()) == ref
+    old = {k: v for k, v in ref.to_dict().items() if k != "door_angle_folded"} | {"version": 8}
+    assert R.Refinement.from_dict(old).door_angle_folded is False

@@ -50,7 +50,8 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     the mean axis rotation error of the heaviest mode, with the gate of
     :data:`TURN_GATE_CANDIDATES_DEG` (keep the votes' frame where the box frame turns it further;
     a face mistaken for another) that lowers it most; the normal-based angle (with the best of
-    :data:`DOOR_PX_CANDIDATES`) when it lowers the mean configuration error; the hinge height
+    :data:`DOOR_PX_CANDIDATES`, each pixel's angle as it is or folded towards the voted ``q``:
+    ``door_angle_folded``) when it lowers the mean configuration error; the hinge height
     (step 6, with the best gate of :data:`DOOR_EXTENT_GATE_CANDIDATES_M`) when it lowers the mean
     axis position error of each joint's heaviest mode; the handle's side (step 7) with the
     pair of :data:`HANDLE_Q_CANDIDATES_DEG` and :data:`HANDLE_PX_CANDIDATES` that lowers that
@@ -89,15 +90,16 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
         if e < best_rot:
             best_turn, best_rot = turn, e
     use_frame = best_rot < report["rotation_deg"]["votes"]
-    best_px, best_cfg = None, report["configuration"]["votes"]
+    best_px, best_fold, best_cfg = None, False, report["configuration"]["votes"]
     if revolute.any():
-        for px in DOOR_PX_CANDIDATES:
-            e = cfg_err(apply_refinement(m, r, Refinement(min_door_px=px), joint_types))
-            report["configuration"][f"normals>={px}px"] = e
-            if e < best_cfg:
-                best_px, best_cfg = px, e
+        for fold in (False, True) if "q_folded" in r else (False,):
+            for px in DOOR_PX_CANDIDATES:
+                e = cfg_err(apply_refinement(m, r, Refinement(min_door_px=px, door_angle_folded=fold), joint_types))
+                report["configuration"][f"normals>={px}px" + ("_folded" if fold else "")] = e
+                if e < best_cfg:
+                    best_px, best_fold, best_cfg = px, fold, e
     refinement = Refinement(frame=bool(use_frame), hinge_offset_m=offset if use_frame else 0.0, min_door_px=best_px,
-                            max_turn_deg=best_turn if use_frame else None)
+                            door_angle_folded=best_fold, max_turn_deg=best_turn if use_frame else None)
 
     def pos_err(mm):
         heaviest = mm["weight"].argmax(-1)[..., None, None]  # (N, J, 1, 1)

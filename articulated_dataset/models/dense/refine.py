@@ -29,7 +29,12 @@ regressed (:func:`refined_quantities`, per image and joint):
    (:func:`~.fit.fit_refinement`).
 5. **Door angle.**  A door turned by ``q`` about ``z`` has its normal at ``q`` from ``y``:
    ``q = median_i atan2(|n_i . x|, |n_i . y|)`` over the door's pixels with a normal
-   (weighted median; used when at least ``min_door_px`` such pixels exist).
+   (weighted median; used when at least ``min_door_px`` such pixels exist).  The door's edge, and
+   a door seen almost edge-on (the cabinet's wide-open doors), show faces whose normals are at
+   ``pi / 2 - q``: where the fit chooses ``door_angle_folded``, each pixel's angle ``a_i`` is
+   replaced by ``pi / 2 - a_i`` where that is nearer the votes' ``q`` (the modes' ``q`` by
+   weight), so the votes pick the face and the normals give the angle (cabinet, seed-14
+   selection objects: 2.49 -> 2.13 deg).
 6. **Hinge height.**  A door's axis origin is at the door's mid-height (the templates' convention:
    ``common.xacro``'s ``side_door``), and the door's pixels show its extent along the axis: the
    origin is moved along ``z`` to the middle of the :data:`DOOR_EXTENT_QUANTILE` and
@@ -83,10 +88,10 @@ DOOR_EXTENT_QUANTILE = 0.005
 DOOR_EXTENT_MIN_PX = 10
 #: Refinement format version stored in checkpoints (2: ``max_turn_deg``; 3: ``door_extent``;
 #: 4: ``handle_max_q_deg``; 5: ``mirror_joints``; 6: ``frame_min_prob``; 7: ``handle_height_gate_m``;
-#: 8: ``handle_cut_bars``; older versions read as without them).  The stored fields, not their implementation: since the tenth
+#: 8: ``handle_cut_bars``; 9: ``door_angle_folded``; older versions read as without them).  The stored fields, not their implementation: since the tenth
 #: session every version's ``mirror_joints`` averages the network's outputs (:mod:`.mirror`), not the
 #: refined vote modes of two passes.
-REFINEMENT_VERSION = 8
+REFINEMENT_VERSION = 9
 
 
 @dataclass(frozen=True)
@@ -99,6 +104,8 @@ class Refinement:
     hinge_offset_m: float = 0.0
     #: use the normal-based door angle where at least this many door pixels have a normal (None: never)
     min_door_px: int | None = None
+    #: step 5 reads each door pixel's angle or its complement, whichever is nearer the voted ``q``
+    door_angle_folded: bool = False
     #: keep a mode's voted frame where the box frame turns it by more than this (deg; None: never)
     max_turn_deg: float | None = None
     #: step 2 fits the box frame to the pixels whose segmentation probability of their label
@@ -151,6 +158,7 @@ class Refinement:
         turn, gate = d.get("max_turn_deg"), d.get("door_extent_gate_m")
         return cls(frame=bool(d["frame"]), hinge_offset_m=float(d["hinge_offset_m"]),
                    min_door_px=None if d["min_door_px"] is None else int(d["min_door_px"]),
+                   door_angle_folded=bool(d.get("door_angle_folded", False)),
                    max_turn_deg=None if turn is None else float(turn), door_extent=bool(d.get("door_extent", False)),
                    frame_min_prob=_optional_float(d.get("frame_min_prob")),
                    door_extent_gate_m=None if gate is None else float(gate),
@@ -319,19 +327,22 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, fram
     x = inputs["x"]
     valid_px = x[:, 3].flatten(1) > 0  # (B, H * W)
     frame = _sign_free_frame(parts, inputs["weight_out"] > 0)
+    voted_q = (modes["weight"] * modes["q"]).sum(-1)  # (B, J): the modes' q, by weight (step 5's folding)
     rows_of, back = image_groups(x[:, 3].sum((1, 2)))  # the validity channel's sum: no bool -> int conversion
     groups = []
     for rows in rows_of:
         groups.append(_refine_images(x, rows, valid_px[rows], parts["seg"][rows], frame[rows], inputs["anchor"][rows],
-                                     modes["origin"][rows], modes["axis"][rows], joint_types, frame_min_prob))
+                                     modes["origin"][rows], modes["axis"][rows], voted_q[rows], joint_types,
+                                     frame_min_prob))
     return {k: torch.cat([g[k] for g in groups])[back] for k in groups[0]}
 
 
 def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, seg: torch.Tensor, frame: torch.Tensor,
-                   anchor: torch.Tensor, origin: torch.Tensor, voted_axis: torch.Tensor, joint_types,
-                   frame_min_prob: float | None = None) -> dict:
+                   anchor: torch.Tensor, origin: torch.Tensor, voted_axis: torch.Tensor, voted_q: torch.Tensor,
+                   joint_types, frame_min_prob: float | None = None) -> dict:
     """:func:`refined_quantities` of the images ``rows`` of the input ``x``: their valid pixels
-    (R, H * W), segmentation logits, sign-free frames (step 1), anchors and voted origins and axes."""
+    (R, H * W), segmentation logits, sign-free frames (step 1), anchors, voted origins and axes and
+    the voted door angles (R, J) rad."""
     R, J = frame.shape[:2]
     H, W = x.shape[2:]
     idx, ok = _compact(valid_px)  # (R, n): the valid pixels
@@ -379,15 +390,23 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     with_normal = dok & has_normal.view(-1).index_select(0, door_at).view(R * J, m)
     door_normals = normals.view(R * n, 3).index_select(0, door_at).view(R * J, m, 3)
     proj = door_normals @ torch.stack([xf, yf], -1).flatten(0, 1)  # (R * J, m, 2): n.x, n.y
-    q = lower_median(torch.atan2(proj[..., 0].abs(), proj[..., 1].abs()), with_normal).view(R, J)  # equal weights
+    angle = torch.atan2(proj[..., 0].abs(), proj[..., 1].abs())  # (R * J, m) in [0, pi / 2]
+    q = lower_median(angle, with_normal).view(R, J)  # equal weights
     q = torch.where(revolute[None], q, torch.full_like(q, float("nan")))
+    # step 5, folded: each pixel's angle or its complement, whichever is nearer the voted angle (a
+    # door's edge, or a door seen almost edge-on, shows normals at pi / 2 - q)
+    complement = (math.pi / 2) - angle
+    near = voted_q.reshape(R * J, 1)
+    folded = torch.where((complement - near).abs() < (angle - near).abs(), complement, angle)
+    q_folded = lower_median(folded, with_normal).view(R, J)
+    q_folded = torch.where(revolute[None], q_folded, torch.full_like(q_folded, float("nan")))
     # step 6: the doors' points in the camera frame (m) and image rows
     door_px_at = at.index_select(0, door_at)
     door_relative = torch.stack([x_flat[c * H * W:].index_select(0, door_px_at) for c in (0, 1, 2)], -1).view(R * J, m, 3)
     door_points = door_relative * POINT_SCALE_M + anchor.repeat_interleave(J, 0)[:, None]
     door_row = row.view(-1).index_select(0, door_at).view(R * J, m)
     door_mid, door_cut = _door_extent(door_points, door_row, dok, side[:, :, 0, 0, None] * zf, revolute, H)
-    return {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], "q": q,
+    return {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], "q": q, "q_folded": q_folded,
             "door_px": with_normal.sum(-1).view(R, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut}
 
 
@@ -440,8 +459,9 @@ def apply_refinement(m: dict, r: dict, refinement: "Refinement | None", joint_ty
             xaxis = np.where(keep[..., None], m["xaxis"], xaxis)
         out["axis"], out["xaxis"] = axis, xaxis
     if refinement.min_door_px is not None:
-        use = revolute[None] & (r["door_px"] >= refinement.min_door_px) & np.isfinite(r["q"])
-        out["q"] = np.where(use[..., None], r["q"][..., None], m["q"])
+        q = r["q_folded"] if refinement.door_angle_folded else r["q"]
+        use = revolute[None] & (r["door_px"] >= refinement.min_door_px) & np.isfinite(q)
+        out["q"] = np.where(use[..., None], q[..., None], m["q"])
     if refinement.door_extent and "door_mid" in r:
         z = r["axis"][:, :, :1]  # (B, J, 1, 3): one line per joint
         shift = r["door_mid"][..., None] - (m["origin"] * z).sum(-1)  # (B, J, M)
