@@ -193,6 +193,28 @@ def test_the_pipeline_runs_the_mirror_image_when_the_refinement_says_so():
     assert not np.allclose(both["axis_pose"][..., :3], plain["axis_pose"][..., :3], atol=1e-4)  # something was averaged
 
 
+def test_network_outputs_average_the_mirror_images_of_a_batch_larger_than_a_chunk():
+    """A batch larger than a network chunk (the network runs chunk by chunk, each image and its
+    mirror image in separate calls) gives the same numbers as averaging image by image; the
+    mirror input keeps a channels-last input's layout."""
+    from articulated_dataset.models.dense.predict import NETWORK_CHUNK, network_outputs
+
+    torch.manual_seed(1)
+    model = DenseNet(DenseConfig(n_joints=2, width=4)).eval()
+    cam = CameraConfig()
+    n = NETWORK_CHUNK + 5  # one full chunk and a partial one
+    depth = torch.from_numpy(_box_depths(n, cam.height_px, cam.width_px))
+    x = make_inputs(depth, torch.from_numpy(np.repeat(cam.K[None].astype(np.float32), n, 0)))["x"]
+    with torch.inference_mode():
+        got = network_outputs(model, x, (1, 0))
+        expected = _Averaged(model, (1, 0)).eval()(x)
+        channels_last = mirror_network_input(x.contiguous(memory_format=torch.channels_last))
+        assert channels_last.is_contiguous(memory_format=torch.channels_last)
+        assert torch.equal(channels_last, mirror_network_input(x))
+    assert torch.allclose(got, expected, atol=1e-5)
+    assert not torch.allclose(got, network_outputs(model, x), atol=1e-4)  # something was averaged
+
+
 def test_with_mirror_drops_only_step_8():
     from articulated_dataset.models.dense.mirror import with_mirror
 
