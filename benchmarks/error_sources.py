@@ -85,6 +85,18 @@ def per_image_errors(predictions: Path, truth: Path):
     return class_name, prismatic, out
 
 
+def per_image_errors_of(predictions: Path, truth: Path, sample_ids) -> dict:
+    """:func:`per_image_errors`' per-image arrays with row i the image ``sample_ids[i]`` (the other
+    scripts' own image order)."""
+    from articulated_dataset.benchmark.predictions import read_predictions
+
+    _, _, e = per_image_errors(predictions, truth)  # rows: the predictions' images
+    (pred,) = read_predictions(predictions)[1].values()
+    row = {int(sid): r for r, sid in enumerate(pred["sample_id"])}
+    at = [row[int(sid)] for sid in sample_ids]
+    return {k: v[at] for k, v in e.items()}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--predictions", type=Path, required=True, help="predictions.h5 of one class")

@@ -188,14 +188,9 @@ def main(argv=None) -> int:
     model = None
     if args.predictions is not None:
         sys.path.insert(0, str(Path(__file__).parent))
-        from error_sources import per_image_errors
+        from error_sources import per_image_errors_of
 
-        from articulated_dataset.benchmark.predictions import read_predictions
-
-        _, _, e = per_image_errors(args.predictions, args.truth)  # rows: the predictions' images
-        (pred,) = read_predictions(args.predictions)[1].values()
-        row = {int(sid): r for r, sid in enumerate(pred["sample_id"])}
-        model = e["along"][[row[int(sid)] for sid in f["sample_id"]]]  # cm, in the truth's order
+        model = per_image_errors_of(args.predictions, args.truth, f["sample_id"])["along"]  # cm, in the truth's order
     print("per door: share of the images; the oracle's mean error along the hinge (cm): expected, on the truth"
           + ("; the model's" if model is not None else ""))
     for j in range(J):

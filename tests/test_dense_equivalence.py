@@ -131,6 +131,7 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -
     nan = float("nan")
     voted_q = (modes["weight"] * modes["q"]).sum(-1)  # (B, J)
     out = {"axis": torch.zeros(B, J, modes["origin"].shape[2], 3), "q": torch.full((B, J), nan), "q_folded": torch.full((B, J), nan),
+           "q_signed": torch.full((B, J), nan), "box_x": torch.zeros(B, J, 3),
            "door_px": torch.zeros(B, J), "door_mid": torch.full((B, J), nan), "door_cut": torch.zeros(B, J)}
     out["xaxis"] = out["axis"].clone()
     rows = torch.arange(H)[:, None].expand(H, W)
@@ -154,6 +155,7 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -
                 side = torch.sign((modes["axis"][b, j] * zf).sum(-1))
             side = torch.where(side == 0, 1.0, side)[:, None]  # (M, 1)
             out["axis"][b, j], out["xaxis"][b, j] = side * zf, side * xf
+            out["box_x"][b, j] = xf
             door = lab == 1 + j
             with_normal = door & has_normal
             out["door_px"][b, j] = with_normal.sum()
@@ -165,6 +167,11 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -
                 folded = torch.sort(torch.where((math.pi / 2 - angles - near).abs() < (angles - near).abs(),
                                                 math.pi / 2 - angles, angles)).values
                 out["q_folded"][b, j] = folded[(len(folded) + 1) // 2 - 1]
+                # signed: -atan2(n.x, n.y) modulo pi / 2, its lower median about the circular mean
+                u = np.remainder(-np.arctan2((n @ xf).double().numpy(), (n @ yf).double().numpy()), math.pi / 2)
+                centre = np.angle(np.exp(4j * u).sum()) / 4
+                around = np.sort(centre + np.remainder(u - centre + math.pi / 4, math.pi / 2) - math.pi / 4)
+                out["q_signed"][b, j] = float(around[(len(around) + 1) // 2 - 1])
             if door.any():
                 along = points[door] @ (side[0, 0] * zf)
                 lo, hi = torch.quantile(along, R.DOOR_EXTENT_QUANTILE), torch.quantile(along, 1 - R.DOOR_EXTENT_QUANTILE)

@@ -135,9 +135,10 @@ def _door_scene(q_rad: float, distance_m: float = 1.5, hw=(108, 192)):
     return torch.tensor(depth[None], dtype=torch.float32), torch.tensor(K[None], dtype=torch.float32), frame
 
 
-def _door_refined(depth, K, frame, voted_q_rad: float = 0.0) -> dict:
+def _door_refined(depth, K, frame, voted_q_rad: float = 0.0, origin_y_m: float = 0.5) -> dict:
     """:func:`R.refined_quantities` of a scene whose every pixel the segmentation calls the door,
-    with the rotation votes on the box ``frame`` and one vote mode voting ``voted_q_rad``."""
+    with the rotation votes on the box ``frame`` and one vote mode at camera ``y = origin_y_m``
+    voting ``voted_q_rad``."""
     inputs = make_inputs(depth, K)
     h, w = inputs["weight_out"].shape[1:]
     seg = torch.zeros(1, 2, h, w)
@@ -145,7 +146,7 @@ def _door_refined(depth, K, frame, voted_q_rad: float = 0.0) -> dict:
     F = torch.tensor(frame, dtype=torch.float32)
     rot6 = torch.cat([F[:, 2], F[:, 0]]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w)
     parts = {"seg": seg, "rot6": rot6, "conf": torch.zeros(1, 1, 3, h, w)}
-    modes = _modes(torch.tensor([[[[1.5, 0.5, 0.0]]]]), F[:, 2].reshape(1, 1, 1, 3), voted_q_rad)
+    modes = _modes(torch.tensor([[[[1.5, origin_y_m, 0.0]]]]), F[:, 2].reshape(1, 1, 1, 3), voted_q_rad)
     return R.refined_quantities(parts, inputs, modes, ["revolute"])
 
 
@@ -175,6 +176,65 @@ def test_folded_door_angle_takes_each_face_the_votes_are_nearest(voted_deg, expe
     for folded, want in ((False, 28.0), (True, expected_deg)):
         out = R.apply_refinement(m, rn, R.Refinement(min_door_px=20, door_angle_folded=folded), ["revolute"])
         assert math.degrees(out["q"][0, 0, 0]) == pytest.approx(want, abs=0.5)
+
+
+@pytest.mark.parametrize("voted_deg", [55.0, 35.0, 75.0])
+def test_signed_door_angle_reads_the_face_and_the_free_edge_alike(voted_deg):
+    # a door at 62 deg hinged on the camera's right (x points left, the box frame's x): its
+    # narrower left part shows its front face (normal Rz(q) y), its wider right part its free
+    # edge (normal Rz(q) x), the face whose plain angle reads 90 - 62 = 28 deg
+    q = math.radians(62.0)
+    front, K, frame = _door_scene(q)
+    edge = _door_scene(q - math.pi / 2)[0]
+    depth = torch.where(torch.arange(192) < 70, front, edge)
+    r = _door_refined(depth, K, frame, math.radians(voted_deg), origin_y_m=-0.5)
+    assert r["xaxis"][0, 0, 0] @ r["box_x"][0, 0] > 0.99  # the mode's x is the box frame's
+    assert math.degrees(r["q"][0, 0].item()) == pytest.approx(28.0, abs=0.5)
+    assert math.degrees(r["q_signed"][0, 0].item()) % 90.0 == pytest.approx(62.0, abs=0.5)  # modulo 90 deg
+    m = {"q": np.full((1, 1, 1), math.radians(voted_deg)), "origin": np.zeros((1, 1, 1, 3)),
+         "xaxis": r["xaxis"].numpy().astype(np.float64)}
+    rn = {k: v.numpy().astype(np.float64) for k, v in r.items()}
+    for ref, want in ((R.Refinement(min_door_px=20), 28.0), (R.Refinement(min_door_px=20, door_angle_signed=True), 62.0),
+                      (R.Refinement(min_door_px=20, door_angle_signed=True, door_angle_gate_deg=10.0),
+                       62.0 if abs(voted_deg - 62.0) < 10.0 else voted_deg)):
+        out = R.apply_refinement(m, rn, ref, ["revolute"])
+        assert math.degrees(out["q"][0, 0, 0]) == pytest.approx(want, abs=0.5)
+
+
+def test_signed_door_angle_on_the_circle_and_for_the_other_side():
+    x = np.array([[[1.0, 0.0, 0.0]]])  # (B, J, 3) the box frame's x
+    same, other = x[:, :, None], -x[:, :, None]  # (B, J, M, 3): a mode's x either way
+    deg = np.radians
+    # a closed door read at 89.5 deg modulo 90: -0.5 deg beside a vote of 1 deg, 89.5 beside 80
+    assert np.degrees(R.signed_door_angle(deg([[89.5]]), x, same, deg([[[1.0]]])))[0, 0, 0] == pytest.approx(-0.5)
+    assert np.degrees(R.signed_door_angle(deg([[89.5]]), x, same, deg([[[80.0]]])))[0, 0, 0] == pytest.approx(89.5)
+    # the mode on the other side: its x turned round, the angle is -q modulo 90
+    assert np.degrees(R.signed_door_angle(deg([[30.0]]), x, other, deg([[[50.0]]])))[0, 0, 0] == pytest.approx(60.0)
+    assert np.degrees(R.signed_door_angle(deg([[0.5]]), x, other, deg([[[2.0]]])))[0, 0, 0] == pytest.approx(-0.5)
+
+
+def test_fit_chooses_the_signed_angle_and_a_gate_where_they_lower_the_error():
+    rng = np.random.default_rng(6)
+    N = 400
+    q_true = rng.uniform(0, math.pi / 2, N)
+    votes = q_true + np.radians(rng.normal(0, 3, N))
+    signed = q_true + np.radians(rng.normal(0, 0.2, N))
+    wild = rng.random(N) < 0.1  # a door too small for its normals: anywhere
+    signed[wild] = rng.uniform(0, math.pi / 2, wild.sum())
+    plain = np.where(rng.random(N) < 0.3, math.pi / 2 - signed, signed)  # edge-on doors read at 90 - q
+    frames = Rotation.from_euler("z", rng.uniform(-45, 45, (N, 1)), degrees=True).as_matrix()
+    m = {"q": votes[:, None, None], "weight": np.ones((N, 1, 1)), "origin": np.zeros((N, 1, 1, 3)),
+         "axis": frames[:, None, None, :, 2], "xaxis": frames[:, None, None, :, 0],
+         "part_offset": np.full((N, 1, 1, 3), 0.3)}
+    truth = {"axis_pose": np.concatenate([np.zeros((N, 1, 3)), _quat(frames)[:, None]], -1), "q": q_true[:, None]}
+    r = {"axis": m["axis"], "xaxis": m["xaxis"], "q": plain[:, None], "q_folded": plain[:, None],
+         "q_signed": np.remainder(signed, math.pi / 2)[:, None], "box_x": frames[:, None, :, 0],
+         "door_px": np.full((N, 1), 1000.0)}
+    refinement, report = fit_refinement(m, r, truth, ["revolute"])
+    assert refinement.door_angle_signed and refinement.door_angle_gate_deg is not None
+    c = report["configuration"]
+    assert c["normals>=20px_signed"] < 0.5 * c["normals>=20px"]
+    assert c[f"normals>=20px_signed_gate<={refinement.door_angle_gate_deg:g}deg"] < 0.5 * c["normals>=20px_signed"]
 
 
 def test_fit_folds_the_door_angle_only_where_it_lowers_the_configuration_error():
@@ -421,7 +481,7 @@ def test_box_frame_uses_only_the_pixels_the_segmentation_is_sure_of(part_logit, 
 
 def test_refinement_dict_reads_version_5_without_the_frame_threshold():
     ref = R.Refinement(frame=True, hinge_offset_m=-0.01, frame_min_prob=0.9, mirror_joints=(0,))
-    assert R.Refinement.from_dict(ref.to_dict()) == ref and ref.version == R.REFINEMENT_VERSION == 9
+    assert R.Refinement.from_dict(ref.to_dict()) == ref and ref.version == R.REFINEMENT_VERSION == 10
     old = {k: v for k, v in ref.to_dict().items() if k != "frame_min_prob"} | {"version": 5}
     assert R.Refinement.from_dict(old).frame_min_prob is None
 
@@ -431,3 +491,11 @@ def test_refinement_dict_reads_version_8_without_the_folded_door_angle():
     assert R.Refinement.from_dict(ref.to_dict()) == ref
     old = {k: v for k, v in ref.to_dict().items() if k != "door_angle_folded"} | {"version": 8}
     assert R.Refinement.from_dict(old).door_angle_folded is False
+
+
+def test_refinement_dict_reads_version_9_without_the_signed_door_angle():
+    ref = R.Refinement(min_door_px=20, door_angle_signed=True, door_angle_gate_deg=20.0)
+    assert R.Refinement.from_dict(ref.to_dict()) == ref
+    old = {k: v for k, v in ref.to_dict().items() if k not in ("door_angle_signed", "door_angle_gate_deg")} | {"version": 9}
+    new = R.Refinement.from_dict(old)
+    assert new.door_angle_signed is False and new.door_angle_gate_deg is None

@@ -15,6 +15,9 @@ from .refine import Refinement, apply_refinement
 
 #: Thresholds tried for ``min_door_px`` (door pixels with a normal) by :func:`fit_refinement`.
 DOOR_PX_CANDIDATES = (20, 40, 80, 160, 320)
+#: Gates tried for ``door_angle_gate_deg`` (deg from the mode's voted angle; None: no gate), the
+#: first kept on a tie.
+DOOR_ANGLE_GATE_CANDIDATES_DEG = (None, 10.0, 15.0, 20.0, 30.0)
 #: Offsets (m) fitted from rotations further than this from the truth (deg) are discarded.
 MAX_OFFSET_FIT_ANGLE_DEG = 15.0
 #: Gates tried for ``max_turn_deg`` by :func:`fit_refinement` (None: never gate).
@@ -50,8 +53,10 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     the mean axis rotation error of the heaviest mode, with the gate of
     :data:`TURN_GATE_CANDIDATES_DEG` (keep the votes' frame where the box frame turns it further;
     a face mistaken for another) that lowers it most; the normal-based angle (with the best of
-    :data:`DOOR_PX_CANDIDATES`, each pixel's angle as it is or folded towards the voted ``q``:
-    ``door_angle_folded``) when it lowers the mean configuration error; the hinge height
+    :data:`DOOR_PX_CANDIDATES`, each pixel's angle as it is, folded towards the voted ``q``
+    (``door_angle_folded``) or signed (``door_angle_signed``), with the best gate of
+    :data:`DOOR_ANGLE_GATE_CANDIDATES_DEG` from the voted ``q``; tried in the chosen frame, since a
+    signed angle depends on each mode's x) when it lowers the mean configuration error; the hinge height
     (step 6, with the best gate of :data:`DOOR_EXTENT_GATE_CANDIDATES_M`) when it lowers the mean
     axis position error of each joint's heaviest mode; the handle's side (step 7) with the
     pair of :data:`HANDLE_Q_CANDIDATES_DEG` and :data:`HANDLE_PX_CANDIDATES` that lowers that
@@ -90,16 +95,22 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
         if e < best_rot:
             best_turn, best_rot = turn, e
     use_frame = best_rot < report["rotation_deg"]["votes"]
-    best_px, best_fold, best_cfg = None, False, report["configuration"]["votes"]
+    refinement = Refinement(frame=bool(use_frame), hinge_offset_m=offset if use_frame else 0.0,
+                            max_turn_deg=best_turn if use_frame else None)
+    best, best_cfg = {}, report["configuration"]["votes"]
     if revolute.any():
-        for fold in (False, True) if "q_folded" in r else (False,):
+        # the signed angle depends on each mode's x, so the candidates are tried in the chosen frame
+        readings = [(False, False)] + ([(True, False)] if "q_folded" in r else []) + ([(False, True)] if "q_signed" in r else [])
+        for fold, signed in readings:
             for px in DOOR_PX_CANDIDATES:
-                e = cfg_err(apply_refinement(m, r, Refinement(min_door_px=px, door_angle_folded=fold), joint_types))
-                report["configuration"][f"normals>={px}px" + ("_folded" if fold else "")] = e
-                if e < best_cfg:
-                    best_px, best_fold, best_cfg = px, fold, e
-    refinement = Refinement(frame=bool(use_frame), hinge_offset_m=offset if use_frame else 0.0, min_door_px=best_px,
-                            door_angle_folded=best_fold, max_turn_deg=best_turn if use_frame else None)
+                for gate in DOOR_ANGLE_GATE_CANDIDATES_DEG:
+                    choice = dict(min_door_px=px, door_angle_folded=fold, door_angle_signed=signed, door_angle_gate_deg=gate)
+                    e = cfg_err(apply_refinement(m, r, replace(refinement, **choice), joint_types))
+                    name = f"normals>={px}px" + ("_folded" if fold else "") + ("_signed" if signed else "")
+                    report["configuration"][name + ("" if gate is None else f"_gate<={gate:g}deg")] = e
+                    if e < best_cfg:
+                        best, best_cfg = choice, e
+    refinement = replace(refinement, **best)
 
     def pos_err(mm):
         heaviest = mm["weight"].argmax(-1)[..., None, None]  # (N, J, 1, 1)

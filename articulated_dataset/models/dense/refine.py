@@ -34,7 +34,12 @@ regressed (:func:`refined_quantities`, per image and joint):
    ``pi / 2 - q``: where the fit chooses ``door_angle_folded``, each pixel's angle ``a_i`` is
    replaced by ``pi / 2 - a_i`` where that is nearer the votes' ``q`` (the modes' ``q`` by
    weight), so the votes pick the face and the normals give the angle (cabinet, seed-14
-   selection objects: 2.49 -> 2.13 deg).
+   selection objects: 2.49 -> 2.13 deg).  Where it chooses ``door_angle_signed``, the angle keeps
+   its signs: ``-atan2(n . x, n . y)`` modulo ``pi / 2`` is ``q`` on the door's faces and edges
+   alike (``x`` the mode's, from the hinge towards the door); its median on that circle, and of
+   the angles equal modulo ``pi / 2`` the one nearest the mode's vote (:func:`signed_door_angle`;
+   seed-14 objects: 2.13 -> 2.04 deg).  ``door_angle_gate_deg`` keeps the votes where the
+   measured angle is further from them.
 6. **Hinge height.**  A door's axis origin is at the door's mid-height (the templates' convention:
    ``common.xacro``'s ``side_door``), and the door's pixels show its extent along the axis: the
    origin is moved along ``z`` to the middle of the :data:`DOOR_EXTENT_QUANTILE` and
@@ -88,10 +93,10 @@ DOOR_EXTENT_QUANTILE = 0.005
 DOOR_EXTENT_MIN_PX = 10
 #: Refinement format version stored in checkpoints (2: ``max_turn_deg``; 3: ``door_extent``;
 #: 4: ``handle_max_q_deg``; 5: ``mirror_joints``; 6: ``frame_min_prob``; 7: ``handle_height_gate_m``;
-#: 8: ``handle_cut_bars``; 9: ``door_angle_folded``; older versions read as without them).  The stored fields, not their implementation: since the tenth
+#: 8: ``handle_cut_bars``; 9: ``door_angle_folded``; 10: ``door_angle_signed``, ``door_angle_gate_deg``; older versions read as without them).  The stored fields, not their implementation: since the tenth
 #: session every version's ``mirror_joints`` averages the network's outputs (:mod:`.mirror`), not the
 #: refined vote modes of two passes.
-REFINEMENT_VERSION = 9
+REFINEMENT_VERSION = 10
 
 
 @dataclass(frozen=True)
@@ -106,6 +111,11 @@ class Refinement:
     min_door_px: int | None = None
     #: step 5 reads each door pixel's angle or its complement, whichever is nearer the voted ``q``
     door_angle_folded: bool = False
+    #: step 5 reads each door pixel's angle with its signs, on the circle of period 90 degrees
+    #: (:func:`signed_door_angle`; overrides ``door_angle_folded``)
+    door_angle_signed: bool = False
+    #: ... only where it lies within this many degrees of the mode's voted angle (None: anywhere)
+    door_angle_gate_deg: float | None = None
     #: keep a mode's voted frame where the box frame turns it by more than this (deg; None: never)
     max_turn_deg: float | None = None
     #: step 2 fits the box frame to the pixels whose segmentation probability of their label
@@ -159,6 +169,8 @@ class Refinement:
         return cls(frame=bool(d["frame"]), hinge_offset_m=float(d["hinge_offset_m"]),
                    min_door_px=None if d["min_door_px"] is None else int(d["min_door_px"]),
                    door_angle_folded=bool(d.get("door_angle_folded", False)),
+                   door_angle_signed=bool(d.get("door_angle_signed", False)),
+                   door_angle_gate_deg=_optional_float(d.get("door_angle_gate_deg")),
                    max_turn_deg=None if turn is None else float(turn), door_extent=bool(d.get("door_extent", False)),
                    frame_min_prob=_optional_float(d.get("frame_min_prob")),
                    door_extent_gate_m=None if gate is None else float(gate),
@@ -314,7 +326,9 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, fram
     ``parts``: :meth:`DenseNet.split` output; ``inputs``: :func:`~.features.make_inputs` output;
     ``modes``: :func:`~.aggregate.vote_modes` output.  Returns ``axis``, ``xaxis`` (B, J, M, 3)
     of the box frame with each mode's side, ``q`` (B, J) normal-based door angle (rad, NaN when
-    no door pixel has a normal; NaN for prismatic joints), ``door_px`` (B, J), and for step 6
+    no door pixel has a normal; NaN for prismatic joints), ``q_folded`` and ``q_signed`` (B, J: the
+    folded angle; the signed one modulo ``pi / 2`` for the frame whose x is ``box_x`` (B, J, 3), the
+    box frame's x before step 3's sides), ``door_px`` (B, J), and for step 6
     ``door_mid`` (B, J: the door's mid-height as a coordinate along ``axis[:, :, 0]``, m; NaN
     with fewer than :data:`DOOR_EXTENT_MIN_PX` door pixels or for prismatic joints) and
     ``door_cut`` (B, J: 1 where the door's pixels reach the image's top or bottom output row).
@@ -400,6 +414,17 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     folded = torch.where((complement - near).abs() < (angle - near).abs(), complement, angle)
     q_folded = lower_median(folded, with_normal).view(R, J)
     q_folded = torch.where(revolute[None], q_folded, torch.full_like(q_folded, float("nan")))
+    # step 5, signed: the angle of each normal from y towards x, signs kept; the door's four faces
+    # (outer and inner face, free and hinge edge) put it at -q, pi - q, pi / 2 - q and -pi / 2 - q,
+    # so -angle mod pi / 2 is q on every face (for x = +xf; -q for x = -xf); its median on the
+    # circle of period pi / 2 (about the pixels' circular mean, so a closed door's 0 and 89.9 degrees
+    # are neighbours)
+    u = torch.remainder(-torch.atan2(proj[..., 0], proj[..., 1]), math.pi / 2)  # (R * J, m)
+    weight = with_normal.to(u.dtype)
+    centre = torch.atan2((weight * torch.sin(4.0 * u)).sum(-1), (weight * torch.cos(4.0 * u)).sum(-1))[:, None] / 4.0
+    around = torch.remainder(u - centre + math.pi / 4, math.pi / 2) + centre - math.pi / 4
+    q_signed = lower_median(around, with_normal).view(R, J)
+    q_signed = torch.where(revolute[None], q_signed, torch.full_like(q_signed, float("nan")))
     # step 6: the doors' points in the camera frame (m) and image rows
     door_px_at = at.index_select(0, door_at)
     door_relative = torch.stack([x_flat[c * H * W:].index_select(0, door_px_at) for c in (0, 1, 2)], -1).view(R * J, m, 3)
@@ -407,6 +432,7 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     door_row = row.view(-1).index_select(0, door_at).view(R * J, m)
     door_mid, door_cut = _door_extent(door_points, door_row, dok, side[:, :, 0, 0, None] * zf, revolute, H)
     return {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], "q": q, "q_folded": q_folded,
+            "q_signed": q_signed, "box_x": xf,
             "door_px": with_normal.sum(-1).view(R, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut}
 
 
@@ -459,9 +485,7 @@ def apply_refinement(m: dict, r: dict, refinement: "Refinement | None", joint_ty
             xaxis = np.where(keep[..., None], m["xaxis"], xaxis)
         out["axis"], out["xaxis"] = axis, xaxis
     if refinement.min_door_px is not None:
-        q = r["q_folded"] if refinement.door_angle_folded else r["q"]
-        use = revolute[None] & (r["door_px"] >= refinement.min_door_px) & np.isfinite(q)
-        out["q"] = np.where(use[..., None], q[..., None], m["q"])
+        out["q"] = door_angle(m["q"], r, refinement, out.get("xaxis"), revolute)
     if refinement.door_extent and "door_mid" in r:
         z = r["axis"][:, :, :1]  # (B, J, 1, 3): one line per joint
         shift = r["door_mid"][..., None] - (m["origin"] * z).sum(-1)  # (B, J, M)
@@ -470,4 +494,36 @@ def apply_refinement(m: dict, r: dict, refinement: "Refinement | None", joint_ty
             use &= np.abs(shift) < refinement.door_extent_gate_m
         out["origin"] = m["origin"] + np.where(use, shift, 0.0)[..., None] * z
     out = apply_handle_height(out, r, refinement.handle_height_gate_m, joint_types, refinement.handle_cut_bars)
-    return apply_handle_side(out, r, refinement.handle_max_q_deg, refinement.handle_min_px, joint_types)
+    sided = apply_handle_side(out, r, refinement.handle_max_q_deg, refinement.handle_min_px, joint_types)
+    if sided is not out and refinement.min_door_px is not None and refinement.door_angle_signed:
+        sided = dict(sided)  # a mirrored mode's x is turned round: its door angle is read again
+        sided["q"] = door_angle(m["q"], r, refinement, sided["xaxis"], revolute)
+    return sided
+
+
+def door_angle(voted_q: np.ndarray, r: dict, refinement: "Refinement", xaxis: np.ndarray | None, revolute: np.ndarray) -> np.ndarray:
+    """Step 5 as ``refinement`` says: each vote mode's door angle (B, J, M) rad, the normal-based one
+    (plain, folded or :func:`signed_door_angle` for the modes' x axes ``xaxis`` (B, J, M, 3), which only
+    the signed one reads) where at least ``min_door_px`` door pixels have a normal and it lies within
+    ``door_angle_gate_deg`` of the mode's voted angle ``voted_q`` (B, J, M); the voted angle elsewhere."""
+    if refinement.door_angle_signed:
+        q = signed_door_angle(r["q_signed"], r["box_x"], xaxis, voted_q)
+    else:
+        q = np.broadcast_to((r["q_folded"] if refinement.door_angle_folded else r["q"])[..., None], voted_q.shape)
+    with np.errstate(invalid="ignore"):
+        use = revolute[None, :, None] & (r["door_px"] >= refinement.min_door_px)[..., None] & np.isfinite(q)
+        if refinement.door_angle_gate_deg is not None:
+            use &= np.abs(q - voted_q) < math.radians(refinement.door_angle_gate_deg)
+    return np.where(use, q, voted_q)
+
+
+def signed_door_angle(q_signed: np.ndarray, box_x: np.ndarray, xaxis: np.ndarray, near_q: np.ndarray) -> np.ndarray:
+    """Step 5, signed: each vote mode's door angle (B, J, M) rad from :func:`refined_quantities`'
+    ``q_signed`` (B, J; the angle modulo ``pi / 2`` for the frame whose x is the box frame's ``box_x``
+    (B, J, 3)), the modes' x axes ``xaxis`` (B, J, M, 3: where a mode's x points the other way, its
+    angle is ``-q_signed``) and their voted angles ``near_q`` (B, J, M): of the angles equal modulo
+    ``pi / 2``, the one nearest the mode's vote.  The normals fix the angle up to quarter turns,
+    which only a door near 0 or 90 degrees leaves to the votes."""
+    side = np.where((xaxis * box_x[:, :, None]).sum(-1) < 0, -1.0, 1.0)
+    base = side * q_signed[..., None]
+    return base + np.round((near_q - base) / (math.pi / 2)) * (math.pi / 2)
