@@ -81,6 +81,7 @@ def per_image_errors(predictions: Path, truth: Path):
         "along": CM_PER_M * np.abs(along),
         "across": CM_PER_M * np.linalg.norm(diff - along[..., None] * z, axis=-1),
         **{k: facts[k][order] for k in ("body_px", "top", "bottom", "seen")},
+        "sample_id": np.asarray(pred["sample_id"], dtype=np.int64),
     }
     return class_name, prismatic, out
 
@@ -88,11 +89,8 @@ def per_image_errors(predictions: Path, truth: Path):
 def per_image_errors_of(predictions: Path, truth: Path, sample_ids) -> dict:
     """:func:`per_image_errors`' per-image arrays with row i the image ``sample_ids[i]`` (the other
     scripts' own image order)."""
-    from articulated_dataset.benchmark.predictions import read_predictions
-
     _, _, e = per_image_errors(predictions, truth)  # rows: the predictions' images
-    (pred,) = read_predictions(predictions)[1].values()
-    row = {int(sid): r for r, sid in enumerate(pred["sample_id"])}
+    row = {int(sid): r for r, sid in enumerate(e["sample_id"])}
     at = [row[int(sid)] for sid in sample_ids]
     return {k: v[at] for k, v in e.items()}
 

@@ -83,6 +83,7 @@ class TurnedObject:
         from articulated_dataset.generation.scene import ORIGIN_POSE, ObjectPlacer
         from articulated_dataset.generation.templating import object_urdf
 
+        self.object_index = object_index
         sample = stored_sample(config, object_index, object_pose, object_yaw)
         obj = compile_object(config.obj_class, object_urdf(config.obj_class, sample, config.table), ORIGIN_POSE,
                              config.camera)
@@ -114,11 +115,11 @@ class TurnedObject:
         return depth.copy(), self.info.mask_from_geoms(geom), pose
 
 
-def _rot_z(a: float):
-    import numpy as np
+def _rot_z(yaw_rad: float):
+    """3x3 rotation by ``yaw_rad`` about the camera frame's z (up)."""
+    from scipy.spatial.transform import Rotation
 
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return Rotation.from_euler("z", yaw_rad).as_matrix()
 
 
 def _in(v: float, bounds) -> bool:
@@ -195,17 +196,16 @@ def split_floors(truth: Path, step_deg: float = DEFAULT_STEP_DEG, max_body_px: i
             if (np.abs(z[:, 2]) < VERTICAL_COS).any():
                 raise UserError(f"{truth}: holds {name!r}, whose door does not turn about the vertical")
             searched = vp[:, 0] <= max_body_px
-            built = {}
+            obj = None  # the object of the images being searched, built once (a shard holds each object's images together)
             for i in range(len(sid)):
                 rows["sample_id"].append(sid[i]), rows["body_px"].append(int(vp[i, 0]))
                 rows["searched"].append(bool(searched[i]))
                 if not searched[i]:
                     rows["expected_deg"].append(0.0), rows["realised_deg"].append(0.0), rows["kept"].append(1)
                     continue
-                k = int(oi[i])
-                if k not in built:
-                    built = {k: TurnedObject(config, k, pose[i], float(yaw[i]), ap[i, 0, :3], renderer)}
-                kept = image_floor(built[k], float(q[i, 0]), float(np.sign(z[i, 2])), config.table, step, mask[i])
+                if obj is None or obj.object_index != int(oi[i]):
+                    obj = TurnedObject(config, int(oi[i]), pose[i], float(yaw[i]), ap[i, 0, :3], renderer)
+                kept = image_floor(obj, float(q[i, 0]), float(np.sign(z[i, 2])), config.table, step, mask[i])
                 expected, realised = posterior_error(kept, float(q[i, 0]))
                 rows["expected_deg"].append(math.degrees(expected)), rows["realised_deg"].append(math.degrees(realised))
                 rows["kept"].append(len(kept))
