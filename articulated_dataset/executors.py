@@ -458,3 +458,46 @@ def get_executor(name: str = "local", workers: int | None = None, address: str |
     if address is not None and name != "ray":
         raise UserError("--address is for --executor ray")
     return EXECUTORS[name](workers, address)
+
+
+# --------------------------------------------------------------------------------------
+# The C allocator
+# --------------------------------------------------------------------------------------
+
+#: glibc ``mallopt`` parameters (``malloc.h``).
+M_TRIM_THRESHOLD = -1
+M_MMAP_MAX = -4
+#: Free memory at the top of the heap that glibc keeps instead of returning it to the system
+#: (bytes; an ``int`` for ``mallopt``).
+KEEP_FREE_HEAP_BYTES = 1 << 30
+#: Settings of the C allocator a user may make; where any is set, :func:`configure_allocator`
+#: changes nothing (``LD_PRELOAD``: another allocator such as jemalloc or tcmalloc).
+ALLOCATOR_VARIABLES = ("MALLOC_MMAP_MAX_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_",
+                       "GLIBC_TUNABLES", "LD_PRELOAD")
+
+
+def configure_allocator() -> bool:
+    """Make glibc's ``malloc`` keep freed memory for the next allocation in this process:
+    ``mallopt(M_MMAP_MAX, 0)`` (large blocks from the heap, not from fresh ``mmap`` pages) and
+    ``mallopt(M_TRIM_THRESHOLD, KEEP_FREE_HEAP_BYTES)``.
+
+    By default every block above 32 MB is mapped fresh and unmapped when freed, so each of the
+    dense pipeline's batch-sized tensors (the network input of 128 images is 95 MB) costs its
+    pages' faults and zeroing every time: 40-45 ms per such tensor on one core of the 2-core
+    machine, a fifth of the batched pipeline's time (``benchmarks/dense_inference.py``: cabinet
+    305-327 against 399-411 images/s).  The cost: the process keeps its peak heap until it ends.
+    For commands and worker processes, never called by library functions.  Returns whether it
+    was set: not where a user set any of :data:`ALLOCATOR_VARIABLES`, nor without glibc."""
+    import ctypes
+    import sys
+
+    if not sys.platform.startswith("linux") or any(v in os.environ for v in ALLOCATOR_VARIABLES):
+        return False
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):  # pragma: no cover - no mallopt (not glibc)
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    ok = mallopt(M_MMAP_MAX, 0) == 1 and mallopt(M_TRIM_THRESHOLD, KEEP_FREE_HEAP_BYTES) == 1
+    log.debug("malloc keeps freed memory: %s", ok)
+    return ok

@@ -7,7 +7,10 @@ Prints, per class, images/s of (a) the network alone on ready inputs, (b) the wh
 pipeline from depth images (input features + network + vote modes + refinement + mixture) on one
 batch and (c) on ``--batches`` batches in a row (the rendered batch repeated: a split's steady
 state, where every batch after the first writes its input into the previous one's tensor), and
-(d) the milliseconds of one ``articulated_dataset.estimate`` call (one image, model loaded);
+(d) the milliseconds of one ``articulated_dataset.estimate`` call (one image, model loaded), (e)
+images/s of ``--split-batches`` batches predicted as ``artdata predict`` runs a split of that
+size (``predict_split``'s worker processes, :func:`~articulated_dataset.models.dense.predict.default_workers`;
+timed once, the workers' start included);
 then the batch's milliseconds per stage ("other": the one-batch pipeline's time beyond the
 stages: reading the depth, conversions to numpy; where the model uses the mirror image, refinement
 step 8, the network's time is also given with its second pass and the outputs' average).  Every figure is the fastest of ``--repeats``
@@ -40,13 +43,20 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--batch", type=int, default=128)
     p.add_argument("--batches", type=int, default=3)
+    p.add_argument("--split-batches", type=int, default=32,
+                   help="(e): batches predicted as predict_split does, in its worker processes (0: skip)")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--no-mirror", action="store_true", help="skip the refinement's mirror image (predict --no-mirror)")
+    p.add_argument("--default-allocator", action="store_true",
+                   help="leave glibc's malloc as it is (the commands set it to reuse freed memory: "
+                        "articulated_dataset.executors.configure_allocator)")
     args = p.parse_args(argv)
 
-    from articulated_dataset.executors import configure_openmp_wait
+    from articulated_dataset.executors import configure_allocator, configure_openmp_wait
 
     configure_openmp_wait(args.threads)  # before torch loads its OpenMP runtime: the commands' choice
+    if not args.default_allocator:
+        configure_allocator()  # and their allocator settings
     import torch
 
     from articulated_dataset.registry import class_names
@@ -66,10 +76,10 @@ def bench_class(args, class_name: str) -> None:
     from articulated_dataset.generation import GenerationConfig, generate_split
     from articulated_dataset.models import resolve_model
     from articulated_dataset.models.dense.aggregate import vote_modes
-    from articulated_dataset.models.dense.checkpoint import build_dense_model, load_dense_checkpoint
+    from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
     from articulated_dataset.models.dense.data import load_dense_split
     from articulated_dataset.models.dense.features import make_inputs
-    from articulated_dataset.models.dense.predict import modes_to_arrays, predict_arrays
+    from articulated_dataset.models.dense.predict import default_workers, modes_to_arrays, predict_arrays
     try:  # the pipeline's network call (32 images at a time); a checkout without it calls the model
         from articulated_dataset.models.dense.predict import network_outputs
     except ImportError:  # pragma: no cover - comparing with older code
@@ -82,7 +92,7 @@ def bench_class(args, class_name: str) -> None:
                            resume=True, progress=False)
     ref = resolve_model(args.model, class_name)
     ckpt = load_dense_checkpoint(ref.path)
-    model = build_dense_model(ckpt)
+    model = build_inference_model(ckpt)
     c = model.config
     data = load_dense_split(split, c.n_joints, (c.height_px, c.width_px), with_labels=False)
     idx = np.arange(min(args.batch, len(data.sample_id)))
@@ -132,6 +142,13 @@ def bench_class(args, class_name: str) -> None:
 
     t_full, _ = timed(lambda: pipeline(idx))
     t_split, _ = timed(lambda: pipeline(np.tile(idx, args.batches)))
+    many = np.tile(idx, args.split_batches)
+    workers = default_workers(len(many))
+    t0 = time.perf_counter()
+    if len(many):  # timed once, the workers' start included: what a user's predict of that many images sees
+        predict_arrays(model, data, many, joint_types=joint_types, calibration=ckpt.get("calibration"),
+                       refinement=refinement, batch_size=args.batch, workers=workers)
+    t_many = time.perf_counter() - t0
     with h5py.File(next(split.glob("shard-*.h5")), "r") as f:
         depths, K = f["depth"][:N_SINGLE], f["K"][()]
     options = {"mirror": False} if args.no_mirror else {}
@@ -143,7 +160,11 @@ def bench_class(args, class_name: str) -> None:
     n = len(idx)
     print(f"{class_name} {ref.name}: {torch.get_num_threads()} threads, batch {n}; "
           f"network {n / t_net:.0f} img/s; batched pipeline {n / t_full:.0f} img/s (one batch), "
-          f"{args.batches * n / t_split:.0f} img/s ({args.batches} batches); estimate() {one_ms:.1f} ms/image; "
+          f"{args.batches * n / t_split:.0f} img/s ({args.batches} batches); "
+          + (f"{len(many)} images as predict_split runs them ({workers} process{'es' if workers > 1 else ''}, "
+             f"{max(1, torch.get_num_threads() // workers)} thread(s) each, their start included): "
+             f"{len(many) / t_many:.0f} img/s; " if len(many) else "")
+          + f"estimate() {one_ms:.1f} ms/image; "
           f"load average {os.getloadavg()[0]:.1f}; OpenMP wait: {wait_policy()}")
     other = t_full - (t_inputs + t_net_pipeline + t_modes + t_refine + t_mixture)
     network = f"network {1e3 * t_net:.0f}" + ("" if mirror_joints is None else

@@ -23,9 +23,10 @@ import platform
 import statistics
 import time
 
-from articulated_dataset.executors import configure_openmp_wait  # noqa: E402
+from articulated_dataset.executors import configure_allocator, configure_openmp_wait  # noqa: E402
 
 configure_openmp_wait()  # before torch loads its OpenMP runtime: the commands' wait policy
+configure_allocator()  # and their allocator settings
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402

@@ -5,7 +5,8 @@ For every class (default: all six): generate (or reuse) ``ROOT/<class>/test`` wi
 shipped weights), predict it with each shipped model (``--models``, default ``dense
 mdn-small``), score with :func:`articulated_dataset.benchmark.score`, and print one table:
 axis position (cm), axis rotation (deg), configuration (deg | cm), 90% interval coverage and
-inference speed (images/s, network + aggregation, the split already in memory for dense).
+inference speed (images/s, network + aggregation, the split already in memory for dense; in
+``predict_split``'s worker processes where it uses them, their start included).
 ``--json`` writes every figure.
 
     python benchmarks/shipped_models.py --root data-shipped --test-objects 1000
@@ -22,9 +23,10 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
-from articulated_dataset.executors import configure_openmp_wait  # noqa: E402
+from articulated_dataset.executors import configure_allocator, configure_openmp_wait  # noqa: E402
 
 configure_openmp_wait()  # before torch loads its OpenMP runtime: the commands' wait policy
+configure_allocator()  # and their allocator settings
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from reproduce_table1 import PAPER_TABLE1  # noqa: E402
@@ -67,20 +69,21 @@ def main(argv=None) -> int:
             out.parent.mkdir(parents=True, exist_ok=True)
             t0 = time.perf_counter()
             if ref.kind == "dense":
-                from articulated_dataset.models.dense.predict import predict_arrays
-                from articulated_dataset.models.dense.checkpoint import build_dense_model, load_dense_checkpoint
+                from articulated_dataset.models.dense.predict import default_workers, predict_arrays
+                from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
                 from articulated_dataset.models.dense.data import load_dense_split
                 from articulated_dataset.models.dense.mirror import with_mirror
                 import numpy as np
 
                 ckpt = load_dense_checkpoint(ref.path)
-                model = build_dense_model(ckpt)
+                model = build_inference_model(ckpt)
                 c = model.config
                 data = load_dense_split(split_dir, c.n_joints, (c.height_px, c.width_px), with_labels=False)
                 t1 = time.perf_counter()
                 arrays = predict_arrays(model, data, np.arange(len(data.sample_id)), joint_types=ckpt["joint_types"],
                                         calibration=ckpt.get("calibration"),
-                                        refinement=with_mirror(ckpt.get("refinement"), not args.no_mirror))
+                                        refinement=with_mirror(ckpt.get("refinement"), not args.no_mirror),
+                                        workers=default_workers(len(data.sample_id)))
                 arrays.pop("spread")
                 speed = len(data.sample_id) / (time.perf_counter() - t1)
                 method = "dense"

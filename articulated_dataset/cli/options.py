@@ -40,10 +40,12 @@ def prepare_torch(threads: int | None) -> int:
     """Import torch once for the command and set its threads, with the OpenMP wait policy
     :func:`~articulated_dataset.executors.configure_openmp_wait` chooses (threads that spin
     between operations where the machine has a free CPU for each, else passive waiting: spinning
-    threads slow a busy 2-core machine ten-fold) unless the user set one."""
-    from ..executors import configure_openmp_wait
+    threads slow a busy 2-core machine ten-fold) unless the user set one, and the C allocator set
+    to reuse freed memory (:func:`~articulated_dataset.executors.configure_allocator`)."""
+    from ..executors import configure_allocator, configure_openmp_wait
 
     configure_openmp_wait(threads if threads is not None and threads > 0 else None)
+    configure_allocator()
     try:
         import torch  # noqa: F401
     except ImportError:

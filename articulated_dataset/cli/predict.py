@@ -29,10 +29,13 @@ from .options import no_mirror_option, prepare_torch
 @click.option("--batch-size", type=int, default=None, help="Images per forward pass (default: MDN 256, dense 128).")
 @click.option("--device", default="auto", show_default=True, help="auto (GPU if present), cpu, cuda or cuda:N.")
 @click.option("--threads", type=int, default=None, help="CPU threads for torch (default: all cores of this process).")
+@click.option("--workers", type=int, default=None,
+              help="Dense model: processes that share the images, each with --threads divided among them "
+                   "(default: one per thread for splits of 2,048 images or more, else 1: this process).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or summary.")
 def predict_cmd(model_path, data, out, estimate, snap_to_cloud, object_mask, no_mirror, method, batch_size, device, threads,
-                overwrite, quiet):
+                workers, overwrite, quiet):
     """Predict axis poses, configurations, geometry and the full mixture for every image of a split."""
     out = Path(out)
     if out.exists() and not overwrite:
@@ -45,7 +48,7 @@ def predict_cmd(model_path, data, out, estimate, snap_to_cloud, object_mask, no_
     t0 = time.perf_counter()
     run = predict_to_file(model_path, data, out, estimate=estimate, snap_to_cloud=snap_to_cloud, object_mask=object_mask,
                           method=method, batch_size=batch_size, device=device, mirror=not no_mirror,
-                          progress=not quiet)
+                          workers=workers, progress=not quiet)
     if not quiet:
         click.echo(f"{out}: {run.n_images} {run.class_name} images predicted by {run.method}"
                    f"{' (snapped to the cloud)' if snap_to_cloud else ''} in {time.perf_counter() - t0:.1f} s")

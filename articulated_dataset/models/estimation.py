@@ -100,7 +100,7 @@ _MODEL_CACHE: dict = {}
 
 
 def _load(model: str, class_name: str):
-    from .dense.checkpoint import build_dense_model, load_dense_checkpoint
+    from .dense.checkpoint import build_inference_model, load_dense_checkpoint
     from .shipped import resolve_model
 
     ref = resolve_model(model, class_name)
@@ -110,7 +110,7 @@ def _load(model: str, class_name: str):
     key = (str(ref.path), ref.path.stat().st_mtime_ns)
     if key not in _MODEL_CACHE:
         ckpt = load_dense_checkpoint(ref.path)
-        _MODEL_CACHE[key] = (ckpt, build_dense_model(ckpt), ref.name)
+        _MODEL_CACHE[key] = (ckpt, build_inference_model(ckpt), ref.name)
     return _MODEL_CACHE[key]
 
 

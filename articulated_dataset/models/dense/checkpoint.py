@@ -1,5 +1,6 @@
 """The dense estimator's checkpoints: the file's format and version, reading and checking one
-(:func:`load_dense_checkpoint`), and the network rebuilt from it (:func:`build_dense_model`).
+(:func:`load_dense_checkpoint`), and the network rebuilt from it (:func:`build_dense_model`; for
+inference, its batch normalisations folded: :func:`build_inference_model`).
 Writing is training's (:mod:`articulated_dataset.models.dense.train`)."""
 
 from __future__ import annotations
@@ -44,3 +45,9 @@ def build_dense_model(ckpt: dict):
     if model.config.n_joints != len(ckpt["joint_types"]):
         raise UserError("checkpoint's joint types do not match its model configuration")
     return model.eval()
+
+
+def build_inference_model(ckpt: dict):
+    """The network of a checkpoint for inference: :func:`build_dense_model` with its batch
+    normalisations folded into its convolutions (:meth:`~.model.DenseNet.folded`)."""
+    return build_dense_model(ckpt).folded()

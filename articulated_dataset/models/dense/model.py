@@ -98,6 +98,31 @@ class DenseNet(nn.Module):
         y = self.d1(torch.cat([up(y, f1), f1], 1))
         return self.head(y).contiguous()
 
+    def folded(self) -> "DenseNet":
+        """A copy for inference: eval mode, every batch normalisation folded into the convolution
+        before it (:func:`torch.nn.utils.fusion.fuse_conv_bn_eval`: ``w' = w g / s``, ``b' = beta +
+        (b - mu) g / s`` with ``s = sqrt(var + eps)``), channels-last.  The same function to float
+        rounding (outputs within about 1e-5; predictions within 1e-6 m and rad), one pass over each
+        layer's activations fewer: 5-8% of the batched pipeline (``benchmarks/dense_inference.py``).
+        The stem's weights stay in the default layout: on the 9-channel input (which
+        :func:`~.features.make_inputs` writes channel by channel) the stem runs 1.6x as fast as in
+        channels-last with the input converted to it (32 images on one core: 6.6 against 10.7 ms;
+        every later layer reads the stem's output in channels-last).  It has no batch
+        normalisation to train; its ``state_dict`` is not a checkpoint's."""
+        import copy
+
+        from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+        model = copy.deepcopy(self).eval()
+        for seq in model.modules():
+            if isinstance(seq, nn.Sequential):
+                for i in range(len(seq) - 1):
+                    if isinstance(seq[i], nn.Conv2d) and isinstance(seq[i + 1], nn.BatchNorm2d):
+                        seq[i], seq[i + 1] = fuse_conv_bn_eval(seq[i], seq[i + 1]), nn.Identity()
+        model.to(memory_format=torch.channels_last)
+        model.stem.to(memory_format=torch.contiguous_format)
+        return model
+
     def split(self, out: torch.Tensor) -> dict:
         """Named views of the raw output (B, n_out, h, w)."""
         J = self.config.n_joints

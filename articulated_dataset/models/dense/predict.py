@@ -15,11 +15,13 @@ from __future__ import annotations
 import itertools
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ...errors import UserError
+from .data import DenseData
 
 log = logging.getLogger(__name__)
 
@@ -28,6 +30,11 @@ PREDICT_BATCH = 128
 #: ... of which the network takes this many at a time: the same numbers (each image's output is its
 #: own), and a third faster on two CPU threads, whose caches and allocator hold the smaller activations.
 NETWORK_CHUNK = 32
+#: :func:`predict_split` shares a split among worker processes (:func:`default_workers`) where it
+#: has at least this many images: a spawned worker costs 2-4 s to start (importing torch).
+PARALLEL_MIN_IMAGES = 2048
+#: Images a worker process is sent at a time (uint16 depth: 21 MB at 192 x 108).
+WORKER_TASK_IMAGES = 512
 #: Weight given to a mode that does not exist (keeps log-weights finite), before renormalising.
 MIN_COMPONENT_WEIGHT = 1e-9
 #: Calibration grids: spread factors and floors (as fractions of the residuals' median).
@@ -48,11 +55,14 @@ def _layout_names(J: int) -> list[str]:
 
 
 def predict_arrays(model, data, idx: np.ndarray, *, joint_types: list[str], calibration: dict | None,
-                   refinement=None, batch_size: int = PREDICT_BATCH, progress: bool = False) -> dict:
+                   refinement=None, batch_size: int = PREDICT_BATCH, progress: bool = False,
+                   workers: int = 1) -> dict:
     """Predictions of ``model`` for the images ``idx`` of a :class:`~articulated_dataset.models.dense.data.DenseData`.
 
     ``refinement``: the checkpoint's :class:`~articulated_dataset.models.dense.refine.Refinement` (or
-    its dict) applied to the vote modes, or None.  Returns the datasets of
+    its dict) applied to the vote modes, or None.  ``workers`` > 1: the images are shared among
+    that many spawned processes (:func:`_predict_in_workers`), each running this process's torch
+    threads divided among them; the same predictions to float rounding.  Returns the datasets of
     :func:`articulated_dataset.benchmark.predictions.write_predictions` (``sample_id``, ``axis_pose``,
     ``q``, ``geometry``, ``part_offset``, ``mixture_*``, ``mixture_layout``) plus ``spread``
     (N, M, D), the raw vote spreads.
@@ -60,9 +70,90 @@ def predict_arrays(model, data, idx: np.ndarray, *, joint_types: list[str], cali
     from .refine import as_refinement
 
     refinement = as_refinement(refinement)
-    chunks = _over_batches(data, idx, batch_size, progress, lambda depth, K, workspace: refined_batch(
-        model, depth, K, joint_types=joint_types, refinement=refinement, workspace=workspace))
-    return modes_to_arrays(_concatenated(chunks), data.sample_id[idx], model, calibration)
+    if workers > 1 and len(idx) > batch_size:
+        modes = _predict_in_workers(model, data, idx, joint_types, refinement, batch_size, workers, progress)
+    else:
+        modes = _refined_images(model, data, idx, joint_types, refinement, batch_size, progress)
+    return modes_to_arrays(modes, data.sample_id[idx], model, calibration)
+
+
+def _refined_images(model, data, idx: np.ndarray, joint_types: list[str], refinement, batch_size: int,
+                    progress: bool) -> dict:
+    """:func:`refined_batch` over the images ``idx`` of ``data``, batch by batch, concatenated."""
+    return _concatenated(_over_batches(data, idx, batch_size, progress, lambda depth, K, workspace: refined_batch(
+        model, depth, K, joint_types=joint_types, refinement=refinement, workspace=workspace)))
+
+
+def default_workers(n_images: int) -> int:
+    """Worker processes :func:`predict_split` shares ``n_images`` among: one per torch thread of
+    this process (up to the usable CPUs) where there are at least :data:`PARALLEL_MIN_IMAGES`, else
+    1 (this process).  Processes rather than threads: much of the pipeline (the vote modes, the
+    refinement) is small tensor operations that one thread runs as fast as two, so two 1-thread
+    processes predicted a cabinet test split 1.2-1.7x as fast as one 2-thread process on the 2-core
+    machine (``benchmarks/dense_inference.py``)."""
+    import torch
+
+    from ...executors import usable_cpus
+
+    if n_images < PARALLEL_MIN_IMAGES:
+        return 1
+    return max(1, min(torch.get_num_threads(), usable_cpus()))
+
+
+@dataclass
+class _Images:
+    """The depth (store units) and intrinsics of some images: what inference reads of a
+    :class:`~.data.DenseData` (a worker's task)."""
+
+    depth_q: np.ndarray
+    K: np.ndarray
+    depth = DenseData.depth
+
+
+#: A worker process's model, joint types and refinement (:func:`_init_worker`).
+_WORKER: dict = {}
+
+
+def _init_worker(model, joint_types: list[str], refinement, threads: int) -> None:
+    import torch
+
+    from ...executors import configure_allocator
+
+    configure_allocator()
+    torch.set_num_threads(threads)
+    _WORKER.update(model=model, joint_types=joint_types, refinement=refinement)
+
+
+def _predict_task(task: tuple) -> dict:
+    """A worker's images (depth in store units, K, batch size) -> their refined vote modes."""
+    depth_q, K, batch_size = task
+    w = _WORKER
+    return _refined_images(w["model"], _Images(depth_q, K), np.arange(len(depth_q)), w["joint_types"],
+                           w["refinement"], batch_size, False)
+
+
+def _predict_in_workers(model, data, idx: np.ndarray, joint_types: list[str], refinement, batch_size: int,
+                        workers: int, progress: bool) -> dict:
+    """:func:`_refined_images` of the images ``idx``, :data:`WORKER_TASK_IMAGES` at a time in
+    ``workers`` spawned processes (:func:`~articulated_dataset.executors.process_map`, in order),
+    each with this process's torch threads divided among them (at least one)."""
+    import torch
+    from tqdm.auto import tqdm
+
+    from ...executors import process_map
+
+    task_images = max(batch_size, WORKER_TASK_IMAGES // batch_size * batch_size)  # whole batches
+    starts = range(0, len(idx), task_images)
+    tasks = ((data.depth_q[idx[s : s + task_images]], data.K[idx[s : s + task_images]], batch_size) for s in starts)
+    threads = max(1, torch.get_num_threads() // workers)
+    chunks = []
+    with tqdm(total=len(idx), desc="predicting", unit="image", disable=not progress, leave=False) as bar:
+        for modes in process_map(_predict_task, tasks, min(workers, len(starts)), ordered=True,
+                                 initializer=_init_worker, initargs=(model, joint_types, refinement, threads),
+                                 died="a prediction worker process died (killed or out of memory?)"):
+            chunks.append(modes)
+            bar.update(len(next(iter(modes.values()))))
+    return _concatenated(chunks)
 
 
 def _over_batches(data, idx: np.ndarray, batch_size: int, progress: bool, fn) -> list:
@@ -155,12 +246,13 @@ def network_outputs(model, x, mirror_joints=None):
 
     if mirror_joints is None:
         return run(x)
-    x_mirror = mirror_network_input(x)
     if 2 * len(x) <= NETWORK_CHUNK:  # a few images (estimate()): one call for both, its fixed costs paid once
-        both = run(torch.cat([x, x_mirror]))
+        both = run(torch.cat([x, mirror_network_input(x)]))
         out, out_mirror = both[: len(x)], both[len(x) :]
-    else:
-        out, out_mirror = run(x), run(x_mirror)
+    else:  # the mirror input made a chunk at a time, while the chunk is in the caches (and without
+        # executors.configure_allocator a batch's, 95 MB, would be fresh pages every time)
+        out = run(x)
+        out_mirror = torch.cat([model(mirror_network_input(c)) for c in x.split(NETWORK_CHUNK)])
     return merge_mirrored_outputs(out, out_mirror, model.config.n_joints, mirror_joints)
 
 
@@ -388,20 +480,24 @@ def _quat_from_rot6(r6: np.ndarray) -> np.ndarray:
 
 
 def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BATCH, object_mask: bool = False,
-                  mirror: bool = True, progress: bool = True) -> tuple[str, dict]:
+                  mirror: bool = True, workers: int | None = None, progress: bool = True) -> tuple[str, dict]:
     """Run a loaded dense checkpoint on the split at ``data``; ``(class_name, arrays)`` as
     :func:`articulated_dataset.benchmark.predictions.write_predictions` takes them.  Labels are not
     read; with ``object_mask`` the split's mask keeps only the object's pixels
     (:func:`~.data.load_dense_split`).  A split with a scene or occluders predicted without it
     logs a warning: the model was trained on isolated objects and reads every pixel with depth.
-    ``mirror=False`` skips the refinement's mirror image (:func:`~.mirror.with_mirror`)."""
+    ``mirror=False`` skips the refinement's mirror image (:func:`~.mirror.with_mirror`).
+    ``workers``: processes that share the images (:func:`predict_arrays`); None:
+    :func:`default_workers`."""
     from ..mdn.data import resolve_split_dir, split_class
-    from .checkpoint import build_dense_model
+    from .checkpoint import build_inference_model
     from .data import load_dense_split
     from .mirror import with_mirror
 
     if batch_size <= 0:
         raise UserError(f"--batch-size must be positive, got {batch_size}")
+    if workers is not None and workers <= 0:
+        raise UserError(f"--workers must be positive, got {workers}")
     class_name = ckpt["class_name"]
     split_dir = resolve_split_dir(data)
     data_class = split_class(split_dir)
@@ -416,14 +512,17 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
                         "trained on isolated objects and reads every pixel with depth: pass --object-mask to give it "
                         "only the object's pixels, as a robot's segmentation would", split_dir,
                         config.get("scene", "none"), config.get("occluders", 0))
-    model = build_dense_model(ckpt)
+    model = build_inference_model(ckpt)
     cfg = model.config
     d = load_dense_split(split_dir, cfg.n_joints, (cfg.height_px, cfg.width_px), with_labels=False,
                          object_mask=object_mask, progress=progress)
+    n = len(d.sample_id)
+    workers = default_workers(n) if workers is None else workers
     t0 = time.perf_counter()
-    arrays = predict_arrays(model, d, np.arange(len(d.sample_id)), joint_types=list(ckpt["joint_types"]),
-                            calibration=ckpt.get("calibration"),
-                            refinement=with_mirror(ckpt.get("refinement"), mirror), batch_size=batch_size, progress=progress)
-    log.info("dense: %d images in %.1f s", len(d.sample_id), time.perf_counter() - t0)
+    arrays = predict_arrays(model, d, np.arange(n), joint_types=list(ckpt["joint_types"]),
+                            calibration=ckpt.get("calibration"), refinement=with_mirror(ckpt.get("refinement"), mirror),
+                            batch_size=batch_size, progress=progress, workers=workers)
+    log.info("dense: %d images in %.1f s (%d process%s)", n, time.perf_counter() - t0, workers,
+             "" if workers == 1 else "es")
     arrays.pop("spread")
     return class_name, arrays

@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import UserError
-from .checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, build_dense_model, load_dense_checkpoint
+from .checkpoint import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, build_dense_model, build_inference_model,
+                         load_dense_checkpoint)
 from .data import DenseData, load_dense_split, split_object_indices
 
 log = logging.getLogger(__name__)
@@ -248,7 +249,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     def validate() -> dict:
         if not len(va_idx):
             return {}
-        arrays = predict_arrays(_cpu_copy(model), data_, va_idx, joint_types=list(obj_class.joint_types),
+        arrays = predict_arrays(_cpu_copy(model).folded(), data_, va_idx, joint_types=list(obj_class.joint_types),
                                 calibration=None)
         return quick_errors(arrays, data_, va_idx, list(obj_class.joint_types))
 
@@ -302,7 +303,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
         return checkpoint(finished=False)
     result = checkpoint(finished=True)
     if fit and len(va_idx):  # refinement choice and uncertainty calibration on the validation objects
-        result.update(fit_inference(_cpu_copy(model).eval(), data_, va_idx, list(obj_class.joint_types),
+        result.update(fit_inference(_cpu_copy(model).folded(), data_, va_idx, list(obj_class.joint_types),
                                     mirror_joints=obj_class.mirror_joints))
     result["load_seconds"] = round(t_load, 1)
     atomic_save(result, out)
@@ -373,7 +374,7 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     if split_class(split_dir) != ckpt["class_name"]:
         raise UserError(f"{split_dir}: holds class {split_class(split_dir)!r}, the checkpoint {ckpt['class_name']!r}")
     config = DenseTrainConfig.from_dict(ckpt["train_config"])
-    model = build_dense_model(ckpt)
+    model = build_inference_model(ckpt)
     c = model.config
     # the objects training held out (split_by_object depends on the set of objects only), then only their images
     objects = np.unique(split_object_indices(split_dir, config.max_objects))

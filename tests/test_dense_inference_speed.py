@@ -1,0 +1,183 @@
+"""What makes dense inference fast, checked for keeping its numbers: the folded network
+(DenseNet.folded), predict's worker processes (predict_arrays(workers=...), artdata predict
+--workers) and the allocator setting of the commands (executors.configure_allocator)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from articulated_dataset import executors as E  # noqa: E402
+from articulated_dataset.models.dense import predict as P  # noqa: E402
+from articulated_dataset.models.dense.model import DenseConfig, DenseNet  # noqa: E402
+from helpers_core import generated_split  # noqa: E402
+
+
+def _random_statistics(model: DenseNet) -> DenseNet:
+    """Batch normalisations with statistics and affine weights far from the identity."""
+    g = torch.Generator().manual_seed(0)
+    for m in model.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.copy_(torch.randn(m.num_features, generator=g))
+            m.running_var.copy_(torch.rand(m.num_features, generator=g) * 2 + 0.1)
+            m.weight.data.copy_(torch.randn(m.num_features, generator=g))
+            m.bias.data.copy_(torch.randn(m.num_features, generator=g))
+    return model
+
+
+def test_the_folded_network_computes_the_same_function():
+    model = _random_statistics(DenseNet(DenseConfig(n_joints=2, width=8))).eval()
+    folded = model.folded()
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())  # the original is left as it was
+    assert not folded.training and folded.config == model.config
+    x = torch.randn(3, 9, 108, 192, generator=torch.Generator().manual_seed(1))
+    with torch.inference_mode():
+        a, b = model(x), folded(x)
+    assert a.shape == b.shape
+    assert (a - b).abs().max().item() <= 1e-4 * max(1.0, a.abs().max().item())
+
+
+def test_folding_a_training_model_uses_its_running_statistics():
+    """folded() is the eval-mode function even of a model in training mode (whose batch
+    normalisation would use the batch's statistics)."""
+    model = _random_statistics(DenseNet(DenseConfig(n_joints=1, width=4))).train()
+    folded = model.folded()
+    assert model.training  # not switched by folding
+    x = torch.randn(2, 9, 108, 192, generator=torch.Generator().manual_seed(2))
+    with torch.inference_mode():
+        expected = model.eval()(x)
+        assert torch.allclose(folded(x), expected, atol=1e-4, rtol=1e-4)
+
+
+def test_default_workers(monkeypatch):
+    assert P.default_workers(P.PARALLEL_MIN_IMAGES - 1) == 1
+    monkeypatch.setattr(E, "usable_cpus", lambda: 4)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        assert P.default_workers(P.PARALLEL_MIN_IMAGES) == 2
+        torch.set_num_threads(1)
+        assert P.default_workers(10 ** 6) == 1  # --threads 1: this process alone
+    finally:
+        torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def cabinet_split(tmp_path_factory):
+    return generated_split(tmp_path_factory.mktemp("workers"), "cabinet", 3, 8)
+
+
+def test_worker_processes_give_the_same_predictions(cabinet_split, monkeypatch):
+    """The shipped cabinet model (refinement with the mirror image and the handles) over three
+    tasks in two spawned processes: the same images in the same order, the same numbers."""
+    from articulated_dataset.models import resolve_model
+    from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
+    from articulated_dataset.models.dense.data import load_dense_split
+
+    ckpt = load_dense_checkpoint(resolve_model("dense", "cabinet").path)
+    model = build_inference_model(ckpt)
+    c = model.config
+    data = load_dense_split(cabinet_split, c.n_joints, (c.height_px, c.width_px), with_labels=False)
+    idx = np.arange(len(data.sample_id))[::-1].copy()  # not the split's order
+    kw = dict(joint_types=list(ckpt["joint_types"]), calibration=ckpt.get("calibration"),
+              refinement=ckpt.get("refinement"), batch_size=8)
+    alone = P.predict_arrays(model, data, idx, **kw)
+    monkeypatch.setattr(P, "WORKER_TASK_IMAGES", 16)  # 48 images: three tasks
+    shared = P.predict_arrays(model, data, idx, workers=2, **kw)
+    assert set(shared) == set(alone)
+    assert np.array_equal(shared["sample_id"], data.sample_id[idx])
+    for k, v in alone.items():
+        if not isinstance(v, np.ndarray):  # the mixture's layout (column names)
+            assert shared[k] == v, k
+            continue
+        assert shared[k].shape == v.shape, k
+        assert np.allclose(shared[k], v, atol=1e-6, rtol=0), k
+
+
+def _cli(*args):
+    from click.testing import CliRunner
+
+    from articulated_dataset.cli import main
+
+    return CliRunner().invoke(main, list(args))
+
+
+def test_predict_workers_on_the_command_line(cabinet_split, tmp_path):
+    from articulated_dataset.benchmark.predictions import read_predictions
+
+    outs = {}
+    for w in ("1", "2"):
+        out = tmp_path / f"w{w}.h5"
+        r = _cli("predict", "--model", "dense", "--data", str(cabinet_split), "--out", str(out), "--workers", w,
+                 "--batch-size", "16", "-q")
+        assert r.exit_code == 0, r.output
+        outs[w] = read_predictions(out)[1]["cabinet"]
+    for k in ("axis_pose", "q", "mixture_weights"):
+        assert np.allclose(outs["1"][k], outs["2"][k], atol=1e-6), k
+
+
+@pytest.mark.parametrize("model, workers, message", [
+    ("dense", "0", "artdata: error: --workers must be positive, got 0"),
+    ("mdn-small", "2", "artdata: error: --workers applies to the dense model (the MDN uses torch's threads)"),
+])
+def test_predict_workers_errors(cabinet_split, tmp_path, model, workers, message):
+    r = _cli("predict", "--model", model, "--data", str(cabinet_split), "--out", str(tmp_path / "p.h5"),
+             "--workers", workers, "-q")
+    assert r.exit_code == 2 and r.output.strip() == message
+
+
+#: Allocates a 200 MB block and prints glibc's counts (mallinfo2) while it is held and after it
+#: is freed: bytes in mapped blocks (hblkhd) and the heap's free bytes (fordblks).
+MALLINFO = """
+import ctypes, json
+from articulated_dataset.executors import configure_allocator
+class Info(ctypes.Structure):
+    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                "fsmblks", "uordblks", "fordblks", "keepcost")]
+libc = ctypes.CDLL(None)
+libc.mallinfo2.restype = Info
+libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+chosen = configure_allocator() if CONFIGURE else None
+block = libc.malloc(200_000_000)
+held = libc.mallinfo2()
+libc.free(block)
+freed = libc.mallinfo2()
+print(json.dumps({"chosen": chosen, "mapped_held": held.hblkhd, "heap_free_after": freed.fordblks}))
+"""
+BLOCK_BYTES = 200_000_000
+
+
+def _mallinfo(configure: bool, **env) -> dict:
+    base = {k: v for k, v in os.environ.items() if k not in E.ALLOCATOR_VARIABLES}
+    out = subprocess.run([sys.executable, "-c", f"CONFIGURE = {configure}\n" + MALLINFO], env={**base, **env},
+                         capture_output=True, text=True)
+    if out.returncode and "mallinfo2" in out.stderr:
+        pytest.skip("no mallinfo2 in this C library (glibc < 2.33)")
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_the_allocator_setting_reuses_freed_memory():
+    """By default a 200 MB block is mapped for itself and unmapped when freed (its pages fresh
+    every time); set, it comes from the heap and stays there, free, for the next one."""
+    default, kept = _mallinfo(False), _mallinfo(True)
+    assert default["chosen"] is None and kept["chosen"] is True
+    assert default["mapped_held"] >= BLOCK_BYTES and default["heap_free_after"] < BLOCK_BYTES
+    # (blocks mapped before it was set stay mapped)
+    assert kept["mapped_held"] < BLOCK_BYTES and kept["heap_free_after"] >= BLOCK_BYTES
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_a_users_allocator_setting_is_kept():
+    r = _mallinfo(True, MALLOC_TRIM_THRESHOLD_="131072")
+    assert r["chosen"] is False and r["mapped_held"] >= BLOCK_BYTES
