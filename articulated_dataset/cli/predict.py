@@ -31,7 +31,7 @@ from .options import no_mirror_option, prepare_torch
 @click.option("--threads", type=int, default=None, help="CPU threads for torch (default: all cores of this process).")
 @click.option("--workers", type=int, default=None,
               help="Dense model: processes that share the images, each with --threads divided among them "
-                   "(default: one per thread for splits of 2,048 images or more, else 1: this process).")
+                   "(default: one per thread for splits of 4,096 images or more, else 1: this process).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or summary.")
 def predict_cmd(model_path, data, out, estimate, snap_to_cloud, object_mask, no_mirror, method, batch_size, device, threads,

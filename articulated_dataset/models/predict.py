@@ -31,7 +31,7 @@ def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: 
     The dense model: batches of 128 by default, its heaviest vote mode, ``object_mask`` keeps
     the object's pixels only, ``mirror=False`` skips the refinement's mirror image (where the
     model uses it: one network pass instead of two, 1.1-1.5x the speed, a 4-6% higher position error),
-    ``workers`` processes share the images (None: one per torch thread where the split has 2,048
+    ``workers`` processes share the images (None: one per torch thread where the split has 4,096
     images or more, :func:`~.dense.predict.default_workers`); the MDN: batches of 256,
     ``estimate`` and ``snap_to_cloud``.  An
     option of the other kind is a :class:`UserError`.  ``method`` names the method in the

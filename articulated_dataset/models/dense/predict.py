@@ -31,8 +31,9 @@ PREDICT_BATCH = 128
 #: own), and a third faster on two CPU threads, whose caches and allocator hold the smaller activations.
 NETWORK_CHUNK = 32
 #: :func:`predict_split` shares a split among worker processes (:func:`default_workers`) where it
-#: has at least this many images: a spawned worker costs 2-4 s to start (importing torch).
-PARALLEL_MIN_IMAGES = 2048
+#: has at least this many images: a spawned worker costs about 2 s to start (importing torch), which
+#: 4,096 drawer images (the fastest class with the mirror image) about repay on the 2-core machine.
+PARALLEL_MIN_IMAGES = 4096
 #: Images a worker process is sent at a time (uint16 depth: 21 MB at 192 x 108).
 WORKER_TASK_IMAGES = 512
 #: Weight given to a mode that does not exist (keeps log-weights finite), before renormalising.
@@ -88,9 +89,9 @@ def default_workers(n_images: int) -> int:
     """Worker processes :func:`predict_split` shares ``n_images`` among: one per torch thread of
     this process (up to the usable CPUs) where there are at least :data:`PARALLEL_MIN_IMAGES`, else
     1 (this process).  Processes rather than threads: much of the pipeline (the vote modes, the
-    refinement) is small tensor operations that one thread runs as fast as two, so two 1-thread
-    processes predicted a cabinet test split 1.2-1.7x as fast as one 2-thread process on the 2-core
-    machine (``benchmarks/dense_inference.py``)."""
+    refinement) is small tensor operations that one thread runs as fast as two: on the 2-core
+    machine two 1-thread processes predicted 16,000 test images 1.7-1.9x as fast as one 2-thread
+    process (microwave 790 against 412 images/s, drawer 543 against 314; docs/dense.md, "Speed")."""
     import torch
 
     from ...executors import usable_cpus
