@@ -126,6 +126,9 @@ def test_predict_workers_on_the_command_line(cabinet_split, tmp_path):
 
 @pytest.mark.parametrize("model, workers, message", [
     ("dense", "0", "artdata: error: --workers must be positive, got 0"),
+    ("dense", str(4 * (os.cpu_count() or 1) + 1),
+     f"artdata: error: --workers {4 * (os.cpu_count() or 1) + 1} is more than 4 per logical CPU of this machine "
+     f"(at most {4 * (os.cpu_count() or 1)})"),
     ("mdn-small", "2", "artdata: error: --workers applies to the dense model (the MDN uses torch's threads)"),
 ])
 def test_predict_workers_errors(cabinet_split, tmp_path, model, workers, message):

@@ -497,8 +497,17 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
 
     if batch_size <= 0:
         raise UserError(f"--batch-size must be positive, got {batch_size}")
-    if workers is not None and workers <= 0:
-        raise UserError(f"--workers must be positive, got {workers}")
+    if workers is not None:
+        import os
+
+        from ..mdn.config import MAX_THREADS_PER_CPU
+
+        most = MAX_THREADS_PER_CPU * (os.cpu_count() or 1)
+        if workers <= 0:
+            raise UserError(f"--workers must be positive, got {workers}")
+        if workers > most:
+            raise UserError(f"--workers {workers} is more than {MAX_THREADS_PER_CPU} per logical CPU of this machine "
+                            f"(at most {most})")
     class_name = ckpt["class_name"]
     split_dir = resolve_split_dir(data)
     data_class = split_class(split_dir)
