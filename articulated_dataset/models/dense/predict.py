@@ -240,10 +240,10 @@ def network_outputs(model, x, mirror_joints=None):
 
     from .mirror import merge_mirrored_outputs, mirror_network_input
 
-    def run(inputs):
+    def run(inputs, prepare=lambda chunk: chunk):  # prepare: what each chunk's input is made into
         if len(inputs) <= NETWORK_CHUNK:
-            return model(inputs)
-        return torch.cat([model(chunk) for chunk in inputs.split(NETWORK_CHUNK)])
+            return model(prepare(inputs))
+        return torch.cat([model(prepare(chunk)) for chunk in inputs.split(NETWORK_CHUNK)])
 
     if mirror_joints is None:
         return run(x)
@@ -252,8 +252,7 @@ def network_outputs(model, x, mirror_joints=None):
         out, out_mirror = both[: len(x)], both[len(x) :]
     else:  # the mirror input made a chunk at a time, while the chunk is in the caches (and without
         # executors.configure_allocator a batch's, 95 MB, would be fresh pages every time)
-        out = run(x)
-        out_mirror = torch.cat([model(mirror_network_input(c)) for c in x.split(NETWORK_CHUNK)])
+        out, out_mirror = run(x), run(x, mirror_network_input)
     return merge_mirrored_outputs(out, out_mirror, model.config.n_joints, mirror_joints)
 
 
@@ -498,16 +497,11 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
     if batch_size <= 0:
         raise UserError(f"--batch-size must be positive, got {batch_size}")
     if workers is not None:
-        import os
+        from ..mdn.config import check_per_cpu
 
-        from ..mdn.config import MAX_THREADS_PER_CPU
-
-        most = MAX_THREADS_PER_CPU * (os.cpu_count() or 1)
         if workers <= 0:
             raise UserError(f"--workers must be positive, got {workers}")
-        if workers > most:
-            raise UserError(f"--workers {workers} is more than {MAX_THREADS_PER_CPU} per logical CPU of this machine "
-                            f"(at most {most})")
+        check_per_cpu("--workers", workers)
     class_name = ckpt["class_name"]
     split_dir = resolve_split_dir(data)
     data_class = split_class(split_dir)

@@ -249,7 +249,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     def validate() -> dict:
         if not len(va_idx):
             return {}
-        arrays = predict_arrays(_cpu_copy(model).folded(), data_, va_idx, joint_types=list(obj_class.joint_types),
+        arrays = predict_arrays(model.folded().cpu(), data_, va_idx, joint_types=list(obj_class.joint_types),
                                 calibration=None)
         return quick_errors(arrays, data_, va_idx, list(obj_class.joint_types))
 
@@ -303,7 +303,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
         return checkpoint(finished=False)
     result = checkpoint(finished=True)
     if fit and len(va_idx):  # refinement choice and uncertainty calibration on the validation objects
-        result.update(fit_inference(_cpu_copy(model).folded(), data_, va_idx, list(obj_class.joint_types),
+        result.update(fit_inference(model.folded().cpu(), data_, va_idx, list(obj_class.joint_types),
                                     mirror_joints=obj_class.mirror_joints))
     result["load_seconds"] = round(t_load, 1)
     atomic_save(result, out)
@@ -347,15 +347,6 @@ def _on_cpu(state):
     if isinstance(state, (list, tuple)):
         return type(state)(_on_cpu(v) for v in state)
     return state
-
-
-def _cpu_copy(model):
-    """``model`` itself when on the CPU, else a CPU copy (validation and inference run there)."""
-    import copy
-
-    if next(model.parameters()).device.type == "cpu":
-        return model
-    return copy.deepcopy(model).cpu()
 
 
 def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *, progress: bool = True) -> dict:

@@ -23,6 +23,17 @@ MAX_LR = 1.0
 MAX_THREADS_PER_CPU = 4
 
 
+def check_per_cpu(option: str, n: int) -> None:
+    """A :class:`~articulated_dataset.errors.UserError` where ``n`` (torch threads, worker
+    processes) is more than :data:`MAX_THREADS_PER_CPU` per logical CPU of this machine."""
+    import os
+
+    most = MAX_THREADS_PER_CPU * (os.cpu_count() or 1)
+    if n > most:
+        raise UserError(f"{option} {n} is more than {MAX_THREADS_PER_CPU} per logical CPU of this machine "
+                        f"(at most {most})")
+
+
 @dataclass(frozen=True)
 class Preset:
     """Network size and input resolution; ``full`` is ResNet-18 at the native resolution."""

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import time
 from pathlib import Path
 
@@ -37,7 +36,7 @@ import numpy as np
 from ...errors import UserError, check_memory
 from .checkpoint import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, atomic_torch_save, load_checkpoint,
                          prepare_training_output, restore_training_state)
-from .config import MAX_THREADS_PER_CPU, TrainConfig
+from .config import TrainConfig, check_per_cpu
 from .data import (active_columns, anchored_columns, expand_active, load_split, resolve_split_dir, shift_anchored,
                    split_by_object)
 
@@ -84,10 +83,7 @@ def configure_threads(n_threads: int | None = None) -> int:
         from ...executors import usable_cpus
 
         n_threads = usable_cpus()
-    most = MAX_THREADS_PER_CPU * (os.cpu_count() or 1)
-    if n_threads > most:
-        raise UserError(f"--threads {n_threads} is more than {MAX_THREADS_PER_CPU} per logical CPU of this machine "
-                        f"(at most {most})")
+    check_per_cpu("--threads", n_threads)
     torch.set_num_threads(max(1, int(n_threads)))
     return torch.get_num_threads()
 
