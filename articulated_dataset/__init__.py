@@ -16,9 +16,9 @@ __version__ = "0.1.0"
 FORMAT_VERSION = "1.0"
 
 
-def estimate(depth_m, K, class_name, mask=None, model="dense", mirror=True):
+def estimate(depth_m, K, class_name, mask=None, model="dense", mirror=True, precision="float32"):
     """Estimate an object's articulation from one depth image: see
     :func:`articulated_dataset.models.estimation.estimate` (imports torch on first use)."""
     from .models.estimation import estimate as _estimate
 
-    return _estimate(depth_m, K, class_name, mask=mask, model=model, mirror=mirror)
+    return _estimate(depth_m, K, class_name, mask=mask, model=model, mirror=mirror, precision=precision)

@@ -47,6 +47,8 @@ def main(argv=None) -> int:
                    help="(e): batches predicted as predict_split does, in its worker processes (0: skip)")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--no-mirror", action="store_true", help="skip the refinement's mirror image (predict --no-mirror)")
+    p.add_argument("--precision", choices=["float32", "bfloat16"], default="float32",
+                   help="the network's arithmetic (predict --precision)")
     p.add_argument("--default-allocator", action="store_true",
                    help="leave glibc's malloc as it is (the commands set it to reuse freed memory: "
                         "articulated_dataset.executors.configure_allocator)")
@@ -92,7 +94,7 @@ def bench_class(args, class_name: str) -> None:
                            resume=True, progress=False)
     ref = resolve_model(args.model, class_name)
     ckpt = load_dense_checkpoint(ref.path)
-    model = build_inference_model(ckpt)
+    model = build_inference_model(ckpt, args.precision) if args.precision != "float32" else build_inference_model(ckpt)
     c = model.config
     data = load_dense_split(split, c.n_joints, (c.height_px, c.width_px), with_labels=False)
     idx = np.arange(min(args.batch, len(data.sample_id)))
@@ -152,13 +154,15 @@ def bench_class(args, class_name: str) -> None:
     with h5py.File(next(split.glob("shard-*.h5")), "r") as f:
         depths, K = f["depth"][:N_SINGLE], f["K"][()]
     options = {"mirror": False} if args.no_mirror else {}
+    if args.precision != "float32":
+        options["precision"] = args.precision
     ad.estimate(depths[0], K, class_name, model=args.model, **options)
     t0 = time.perf_counter()
     for d in depths:
         ad.estimate(d, K, class_name, model=args.model, **options)
     one_ms = 1e3 * (time.perf_counter() - t0) / len(depths)  # the mean over the images
     n = len(idx)
-    print(f"{class_name} {ref.name}: {torch.get_num_threads()} threads, batch {n}; "
+    print(f"{class_name} {ref.name}: {torch.get_num_threads()} threads, batch {n}, {args.precision}; "
           f"network {n / t_net:.0f} img/s; batched pipeline {n / t_full:.0f} img/s (one batch), "
           f"{args.batches * n / t_split:.0f} img/s ({args.batches} batches); "
           + (f"{len(many)} images as predict_split runs them ({workers} process{'es' if workers > 1 else ''}, "

@@ -7,6 +7,7 @@ mdn-small``), score with :func:`articulated_dataset.benchmark.score`, and print 
 axis position (cm), axis rotation (deg), configuration (deg | cm), 90% interval coverage and
 inference speed (images/s, network + aggregation, the split already in memory for dense; in
 ``predict_split``'s worker processes where it uses them, their start included).
+``--precision bfloat16``: the dense network in bfloat16 (``artdata predict --precision``).
 ``--json`` writes every figure.
 
     python benchmarks/shipped_models.py --root data-shipped --test-objects 1000
@@ -44,6 +45,8 @@ def main(argv=None) -> int:
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     p.add_argument("--no-mirror", action="store_true",
                    help="Dense: skip the refinement's mirror image (predict --no-mirror); predictions go to <class>-<model>-no-mirror.h5")
+    p.add_argument("--precision", choices=["float32", "bfloat16"], default="float32",
+                   help="the dense network's arithmetic (predict --precision)")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--quiet", "-q", action="store_true")
     args = p.parse_args(argv)
@@ -65,7 +68,8 @@ def main(argv=None) -> int:
         split_dir = generate_split(cfg, args.root, workers=args.workers, resume=True, progress=not args.quiet)
         for name in args.models:
             ref = resolve_model(name, cls)
-            out = args.root / "predictions" / f"{cls}-{name}{'-no-mirror' if args.no_mirror else ''}.h5"
+            tag = ("-no-mirror" if args.no_mirror else "") + ("" if args.precision == "float32" else f"-{args.precision}")
+            out = args.root / "predictions" / f"{cls}-{name}{tag}.h5"
             out.parent.mkdir(parents=True, exist_ok=True)
             t0 = time.perf_counter()
             if ref.kind == "dense":
@@ -76,7 +80,7 @@ def main(argv=None) -> int:
                 import numpy as np
 
                 ckpt = load_dense_checkpoint(ref.path)
-                model = build_inference_model(ckpt)
+                model = build_inference_model(ckpt, args.precision)
                 c = model.config
                 data = load_dense_split(split_dir, c.n_joints, (c.height_px, c.width_px), with_labels=False)
                 t1 = time.perf_counter()
@@ -100,6 +104,7 @@ def main(argv=None) -> int:
 
             rec = {"class": cls, "model": name, "method": method, "sha256": sha256_file(ref.path), "n_images": row.n_scored,
                    "mirror": not (args.no_mirror and ref.kind == "dense"),
+                   "precision": args.precision if ref.kind == "dense" else "float32",
                    **{k: m[k][0] for k in TABLE_METRICS}, "coverage_90": m.get("coverage_90", (float("nan"),))[0],
                    "images_per_s": speed, "test_seed": args.seed, "test_objects": args.test_objects,
                    "all_metrics": {k: v[0] for k, v in m.items()}}

@@ -184,3 +184,111 @@ def test_the_allocator_setting_reuses_freed_memory():
 def test_a_users_allocator_setting_is_kept():
     r = _mallinfo(True, MALLOC_TRIM_THRESHOLD_="131072")
     assert r["chosen"] is False and r["mapped_held"] >= BLOCK_BYTES
+
+
+def test_the_bfloat16_network_rounds_the_float32_one():
+    """folded(precision="bfloat16"): every weight in bfloat16, float32 in and out, outputs near the
+    float32 copy's (bfloat16 keeps 8 significant bits) but not equal to them (it is really used)."""
+    model = _random_statistics(DenseNet(DenseConfig(n_joints=1, width=8))).eval()
+    fp32, bf16 = model.folded(), model.folded("bfloat16")
+    assert {p.dtype for p in bf16.parameters()} == {torch.bfloat16}
+    assert {p.dtype for p in fp32.parameters()} == {torch.float32}
+    x = torch.randn(2, 9, 108, 192, generator=torch.Generator().manual_seed(3))
+    with torch.inference_mode():
+        a, b = fp32(x), bf16(x)
+    assert b.dtype == torch.float32 and b.shape == a.shape and b.is_contiguous()
+    scale = a.abs().max().item()
+    assert 0 < (a - b).abs().max().item() <= 0.1 * scale
+    assert (a - b).abs().mean().item() <= 0.01 * scale
+    with pytest.raises(ValueError, match="precision"):
+        model.folded("float16")
+
+
+def test_bfloat16_predictions_are_near_float32s(cabinet_split):
+    """The shipped cabinet model in both precisions on a rendered split: the same hinge sides and
+    axes within a few millimetres and tenths of a degree for nearly every image."""
+    from articulated_dataset.models import resolve_model
+    from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
+    from articulated_dataset.models.dense.data import load_dense_split
+
+    ckpt = load_dense_checkpoint(resolve_model("dense", "cabinet").path)
+    out = {}
+    for precision in ("float32", "bfloat16"):
+        model = build_inference_model(ckpt, precision)
+        c = model.config
+        data = load_dense_split(cabinet_split, c.n_joints, (c.height_px, c.width_px), with_labels=False)
+        out[precision] = P.predict_arrays(model, data, np.arange(len(data.sample_id)), joint_types=list(ckpt["joint_types"]),
+                                          calibration=ckpt.get("calibration"), refinement=ckpt.get("refinement"))
+    a, b = out["float32"]["axis_pose"], out["bfloat16"]["axis_pose"]
+    moved_cm = 100 * np.linalg.norm(a[..., :3] - b[..., :3], axis=-1)
+    assert np.median(moved_cm) < 0.5 and np.mean(moved_cm < 2.0) >= 0.9
+    dq_deg = np.degrees(np.abs(out["float32"]["q"] - out["bfloat16"]["q"]))
+    assert np.median(dq_deg) < 0.5
+
+
+def test_only_the_door_angles_a_refinement_reads_are_computed(cabinet_split):
+    """Refinement.door_angles names what apply_refinement and the handles' choice of doors read;
+    refined_quantities with that subset gives those keys with the numbers of the full computation."""
+    from dataclasses import replace
+
+    from articulated_dataset.models import resolve_model
+    from articulated_dataset.models.dense import refine as R
+    from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
+    from articulated_dataset.models.dense.data import load_dense_split
+
+    ckpt = load_dense_checkpoint(resolve_model("dense", "cabinet").path)
+    ref = R.as_refinement(ckpt["refinement"])
+    assert ref.door_angle_signed and ref.handle_max_q_deg is not None and ref.handle_height_gate_m is not None
+    assert ref.door_angles == ("q_signed",)  # step 9 measures every door's handle
+    # step 7 alone measures the handles of the doors whose plain angle may be below its limit
+    assert replace(ref, handle_height_gate_m=None).door_angles == ("q", "q_signed")
+    assert replace(ref, handle_max_q_deg=None, handle_height_gate_m=None).door_angles == ("q_signed",)
+    assert replace(ref, door_angle_signed=False, door_angle_folded=True, handle_max_q_deg=None).door_angles == ("q_folded",)
+    assert replace(ref, min_door_px=None, handle_max_q_deg=None).door_angles == ()
+    model = build_inference_model(ckpt)
+    c = model.config
+    data = load_dense_split(cabinet_split, c.n_joints, (c.height_px, c.width_px), with_labels=False)
+    kw = dict(joint_types=list(ckpt["joint_types"]), refine=True, split_factor=ref.split_factor,
+              frame_min_prob=ref.frame_min_prob, mirror_joints=ref.mirror_joints)
+    depth, K = data.depth(np.arange(16)), torch.from_numpy(data.K[:16])
+    _, full = P.batch_modes(model, depth, K, **kw)
+    assert set(R.DOOR_ANGLES) <= set(full)
+    for angles in [("q_signed",), ("q_folded",), ()]:
+        _, some = P.batch_modes(model, depth, K, door_angles=angles, **kw)
+        assert set(some) == set(full) - (set(R.DOOR_ANGLES) - set(angles))
+        for k, v in some.items():
+            assert np.array_equal(v, full[k], equal_nan=True), k
+
+
+def test_predict_and_estimate_precision_on_the_command_line(cabinet_split, tmp_path):
+    from articulated_dataset.benchmark.predictions import read_predictions
+
+    out = tmp_path / "bf16.h5"
+    r = _cli("predict", "--model", "dense", "--data", str(cabinet_split), "--out", str(out), "--precision", "bfloat16",
+             "--workers", "1", "-q")
+    assert r.exit_code == 0, r.output
+    attrs, per_class = read_predictions(out)
+    assert attrs["precision"] == "bfloat16" and per_class["cabinet"]["axis_pose"].shape[0] == 48
+    r = _cli("predict", "--model", "dense", "--data", str(cabinet_split), "--out", str(tmp_path / "x.h5"),
+             "--precision", "float16", "-q")
+    assert r.exit_code == 2 and "float16" in r.output
+    r = _cli("predict", "--model", "mdn-small", "--data", str(cabinet_split), "--out", str(tmp_path / "m.h5"),
+             "--precision", "bfloat16", "-q")
+    assert r.exit_code == 2
+    assert r.output.strip() == "artdata: error: --precision applies to the dense model (the MDN uses bfloat16 on a GPU by itself)"
+
+
+def test_estimate_in_bfloat16(cabinet_split):
+    import h5py
+
+    import articulated_dataset as ad
+    from articulated_dataset.errors import UserError
+
+    with h5py.File(next(cabinet_split.glob("shard-*.h5")), "r") as f:
+        depth, K = f["depth"][0], f["K"][()]  # metres
+    K = K[0] if K.ndim == 3 else K
+    a = ad.estimate(depth, K, "cabinet")
+    b = ad.estimate(depth, K, "cabinet", precision="bfloat16")
+    assert np.linalg.norm(a.axis_origin_m - b.axis_origin_m) < 0.05
+    with pytest.raises(UserError, match="--precision must be one of float32, bfloat16"):
+        ad.estimate(depth, K, "cabinet", precision="half")

@@ -6,7 +6,7 @@ import json
 
 import click
 
-from .options import ClassChoice, no_mirror_option, prepare_torch
+from .options import ClassChoice, no_mirror_option, precision_option, prepare_torch
 
 
 @click.command("estimate")
@@ -21,10 +21,11 @@ from .options import ClassChoice, no_mirror_option, prepare_torch
               help="Units of the depth values (auto: 16-bit PNG = mm, float EXR/npy = m).")
 @click.option("--model", default="dense", show_default=True, help="'dense' (shipped weights) or a dense checkpoint file.")
 @no_mirror_option
+@precision_option
 @click.option("--json", "as_json", is_flag=True, help="Print the estimate as JSON.")
 @click.option("--threads", type=int, default=1, show_default=True,
               help="CPU threads for torch (one image gains little from more, and loses much on a busy machine).")
-def estimate_cmd(depth, class_name, camera_path, mask_path, depth_units, model, no_mirror, as_json, threads):
+def estimate_cmd(depth, class_name, camera_path, mask_path, depth_units, model, no_mirror, precision, as_json, threads):
     """Estimate the articulation (axis origin and direction, q, size, uncertainty) of the object in DEPTH.
 
     DEPTH is a 16-bit PNG in millimetres, an EXR or a .npy in metres.  Results are in the
@@ -33,7 +34,8 @@ def estimate_cmd(depth, class_name, camera_path, mask_path, depth_units, model, 
     from ..models.estimation import estimate_file
 
     est = estimate_file(depth, class_name, camera_path=camera_path, mask_path=mask_path, depth_units=depth_units,
-                        model=model, mirror=not no_mirror, before_model=lambda: prepare_torch(threads))
+                        model=model, mirror=not no_mirror, precision=precision,
+                        before_model=lambda: prepare_torch(threads))
     click.echo(json.dumps(est.to_dict(), indent=2) if as_json else est.summary())
 
 

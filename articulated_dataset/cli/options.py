@@ -35,6 +35,14 @@ no_mirror_option = click.option(
          "two-door cabinet and drawer models average with the image's): one network pass instead of two, 1.1-1.5x as "
          "fast for those classes, with a 4-6% higher position error.")
 
+#: ``--precision`` of ``predict`` and ``estimate`` (the dense network's arithmetic:
+#: :meth:`articulated_dataset.models.dense.model.DenseNet.folded`).
+precision_option = click.option(
+    "--precision", type=click.Choice(["float32", "bfloat16"]), default="float32", show_default=True,
+    help="Dense model: the network's arithmetic. bfloat16 runs it about twice as fast on CPUs with native bfloat16 "
+         "(AVX512-BF16, AMX) and is emulated, slower, elsewhere; the predictions differ by its rounding "
+         "(docs/dense.md, 'Precision').")
+
 
 def prepare_torch(threads: int | None) -> int:
     """Import torch once for the command and set its threads, with the OpenMP wait policy

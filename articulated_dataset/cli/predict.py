@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from ..errors import UserError
-from .options import no_mirror_option, prepare_torch
+from .options import no_mirror_option, precision_option, prepare_torch
 
 
 @click.command("predict")
@@ -25,6 +25,7 @@ from .options import no_mirror_option, prepare_torch
               help="Dense model: keep only the object's pixels (the split's mask codes), as a robot's segmentation "
                    "would; for splits made with --scene or --occluders.")
 @no_mirror_option
+@precision_option
 @click.option("--method", default=None, help="Method name in the file and the score table (default: dense, MDN or MDN-small).")
 @click.option("--batch-size", type=int, default=None, help="Images per forward pass (default: MDN 256, dense 128).")
 @click.option("--device", default="auto", show_default=True, help="auto (GPU if present), cpu, cuda or cuda:N.")
@@ -34,8 +35,8 @@ from .options import no_mirror_option, prepare_torch
                    "(default: one per thread for splits of 4,096 images or more, else 1: this process).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or summary.")
-def predict_cmd(model_path, data, out, estimate, snap_to_cloud, object_mask, no_mirror, method, batch_size, device, threads,
-                workers, overwrite, quiet):
+def predict_cmd(model_path, data, out, estimate, snap_to_cloud, object_mask, no_mirror, precision, method, batch_size,
+                device, threads, workers, overwrite, quiet):
     """Predict axis poses, configurations, geometry and the full mixture for every image of a split."""
     out = Path(out)
     if out.exists() and not overwrite:
@@ -48,7 +49,7 @@ def predict_cmd(model_path, data, out, estimate, snap_to_cloud, object_mask, no_
     t0 = time.perf_counter()
     run = predict_to_file(model_path, data, out, estimate=estimate, snap_to_cloud=snap_to_cloud, object_mask=object_mask,
                           method=method, batch_size=batch_size, device=device, mirror=not no_mirror,
-                          workers=workers, progress=not quiet)
+                          workers=workers, precision=precision, progress=not quiet)
     if not quiet:
         click.echo(f"{out}: {run.n_images} {run.class_name} images predicted by {run.method}"
                    f"{' (snapped to the cloud)' if snap_to_cloud else ''} in {time.perf_counter() - t0:.1f} s")

@@ -99,7 +99,7 @@ class Estimate:
 _MODEL_CACHE: dict = {}
 
 
-def _load(model: str, class_name: str):
+def _load(model: str, class_name: str, precision: str = "float32"):
     from .dense.checkpoint import build_inference_model, load_dense_checkpoint
     from .shipped import resolve_model
 
@@ -107,10 +107,10 @@ def _load(model: str, class_name: str):
     if ref.kind != "dense":
         raise UserError(f"--model {model}: single-image estimates use a dense model (the shipped 'dense' or a "
                         f"'artdata train --model dense' checkpoint); run MDN models with 'artdata predict'")
-    key = (str(ref.path), ref.path.stat().st_mtime_ns)
+    key = (str(ref.path), ref.path.stat().st_mtime_ns, precision)
     if key not in _MODEL_CACHE:
         ckpt = load_dense_checkpoint(ref.path)
-        _MODEL_CACHE[key] = (ckpt, build_inference_model(ckpt), ref.name)
+        _MODEL_CACHE[key] = (ckpt, build_inference_model(ckpt, precision), ref.name)
     return _MODEL_CACHE[key]
 
 
@@ -140,21 +140,23 @@ def check_depth(depth_m: np.ndarray, mask: np.ndarray | None, where: str = "dept
 
 
 def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarray | None = None,
-             model: str = "dense", mirror: bool = True) -> Estimate:
+             model: str = "dense", mirror: bool = True, precision: str = "float32") -> Estimate:
     """Estimate the articulation of a ``class_name`` object in one depth image.
 
     ``depth_m``: (H, W) z-depth in metres (0 or NaN = no return); ``K``: 3x3 intrinsics of that
     image (OpenCV convention, pixel centres at integers); ``mask``: optional (H, W) boolean object
     mask (pixels outside it are ignored).  ``model``: ``"dense"`` (shipped weights) or a dense
     checkpoint path.  ``mirror=False`` skips the refinement's mirror image where the model uses
-    it (cabinet, two-door cabinet, drawer: faster, a 4-6% higher position error).  Bad input
+    it (cabinet, two-door cabinet, drawer: faster, a 4-6% higher position error).
+    ``precision``: the network's arithmetic, ``"float32"`` or ``"bfloat16"`` (docs/dense.md,
+    "Precision").  Bad input
     raises :class:`~articulated_dataset.errors.UserError`.
     """
     import torch
 
     from ..camera import CameraConfig
     from .dense.mirror import with_mirror
-    from .dense.predict import modes_to_arrays, refined_batch
+    from .dense.predict import check_precision, modes_to_arrays, refined_batch
     from ..registry import get_class
     from ..real.intrinsics import check_intrinsics
     from ..real.resample import crop_intrinsics, mask_fraction_inside, resample_depth
@@ -167,7 +169,8 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     if K.shape != (3, 3) or not np.isfinite(K).all():
         raise UserError(f"intrinsics must be a finite 3x3 matrix, got shape {K.shape}")
     check_intrinsics(K, (depth.shape[1], depth.shape[0]), "intrinsics")
-    ckpt, net, name = _load(model, obj_class.name)
+    check_precision(precision)
+    ckpt, net, name = _load(model, obj_class.name, precision)
     cfg = net.config
     if m is not None:
         depth = np.where(m, depth, 0.0)
@@ -202,7 +205,8 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
 
 def estimate_file(depth_path: str | Path, class_name: str, *, camera_path: str | Path | None = None,
                   mask_path: str | Path | None = None, depth_units: str = "auto", model: str = "dense",
-                  mirror: bool = True, before_model: Callable[[], object] | None = None) -> Estimate:
+                  mirror: bool = True, precision: str = "float32",
+                  before_model: Callable[[], object] | None = None) -> Estimate:
     """:func:`estimate` of a depth file (16-bit PNG in mm, EXR or .npy in m; ``depth_units``
     overrides) with its camera file (default: ``NAME.camera.json`` or ``camera.json`` beside
     it, as ``artdata ingest`` finds them) and an optional object mask PNG (non-zero = object).
@@ -232,4 +236,4 @@ def estimate_file(depth_path: str | Path, class_name: str, *, camera_path: str |
         mask = load_mask(mask_path, d.shape, get_class(class_name).n_joints) > 0
     if before_model is not None:
         before_model()
-    return estimate(d, K, class_name, mask=mask, model=model, mirror=mirror)
+    return estimate(d, K, class_name, mask=mask, model=model, mirror=mirror, precision=precision)

@@ -25,14 +25,15 @@ class PredictionRun:
 def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: str = "mean-of-best",
                     snap_to_cloud: bool = False, object_mask: bool = False, method: str | None = None,
                     batch_size: int | None = None, device: str = "auto", mirror: bool = True,
-                    workers: int | None = None, progress: bool = False) -> PredictionRun:
+                    workers: int | None = None, precision: str = "float32", progress: bool = False) -> PredictionRun:
     """Predict every image of the split ``data`` with ``model`` and write ``out`` (``predictions.h5``).
 
     The dense model: batches of 128 by default, its heaviest vote mode, ``object_mask`` keeps
     the object's pixels only, ``mirror=False`` skips the refinement's mirror image (where the
     model uses it: one network pass instead of two, 1.1-1.5x the speed, a 4-6% higher position error),
     ``workers`` processes share the images (None: one per torch thread where the split has 4,096
-    images or more, :func:`~.dense.predict.default_workers`); the MDN: batches of 256,
+    images or more, :func:`~.dense.predict.default_workers`), ``precision`` is the network's
+    arithmetic (``"float32"`` or ``"bfloat16"``); the MDN: batches of 256,
     ``estimate`` and ``snap_to_cloud``.  An
     option of the other kind is a :class:`UserError`.  ``method`` names the method in the
     file (default ``dense``, ``MDN`` or ``MDN-<preset>``)."""
@@ -50,9 +51,10 @@ def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: 
         ckpt = load_dense_checkpoint(ref.path)
         name = method or "dense"
         class_name, arrays = predict_dense(ckpt, data, batch_size=128 if batch_size is None else batch_size,
-                                           object_mask=object_mask, mirror=mirror, workers=workers, progress=progress)
+                                           object_mask=object_mask, mirror=mirror, workers=workers, precision=precision,
+                                           progress=progress)
         attrs = {"model": str(model), "estimate": "heaviest-mode", "steps": int(ckpt["step"]),
-                 "object_mask": int(object_mask), "mirror": int(mirror)}
+                 "object_mask": int(object_mask), "mirror": int(mirror), "precision": precision}
     else:
         if object_mask:
             raise UserError("--object-mask applies to the dense model")
@@ -60,6 +62,8 @@ def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: 
             raise UserError("--no-mirror applies to the dense model")
         if workers is not None:
             raise UserError("--workers applies to the dense model (the MDN uses torch's threads)")
+        if precision != "float32":
+            raise UserError("--precision applies to the dense model (the MDN uses bfloat16 on a GPU by itself)")
         from .mdn.checkpoint import load_checkpoint
         from .mdn.predict import predict_split
 

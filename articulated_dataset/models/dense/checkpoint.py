@@ -47,7 +47,8 @@ def build_dense_model(ckpt: dict):
     return model.eval()
 
 
-def build_inference_model(ckpt: dict):
+def build_inference_model(ckpt: dict, precision: str = "float32"):
     """The network of a checkpoint for inference: :func:`build_dense_model` with its batch
-    normalisations folded into its convolutions (:meth:`~.model.DenseNet.folded`)."""
-    return build_dense_model(ckpt).folded()
+    normalisations folded into its convolutions (:meth:`~.model.DenseNet.folded`), computing in
+    ``precision`` (``"float32"`` or ``"bfloat16"``)."""
+    return build_dense_model(ckpt).folded(precision)

@@ -37,6 +37,14 @@ PART_OFFSET_CHANNELS = slice(10, 13)
 CONF_CHANNELS = slice(13, 16)
 #: Geometry channels: depth, width, height, chirality logit, confidence.
 GEOMETRY_CHANNELS = 5
+#: The arithmetic an inference copy of the network may run in (:meth:`DenseNet.folded`).
+PRECISIONS = ("float32", "bfloat16")
+
+
+def bfloat16_native() -> bool:
+    """Whether this CPU computes bfloat16 convolutions natively (oneDNN's AVX512-BF16 or AMX
+    kernels); elsewhere ``precision="bfloat16"`` is emulated, and slower than float32."""
+    return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
 
 
 @dataclass(frozen=True)
@@ -84,6 +92,9 @@ class DenseNet(nn.Module):
         self.to(memory_format=torch.channels_last)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        dtype = self.head.weight.dtype
+        if x.dtype != dtype:  # a bfloat16 copy (folded(precision="bfloat16")) takes float32 inputs
+            x = x.to(dtype).contiguous(memory_format=torch.channels_last)  # 1.7x as fast as both in one .to()
         f1 = self.e1(self.stem(x))
         f2 = self.e2(f1)
         f3 = self.e3(f2)
@@ -96,9 +107,9 @@ class DenseNet(nn.Module):
         y = self.d3(torch.cat([up(f4, f3), f3], 1))
         y = self.d2(torch.cat([up(y, f2), f2], 1))
         y = self.d1(torch.cat([up(y, f1), f1], 1))
-        return self.head(y).contiguous()
+        return self.head(y).to(torch.float32).contiguous()
 
-    def folded(self) -> "DenseNet":
+    def folded(self, precision: str = "float32") -> "DenseNet":
         """A copy for inference: eval mode, every batch normalisation folded into the convolution
         before it (:func:`torch.nn.utils.fusion.fuse_conv_bn_eval`: ``w' = w g / s``, ``b' = beta +
         (b - mu) g / s`` with ``s = sqrt(var + eps)``), channels-last.  The same function to float
@@ -108,7 +119,15 @@ class DenseNet(nn.Module):
         :func:`~.features.make_inputs` writes channel by channel) the stem runs 1.6x as fast as in
         channels-last with the input converted to it (32 images on one core: 6.6 against 10.7 ms;
         every later layer reads the stem's output in channels-last).  It has no batch
-        normalisation to train; its ``state_dict`` is not a checkpoint's."""
+        normalisation to train; its ``state_dict`` is not a checkpoint's.
+
+        ``precision="bfloat16"``: the folded weights rounded to bfloat16 (8 significant bits) and
+        every layer computed in it, the stem included in channels-last (its input is converted
+        once, with the cast); inputs and outputs stay float32.  On a CPU with native bfloat16
+        arithmetic (AVX512-BF16 or AMX: :func:`bfloat16_native`) the network runs about twice
+        as fast; the outputs differ from float32's by the rounding (docs/dense.md "Precision")."""
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
         import copy
 
         from torch.nn.utils.fusion import fuse_conv_bn_eval
@@ -119,6 +138,8 @@ class DenseNet(nn.Module):
                 for i in range(len(seq) - 1):
                     if isinstance(seq[i], nn.Conv2d) and isinstance(seq[i + 1], nn.BatchNorm2d):
                         seq[i], seq[i + 1] = fuse_conv_bn_eval(seq[i], seq[i + 1]), nn.Identity()
+        if precision == "bfloat16":
+            return model.to(dtype=torch.bfloat16, memory_format=torch.channels_last)
         model.to(memory_format=torch.channels_last)
         model.stem.to(memory_format=torch.contiguous_format)
         return model

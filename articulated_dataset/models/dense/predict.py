@@ -188,7 +188,8 @@ def refined_batch(model, depth_m, K, *, joint_types: list[str], refinement, work
                        refine=refinement is not None and refinement.needed, split_factor=split_factor_of(refinement),
                        handle_max_q_deg=None if refinement is None else refinement.handle_evidence_max_q_deg,
                        frame_min_prob=None if refinement is None else refinement.frame_min_prob,
-                       mirror_joints=None if refinement is None else refinement.mirror_joints, workspace=workspace)
+                       mirror_joints=None if refinement is None else refinement.mirror_joints,
+                       door_angles=None if refinement is None else refinement.door_angles, workspace=workspace)
     return apply_refinement(m, r, refinement, joint_types)
 
 
@@ -201,13 +202,15 @@ def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: dict | N
 
 def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, split_factor: float | None,
                 handle_max_q_deg: float | None = None, frame_min_prob: float | None = None,
-                mirror_joints=None, workspace: dict | None = None) -> tuple[dict, dict | None]:
+                mirror_joints=None, door_angles: tuple[str, ...] | None = None,
+                workspace: dict | None = None) -> tuple[dict, dict | None]:
     """One batch of depth images (B, H, W) m and intrinsics (B, 3, 3) at the model's resolution ->
     vote modes (:func:`~.aggregate.vote_modes` with ``split_factor``, a checkpoint's
     :func:`~.refine.split_factor_of`) and, with ``refine``, the refined quantities
     (:func:`~.refine.refined_quantities`; with ``handle_max_q_deg``, also the handles of the doors
     whose angle may be below it: :func:`~.handle.handle_evidence`; ``frame_min_prob``: the box
-    frame's pixel threshold, :attr:`~.refine.Refinement.frame_min_prob`), as float64 numpy arrays.
+    frame's pixel threshold, :attr:`~.refine.Refinement.frame_min_prob`; ``door_angles``: step 5's
+    angles to compute, None: all), as float64 numpy arrays.
     ``workspace``: a dict a loop over batches passes to every call, which keeps the network input's
     tensor for the next batch to write into (a fresh one costs more in page faults than filling it)."""
     import torch
@@ -215,7 +218,7 @@ def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, spli
     from .aggregate import vote_modes
     from .features import make_inputs
     from .handle import handle_candidates_evidence
-    from .refine import refined_quantities
+    from .refine import DOOR_ANGLES, refined_quantities
 
     if model.training:
         model.eval()
@@ -223,7 +226,8 @@ def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, spli
         inputs = make_inputs(depth_m, K, out=None if workspace is None else workspace.pop("x", None))
         parts = model.split(network_outputs(model, inputs["x"], mirror_joints))
         modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0, split_factor=split_factor)
-        r = refined_quantities(parts, inputs, modes, joint_types, frame_min_prob) if refine else None
+        r = refined_quantities(parts, inputs, modes, joint_types, frame_min_prob,
+                               DOOR_ANGLES if door_angles is None else door_angles) if refine else None
         if r is not None and handle_max_q_deg is not None:
             r.update(handle_candidates_evidence(parts, inputs, modes, r, joint_types, handle_max_q_deg))
     if workspace is not None:
@@ -479,8 +483,22 @@ def _quat_from_rot6(r6: np.ndarray) -> np.ndarray:
     return matrix_to_quat(gram_schmidt(r6[..., :3], r6[..., 3:]))
 
 
+def check_precision(precision: str) -> None:
+    """``--precision`` of ``predict`` and ``estimate``: one of :data:`~.model.PRECISIONS`
+    (else a UserError); ``bfloat16`` on a CPU without native bfloat16 arithmetic logs a warning
+    (oneDNN emulates it, slower than float32)."""
+    from .model import PRECISIONS, bfloat16_native
+
+    if precision not in PRECISIONS:
+        raise UserError(f"--precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    if precision == "bfloat16" and not bfloat16_native():
+        log.warning("this CPU has no native bfloat16 arithmetic (AVX512-BF16 or AMX): --precision bfloat16 is "
+                    "emulated and slower than float32")
+
+
 def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BATCH, object_mask: bool = False,
-                  mirror: bool = True, workers: int | None = None, progress: bool = True) -> tuple[str, dict]:
+                  mirror: bool = True, workers: int | None = None, precision: str = "float32",
+                  progress: bool = True) -> tuple[str, dict]:
     """Run a loaded dense checkpoint on the split at ``data``; ``(class_name, arrays)`` as
     :func:`articulated_dataset.benchmark.predictions.write_predictions` takes them.  Labels are not
     read; with ``object_mask`` the split's mask keeps only the object's pixels
@@ -488,7 +506,7 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
     logs a warning: the model was trained on isolated objects and reads every pixel with depth.
     ``mirror=False`` skips the refinement's mirror image (:func:`~.mirror.with_mirror`).
     ``workers``: processes that share the images (:func:`predict_arrays`); None:
-    :func:`default_workers`."""
+    :func:`default_workers`.  ``precision``: the network's arithmetic (:func:`check_precision`)."""
     from ..mdn.data import resolve_split_dir, split_class
     from .checkpoint import build_inference_model
     from .data import load_dense_split
@@ -502,6 +520,7 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
         if workers <= 0:
             raise UserError(f"--workers must be positive, got {workers}")
         check_per_cpu("--workers", workers)
+    check_precision(precision)
     class_name = ckpt["class_name"]
     split_dir = resolve_split_dir(data)
     data_class = split_class(split_dir)
@@ -516,7 +535,7 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
                         "trained on isolated objects and reads every pixel with depth: pass --object-mask to give it "
                         "only the object's pixels, as a robot's segmentation would", split_dir,
                         config.get("scene", "none"), config.get("occluders", 0))
-    model = build_inference_model(ckpt)
+    model = build_inference_model(ckpt, precision)
     cfg = model.config
     d = load_dense_split(split_dir, cfg.n_joints, (cfg.height_px, cfg.width_px), with_labels=False,
                          object_mask=object_mask, progress=progress)

@@ -87,6 +87,9 @@ PRIOR_WEIGHT_PX = 10.0
 #: The frame alignment reads the normals of every this-many-th row and column (2 is ~10% faster
 #: and measured ~0.05 deg worse on microwave validation objects).
 ALIGN_STRIDE = 1
+#: Step 5's door angles (:func:`refined_quantities`' keys): from the normals' unsigned angles, folded
+#: towards the votes, and signed.
+DOOR_ANGLES = ("q", "q_folded", "q_signed")
 #: Step 6: the door's extent along the axis is read between these quantiles of its pixels.
 DOOR_EXTENT_QUANTILE = 0.005
 #: Step 6 needs at least this many door pixels.
@@ -148,6 +151,18 @@ class Refinement:
         """Whether it changes anything (else the refined quantities need not be computed)."""
         return (self.frame or self.min_door_px is not None or self.door_extent or self.handle_max_q_deg is not None
                 or self.handle_height_gate_m is not None)
+
+    @property
+    def door_angles(self) -> tuple[str, ...]:
+        """The step-5 door angles inference reads (of :data:`DOOR_ANGLES`): :func:`apply_refinement`'s
+        and the handles' choice of doors; :func:`refined_quantities` computes only these."""
+        used = set()
+        if self.min_door_px is not None:
+            used.add("q_signed" if self.door_angle_signed else "q_folded" if self.door_angle_folded else "q")
+        handle_deg = self.handle_evidence_max_q_deg
+        if handle_deg is not None and handle_deg < EVERY_DOOR_DEG:  # which doors' handles are measured
+            used.add("q")  # (:func:`~.handle.handle_candidates_evidence`)
+        return tuple(k for k in DOOR_ANGLES if k in used)
 
     @property
     def handle_evidence_max_q_deg(self) -> float | None:
@@ -319,9 +334,12 @@ def _compact(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 @torch.no_grad()
-def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, frame_min_prob: float | None = None) -> dict:
+def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, frame_min_prob: float | None = None,
+                       door_angles: tuple[str, ...] = DOOR_ANGLES) -> dict:
     """Steps 1-3, 5 and 6 for a batch (see the module docstring); step 2 on the pixels whose
-    label's segmentation probability exceeds ``frame_min_prob`` (None: all of them).
+    label's segmentation probability exceeds ``frame_min_prob`` (None: all of them); of step 5's
+    angles only ``door_angles`` (a subset of :data:`DOOR_ANGLES`: a refinement's
+    :attr:`Refinement.door_angles`; the choice among them on validation objects needs all).
 
     ``parts``: :meth:`DenseNet.split` output; ``inputs``: :func:`~.features.make_inputs` output;
     ``modes``: :func:`~.aggregate.vote_modes` output.  Returns ``axis``, ``xaxis`` (B, J, M, 3)
@@ -347,13 +365,13 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, fram
     for rows in rows_of:
         groups.append(_refine_images(x, rows, valid_px[rows], parts["seg"][rows], frame[rows], inputs["anchor"][rows],
                                      modes["origin"][rows], modes["axis"][rows], voted_q[rows], joint_types,
-                                     frame_min_prob))
+                                     frame_min_prob, door_angles))
     return {k: torch.cat([g[k] for g in groups])[back] for k in groups[0]}
 
 
 def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, seg: torch.Tensor, frame: torch.Tensor,
                    anchor: torch.Tensor, origin: torch.Tensor, voted_axis: torch.Tensor, voted_q: torch.Tensor,
-                   joint_types, frame_min_prob: float | None = None) -> dict:
+                   joint_types, frame_min_prob: float | None = None, door_angles: tuple[str, ...] = ()) -> dict:
     """:func:`refined_quantities` of the images ``rows`` of the input ``x``: their valid pixels
     (R, H * W), segmentation logits, sign-free frames (step 1), anchors, voted origins and axes and
     the voted door angles (R, J) rad."""
@@ -404,35 +422,36 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     with_normal = dok & has_normal.view(-1).index_select(0, door_at).view(R * J, m)
     door_normals = normals.view(R * n, 3).index_select(0, door_at).view(R * J, m, 3)
     proj = door_normals @ torch.stack([xf, yf], -1).flatten(0, 1)  # (R * J, m, 2): n.x, n.y
-    angle = torch.atan2(proj[..., 0].abs(), proj[..., 1].abs())  # (R * J, m) in [0, pi / 2]
-    q = lower_median(angle, with_normal).view(R, J)  # equal weights
-    q = torch.where(revolute[None], q, torch.full_like(q, float("nan")))
-    # step 5, folded: each pixel's angle or its complement, whichever is nearer the voted angle (a
-    # door's edge, or a door seen almost edge-on, shows normals at pi / 2 - q)
-    complement = (math.pi / 2) - angle
-    near = voted_q.reshape(R * J, 1)
-    folded = torch.where((complement - near).abs() < (angle - near).abs(), complement, angle)
-    q_folded = lower_median(folded, with_normal).view(R, J)
-    q_folded = torch.where(revolute[None], q_folded, torch.full_like(q_folded, float("nan")))
-    # step 5, signed: the angle of each normal from y towards x, signs kept; the door's four faces
-    # (outer and inner face, free and hinge edge) put it at -q, pi - q, pi / 2 - q and -pi / 2 - q,
-    # so -angle mod pi / 2 is q on every face (for x = +xf; -q for x = -xf); its median on the
-    # circle of period pi / 2 (about the pixels' circular mean, so a closed door's 0 and 89.9 degrees
-    # are neighbours)
-    u = torch.remainder(-torch.atan2(proj[..., 0], proj[..., 1]), math.pi / 2)  # (R * J, m)
-    weight = with_normal.to(u.dtype)
-    centre = torch.atan2((weight * torch.sin(4.0 * u)).sum(-1), (weight * torch.cos(4.0 * u)).sum(-1))[:, None] / 4.0
-    around = torch.remainder(u - centre + math.pi / 4, math.pi / 2) + centre - math.pi / 4
-    q_signed = lower_median(around, with_normal).view(R, J)
-    q_signed = torch.where(revolute[None], q_signed, torch.full_like(q_signed, float("nan")))
+    angles = {}  # equal weights; NaN for prismatic joints
+    per_door = lambda values: torch.where(revolute[None], lower_median(values, with_normal).view(R, J),  # noqa: E731
+                                          torch.tensor(float("nan"), dtype=x.dtype))
+    if "q" in door_angles or "q_folded" in door_angles:
+        angle = torch.atan2(proj[..., 0].abs(), proj[..., 1].abs())  # (R * J, m) in [0, pi / 2]
+    if "q" in door_angles:
+        angles["q"] = per_door(angle)
+    if "q_folded" in door_angles:
+        # step 5, folded: each pixel's angle or its complement, whichever is nearer the voted angle (a
+        # door's edge, or a door seen almost edge-on, shows normals at pi / 2 - q)
+        complement = (math.pi / 2) - angle
+        near = voted_q.reshape(R * J, 1)
+        angles["q_folded"] = per_door(torch.where((complement - near).abs() < (angle - near).abs(), complement, angle))
+    if "q_signed" in door_angles:
+        # step 5, signed: the angle of each normal from y towards x, signs kept; the door's four faces
+        # (outer and inner face, free and hinge edge) put it at -q, pi - q, pi / 2 - q and -pi / 2 - q,
+        # so -angle mod pi / 2 is q on every face (for x = +xf; -q for x = -xf); its median on the
+        # circle of period pi / 2 (about the pixels' circular mean, so a closed door's 0 and 89.9 degrees
+        # are neighbours)
+        u = torch.remainder(-torch.atan2(proj[..., 0], proj[..., 1]), math.pi / 2)  # (R * J, m)
+        weight = with_normal.to(u.dtype)
+        centre = torch.atan2((weight * torch.sin(4.0 * u)).sum(-1), (weight * torch.cos(4.0 * u)).sum(-1))[:, None] / 4.0
+        angles["q_signed"] = per_door(torch.remainder(u - centre + math.pi / 4, math.pi / 2) + centre - math.pi / 4)
     # step 6: the doors' points in the camera frame (m) and image rows
     door_px_at = at.index_select(0, door_at)
     door_relative = torch.stack([x_flat[c * H * W:].index_select(0, door_px_at) for c in (0, 1, 2)], -1).view(R * J, m, 3)
     door_points = door_relative * POINT_SCALE_M + anchor.repeat_interleave(J, 0)[:, None]
     door_row = row.view(-1).index_select(0, door_at).view(R * J, m)
     door_mid, door_cut = _door_extent(door_points, door_row, dok, side[:, :, 0, 0, None] * zf, revolute, H)
-    return {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], "q": q, "q_folded": q_folded,
-            "q_signed": q_signed, "box_x": xf,
+    return {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], **angles, "box_x": xf,
             "door_px": with_normal.sum(-1).view(R, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut}
 
 
