@@ -125,7 +125,11 @@ def bench_class(args, class_name: str) -> None:
         parts = model.split(out)
         t_modes, modes = timed(lambda: vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0,
                                                   split_factor=split_factor_of(refinement)))
-        t_refine, r = timed(lambda: refined_quantities(parts, inputs, modes, joint_types))
+        # as the pipeline runs it: the refinement's pixel threshold and only the door angles it reads
+        refine_options = {} if refinement is None else {"frame_min_prob": getattr(refinement, "frame_min_prob", None)}
+        if hasattr(refinement, "door_angles"):  # pragma: no branch - older code computes every angle
+            refine_options["door_angles"] = refinement.door_angles
+        t_refine, r = timed(lambda: refined_quantities(parts, inputs, modes, joint_types, **refine_options))
         # refinement steps 7 and 9 (the doors' handles) are part of the refinement
         handle_deg = None if refinement is None else getattr(refinement, "handle_evidence_max_q_deg",
                                                               getattr(refinement, "handle_max_q_deg", None))

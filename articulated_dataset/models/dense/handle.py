@@ -193,12 +193,12 @@ def handle_candidates_evidence(parts: dict, inputs: dict, modes: dict, refined: 
     normal-based angle (refinement step 5, NaN when unmeasured), below ``max_q_deg``.
     ``modes``: :func:`~.aggregate.vote_modes` output; ``refined``: :func:`~.refine.refined_quantities`'."""
     if max_q_deg >= EVERY_DOOR_DEG:  # every door (the refined angles need not have been computed)
-        return handle_evidence(parts, inputs, refined["axis"][:, :, 0], joint_types,
-                               torch.ones(refined["axis"].shape[:2], dtype=torch.bool))
-    limit = math.radians(max_q_deg)
-    measured = refined["q"]
-    voted = torch.where(modes["weight"] > 0, modes["q"], torch.full_like(modes["q"], math.inf)).amin(-1)
-    candidates = (voted < limit) | (measured < limit) | measured.isnan()
+        candidates = torch.ones(refined["axis"].shape[:2], dtype=torch.bool)
+    else:
+        limit = math.radians(max_q_deg)
+        measured = refined["q"]
+        voted = torch.where(modes["weight"] > 0, modes["q"], torch.full_like(modes["q"], math.inf)).amin(-1)
+        candidates = (voted < limit) | (measured < limit) | measured.isnan()
     return handle_evidence(parts, inputs, refined["axis"][:, :, 0], joint_types, candidates)
 
 
