@@ -116,7 +116,8 @@ def test_frame_alignment_matches_the_thresholded_reference():
     weights = (torch.rand(B, P, generator=gen) > 0.3).float()
     got = R._align_to_normals(frame, normals, weights)
     ref = _reference_alignment(frame, normals, weights)
-    assert torch.equal(got, ref)
+    # the same matched axes; the sums' order differs (the products' layouts), so the last bits may
+    torch.testing.assert_close(got, ref, atol=1e-6, rtol=0.0)
     assert (got - frame).abs().max() > 1e-3  # the alignment did move the frames
 
 
