@@ -22,6 +22,7 @@ rendered test images (a small split is generated under ``--root`` if needed).
 from __future__ import annotations
 
 import argparse
+import inspect
 import os
 import sys
 import time
@@ -125,15 +126,18 @@ def bench_class(args, class_name: str) -> None:
         parts = model.split(out)
         t_modes, modes = timed(lambda: vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0,
                                                   split_factor=split_factor_of(refinement)))
-        # as the pipeline runs it: the refinement's pixel threshold and only the door angles it reads
+        # as the pipeline runs it: the refinement's pixel threshold, only the door angles it reads and,
+        # for steps 7 and 9, the doors' handles (measured on the door pixels the refinement gathers)
         refine_options = {} if refinement is None else {"frame_min_prob": getattr(refinement, "frame_min_prob", None)}
         if hasattr(refinement, "door_angles"):  # pragma: no branch - older code computes every angle
             refine_options["door_angles"] = refinement.door_angles
-        t_refine, r = timed(lambda: refined_quantities(parts, inputs, modes, joint_types, **refine_options))
-        # refinement steps 7 and 9 (the doors' handles) are part of the refinement
         handle_deg = None if refinement is None else getattr(refinement, "handle_evidence_max_q_deg",
                                                               getattr(refinement, "handle_max_q_deg", None))
-        if handle_deg is not None:
+        in_refinement = "handles" in inspect.signature(refined_quantities).parameters
+        if handle_deg is not None and in_refinement:
+            refine_options["handles"] = True
+        t_refine, r = timed(lambda: refined_quantities(parts, inputs, modes, joint_types, **refine_options))
+        if handle_deg is not None and not in_refinement:  # pragma: no cover - older code measures them apart
             from articulated_dataset.models.dense.handle import handle_candidates_evidence
 
             t_handle, h = timed(lambda: handle_candidates_evidence(parts, inputs, modes, r, joint_types, handle_deg))

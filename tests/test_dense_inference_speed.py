@@ -292,3 +292,42 @@ def test_estimate_in_bfloat16(cabinet_split):
     assert np.linalg.norm(a.axis_origin_m - b.axis_origin_m) < 0.05
     with pytest.raises(UserError, match="--precision must be one of float32, bfloat16"):
         ad.estimate(depth, K, "cabinet", precision="half")
+
+
+@pytest.mark.parametrize("max_q_deg", [None, 5.0])
+def test_the_refinements_handles_are_handle_evidences(cabinet_split, max_q_deg):
+    """The handles the refinement measures on the door pixels it has gathered
+    (refined_quantities(handles=True), as batch_modes asks for them) are handle_evidence's of the
+    same doors, from the whole input: every door's (step 9) and only the candidates' (step 7
+    alone), to float rounding; and enough doors have a handle for the check to mean something."""
+    from articulated_dataset.models import resolve_model
+    from articulated_dataset.models.dense import refine as R
+    from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
+    from articulated_dataset.models.dense.data import load_dense_split
+    from articulated_dataset.models.dense.handle import EVERY_DOOR_DEG, HANDLE_KEYS, handle_candidates_evidence
+
+    ckpt = load_dense_checkpoint(resolve_model("dense", "cabinet").path)
+    ref = R.as_refinement(ckpt["refinement"])
+    model = build_inference_model(ckpt)
+    c = model.config
+    data = load_dense_split(cabinet_split, c.n_joints, (c.height_px, c.width_px), with_labels=False)
+    depth, K = data.depth(np.arange(24)), torch.from_numpy(data.K[:24])
+    joint_types = list(ckpt["joint_types"])
+    limit = EVERY_DOOR_DEG if max_q_deg is None else max_q_deg
+    _, got = P.batch_modes(model, depth, K, joint_types=joint_types, refine=True, split_factor=ref.split_factor,
+                           handle_max_q_deg=limit, frame_min_prob=ref.frame_min_prob)
+    with torch.inference_mode():
+        from articulated_dataset.models.dense.aggregate import vote_modes
+        from articulated_dataset.models.dense.features import make_inputs
+
+        inputs = make_inputs(depth, K)
+        parts = model.split(model(inputs["x"]))
+        modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0, split_factor=ref.split_factor)
+        r = R.refined_quantities(parts, inputs, modes, joint_types, ref.frame_min_prob)
+        want = handle_candidates_evidence(parts, inputs, modes, r, joint_types, limit)
+    seen = want["handle_px"].numpy() > 0
+    assert seen.sum() >= (8 if max_q_deg is None else 1), seen.sum()
+    if max_q_deg is not None:
+        assert not seen.all()  # some doors are not candidates (their handles are not measured)
+    for k in HANDLE_KEYS:
+        np.testing.assert_allclose(got[k], want[k].numpy().astype(np.float64), rtol=1e-5, atol=1e-5, err_msg=k)

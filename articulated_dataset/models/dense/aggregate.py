@@ -67,6 +67,26 @@ def argmax_channels(x: torch.Tensor) -> torch.Tensor:
     return arg
 
 
+def compact_mask(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(R, P) bool -> the column indices (R, n) of each row's True entries, in order and padded
+    with 0, and which of them are real (R, n); ``n`` is the largest row count (at least 1).
+    A mask more than a quarter True is compacted by a running count and one scatter (the
+    pixels of the cabinets' images and doors: twice as fast), a sparser one from its ``nonzero``."""
+    R, P = mask.shape
+    running = mask.cumsum(1, dtype=torch.int32)  # (int32: the compaction takes half the time in int64's)
+    counts = running[:, -1]
+    n = max(int(counts.max()), 1) if R else 1
+    idx = torch.zeros(R, n + 1, dtype=torch.long)
+    if 4 * int(counts.sum()) > mask.numel():
+        # each True entry's position among its row's, the others into a spare last column
+        target = torch.where(mask, running - 1, n).long()
+        idx.scatter_(1, target, torch.arange(P).expand(R, P))
+    else:
+        rows, cols = mask.nonzero(as_tuple=True)
+        idx[rows, torch.arange(len(rows)) - (counts.cumsum(0) - counts)[rows]] = cols
+    return idx[:, :n], torch.arange(n) < counts[:, None]
+
+
 def gram_schmidt6(r6: torch.Tensor, dim: int = -1) -> tuple[torch.Tensor, torch.Tensor]:
     """(..., 6) -> unit axis z = a/|a| and x = normalised (b - (b.z) z) (components along ``dim``)."""
     a, b = r6.narrow(dim, 0, 3), r6.narrow(dim, 3, 3)

@@ -48,7 +48,7 @@ import math
 import numpy as np
 import torch
 
-from .aggregate import argmax_channels
+from .aggregate import argmax_channels, compact_mask
 from .features import MIN_NORMAL_NORM, OUTPUT_STRIDE, POINT_SCALE_M
 
 #: How far a handle bar stands out of its door's face (m): ``handle_standoff_m`` of common.xacro.
@@ -75,6 +75,8 @@ HANDLE_MIN_CUT_LENGTH_M = 0.03
 #: The door angle limit (deg) under which :func:`handle_candidates_evidence` measures every door
 #: (step 9 reads the handles of open doors too).
 EVERY_DOOR_DEG = 180.0
+#: The keys of :func:`handle_evidence` (and :func:`door_handles`).
+HANDLE_KEYS = ("handle_px", "handle_point", "handle_size_m", "handle_cut", "handle_end_centre")
 #: Door pixels this far or further in front of the face (m) are taken for the handle ...
 HANDLE_MIN_STANDOFF_M = 0.4 * HANDLE_STANDOFF_M
 #: ... up to this far (m): nearer the camera than that is not the door's.
@@ -88,22 +90,89 @@ FACE_TRIM_M = 0.01
 MIN_RADIUS_M = 0.05
 
 
-def _per_image_mean(values: torch.Tensor, image: torch.Tensor, weight: torch.Tensor, B: int) -> tuple:
-    """Weighted sums per image of listed ``values`` (n, C) with ``weight`` (n,) -> (mean (B, C), total (B,)).
-    ``image`` (n,) is sorted (the pixels listed image by image), so the sums are over consecutive
-    runs (:func:`torch.segment_reduce`: twice as fast as ``index_add_``)."""
-    lengths = torch.bincount(image, minlength=B)
-    total = torch.segment_reduce(weight, "sum", lengths=lengths)
-    sums = torch.segment_reduce(values * weight[:, None], "sum", lengths=lengths, axis=0)
-    return sums / total.clamp_min(1e-12)[:, None], total
+def _row_mean(values: list, weight: torch.Tensor) -> tuple[list, torch.Tensor]:
+    """Weighted means along each row of ``values`` (components, each (D, m)) with ``weight``
+    (D, m) -> (the components' means (D,) each, the total weight (D,))."""
+    total = weight.sum(-1)
+    denominator = total.clamp_min(1e-12)
+    return [(v * weight).sum(-1) / denominator for v in values], total
+
+
+def _unit_rows(v: list) -> list:
+    """Components (D,) each of vectors -> those of the unit vectors (``F.normalize``'s eps, 1e-12)."""
+    norm = torch.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).clamp_min(1e-12)
+    return [c / norm for c in v]
+
+
+def door_handles(points: list, normals: list, real: torch.Tensor, row: torch.Tensor, axis_line: torch.Tensor,
+                 H: int) -> dict:
+    """Steps 1-2 for doors listed row by row: ``points`` and ``normals`` (x, y, z components, each
+    (D, m): camera-frame points, m, and input normals) of each door's valid pixels, which of
+    them are ``real`` (D, m; the rest padding), their image rows (D, m), each door's axis line
+    (D, 3; its sign does not matter) and the image height ``H`` -> :func:`handle_evidence`'s
+    keys with one row per door.  Each sum is over a row (no per-image scatter), written
+    component by component (no (D, m, 3) stacks and reductions over their last axis)."""
+    dtype = points[0].dtype
+    nz = torch.nn.functional.normalize(axis_line, dim=-1)  # (D, 3)
+    z = [nz[:, c:c + 1] for c in range(3)]
+    nrm, pts = normals, points
+    weight = real & ((nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2]) > MIN_NORMAL_NORM**2)
+    weight = weight.to(dtype)
+    # the normals towards the camera (at the origin) and perpendicular to the axis line
+    sign = torch.where(nrm[0] * pts[0] + nrm[1] * pts[1] + nrm[2] * pts[2] > 0, -1.0, 1.0).to(dtype)
+    f = [sign * v for v in nrm]
+    fz = f[0] * z[0] + f[1] * z[1] + f[2] * z[2]
+    f = [f[c] - fz * z[c] for c in range(3)]
+    inv = torch.rsqrt((f[0] * f[0] + f[1] * f[1] + f[2] * f[2]).clamp_min(1e-24))
+    facing = [v * inv for v in f]
+    n = _unit_rows(_row_mean(facing, weight)[0])
+    inlier = weight * ((facing[0] * n[0][:, None] + facing[1] * n[1][:, None] + facing[2] * n[2][:, None])
+                       > math.cos(math.radians(FACE_INLIER_DEG))).to(dtype)
+    n = _unit_rows(_row_mean(facing, inlier)[0])
+    s = pts[0] * n[0][:, None] + pts[1] * n[1][:, None] + pts[2] * n[2][:, None]  # along the face normal
+    (c,), _ = _row_mean([s], inlier)
+    trimmed = inlier * ((s - c[:, None]).abs() < FACE_TRIM_M).to(dtype)
+    (c,), count = _row_mean([s], trimmed)
+    standoff = s - c[:, None]
+    handle = real & (standoff > HANDLE_MIN_STANDOFF_M) & (standoff < HANDLE_MAX_STANDOFF_M) & (count > 0)[:, None]
+    # the handle's pixels only from here on (a few dozen of a door's thousands), gathered to the
+    # front of each row
+    hidx, handle = compact_mask(handle)
+    pts = [torch.gather(v, 1, hidx) for v in pts]
+    row = torch.gather(row, 1, hidx)
+    on = handle.to(dtype)
+    point, px = _row_mean(pts, on)
+    rel = [pts[k] - point[k][:, None] for k in range(3)]
+    across = torch.cross(nz, torch.stack(n, -1), dim=-1)  # along the face, perpendicular to the axis
+    along = rel[0] * z[0] + rel[1] * z[1] + rel[2] * z[2]  # each pixel's height above the bar's mean point
+    wide = rel[0] * across[:, 0:1] + rel[1] * across[:, 1:2] + rel[2] * across[:, 2:3]
+    spread, _ = _row_mean([along * along, wide * wide], on)
+    # a bar cut by the image's top or bottom border (step 9's cut bars): its centre is half a bar's
+    # length from its one visible end, the end away from the border
+    border = on * ((row < BORDER_ROWS_PX) | (row >= H - BORDER_ROWS_PX)).to(dtype)
+    (at_border,), n_border = _row_mean([along], border)
+    low = torch.where(handle, along, math.inf).amin(-1)
+    high = torch.where(handle, along, -math.inf).amax(-1)
+    border_at_high = (at_border - low).abs() > (at_border - high).abs()
+    centre = torch.where(border_at_high, low + 0.5 * HANDLE_LEN_M, high - 0.5 * HANDLE_LEN_M)
+    cut = (n_border > 0) & (px > 0)
+    seen = (px > 0).to(dtype)[:, None]
+    point = torch.stack(point, -1)
+    return {"handle_px": px, "handle_point": point * seen,
+            # the handle's extent along the axis and across it (a uniform bar of length l has variance l^2 / 12)
+            "handle_size_m": torch.sqrt(12.0 * torch.stack(spread, -1)) * seen, "handle_cut": cut.to(dtype),
+            "handle_end_centre": torch.where(cut[:, None], point + centre[:, None] * nz, torch.zeros_like(point))}
 
 
 @torch.no_grad()
 def handle_evidence(parts: dict, inputs: dict, axis_line: torch.Tensor, joint_types, candidates: torch.Tensor) -> dict:
     """Steps 1-2 for a batch: ``handle_px`` (B, J) handle pixels of each door, ``handle_point``
     (B, J, 3) their mean camera-frame point (m) and ``handle_size_m`` (B, J, 2) their extent along
-    the axis and across it on the door's face (all 0 without any, for prismatic joints and where
-    ``candidates`` (B, J) is False: only those doors are measured).
+    the axis and across it on the door's face, ``handle_cut`` (B, J: 1 where the image's top or
+    bottom border cuts the bar) and ``handle_end_centre`` (B, J, 3: there, the centre half a bar's
+    length from its visible end) (all 0 without any, for prismatic joints and where ``candidates``
+    (B, J) is False: only those doors are measured; :func:`door_handles`, which
+    :func:`~.refine.refined_quantities` also calls on the door pixels it has gathered).
 
     ``parts``: :meth:`~.model.DenseNet.split` output (its segmentation, upsampled to the input
     by nearest neighbour); ``inputs``: :func:`~.features.make_inputs` output; ``axis_line``
@@ -112,97 +181,43 @@ def handle_evidence(parts: dict, inputs: dict, axis_line: torch.Tensor, joint_ty
     x = inputs["x"]
     B, C, H, W = x.shape
     J = axis_line.shape[1]
-    dtype = x.dtype
-    handle_px = torch.zeros(B, J, dtype=dtype)
-    handle_point = torch.zeros(B, J, 3, dtype=dtype)
-    handle_size = torch.zeros(B, J, 2, dtype=dtype)
-    handle_cut = torch.zeros(B, J, dtype=dtype)
-    handle_end_centre = torch.zeros(B, J, 3, dtype=dtype)
-    seg = parts["seg"]
-    flat = x.reshape(-1)  # a view: the input is contiguous
     P = H * W
-    cos_inlier = math.cos(math.radians(FACE_INLIER_DEG))
-    # written component by component on the listed pixels (no (n, 3) stacks and reductions over
-    # their last axis, several times slower), the same arithmetic as the vector formulas
-    for j, joint_type in enumerate(joint_types):
-        images = candidates[:, j].nonzero()[:, 0]
-        if joint_type != "revolute" or len(images) == 0:
-            continue
-        k = len(images)
-        door = argmax_channels(seg[images]) == 1 + j  # (k, h, w) at the output resolution
-        door = door.repeat_interleave(OUTPUT_STRIDE, 1).repeat_interleave(OUTPUT_STRIDE, 2)[:, :H, :W]
-        b, p = (door & (x[images, 3] > 0)).flatten(1).nonzero(as_tuple=True)  # its valid pixels (nearest upsampling)
-        if len(b) == 0:
-            continue
-        at = images[b] * (C * P) + p
-        anchor = inputs["anchor"][images]
-        pts = [flat[c * P:].index_select(0, at) * POINT_SCALE_M + anchor[:, c].index_select(0, b) for c in range(3)]
-        nrm = [flat[(4 + c) * P:].index_select(0, at) for c in range(3)]
-        z_image = torch.nn.functional.normalize(axis_line[images, j], dim=-1)  # (k, 3)
-        z = [z_image[:, c].index_select(0, b) for c in range(3)]
-        has_normal = (nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2]) > MIN_NORMAL_NORM**2
-        # the normals towards the camera (at the origin) and perpendicular to the axis line
-        sign = torch.where(nrm[0] * pts[0] + nrm[1] * pts[1] + nrm[2] * pts[2] > 0, -1.0, 1.0).to(dtype)
-        f = [sign * v for v in nrm]
-        fz = f[0] * z[0] + f[1] * z[1] + f[2] * z[2]
-        f = [f[c] - fz * z[c] for c in range(3)]
-        inv = torch.rsqrt((f[0] * f[0] + f[1] * f[1] + f[2] * f[2]).clamp_min(1e-24))
-        facing = torch.stack([v * inv for v in f], -1)  # (n, 3)
-        weight = has_normal.to(dtype)
-        n, _ = _per_image_mean(facing, b, weight, k)
-        n = torch.nn.functional.normalize(n, dim=-1)
-        nb = [n[:, c].index_select(0, b) for c in range(3)]
-        inlier = weight * ((facing[:, 0] * nb[0] + facing[:, 1] * nb[1] + facing[:, 2] * nb[2]) > cos_inlier).to(dtype)
-        n, _ = _per_image_mean(facing, b, inlier, k)
-        n = torch.nn.functional.normalize(n, dim=-1)
-        s = pts[0] * n[:, 0].index_select(0, b) + pts[1] * n[:, 1].index_select(0, b) + pts[2] * n[:, 2].index_select(0, b)
-        c, _ = _per_image_mean(s[:, None], b, inlier, k)  # each pixel's coordinate along the face normal
-        trimmed = inlier * ((s - c[:, 0].index_select(0, b)).abs() < FACE_TRIM_M).to(dtype)
-        c, count = _per_image_mean(s[:, None], b, trimmed, k)
-        standoff = s - c[:, 0].index_select(0, b)
-        at_handle = ((standoff > HANDLE_MIN_STANDOFF_M) & (standoff < HANDLE_MAX_STANDOFF_M)
-                     & (count.index_select(0, b) > 0)).nonzero()[:, 0]
-        hb = b.index_select(0, at_handle)  # the handle's pixels only from here on
-        hp = torch.stack([v.index_select(0, at_handle) for v in pts], -1)
-        ones = torch.ones(len(hb), dtype=dtype)
-        point, px = _per_image_mean(hp, hb, ones, k)
-        rel = hp - point.index_select(0, hb)
-        across = torch.cross(z_image, n, dim=-1).index_select(0, hb)  # along the face, perpendicular to the axis
-        along = (rel * z_image.index_select(0, hb)).sum(-1)  # each handle pixel's height above the bar's mean point
-        spread, _ = _per_image_mean(torch.stack([along ** 2, (rel * across).sum(-1) ** 2], -1), hb, ones, k)
-        # a bar cut by the image's top or bottom border (step 9's cut bars): its centre is half
-        # a bar's length from its one visible end, the end away from the border
-        row = p.index_select(0, at_handle) // W
-        border = ((row < BORDER_ROWS_PX) | (row >= H - BORDER_ROWS_PX)).to(dtype)
-        at_border, n_border = _per_image_mean(along[:, None], hb, border, k)
-        low = torch.full((k,), math.inf, dtype=dtype).scatter_reduce(0, hb, along, "amin")
-        high = torch.full((k,), -math.inf, dtype=dtype).scatter_reduce(0, hb, along, "amax")
-        border_at_high = (at_border[:, 0] - low).abs() > (at_border[:, 0] - high).abs()
-        centre = torch.where(border_at_high, low + 0.5 * HANDLE_LEN_M, high - 0.5 * HANDLE_LEN_M)
-        cut = (n_border > 0) & (px > 0)
-        handle_cut[images, j] = cut.to(dtype)
-        handle_end_centre[images, j] = torch.where(cut[:, None], point + centre[:, None] * z_image, torch.zeros_like(point))
-        handle_px[images, j] = px
-        handle_point[images, j] = point * (px > 0).to(dtype)[:, None]
-        # the handle's extent along the axis and across it (a uniform bar of length l has variance l^2 / 12)
-        handle_size[images, j] = torch.sqrt(12.0 * spread) * (px > 0).to(dtype)[:, None]
-    return {"handle_px": handle_px, "handle_point": handle_point, "handle_size_m": handle_size,
-            "handle_cut": handle_cut, "handle_end_centre": handle_end_centre}
+    revolute = torch.tensor([t == "revolute" for t in joint_types])
+    label = argmax_channels(parts["seg"])  # (B, h, w) at the output resolution, upsampled (nearest)
+    label = label.repeat_interleave(OUTPUT_STRIDE, 1).repeat_interleave(OUTPUT_STRIDE, 2)[:, :H, :W].flatten(1)
+    valid = x[:, 3].flatten(1) > 0
+    measured = candidates & revolute[None]  # (B, J)
+    door = torch.stack([label == 1 + j for j in range(J)], 1) & valid[:, None] & measured[..., None]  # (B, J, P)
+    idx, real = compact_mask(door.flatten(0, 1))  # (B * J, m)
+    at = (torch.arange(B).repeat_interleave(J)[:, None] * (C * P) + idx).view(-1)
+    flat = x.reshape(-1)  # a view: the input is contiguous
+    m = idx.shape[1]
+    anchor = inputs["anchor"].repeat_interleave(J, 0)  # (B * J, 3)
+    pts = [flat[c * P:].index_select(0, at).view(B * J, m) * POINT_SCALE_M + anchor[:, c:c + 1] for c in range(3)]
+    nrm = [flat[(4 + c) * P:].index_select(0, at).view(B * J, m) for c in range(3)]
+    out = door_handles(pts, nrm, real, idx // W, axis_line.reshape(B * J, 3), H)
+    return {k: v.view(B, J, *v.shape[1:]) for k, v in out.items()}
+
+
+def handle_candidates(modes: dict, refined: dict, max_q_deg: float) -> torch.Tensor:
+    """(B, J) the doors that step 7 may check: those with a vote mode, or a normal-based angle
+    (refinement step 5, NaN when unmeasured), below ``max_q_deg`` (every door from
+    :data:`EVERY_DOOR_DEG` on).  ``modes``: :func:`~.aggregate.vote_modes` output; ``refined``:
+    :func:`~.refine.refined_quantities`'."""
+    if max_q_deg >= EVERY_DOOR_DEG:  # every door (the refined angles need not have been computed)
+        return torch.ones(refined["axis"].shape[:2], dtype=torch.bool)
+    limit = math.radians(max_q_deg)
+    measured = refined["q"]
+    voted = torch.where(modes["weight"] > 0, modes["q"], torch.full_like(modes["q"], math.inf)).amin(-1)
+    return (voted < limit) | (measured < limit) | measured.isnan()
 
 
 def handle_candidates_evidence(parts: dict, inputs: dict, modes: dict, refined: dict, joint_types,
                                max_q_deg: float) -> dict:
-    """:func:`handle_evidence` of the doors that step 7 may check: those with a vote mode, or a
-    normal-based angle (refinement step 5, NaN when unmeasured), below ``max_q_deg``.
-    ``modes``: :func:`~.aggregate.vote_modes` output; ``refined``: :func:`~.refine.refined_quantities`'."""
-    if max_q_deg >= EVERY_DOOR_DEG:  # every door (the refined angles need not have been computed)
-        candidates = torch.ones(refined["axis"].shape[:2], dtype=torch.bool)
-    else:
-        limit = math.radians(max_q_deg)
-        measured = refined["q"]
-        voted = torch.where(modes["weight"] > 0, modes["q"], torch.full_like(modes["q"], math.inf)).amin(-1)
-        candidates = (voted < limit) | (measured < limit) | measured.isnan()
-    return handle_evidence(parts, inputs, refined["axis"][:, :, 0], joint_types, candidates)
+    """:func:`handle_evidence` of the doors that step 7 may check (:func:`handle_candidates`).
+    (:func:`~.refine.refined_quantities` with ``handles`` gives the same for every door, from the
+    pixels it has gathered.)"""
+    return handle_evidence(parts, inputs, refined["axis"][:, :, 0], joint_types, handle_candidates(modes, refined, max_q_deg))
 
 
 def mirrored_by_handle(m: dict, r: dict, max_q_deg: float, min_px: float, joint_types) -> np.ndarray:

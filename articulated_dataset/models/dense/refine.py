@@ -76,9 +76,9 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from .aggregate import SPLIT_FACTOR, argmax_channels, gram_schmidt6, image_groups, softmax_weights
+from .aggregate import SPLIT_FACTOR, argmax_channels, compact_mask, gram_schmidt6, image_groups, softmax_weights
 from .features import MIN_NORMAL_NORM, OUTPUT_STRIDE, POINT_SCALE_M
-from .handle import EVERY_DOOR_DEG, MIN_RADIUS_M, apply_handle_height, apply_handle_side
+from .handle import EVERY_DOOR_DEG, MIN_RADIUS_M, apply_handle_height, apply_handle_side, door_handles
 
 #: Manhattan alignment rounds: a normal is matched to a frame axis within these angles (deg).
 INLIER_ANGLES_DEG = (25.0, 10.0, 5.0)
@@ -316,33 +316,16 @@ def _align_to_normals(frame: torch.Tensor, normals: torch.Tensor, weights: torch
     return frame
 
 
-def _compact(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(R, P) bool -> the column indices (R, n) of each row's True entries, in order and padded
-    with 0, and which of them are real (R, n); ``n`` is the largest row count (at least 1).
-    A mask more than a quarter True is compacted by a running count and one scatter (the
-    pixels of the cabinets' images and doors: twice as fast), a sparser one from its ``nonzero``."""
-    R, P = mask.shape
-    running = mask.cumsum(1, dtype=torch.int32)  # (int32: the compaction takes half the time in int64's)
-    counts = running[:, -1]
-    n = max(int(counts.max()), 1) if R else 1
-    idx = torch.zeros(R, n + 1, dtype=torch.long)
-    if 4 * int(counts.sum()) > mask.numel():
-        # each True entry's position among its row's, the others into a spare last column
-        target = torch.where(mask, running - 1, n).long()
-        idx.scatter_(1, target, torch.arange(P).expand(R, P))
-    else:
-        rows, cols = mask.nonzero(as_tuple=True)
-        idx[rows, torch.arange(len(rows)) - (counts.cumsum(0) - counts)[rows]] = cols
-    return idx[:, :n], torch.arange(n) < counts[:, None]
-
-
 @torch.no_grad()
 def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, frame_min_prob: float | None = None,
-                       door_angles: tuple[str, ...] = DOOR_ANGLES) -> dict:
+                       door_angles: tuple[str, ...] = DOOR_ANGLES, handles: bool = False) -> dict:
     """Steps 1-3, 5 and 6 for a batch (see the module docstring); step 2 on the pixels whose
     label's segmentation probability exceeds ``frame_min_prob`` (None: all of them); of step 5's
     angles only ``door_angles`` (a subset of :data:`DOOR_ANGLES`: a refinement's
-    :attr:`Refinement.door_angles`; the choice among them on validation objects needs all).
+    :attr:`Refinement.door_angles`; the choice among them on validation objects needs all); with
+    ``handles``, also every revolute door's handle (steps 7 and 9: :func:`~.handle.door_handles`
+    on the door pixels gathered here, the keys of :func:`~.handle.handle_evidence` for
+    ``axis[:, :, 0]``).
 
     ``parts``: :meth:`DenseNet.split` output; ``inputs``: :func:`~.features.make_inputs` output;
     ``modes``: :func:`~.aggregate.vote_modes` output.  Returns ``axis``, ``xaxis`` (B, J, M, 3)
@@ -356,7 +339,7 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, fram
 
     Only the valid pixels (a third of the image or fewer) are read: the images are taken in
     groups with similar numbers of valid pixels (:func:`~.aggregate.image_groups`), each image's
-    gathered to the front of a row padded to the group's largest (:func:`_compact`), each door's
+    gathered to the front of a row padded to the group's largest (:func:`~.aggregate.compact_mask`), each door's
     again for the medians and quantiles.
     """
     x = inputs["x"]
@@ -368,19 +351,20 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, fram
     for rows in rows_of:
         groups.append(_refine_images(x, rows, valid_px[rows], parts["seg"][rows], frame[rows], inputs["anchor"][rows],
                                      modes["origin"][rows], modes["axis"][rows], voted_q[rows], joint_types,
-                                     frame_min_prob, door_angles))
+                                     frame_min_prob, door_angles, handles))
     return {k: torch.cat([g[k] for g in groups])[back] for k in groups[0]}
 
 
 def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, seg: torch.Tensor, frame: torch.Tensor,
                    anchor: torch.Tensor, origin: torch.Tensor, voted_axis: torch.Tensor, voted_q: torch.Tensor,
-                   joint_types, frame_min_prob: float | None = None, door_angles: tuple[str, ...] = ()) -> dict:
+                   joint_types, frame_min_prob: float | None = None, door_angles: tuple[str, ...] = (),
+                   handles: bool = False) -> dict:
     """:func:`refined_quantities` of the images ``rows`` of the input ``x``: their valid pixels
     (R, H * W), segmentation logits, sign-free frames (step 1), anchors, voted origins and axes and
     the voted door angles (R, J) rad."""
     R, J = frame.shape[:2]
     H, W = x.shape[2:]
-    idx, ok = _compact(valid_px)  # (R, n): the valid pixels
+    idx, ok = compact_mask(valid_px)  # (R, n): the valid pixels
     n = idx.shape[1]
     # channels 4-6 (normals) of the valid pixels, channels first (R, 3, n) (index_select: faster than
     # indexing with a tensor; every later product is then written component by component, several
@@ -412,7 +396,7 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     if ALIGN_STRIDE > 1:  # the frame fit uses every ALIGN_STRIDE-th row and column (neighbouring normals share pixels)
         frame_px &= (row % ALIGN_STRIDE == 0) & (idx % W % ALIGN_STRIDE == 0)
     # the fit reads only its own pixels, gathered to the front of each row (the others have weight 0)
-    fidx, fok = _compact(frame_px)
+    fidx, fok = compact_mask(frame_px)
     frame_normals = torch.gather(normals, 2, fidx[:, None].expand(R, 3, fidx.shape[1]))  # (R, 3, f)
     frame = _align_to_normals(frame, frame_normals.transpose(1, 2), fok.to(x.dtype))
     xf, yf, zf = frame[..., 0], frame[..., 1], frame[..., 2]  # (R, J, 3)
@@ -425,7 +409,7 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     side = torch.where(side == 0, torch.ones_like(side), side)[..., None]
     # each door's pixels, gathered once for steps 5 and 6: (R * J, m) rows of the (R * n) valid pixels
     door = torch.stack([label == 1 + j for j in range(J)], 1) & ok[:, None]  # (R, J, n)
-    didx, dok = _compact(door.flatten(0, 1))  # (R * J, m)
+    didx, dok = compact_mask(door.flatten(0, 1))  # (R * J, m)
     m = didx.shape[1]
     door_at = (torch.arange(R).repeat_interleave(J)[:, None] * n + didx).view(-1)
     # step 5: door angles, over each door's pixels with a normal (the median by value: the other
@@ -461,16 +445,23 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
         four = 4.0 * theta
         centre = torch.atan2(-(weight * torch.sin(four)).sum(-1), (weight * torch.cos(four)).sum(-1))[:, None] / 4.0
         angles["q_signed"] = per_door(torch.remainder(math.pi / 4 - centre - theta, math.pi / 2) + centre - math.pi / 4)
-    # step 6: the doors' points' coordinates along the axis (m; component by component: a (R * J, m, 3)
-    # stack and product cost twice as much) and their image rows
+    # step 6: the doors' points in the camera frame (m; component by component, (R * J, m) each: a
+    # (R * J, m, 3) stack and product cost twice as much), their coordinates along the axis and their
+    # image rows
     door_axis = (side[:, :, 0, 0, None] * zf).reshape(R * J, 3)
-    along = (anchor.repeat_interleave(J, 0) * door_axis).sum(-1, keepdim=True)  # the anchor's (R * J, 1)
-    for c in (0, 1, 2):  # + POINT_SCALE_M times the relative point's (channels 0-2)
-        along = along + x_flat[c * P:].index_select(0, door_px_at).view(R * J, m) * (POINT_SCALE_M * door_axis[:, c:c + 1])
+    door_anchor = anchor.repeat_interleave(J, 0)
+    door_points = [x_flat[c * P:].index_select(0, door_px_at).view(R * J, m) * POINT_SCALE_M + door_anchor[:, c:c + 1]
+                   for c in range(3)]
+    along = door_points[0] * door_axis[:, 0:1] + door_points[1] * door_axis[:, 1:2] + door_points[2] * door_axis[:, 2:3]
     door_row = row.view(-1).index_select(0, door_at).view(R * J, m)
     door_mid, door_cut = _door_extent(along, door_row, dok, revolute, (R, J), H)
-    return {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], **angles, "box_x": xf,
-            "door_px": with_normal.sum(-1).view(R, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut}
+    out = {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], **angles, "box_x": xf,
+           "door_px": with_normal.sum(-1).view(R, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut}
+    if handles:  # steps 7 and 9: the revolute doors' handles, from the same pixels
+        measured = dok & revolute.repeat(R)[:, None]
+        found = door_handles(door_points, door_normal, measured, door_row, door_axis, H)
+        out.update({k: v.view(R, J, *v.shape[1:]) for k, v in found.items()})
+    return out
 
 
 def _door_extent(along: torch.Tensor, row: torch.Tensor, real: torch.Tensor, revolute: torch.Tensor,
