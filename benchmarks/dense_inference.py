@@ -133,9 +133,9 @@ def bench_class(args, class_name: str) -> None:
             refine_options["door_angles"] = refinement.door_angles
         handle_deg = None if refinement is None else getattr(refinement, "handle_evidence_max_q_deg",
                                                               getattr(refinement, "handle_max_q_deg", None))
-        in_refinement = "handles" in inspect.signature(refined_quantities).parameters
+        in_refinement = "handle_max_q_deg" in inspect.signature(refined_quantities).parameters
         if handle_deg is not None and in_refinement:
-            refine_options["handles"] = True
+            refine_options["handle_max_q_deg"] = handle_deg
         t_refine, r = timed(lambda: refined_quantities(parts, inputs, modes, joint_types, **refine_options))
         if handle_deg is not None and not in_refinement:  # pragma: no cover - older code measures them apart
             from articulated_dataset.models.dense.handle import handle_candidates_evidence

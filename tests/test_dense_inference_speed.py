@@ -297,7 +297,7 @@ def test_estimate_in_bfloat16(cabinet_split):
 @pytest.mark.parametrize("max_q_deg", [None, 5.0])
 def test_the_refinements_handles_are_handle_evidences(cabinet_split, max_q_deg):
     """The handles the refinement measures on the door pixels it has gathered
-    (refined_quantities(handles=True), as batch_modes asks for them) are handle_evidence's of the
+    (refined_quantities(handle_max_q_deg=...), as batch_modes asks for them) are handle_evidence's of the
     same doors, from the whole input: every door's (step 9) and only the candidates' (step 7
     alone), to float rounding; and enough doors have a handle for the check to mean something."""
     from articulated_dataset.models import resolve_model

@@ -217,7 +217,6 @@ def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, spli
 
     from .aggregate import vote_modes
     from .features import make_inputs
-    from .handle import EVERY_DOOR_DEG, HANDLE_KEYS, handle_candidates
     from .refine import DOOR_ANGLES, refined_quantities
 
     if model.training:
@@ -227,13 +226,7 @@ def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, spli
         parts = model.split(network_outputs(model, inputs["x"], mirror_joints))
         modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0, split_factor=split_factor)
         r = refined_quantities(parts, inputs, modes, joint_types, frame_min_prob,
-                               DOOR_ANGLES if door_angles is None else door_angles,
-                               handles=handle_max_q_deg is not None) if refine else None
-        if r is not None and handle_max_q_deg is not None and handle_max_q_deg < EVERY_DOOR_DEG:
-            # only the doors step 7 may check keep their handles (handle_candidates_evidence's)
-            keep = handle_candidates(modes, r, handle_max_q_deg)
-            for k in HANDLE_KEYS:
-                r[k] = torch.where(keep.view(*keep.shape, *([1] * (r[k].dim() - 2))), r[k], 0.0)
+                               DOOR_ANGLES if door_angles is None else door_angles, handle_max_q_deg) if refine else None
     if workspace is not None:
         workspace["x"] = inputs["x"]
     as_np = lambda d: {k: v.numpy().astype(np.float64) for k, v in d.items()}  # noqa: E731

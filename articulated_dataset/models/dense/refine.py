@@ -78,7 +78,8 @@ from torch.nn import functional as F
 
 from .aggregate import SPLIT_FACTOR, argmax_channels, compact_mask, gram_schmidt6, image_groups, softmax_weights
 from .features import MIN_NORMAL_NORM, OUTPUT_STRIDE, POINT_SCALE_M
-from .handle import EVERY_DOOR_DEG, MIN_RADIUS_M, apply_handle_height, apply_handle_side, door_handles
+from .handle import (EVERY_DOOR_DEG, HANDLE_KEYS, MIN_RADIUS_M, apply_handle_height, apply_handle_side, door_handles,
+                     handle_candidates)
 
 #: Manhattan alignment rounds: a normal is matched to a frame axis within these angles (deg).
 INLIER_ANGLES_DEG = (25.0, 10.0, 5.0)
@@ -318,14 +319,15 @@ def _align_to_normals(frame: torch.Tensor, normals: torch.Tensor, weights: torch
 
 @torch.no_grad()
 def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, frame_min_prob: float | None = None,
-                       door_angles: tuple[str, ...] = DOOR_ANGLES, handles: bool = False) -> dict:
+                       door_angles: tuple[str, ...] = DOOR_ANGLES, handle_max_q_deg: float | None = None) -> dict:
     """Steps 1-3, 5 and 6 for a batch (see the module docstring); step 2 on the pixels whose
     label's segmentation probability exceeds ``frame_min_prob`` (None: all of them); of step 5's
     angles only ``door_angles`` (a subset of :data:`DOOR_ANGLES`: a refinement's
     :attr:`Refinement.door_angles`; the choice among them on validation objects needs all); with
-    ``handles``, also every revolute door's handle (steps 7 and 9: :func:`~.handle.door_handles`
-    on the door pixels gathered here, the keys of :func:`~.handle.handle_evidence` for
-    ``axis[:, :, 0]``).
+    ``handle_max_q_deg`` (:attr:`Refinement.handle_evidence_max_q_deg`), also the handles of the
+    doors steps 7 and 9 read (:func:`~.handle.handle_candidates`; 0 for the others): the keys of
+    :func:`~.handle.handle_candidates_evidence`, from :func:`~.handle.door_handles` on the door
+    pixels gathered here.
 
     ``parts``: :meth:`DenseNet.split` output; ``inputs``: :func:`~.features.make_inputs` output;
     ``modes``: :func:`~.aggregate.vote_modes` output.  Returns ``axis``, ``xaxis`` (B, J, M, 3)
@@ -351,8 +353,14 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, fram
     for rows in rows_of:
         groups.append(_refine_images(x, rows, valid_px[rows], parts["seg"][rows], frame[rows], inputs["anchor"][rows],
                                      modes["origin"][rows], modes["axis"][rows], voted_q[rows], joint_types,
-                                     frame_min_prob, door_angles, handles))
-    return {k: torch.cat([g[k] for g in groups])[back] for k in groups[0]}
+                                     frame_min_prob, door_angles, handle_max_q_deg is not None))
+    out = {k: torch.cat([g[k] for g in groups])[back] for k in groups[0]}
+    if handle_max_q_deg is not None and handle_max_q_deg < EVERY_DOOR_DEG:
+        # measured for every revolute door; only the candidates keep theirs
+        keep = handle_candidates(modes, out, handle_max_q_deg)  # (B, J)
+        for k in HANDLE_KEYS:
+            out[k] = torch.where(keep.view(keep.shape + (1,) * (out[k].dim() - 2)), out[k], 0.0)
+    return out
 
 
 def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, seg: torch.Tensor, frame: torch.Tensor,
