@@ -122,7 +122,7 @@ def test_frame_alignment_matches_the_thresholded_reference():
 
 
 def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -> dict:
-    """Steps 1-3, 5 and 6 image by image and joint by joint, from the whole-image input."""
+    """Steps 1-3, 5, 6 and 10 image by image and joint by joint, from the whole-image input."""
     x = inputs["x"]
     B, _, H, W = x.shape
     J = len(joint_types)
@@ -133,7 +133,8 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -
     voted_q = (modes["weight"] * modes["q"]).sum(-1)  # (B, J)
     out = {"axis": torch.zeros(B, J, modes["origin"].shape[2], 3), "q": torch.full((B, J), nan), "q_folded": torch.full((B, J), nan),
            "q_signed": torch.full((B, J), nan), "box_x": torch.zeros(B, J, 3),
-           "door_px": torch.zeros(B, J), "door_mid": torch.full((B, J), nan), "door_cut": torch.zeros(B, J)}
+           "door_px": torch.zeros(B, J), "door_mid": torch.full((B, J), nan), "door_cut": torch.zeros(B, J),
+           "door_face_normal": torch.zeros(B, J, 3), "door_face_m": torch.full((B, J), nan)}
     out["xaxis"] = out["axis"].clone()
     rows = torch.arange(H)[:, None].expand(H, W)
     for b in range(B):
@@ -173,6 +174,17 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -
                 centre = np.angle(np.exp(4j * u).sum()) / 4
                 around = np.sort(centre + np.remainder(u - centre + math.pi / 4, math.pi / 2) - math.pi / 4)
                 out["q_signed"][b, j] = float(around[(len(around) + 1) // 2 - 1])
+            if with_normal.any():  # step 10: the face's normal and offset
+                n = normals[with_normal]
+                h = n - (n @ zf)[:, None] * zf
+                u = F.normalize(h.sum(0), dim=0)
+                for angle_deg in R.DOOR_FACE_INLIER_DEG:
+                    inlier = h @ u > math.cos(math.radians(angle_deg))
+                    u = F.normalize(h[inlier].sum(0), dim=0, eps=1e-12)
+                out["door_face_normal"][b, j] = u
+                offsets = torch.sort(points[with_normal][inlier] @ u).values
+                if t == "revolute" and inlier.sum() >= R.DOOR_FACE_MIN_PX:
+                    out["door_face_m"][b, j] = offsets[(len(offsets) + 1) // 2 - 1]
             if door.any():
                 along = points[door] @ (side[0, 0] * zf)
                 lo, hi = torch.quantile(along, R.DOOR_EXTENT_QUANTILE), torch.quantile(along, 1 - R.DOOR_EXTENT_QUANTILE)
@@ -204,6 +216,7 @@ def test_refined_quantities_match_a_loop_over_images(joint_types, monkeypatch):
     ref = _reference_refinement(parts, inputs, modes, joint_types)
     assert set(got) == set(ref)
     assert torch.isfinite(ref["q"]).sum() >= 6 and torch.isfinite(ref["door_mid"]).sum() >= 4
+    assert torch.isfinite(ref["door_face_m"]).sum() >= 4
     assert ref["door_cut"].sum() >= 1 and (ref["door_cut"] == 0).sum() >= 1
     for key in ref:
         assert got[key].shape == ref[key].shape, key

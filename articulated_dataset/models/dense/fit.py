@@ -11,7 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .refine import Refinement, apply_refinement
+from .refine import DOOR_FACE_MAX_DEG, Refinement, apply_refinement, door_face_side
 
 #: Thresholds tried for ``min_door_px`` (door pixels with a normal) by :func:`fit_refinement`.
 DOOR_PX_CANDIDATES = (20, 40, 80, 160, 320)
@@ -40,6 +40,8 @@ HANDLE_HEIGHT_MIN_GAIN = 0.03
 #: objects 0.9 took the rotation error from 0.77 to 0.46 deg: an open door's pixels taken for the
 #: body's had pulled the frame towards the door's face.
 FRAME_PROB_CANDIDATES = (None, 0.9)
+#: Gates (m) tried for step 10 (the hinge onto the door's face plane) by :func:`fit_refinement`.
+DOOR_FACE_GATE_CANDIDATES_M = (0.01, 0.02, 0.03, 0.05, 0.1)
 
 
 def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinement", dict]:
@@ -60,7 +62,9 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     (step 6, with the best gate of :data:`DOOR_EXTENT_GATE_CANDIDATES_M`) when it lowers the mean
     axis position error of each joint's heaviest mode; the handle's side (step 7) with the
     pair of :data:`HANDLE_Q_CANDIDATES_DEG` and :data:`HANDLE_PX_CANDIDATES` that lowers that
-    error most, if any does; the hinge's height from the handle (step 9) with the gate of
+    error most, if any does; the hinge plane from the door's face (step 10, with the offsets of
+    :func:`fit_door_face_offsets` and the gate of :data:`DOOR_FACE_GATE_CANDIDATES_M`) that lowers
+    that error most, if any does; the hinge's height from the handle (step 9) with the gate of
     :data:`HANDLE_HEIGHT_GATE_CANDIDATES_M`, from whole bars only or also from bars the image's
     border cuts (``handle_cut_bars``), that lowers it most, if that is by at least
     :data:`HANDLE_HEIGHT_MIN_GAIN` (``r`` must hold :func:`~.handle.handle_evidence`'s keys for
@@ -148,7 +152,37 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
                 if e < best_pos and e <= before * (1 - HANDLE_HEIGHT_MIN_GAIN):
                     best_gate, best_cut, best_pos = gate, cut, e
         refinement = replace(refinement, handle_height_gate_m=best_gate, handle_cut_bars=best_cut)
+    if revolute.any() and "door_face_m" in r:
+        base = apply_refinement(m, r, refinement, joint_types)
+        offsets = fit_door_face_offsets(base, r, truth, joint_types)
+        report.setdefault("position_cm", {})["before_door_face"] = best_pos = pos_err(base)
+        report["door_face_offsets_m"] = list(offsets)
+        best_face = None
+        for gate in DOOR_FACE_GATE_CANDIDATES_M:
+            e = pos_err(apply_refinement(m, r, replace(refinement, door_face_gate_m=gate, door_face_offsets_m=offsets),
+                                         joint_types))
+            report["position_cm"][f"door_face_gate<={gate:g}m"] = e
+            if e < best_pos:
+                best_face, best_pos = gate, e
+        if best_face is not None:
+            refinement = replace(refinement, door_face_gate_m=best_face, door_face_offsets_m=offsets)
     return refinement, report
+
+
+def fit_door_face_offsets(mm: dict, r: dict, truth: dict, joint_types) -> tuple[float, float]:
+    """Step 10's offsets (m) of the hinge plane along a door's face normal from its outer and its
+    inner face: the medians, over the revolute joints' heaviest modes of the mode arrays ``mm``
+    whose face seen is the outer (inner) one (:func:`~.refine.door_face_side`), of ``o . n - f``
+    with ``o`` the true axis origin, ``n`` and ``f`` the face's normal and offset
+    (``r["door_face_normal"]``, ``r["door_face_m"]``); 0 where no face of that kind was seen."""
+    revolute = np.array([t == "revolute" for t in joint_types])
+    heaviest = mm["weight"].argmax(-1)[..., None]  # (N, J, 1)
+    side = np.take_along_axis(door_face_side(mm, r), heaviest, axis=2)[..., 0]  # (N, J)
+    residual = (truth["axis_pose"][..., :3] * r["door_face_normal"]).sum(-1) - r["door_face_m"]
+    cos = np.cos(np.radians(DOOR_FACE_MAX_DEG))
+    seen = revolute[None] & np.isfinite(residual)
+    outer, inner = residual[seen & (side > cos)], residual[seen & (side < -cos)]
+    return (float(np.median(outer)) if outer.size else 0.0, float(np.median(inner)) if inner.size else 0.0)
 
 
 def rotation_error_deg(mm: dict, truth: dict) -> float:

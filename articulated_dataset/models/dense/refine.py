@@ -61,6 +61,19 @@ regressed (:func:`refined_quantities`, per image and joint):
    end).  It is used only where it lowers the
    validation position error by at least :data:`~.fit.HANDLE_HEIGHT_MIN_GAIN` (it measures the
    handle of every door, a cost at inference).
+10. **Hinge plane from the door's face** (applied last).  The hinge lies in the plane of the door's
+   outer face (``common.xacro``'s ``side_door``: the panel's front face, at its hinge edge), and
+   the door's face pixels measure that plane to a millimetre where the votes place the origin
+   ~0.5 cm off it.  The door's face normal ``n`` is the mean of its pixels' normals (taken
+   perpendicular to the axis) within :data:`DOOR_FACE_INLIER_DEG` of the previous mean, and
+   the face's offset ``f`` the median of ``p . n`` over the pixels within the last angle.  Per
+   vote mode, the face seen is the outer one where ``n`` is within :data:`DOOR_FACE_MAX_DEG` of
+   the door's ``y`` (the frame's ``y`` turned by the mode's ``q`` about its axis), the inner one
+   (a door seen from behind) where it is within that of ``-y``, neither where the door is seen
+   edge-on; the origin is moved along ``n`` onto the plane ``f`` plus the fitted offset of that
+   face (``door_face_offsets_m``: the outer face's ~0, the inner face's ~minus the panel's
+   thickness) where that moves it by less than ``door_face_gate_m``.  The axis' line moves
+   across the hinge only; steps 6 and 9 set its height along it.
 
 :func:`~.fit.fit_refinement` chooses, on the training split's validation objects, which steps
 are used (each only where it lowers the validation error) and fits ``t``; the choice is stored
@@ -104,12 +117,21 @@ DOOR_ANGLES = ("q", "q_folded", "q_signed")
 DOOR_EXTENT_QUANTILE = 0.005
 #: Step 6 needs at least this many door pixels.
 DOOR_EXTENT_MIN_PX = 10
+#: Step 10: the door's face normal is the mean of the normals within these angles (deg) of the
+#: previous round's mean (the first round's: the mean of every door pixel's normal).
+DOOR_FACE_INLIER_DEG = (15.0, 5.0)
+#: Step 10 needs at least this many face pixels (within the last of those angles).
+DOOR_FACE_MIN_PX = 10
+#: Step 10 reads a face as the door's outer or inner face within this angle (deg) of the door's
+#: ``y`` or ``-y``; a door seen nearer edge-on keeps its origin.
+DOOR_FACE_MAX_DEG = 25.0
 #: Refinement format version stored in checkpoints (2: ``max_turn_deg``; 3: ``door_extent``;
 #: 4: ``handle_max_q_deg``; 5: ``mirror_joints``; 6: ``frame_min_prob``; 7: ``handle_height_gate_m``;
-#: 8: ``handle_cut_bars``; 9: ``door_angle_folded``; 10: ``door_angle_signed``, ``door_angle_gate_deg``; older versions read as without them).  The stored fields, not their implementation: since the tenth
+#: 8: ``handle_cut_bars``; 9: ``door_angle_folded``; 10: ``door_angle_signed``, ``door_angle_gate_deg``;
+#: 11: ``door_face_gate_m``, ``door_face_offsets_m``; older versions read as without them).  The stored fields, not their implementation: since the tenth
 #: session every version's ``mirror_joints`` averages the network's outputs (:mod:`.mirror`), not the
 #: refined vote modes of two passes.
-REFINEMENT_VERSION = 10
+REFINEMENT_VERSION = 11
 
 
 @dataclass(frozen=True)
@@ -154,13 +176,19 @@ class Refinement:
     #: step 8 (:mod:`.mirror`): average with the mirror image's estimate, whose joint ``k`` is joint
     #: ``mirror_joints[k]`` (None: never)
     mirror_joints: tuple[int, ...] | None = None
+    #: step 10: move a door's axis origin onto its face's plane where that moves it by less than
+    #: this (m; None: never) ...
+    door_face_gate_m: float | None = None
+    #: ... the hinge plane's offset (m) along the face's normal from the outer face and from the
+    #: inner face (fitted: :func:`~.fit.fit_door_face_offsets`)
+    door_face_offsets_m: tuple[float, float] = (0.0, 0.0)
     version: int = REFINEMENT_VERSION
 
     @property
     def needed(self) -> bool:
         """Whether it changes anything (else the refined quantities need not be computed)."""
         return (self.frame or self.min_door_px is not None or self.door_extent or self.handle_max_q_deg is not None
-                or self.handle_height_gate_m is not None)
+                or self.handle_height_gate_m is not None or self.door_face_gate_m is not None)
 
     @property
     def door_angles(self) -> tuple[str, ...]:
@@ -184,6 +212,7 @@ class Refinement:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["mirror_joints"] = None if self.mirror_joints is None else [int(k) for k in self.mirror_joints]
+        d["door_face_offsets_m"] = [float(v) for v in self.door_face_offsets_m]
         return d
 
     @classmethod
@@ -205,11 +234,18 @@ class Refinement:
                    handle_height_gate_m=_optional_float(d.get("handle_height_gate_m")),
                    handle_cut_bars=bool(d.get("handle_cut_bars", False)),
                    mirror_joints=None if d.get("mirror_joints") is None else tuple(int(k) for k in d["mirror_joints"]),
+                   door_face_gate_m=_optional_float(d.get("door_face_gate_m")),
+                   door_face_offsets_m=_float_pair(d.get("door_face_offsets_m", (0.0, 0.0))),
                    version=int(d.get("version", REFINEMENT_VERSION)))
 
 
 def _optional_float(v) -> float | None:
     return None if v is None else float(v)
+
+
+def _float_pair(v) -> tuple[float, float]:
+    a, b = v  # a stored pair: a list or tuple of two numbers
+    return float(a), float(b)
 
 
 def split_factor_of(refinement) -> float | None:
@@ -472,13 +508,36 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     along = door_points[0] * door_axis[:, 0:1] + door_points[1] * door_axis[:, 1:2] + door_points[2] * door_axis[:, 2:3]
     door_row = row.view(-1).index_select(0, door_at).view(R * J, m)
     door_mid, door_cut = _door_extent(along, door_row, dok, revolute, (R, J), H)
+    face_normal, face_m = _door_face(door_normal, door_points, with_normal, zf.reshape(R * J, 3))
+    nan = torch.tensor(float("nan"), dtype=x.dtype)
+    face_m = torch.where(revolute[None], face_m.view(R, J), nan)
     out = {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], **angles, "box_x": xf,
-           "door_px": with_normal.sum(-1).view(R, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut}
+           "door_px": with_normal.sum(-1).view(R, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut,
+           "door_face_normal": face_normal.view(R, J, 3), "door_face_m": face_m}
     if handles:  # steps 7 and 9: the revolute doors' handles, from the same pixels
         measured = dok & revolute.repeat(R)[:, None]
         found = door_handles(door_points, door_normal, measured, door_row, door_axis, H)
         out.update({k: v.view(R, J, *v.shape[1:]) for k, v in found.items()})
     return out
+
+
+def _door_face(normal: list, points: list, real: torch.Tensor, axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Step 10: each door's face normal (D, 3), unit and perpendicular to its ``axis`` (D, 3), and its
+    face's offset ``median p . n`` (D,) m (NaN with fewer than :data:`DOOR_FACE_MIN_PX` face pixels),
+    from its pixels' normals and points (three (D, m) components each) and which of them have a
+    normal (D, m)."""
+    along = normal[0] * axis[:, 0:1] + normal[1] * axis[:, 1:2] + normal[2] * axis[:, 2:3]
+    h = [normal[c] - along * axis[:, c:c + 1] for c in range(3)]  # the normals perpendicular to the axis
+    inlier = real
+    for angle_deg in (None,) + DOOR_FACE_INLIER_DEG:
+        if angle_deg is not None:
+            cos = math.cos(math.radians(angle_deg))
+            inlier = real & ((h[0] * u[:, 0:1] + h[1] * u[:, 1:2] + h[2] * u[:, 2:3]) > cos)
+        w = inlier.to(h[0].dtype)
+        u = F.normalize(torch.stack([(w * hc).sum(-1) for hc in h], -1), dim=-1, eps=1e-12)  # (D, 3)
+    offset = points[0] * u[:, 0:1] + points[1] * u[:, 1:2] + points[2] * u[:, 2:3]
+    face_m = lower_median(offset, inlier)
+    return u, torch.where(inlier.sum(-1) >= DOOR_FACE_MIN_PX, face_m, torch.full_like(face_m, float("nan")))
 
 
 def _door_extent(along: torch.Tensor, row: torch.Tensor, real: torch.Tensor, revolute: torch.Tensor,
@@ -543,7 +602,38 @@ def apply_refinement(m: dict, r: dict, refinement: "Refinement | None", joint_ty
     if sided is not out and refinement.min_door_px is not None and refinement.door_angle_signed:
         sided = dict(sided)  # a mirrored mode's x is turned round: its door angle is read again
         sided["q"] = door_angle(m["q"], r, refinement, sided["xaxis"], revolute)
+    if refinement.door_face_gate_m is not None and "door_face_m" in r:
+        sided = dict(sided)
+        sided["origin"] = door_face_origin(sided, r, refinement.door_face_gate_m, refinement.door_face_offsets_m,
+                                           revolute)
     return sided
+
+
+def door_face_side(mm: dict, r: dict) -> np.ndarray:
+    """Step 10: the cosine (B, J, M) between each door's face normal (``r["door_face_normal"]``)
+    and each vote mode's door ``y``: the frame's ``y = z x x`` turned by the mode's ``q`` about its
+    axis ``z`` (mode arrays ``mm``: ``axis``, ``xaxis``, ``q``).  Near 1 the face seen is the door's
+    outer face, near -1 its inner face."""
+    z = mm["axis"] / np.maximum(np.linalg.norm(mm["axis"], axis=-1, keepdims=True), 1e-12)
+    y = np.cross(z, mm["xaxis"])
+    y = y / np.maximum(np.linalg.norm(y, axis=-1, keepdims=True), 1e-12)
+    c, s = np.cos(mm["q"])[..., None], np.sin(mm["q"])[..., None]
+    y_door = y * c + np.cross(z, y) * s + z * (z * y).sum(-1, keepdims=True) * (1 - c)  # Rodrigues
+    return (r["door_face_normal"][:, :, None] * y_door).sum(-1)
+
+
+def door_face_origin(mm: dict, r: dict, gate_m: float, offsets_m: tuple[float, float], revolute: np.ndarray) -> np.ndarray:
+    """Step 10: the vote modes' origins (B, J, M, 3) moved along their door's face normal onto the
+    face's plane plus ``offsets_m`` (outer face, inner face; m) where the face seen is one of them
+    (:func:`door_face_side`, within :data:`DOOR_FACE_MAX_DEG`) and the move is shorter than ``gate_m``."""
+    side = door_face_side(mm, r)
+    n = r["door_face_normal"][:, :, None]  # (B, J, 1, 3)
+    plane = r["door_face_m"][..., None] + np.where(side > 0, offsets_m[0], offsets_m[1])
+    with np.errstate(invalid="ignore"):
+        shift = plane - (mm["origin"] * n).sum(-1)
+        use = (revolute[None, :, None] & (np.abs(side) > math.cos(math.radians(DOOR_FACE_MAX_DEG)))
+               & np.isfinite(shift) & (np.abs(shift) < gate_m))
+    return mm["origin"] + np.where(use, shift, 0.0)[..., None] * n
 
 
 def door_angle(voted_q: np.ndarray, r: dict, refinement: "Refinement", xaxis: np.ndarray | None, revolute: np.ndarray) -> np.ndarray:
