@@ -174,15 +174,19 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -
                 centre = np.angle(np.exp(4j * u).sum()) / 4
                 around = np.sort(centre + np.remainder(u - centre + math.pi / 4, math.pi / 2) - math.pi / 4)
                 out["q_signed"][b, j] = float(around[(len(around) + 1) // 2 - 1])
-            if with_normal.any():  # step 10: the face's normal and offset
-                n = normals[with_normal]
-                h = n - (n @ zf)[:, None] * zf
-                u = F.normalize(h.sum(0), dim=0)
+            # step 10: the face's normal and offset, from every DOOR_FACE_STRIDE-th door pixel (image order)
+            read = torch.zeros_like(door)
+            read[door.nonzero()[:: R.DOOR_FACE_STRIDE, 0]] = True
+            face_px = read & has_normal
+            if face_px.any():
+                n = normals[face_px]
+                perpendicular = lambda v: F.normalize(v - (v @ zf) * zf, dim=0, eps=1e-12)  # noqa: E731
+                u = perpendicular(n.sum(0))
                 for angle_deg in R.DOOR_FACE_INLIER_DEG:
-                    inlier = h @ u > math.cos(math.radians(angle_deg))
-                    u = F.normalize(h[inlier].sum(0), dim=0, eps=1e-12)
+                    inlier = n @ u > math.cos(math.radians(angle_deg))
+                    u = perpendicular(n[inlier].sum(0))
                 out["door_face_normal"][b, j] = u
-                offsets = torch.sort(points[with_normal][inlier] @ u).values
+                offsets = torch.sort(points[face_px][inlier] @ u).values
                 if t == "revolute" and inlier.sum() >= R.DOOR_FACE_MIN_PX:
                     out["door_face_m"][b, j] = offsets[(len(offsets) + 1) // 2 - 1]
             if door.any():

@@ -120,8 +120,11 @@ DOOR_EXTENT_MIN_PX = 10
 #: Step 10: the door's face normal is the mean of the normals within these angles (deg) of the
 #: previous round's mean (the first round's: the mean of every door pixel's normal).
 DOOR_FACE_INLIER_DEG = (15.0, 5.0)
-#: Step 10 needs at least this many face pixels (within the last of those angles).
+#: Step 10 needs at least this many face pixels (within the last of those angles, among those it reads).
 DOOR_FACE_MIN_PX = 10
+#: Step 10 reads every this-many-th of a door's pixels (in image order; a door's face has hundreds
+#: to thousands).
+DOOR_FACE_STRIDE = 4
 #: Step 10 reads a face as the door's outer or inner face within this angle (deg) of the door's
 #: ``y`` or ``-y``; a door seen nearer edge-on keeps its origin.
 DOOR_FACE_MAX_DEG = 25.0
@@ -525,16 +528,23 @@ def _door_face(normal: list, points: list, real: torch.Tensor, axis: torch.Tenso
     """Step 10: each door's face normal (D, 3), unit and perpendicular to its ``axis`` (D, 3), and its
     face's offset ``median p . n`` (D,) m (NaN with fewer than :data:`DOOR_FACE_MIN_PX` face pixels),
     from its pixels' normals and points (three (D, m) components each) and which of them have a
-    normal (D, m)."""
-    along = normal[0] * axis[:, 0:1] + normal[1] * axis[:, 1:2] + normal[2] * axis[:, 2:3]
-    h = [normal[c] - along * axis[:, c:c + 1] for c in range(3)]  # the normals perpendicular to the axis
+    normal (D, m).  Reads every :data:`DOOR_FACE_STRIDE`-th pixel.  The inlier tests compare the unit
+    normals themselves with the current direction (perpendicular to the axis), and each round's mean
+    is taken perpendicular to the axis."""
+    k = DOOR_FACE_STRIDE
+    normal, points, real = [v[:, ::k] for v in normal], [v[:, ::k] for v in points], real[:, ::k]
+
+    def perpendicular_mean(w):  # the weighted mean normal, perpendicular to the axis, unit
+        mean = torch.stack([(w * nc).sum(-1) for nc in normal], -1)  # (D, 3)
+        mean = mean - (mean * axis).sum(-1, keepdim=True) * axis
+        return F.normalize(mean, dim=-1, eps=1e-12)
+
     inlier = real
-    for angle_deg in (None,) + DOOR_FACE_INLIER_DEG:
-        if angle_deg is not None:
-            cos = math.cos(math.radians(angle_deg))
-            inlier = real & ((h[0] * u[:, 0:1] + h[1] * u[:, 1:2] + h[2] * u[:, 2:3]) > cos)
-        w = inlier.to(h[0].dtype)
-        u = F.normalize(torch.stack([(w * hc).sum(-1) for hc in h], -1), dim=-1, eps=1e-12)  # (D, 3)
+    u = perpendicular_mean(real.to(normal[0].dtype))
+    for angle_deg in DOOR_FACE_INLIER_DEG:
+        cos = math.cos(math.radians(angle_deg))
+        inlier = real & ((normal[0] * u[:, 0:1] + normal[1] * u[:, 1:2] + normal[2] * u[:, 2:3]) > cos)
+        u = perpendicular_mean(inlier.to(normal[0].dtype))
     offset = points[0] * u[:, 0:1] + points[1] * u[:, 1:2] + points[2] * u[:, 2:3]
     face_m = lower_median(offset, inlier)
     return u, torch.where(inlier.sum(-1) >= DOOR_FACE_MIN_PX, face_m, torch.full_like(face_m, float("nan")))
