@@ -15,6 +15,7 @@ torch = pytest.importorskip("torch")
 from torch.nn import functional as F  # noqa: E402
 
 from articulated_dataset.models.dense import refine as R  # noqa: E402
+from articulated_dataset.models.dense import handle as DH  # noqa: E402
 from articulated_dataset.models.dense.aggregate import image_groups  # noqa: E402
 from articulated_dataset.models.dense.features import (  # noqa: E402
     N_INPUT_CHANNELS, NORMAL_MAX_STEP_M, OUTPUT_STRIDE, POINT_SCALE_M, backproject_torch, make_inputs)
@@ -174,20 +175,20 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -
                 centre = np.angle(np.exp(4j * u).sum()) / 4
                 around = np.sort(centre + np.remainder(u - centre + math.pi / 4, math.pi / 2) - math.pi / 4)
                 out["q_signed"][b, j] = float(around[(len(around) + 1) // 2 - 1])
-            # step 10: the face's normal and offset, from every DOOR_FACE_STRIDE-th door pixel (image order)
+            # step 10: the face's normal and offset, from every FACE_STRIDE-th door pixel (image order)
             read = torch.zeros_like(door)
-            read[door.nonzero()[:: R.DOOR_FACE_STRIDE, 0]] = True
+            read[door.nonzero()[:: DH.FACE_STRIDE, 0]] = True
             face_px = read & has_normal
             if face_px.any():
                 n = normals[face_px]
                 perpendicular = lambda v: F.normalize(v - (v @ zf) * zf, dim=0, eps=1e-12)  # noqa: E731
                 u = perpendicular(n.sum(0))
-                for angle_deg in R.DOOR_FACE_INLIER_DEG:
+                for angle_deg in DH.FACE_INLIER_DEG:
                     inlier = n @ u > math.cos(math.radians(angle_deg))
                     u = perpendicular(n[inlier].sum(0))
                 out["door_face_normal"][b, j] = u
                 offsets = torch.sort(points[face_px][inlier] @ u).values
-                if t == "revolute" and inlier.sum() >= R.DOOR_FACE_MIN_PX:
+                if t == "revolute" and inlier.sum() >= DH.FACE_MIN_PX:
                     out["door_face_m"][b, j] = offsets[(len(offsets) + 1) // 2 - 1]
             if door.any():
                 along = points[door] @ (side[0, 0] * zf)

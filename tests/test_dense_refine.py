@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from articulated_dataset.benchmark import metrics as M  # noqa: E402
 from articulated_dataset.models.dense import refine as R  # noqa: E402
+from articulated_dataset.models.dense import handle as DH  # noqa: E402
 from articulated_dataset.models.dense.fit import fit_refinement  # noqa: E402
 from articulated_dataset.models.dense.features import make_inputs  # noqa: E402
 from articulated_dataset.rotations import matrix_to_quat  # noqa: E402
@@ -549,7 +550,7 @@ def test_door_face_plane_is_read_from_the_door_pixels(q_deg):
     n = r["door_face_normal"][0, 0].numpy()
     assert n @ n_true > math.cos(math.radians(0.05))
     assert r["door_face_m"][0, 0].item() == pytest.approx(n_true @ [1.5, 0.0, 0.0], abs=2e-4)
-    # the same through _door_face directly, with 10% of the normals turned by 40 deg (a handle, an edge)
+    # the same through handle.door_face directly, with 10% of the normals turned by 40 deg (a handle, an edge)
     D, m = 1, 2000
     rng = np.random.default_rng(1)
     pts = np.array([1.5, 0.0, 0.0]) + rng.uniform(-0.3, 0.3, (m, 1)) * np.cross(n_true, [0, 0, 1]) \
@@ -559,11 +560,11 @@ def test_door_face_plane_is_read_from_the_door_pixels(q_deg):
     nrm[bad] = Rotation.from_rotvec([0, 0, math.radians(40)]).apply(nrm[bad])
     pts[bad] += 0.03 * n_true  # the corrupted pixels also stand 3 cm off the face
     as_list = lambda a: [torch.tensor(a[None, :, c], dtype=torch.float32) for c in range(3)]  # noqa: E731
-    u, f = R._door_face(as_list(nrm), as_list(pts), torch.ones(D, m, dtype=torch.bool), torch.tensor([[0, 0, 1.0]]))
+    u, f = DH.door_face(as_list(nrm), as_list(pts), torch.ones(D, m, dtype=torch.bool), torch.tensor([[0, 0, 1.0]]))
     assert u[0].numpy() @ n_true > math.cos(math.radians(0.05))
     assert f[0].item() == pytest.approx(n_true @ [1.5, 0.0, 0.0], abs=1e-4)
     # too few face pixels: no plane
-    _, f = R._door_face(as_list(nrm), as_list(pts), torch.arange(m)[None] < R.DOOR_FACE_MIN_PX - 1,
+    _, f = DH.door_face(as_list(nrm), as_list(pts), torch.arange(m)[None] < DH.FACE_MIN_PX - 1,
                         torch.tensor([[0, 0, 1.0]]))
     assert math.isnan(f[0].item())
 

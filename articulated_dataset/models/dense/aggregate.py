@@ -262,3 +262,18 @@ def _vote_modes(parts: dict, points: torch.Tensor, valid: torch.Tensor, split_fa
         out[key] = torch.gather(v, 2, idx)
     out["geometry"], out["geometry_std"] = geometry, geometry_std
     return out
+
+
+def lower_median(values: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
+    """:func:`weighted_median` with weight 1 on the ``real`` entries (last dimension) and 0 elsewhere:
+    the ``ceil(c / 2)``-th smallest of a row's ``c`` real entries (NaN without any), found by
+    selection (:func:`torch.kthvalue`) instead of a sort.  The other entries become -inf or +inf,
+    so many of each that every row's median lands at the same rank."""
+    count = real.sum(-1, keepdim=True)  # (R, 1)
+    rank = torch.div(count - 1, 2, rounding_mode="floor")  # 0-based rank of the median among the real entries
+    target = int(rank.max()) if rank.numel() else 0
+    # the first (target - rank) entries that are not real go below every real one, the rest above
+    below = (~real).cumsum(-1, dtype=torch.int32) <= target - rank
+    filler = torch.where(below, float("-inf"), float("inf")).to(values.dtype)
+    med = torch.kthvalue(torch.where(real, values, filler), max(target, 0) + 1, -1).values
+    return torch.where(count[..., 0] > 0, med, torch.full_like(med, float("nan")))

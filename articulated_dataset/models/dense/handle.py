@@ -8,11 +8,11 @@ on either side) it sometimes puts the hinge at the handle: a mirrored door, abou
 (60-140 cm) and 180 degrees off.  The handle is visible in the depth as door pixels standing a
 few centimetres in front of the door's face, so the side is measured instead:
 
-1. the door's face (:func:`handle_evidence`): the door pixels' normals, turned towards the
-   camera and made perpendicular to the axis line, are averaged (twice: the second time only
-   those within :data:`FACE_INLIER_DEG` of the first mean), giving the face normal ``n``; the
-   face's offset ``c`` is the mean of ``n . p`` over those pixels, trimmed to within
-   :data:`FACE_TRIM_M` of a first mean;
+1. the door's face (:func:`door_face`, which refinement step 10 reads too): the door pixels'
+   normals (they face the camera) are averaged perpendicular to the axis line, then again over
+   those within each of :data:`FACE_INLIER_DEG` of the previous mean, giving the face normal
+   ``n``; the face's offset ``c`` is the median of ``n . p`` over the pixels within the last
+   angle (seventeenth session; before, one 10-degree round and a trimmed mean);
 2. the handle: the door pixels with ``n . p - c`` between :data:`HANDLE_MIN_STANDOFF_M` and
    :data:`HANDLE_MAX_STANDOFF_M`; their count, mean point and extent along and across the axis
    (``sqrt(12 var)``, a uniform bar's length); only a bar-sized one (:data:`HANDLE_MAX_LENGTH_M`,
@@ -48,7 +48,7 @@ import math
 import numpy as np
 import torch
 
-from .aggregate import argmax_channels, compact_mask
+from .aggregate import argmax_channels, compact_mask, lower_median
 from .features import MIN_NORMAL_NORM, OUTPUT_STRIDE, POINT_SCALE_M
 
 #: How far a handle bar stands out of its door's face (m): ``handle_standoff_m`` of common.xacro.
@@ -81,10 +81,15 @@ HANDLE_KEYS = ("handle_px", "handle_point", "handle_size_m", "handle_cut", "hand
 HANDLE_MIN_STANDOFF_M = 0.4 * HANDLE_STANDOFF_M
 #: ... up to this far (m): nearer the camera than that is not the door's.
 HANDLE_MAX_STANDOFF_M = 1.7 * HANDLE_STANDOFF_M
-#: The face's normal is the mean of the door normals within this angle (deg) of their first mean.
-FACE_INLIER_DEG = 10.0
-#: The face's offset is the mean of ``n . p`` within this distance (m) of a first mean.
-FACE_TRIM_M = 0.01
+#: The door's face normal is the mean of its normals within these angles (deg) of the previous
+#: round's mean (the first round's: the mean of every door pixel's normal) (:func:`door_face`).
+FACE_INLIER_DEG = (15.0, 5.0)
+#: A face needs at least this many pixels within the last of those angles, among those read.
+FACE_MIN_PX = 10
+#: :func:`door_face` reads every this-many-th of a door's pixels (in image order; a door's face has
+#: hundreds to thousands; on the seed-14 objects the microwave's and refrigerator's positions moved
+#: by 0.003 cm or less against every pixel).
+FACE_STRIDE = 4
 #: The voted door radius is clipped below at this (m) before a door is mirrored (and, in
 #: :mod:`.refine`, before the hinge offset's angle is taken).
 MIN_RADIUS_M = 0.05
@@ -104,37 +109,53 @@ def _unit_rows(v: list) -> list:
     return [c / norm for c in v]
 
 
+def door_face(normal: list, points: list, real: torch.Tensor, axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Step 1 (and refinement step 10): each door's face normal (D, 3), unit and perpendicular to its
+    ``axis`` (D, 3; its sign does not matter), and its
+    face's offset ``median p . n`` (D,) m (NaN with fewer than :data:`FACE_MIN_PX` face pixels),
+    from its pixels' normals and points (three (D, m) components each) and which of them have a
+    normal (D, m).  Reads every :data:`FACE_STRIDE`-th pixel.  The inlier tests compare the unit
+    normals themselves with the current direction (perpendicular to the axis), and each round's mean
+    is taken perpendicular to the axis."""
+    k = FACE_STRIDE
+    normal, points, real = [v[:, ::k] for v in normal], [v[:, ::k] for v in points], real[:, ::k]
+
+    def perpendicular_mean(w):  # the weighted mean normal, perpendicular to the axis, unit
+        mean = torch.stack([(w * nc).sum(-1) for nc in normal], -1)  # (D, 3)
+        mean = mean - (mean * axis).sum(-1, keepdim=True) * axis
+        return torch.nn.functional.normalize(mean, dim=-1, eps=1e-12)
+
+    inlier = real
+    u = perpendicular_mean(real.to(normal[0].dtype))
+    for angle_deg in FACE_INLIER_DEG:
+        cos = math.cos(math.radians(angle_deg))
+        inlier = real & ((normal[0] * u[:, 0:1] + normal[1] * u[:, 1:2] + normal[2] * u[:, 2:3]) > cos)
+        u = perpendicular_mean(inlier.to(normal[0].dtype))
+    offset = points[0] * u[:, 0:1] + points[1] * u[:, 1:2] + points[2] * u[:, 2:3]
+    face_m = lower_median(offset, inlier)
+    return u, torch.where(inlier.sum(-1) >= FACE_MIN_PX, face_m, torch.full_like(face_m, float("nan")))
+
+
 def door_handles(points: list, normals: list, real: torch.Tensor, row: torch.Tensor, axis_line: torch.Tensor,
-                 H: int) -> dict:
+                 H: int, face: tuple | None = None) -> dict:
     """Steps 1-2 for doors listed row by row: ``points`` and ``normals`` (x, y, z components, each
     (D, m): camera-frame points, m, and input normals) of each door's valid pixels, which of
     them are ``real`` (D, m; the rest padding), their image rows (D, m), each door's axis line
     (D, 3; its sign does not matter) and the image height ``H`` -> :func:`handle_evidence`'s
-    keys with one row per door.  Each sum is over a row (no per-image scatter), written
+    keys with one row per door; ``face``: the doors' :func:`door_face` (normal (D, 3), offset (D,))
+    where the caller has it (the refinement), else measured here.  Each sum is over a row (no per-image scatter), written
     component by component (no (D, m, 3) stacks and reductions over their last axis)."""
     dtype = points[0].dtype
     nz = torch.nn.functional.normalize(axis_line, dim=-1)  # (D, 3)
     z = [nz[:, c:c + 1] for c in range(3)]
-    nrm, pts = normals, points
-    weight = real & ((nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2]) > MIN_NORMAL_NORM**2)
-    weight = weight.to(dtype)
-    # the normals towards the camera (at the origin) and perpendicular to the axis line
-    sign = torch.where(nrm[0] * pts[0] + nrm[1] * pts[1] + nrm[2] * pts[2] > 0, -1.0, 1.0).to(dtype)
-    f = [sign * v for v in nrm]
-    fz = f[0] * z[0] + f[1] * z[1] + f[2] * z[2]
-    f = [f[c] - fz * z[c] for c in range(3)]
-    inv = torch.rsqrt((f[0] * f[0] + f[1] * f[1] + f[2] * f[2]).clamp_min(1e-24))
-    facing = [v * inv for v in f]
-    n = _unit_rows(_row_mean(facing, weight)[0])
-    inlier = weight * ((facing[0] * n[0][:, None] + facing[1] * n[1][:, None] + facing[2] * n[2][:, None])
-                       > math.cos(math.radians(FACE_INLIER_DEG))).to(dtype)
-    n = _unit_rows(_row_mean(facing, inlier)[0])
+    pts = points
+    n_face, c = door_face(normals, points, real & ((normals[0] * normals[0] + normals[1] * normals[1]
+                                                    + normals[2] * normals[2]) > MIN_NORMAL_NORM**2), nz) \
+        if face is None else face
+    n = [n_face[:, k] for k in range(3)]
     s = pts[0] * n[0][:, None] + pts[1] * n[1][:, None] + pts[2] * n[2][:, None]  # along the face normal
-    (c,), _ = _row_mean([s], inlier)
-    trimmed = inlier * ((s - c[:, None]).abs() < FACE_TRIM_M).to(dtype)
-    (c,), count = _row_mean([s], trimmed)
     standoff = s - c[:, None]
-    handle = real & (standoff > HANDLE_MIN_STANDOFF_M) & (standoff < HANDLE_MAX_STANDOFF_M) & (count > 0)[:, None]
+    handle = real & (standoff > HANDLE_MIN_STANDOFF_M) & (standoff < HANDLE_MAX_STANDOFF_M) & torch.isfinite(c)[:, None]
     # the handle's pixels only from here on (a few dozen of a door's thousands), gathered to the
     # front of each row
     hidx, handle = compact_mask(handle)

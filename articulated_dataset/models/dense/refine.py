@@ -64,9 +64,10 @@ regressed (:func:`refined_quantities`, per image and joint):
 10. **Hinge plane from the door's face** (applied last).  The hinge lies in the plane of the door's
    outer face (``common.xacro``'s ``side_door``: the panel's front face, at its hinge edge), and
    the door's face pixels measure that plane to a millimetre where the votes place the origin
-   ~0.5 cm off it.  The door's face normal ``n`` is the mean of its pixels' normals (taken
-   perpendicular to the axis) within :data:`DOOR_FACE_INLIER_DEG` of the previous mean, and
-   the face's offset ``f`` the median of ``p . n`` over the pixels within the last angle.  Per
+   ~0.5 cm off it.  The door's face (:func:`~.handle.door_face`, which steps 7 and 9 read too):
+   its normal ``n`` is the mean of its pixels' normals (taken perpendicular to the axis) within
+   :data:`~.handle.FACE_INLIER_DEG` of the previous mean, and its offset ``f`` the median of
+   ``p . n`` over the pixels within the last angle.  Per
    vote mode, the face seen is the outer one where ``n`` is within :data:`DOOR_FACE_MAX_DEG` of
    the door's ``y`` (the frame's ``y`` turned by the mode's ``q`` about its axis), the inner one
    (a door seen from behind) where it is within that of ``-y``, neither where the door is seen
@@ -89,10 +90,11 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from .aggregate import SPLIT_FACTOR, argmax_channels, compact_mask, gram_schmidt6, image_groups, softmax_weights
+from .aggregate import (SPLIT_FACTOR, argmax_channels, compact_mask, gram_schmidt6, image_groups, lower_median,
+                        softmax_weights)
 from .features import MIN_NORMAL_NORM, OUTPUT_STRIDE, POINT_SCALE_M
-from .handle import (EVERY_DOOR_DEG, HANDLE_KEYS, MIN_RADIUS_M, apply_handle_height, apply_handle_side, door_handles,
-                     handle_candidates)
+from .handle import (EVERY_DOOR_DEG, HANDLE_KEYS, MIN_RADIUS_M, apply_handle_height, apply_handle_side, door_face,
+                     door_handles, handle_candidates)
 
 #: Manhattan alignment rounds: a normal is matched to a frame axis within these angles (deg).  The
 #: last two rounds (seventeenth session) leave out the normals of a face's border pixels, whose
@@ -117,14 +119,6 @@ DOOR_ANGLES = ("q", "q_folded", "q_signed")
 DOOR_EXTENT_QUANTILE = 0.005
 #: Step 6 needs at least this many door pixels.
 DOOR_EXTENT_MIN_PX = 10
-#: Step 10: the door's face normal is the mean of the normals within these angles (deg) of the
-#: previous round's mean (the first round's: the mean of every door pixel's normal).
-DOOR_FACE_INLIER_DEG = (15.0, 5.0)
-#: Step 10 needs at least this many face pixels (within the last of those angles, among those it reads).
-DOOR_FACE_MIN_PX = 10
-#: Step 10 reads every this-many-th of a door's pixels (in image order; a door's face has hundreds
-#: to thousands).
-DOOR_FACE_STRIDE = 4
 #: Step 10 reads a face as the door's outer or inner face within this angle (deg) of the door's
 #: ``y`` or ``-y``; a door seen nearer edge-on keeps its origin.
 DOOR_FACE_MAX_DEG = 25.0
@@ -278,21 +272,6 @@ def weighted_median(values: torch.Tensor, weights: torch.Tensor) -> torch.Tensor
     k = torch.searchsorted(cw.contiguous(), (0.5 * total).contiguous()).clamp_max(values.shape[-1] - 1)
     med = torch.gather(v, -1, k)[..., 0]
     return torch.where(total[..., 0] > 0, med, torch.full_like(med, float("nan")))
-
-
-def lower_median(values: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
-    """:func:`weighted_median` with weight 1 on the ``real`` entries (last dimension) and 0 elsewhere:
-    the ``ceil(c / 2)``-th smallest of a row's ``c`` real entries (NaN without any), found by
-    selection (:func:`torch.kthvalue`) instead of a sort.  The other entries become -inf or +inf,
-    so many of each that every row's median lands at the same rank."""
-    count = real.sum(-1, keepdim=True)  # (R, 1)
-    rank = torch.div(count - 1, 2, rounding_mode="floor")  # 0-based rank of the median among the real entries
-    target = int(rank.max()) if rank.numel() else 0
-    # the first (target - rank) entries that are not real go below every real one, the rest above
-    below = (~real).cumsum(-1, dtype=torch.int32) <= target - rank
-    filler = torch.where(below, float("-inf"), float("inf")).to(values.dtype)
-    med = torch.kthvalue(torch.where(real, values, filler), max(target, 0) + 1, -1).values
-    return torch.where(count[..., 0] > 0, med, torch.full_like(med, float("nan")))
 
 
 def _quantile_pair(values: torch.Tensor, real: torch.Tensor, q: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -511,43 +490,17 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     along = door_points[0] * door_axis[:, 0:1] + door_points[1] * door_axis[:, 1:2] + door_points[2] * door_axis[:, 2:3]
     door_row = row.view(-1).index_select(0, door_at).view(R * J, m)
     door_mid, door_cut = _door_extent(along, door_row, dok, revolute, (R, J), H)
-    face_normal, face_m = _door_face(door_normal, door_points, with_normal, zf.reshape(R * J, 3))
+    face_normal, face_offset = door_face(door_normal, door_points, with_normal, zf.reshape(R * J, 3))
     nan = torch.tensor(float("nan"), dtype=x.dtype)
-    face_m = torch.where(revolute[None], face_m.view(R, J), nan)
+    face_m = torch.where(revolute[None], face_offset.view(R, J), nan)
     out = {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], **angles, "box_x": xf,
            "door_px": with_normal.sum(-1).view(R, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut,
            "door_face_normal": face_normal.view(R, J, 3), "door_face_m": face_m}
     if handles:  # steps 7 and 9: the revolute doors' handles, from the same pixels
         measured = dok & revolute.repeat(R)[:, None]
-        found = door_handles(door_points, door_normal, measured, door_row, door_axis, H)
+        found = door_handles(door_points, door_normal, measured, door_row, door_axis, H, face=(face_normal, face_offset))
         out.update({k: v.view(R, J, *v.shape[1:]) for k, v in found.items()})
     return out
-
-
-def _door_face(normal: list, points: list, real: torch.Tensor, axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Step 10: each door's face normal (D, 3), unit and perpendicular to its ``axis`` (D, 3), and its
-    face's offset ``median p . n`` (D,) m (NaN with fewer than :data:`DOOR_FACE_MIN_PX` face pixels),
-    from its pixels' normals and points (three (D, m) components each) and which of them have a
-    normal (D, m).  Reads every :data:`DOOR_FACE_STRIDE`-th pixel.  The inlier tests compare the unit
-    normals themselves with the current direction (perpendicular to the axis), and each round's mean
-    is taken perpendicular to the axis."""
-    k = DOOR_FACE_STRIDE
-    normal, points, real = [v[:, ::k] for v in normal], [v[:, ::k] for v in points], real[:, ::k]
-
-    def perpendicular_mean(w):  # the weighted mean normal, perpendicular to the axis, unit
-        mean = torch.stack([(w * nc).sum(-1) for nc in normal], -1)  # (D, 3)
-        mean = mean - (mean * axis).sum(-1, keepdim=True) * axis
-        return F.normalize(mean, dim=-1, eps=1e-12)
-
-    inlier = real
-    u = perpendicular_mean(real.to(normal[0].dtype))
-    for angle_deg in DOOR_FACE_INLIER_DEG:
-        cos = math.cos(math.radians(angle_deg))
-        inlier = real & ((normal[0] * u[:, 0:1] + normal[1] * u[:, 1:2] + normal[2] * u[:, 2:3]) > cos)
-        u = perpendicular_mean(inlier.to(normal[0].dtype))
-    offset = points[0] * u[:, 0:1] + points[1] * u[:, 1:2] + points[2] * u[:, 2:3]
-    face_m = lower_median(offset, inlier)
-    return u, torch.where(inlier.sum(-1) >= DOOR_FACE_MIN_PX, face_m, torch.full_like(face_m, float("nan")))
 
 
 def _door_extent(along: torch.Tensor, row: torch.Tensor, real: torch.Tensor, revolute: torch.Tensor,
