@@ -633,3 +633,12 @@ def test_fit_recovers_the_face_offsets_and_gates_step_10():
     after = np.linalg.norm(R.door_face_origin(m, r, 0.05, (outer_off, inner_off), np.array([True]))[:, 0, 0]
                            - true_origin, axis=-1).mean()
     assert after < 0.8 * before
+    # no inner face among the validation doors: its offset is unknown, and step 10 leaves such modes alone
+    only_outer = {k: v[~inner] for k, v in m.items()}
+    r_outer = {k: v[~inner] for k, v in r.items()}
+    truth_outer = {k: v[~inner] for k, v in truth.items()}
+    assert fit_door_face_offsets(only_outer, r_outer, truth_outer, ["revolute"])[1] is None
+    m_inner, r_inner = {k: v[inner] for k, v in m.items()}, {k: v[inner] for k, v in r.items()}
+    assert np.array_equal(R.door_face_origin(m_inner, r_inner, 0.05, (0.0, None), np.array([True])), m_inner["origin"])
+    ref = R.Refinement(door_face_gate_m=0.05, door_face_offsets_m=(0.0, None))
+    assert R.Refinement.from_dict(ref.to_dict()) == ref

@@ -42,6 +42,8 @@ HANDLE_HEIGHT_MIN_GAIN = 0.03
 FRAME_PROB_CANDIDATES = (None, 0.9)
 #: Gates (m) tried for step 10 (the hinge onto the door's face plane) by :func:`fit_refinement`.
 DOOR_FACE_GATE_CANDIDATES_M = (0.01, 0.02, 0.03, 0.05, 0.1)
+#: ... whose offset from a face (outer or inner) is fitted from at least this many doors seen so.
+DOOR_FACE_MIN_FIT = 20
 
 
 def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinement", dict]:
@@ -174,7 +176,8 @@ def fit_door_face_offsets(mm: dict, r: dict, truth: dict, joint_types) -> tuple[
     inner face: the medians, over the revolute joints' heaviest modes of the mode arrays ``mm``
     whose face seen is the outer (inner) one (:func:`~.refine.door_face_side`), of ``o . n - f``
     with ``o`` the true axis origin, ``n`` and ``f`` the face's normal and offset
-    (``r["door_face_normal"]``, ``r["door_face_m"]``); 0 where no face of that kind was seen."""
+    (``r["door_face_normal"]``, ``r["door_face_m"]``); None where fewer than
+    :data:`DOOR_FACE_MIN_FIT` faces of that kind were seen (step 10 then leaves those modes alone)."""
     revolute = np.array([t == "revolute" for t in joint_types])
     heaviest = mm["weight"].argmax(-1)[..., None]  # (N, J, 1)
     side = np.take_along_axis(door_face_side(mm, r), heaviest, axis=2)[..., 0]  # (N, J)
@@ -182,7 +185,7 @@ def fit_door_face_offsets(mm: dict, r: dict, truth: dict, joint_types) -> tuple[
     cos = np.cos(np.radians(DOOR_FACE_MAX_DEG))
     seen = revolute[None] & np.isfinite(residual)
     outer, inner = residual[seen & (side > cos)], residual[seen & (side < -cos)]
-    return (float(np.median(outer)) if outer.size else 0.0, float(np.median(inner)) if inner.size else 0.0)
+    return tuple(float(np.median(v)) if v.size >= DOOR_FACE_MIN_FIT else None for v in (outer, inner))
 
 
 def rotation_error_deg(mm: dict, truth: dict) -> float:

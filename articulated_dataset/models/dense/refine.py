@@ -177,8 +177,9 @@ class Refinement:
     #: this (m; None: never) ...
     door_face_gate_m: float | None = None
     #: ... the hinge plane's offset (m) along the face's normal from the outer face and from the
-    #: inner face (fitted: :func:`~.fit.fit_door_face_offsets`)
-    door_face_offsets_m: tuple[float, float] = (0.0, 0.0)
+    #: inner face (fitted: :func:`~.fit.fit_door_face_offsets`; None: that face was never seen on
+    #: the validation objects, and a mode that sees it keeps its origin)
+    door_face_offsets_m: tuple[float | None, float | None] = (0.0, 0.0)
     version: int = REFINEMENT_VERSION
 
     @property
@@ -209,7 +210,7 @@ class Refinement:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["mirror_joints"] = None if self.mirror_joints is None else [int(k) for k in self.mirror_joints]
-        d["door_face_offsets_m"] = [float(v) for v in self.door_face_offsets_m]
+        d["door_face_offsets_m"] = [_optional_float(v) for v in self.door_face_offsets_m]
         return d
 
     @classmethod
@@ -240,9 +241,9 @@ def _optional_float(v) -> float | None:
     return None if v is None else float(v)
 
 
-def _float_pair(v) -> tuple[float, float]:
-    a, b = v  # a stored pair: a list or tuple of two numbers
-    return float(a), float(b)
+def _float_pair(v) -> tuple[float | None, float | None]:
+    a, b = v  # a stored pair: a list or tuple of two numbers (or None)
+    return _optional_float(a), _optional_float(b)
 
 
 def split_factor_of(refinement) -> float | None:
@@ -585,13 +586,15 @@ def door_face_side(mm: dict, r: dict) -> np.ndarray:
     return (r["door_face_normal"][:, :, None] * y_door).sum(-1)
 
 
-def door_face_origin(mm: dict, r: dict, gate_m: float, offsets_m: tuple[float, float], revolute: np.ndarray) -> np.ndarray:
+def door_face_origin(mm: dict, r: dict, gate_m: float, offsets_m: tuple, revolute: np.ndarray) -> np.ndarray:
     """Step 10: the vote modes' origins (B, J, M, 3) moved along their door's face normal onto the
     face's plane plus ``offsets_m`` (outer face, inner face; m) where the face seen is one of them
-    (:func:`door_face_side`, within :data:`DOOR_FACE_MAX_DEG`) and the move is shorter than ``gate_m``."""
+    (:func:`door_face_side`, within :data:`DOOR_FACE_MAX_DEG`), its offset is known (not None) and
+    the move is shorter than ``gate_m``."""
     side = door_face_side(mm, r)
     n = r["door_face_normal"][:, :, None]  # (B, J, 1, 3)
-    plane = r["door_face_m"][..., None] + np.where(side > 0, offsets_m[0], offsets_m[1])
+    known = [np.nan if v is None else v for v in offsets_m]  # a face never seen: no move
+    plane = r["door_face_m"][..., None] + np.where(side > 0, known[0], known[1])
     with np.errstate(invalid="ignore"):
         shift = plane - (mm["origin"] * n).sum(-1)
         use = (revolute[None, :, None] & (np.abs(side) > math.cos(math.radians(DOOR_FACE_MAX_DEG)))
