@@ -64,13 +64,13 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     (step 6, with the best gate of :data:`DOOR_EXTENT_GATE_CANDIDATES_M`) when it lowers the mean
     axis position error of each joint's heaviest mode; the handle's side (step 7) with the
     pair of :data:`HANDLE_Q_CANDIDATES_DEG` and :data:`HANDLE_PX_CANDIDATES` that lowers that
-    error most, if any does; the hinge plane from the door's face (step 10, with the offsets of
-    :func:`fit_door_face_offsets` and the gate of :data:`DOOR_FACE_GATE_CANDIDATES_M`) that lowers
-    that error most, if any does; the hinge's height from the handle (step 9) with the gate of
+    error most, if any does; the hinge's height from the handle (step 9) with the gate of
     :data:`HANDLE_HEIGHT_GATE_CANDIDATES_M`, from whole bars only or also from bars the image's
     border cuts (``handle_cut_bars``), that lowers it most, if that is by at least
     :data:`HANDLE_HEIGHT_MIN_GAIN` (``r`` must hold :func:`~.handle.handle_evidence`'s keys for
-    steps 7 and 9, measured for every door).  Returns the
+    steps 7 and 9, measured for every door); last, the hinge plane from the door's face (step 10,
+    with the offsets of :func:`fit_door_face_offsets`) with the gate of
+    :data:`DOOR_FACE_GATE_CANDIDATES_M` that lowers that error most, if any does.  Returns the
     :class:`Refinement` and the validation errors of every candidate.
     """
     from ...benchmark import metrics as M
@@ -171,7 +171,7 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     return refinement, report
 
 
-def fit_door_face_offsets(mm: dict, r: dict, truth: dict, joint_types) -> tuple[float, float]:
+def fit_door_face_offsets(mm: dict, r: dict, truth: dict, joint_types) -> tuple[float | None, float | None]:
     """Step 10's offsets (m) of the hinge plane along a door's face normal from its outer and its
     inner face: the medians, over the revolute joints' heaviest modes of the mode arrays ``mm``
     whose face seen is the outer (inner) one (:func:`~.refine.door_face_side`), of ``o . n - f``

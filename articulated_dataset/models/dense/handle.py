@@ -103,20 +103,14 @@ def _row_mean(values: list, weight: torch.Tensor) -> tuple[list, torch.Tensor]:
     return [(v * weight).sum(-1) / denominator for v in values], total
 
 
-def _unit_rows(v: list) -> list:
-    """Components (D,) each of vectors -> those of the unit vectors (``F.normalize``'s eps, 1e-12)."""
-    norm = torch.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).clamp_min(1e-12)
-    return [c / norm for c in v]
-
-
 def door_face(normal: list, points: list, real: torch.Tensor, axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Step 1 (and refinement step 10): each door's face normal (D, 3), unit and perpendicular to its
-    ``axis`` (D, 3; its sign does not matter), and its
-    face's offset ``median p . n`` (D,) m (NaN with fewer than :data:`FACE_MIN_PX` face pixels),
-    from its pixels' normals and points (three (D, m) components each) and which of them have a
-    normal (D, m).  Reads every :data:`FACE_STRIDE`-th pixel.  The inlier tests compare the unit
-    normals themselves with the current direction (perpendicular to the axis), and each round's mean
-    is taken perpendicular to the axis."""
+    unit ``axis`` (D, 3; its sign does not matter), and its face's offset ``median p . n`` (D,) m
+    (NaN with fewer than :data:`FACE_MIN_PX` face pixels), from its pixels' normals and points
+    (three (D, m) components each) and which of them have a normal (D, m).  Reads every
+    :data:`FACE_STRIDE`-th pixel.  The inlier tests compare the unit normals themselves with the
+    current direction (perpendicular to the axis), and each round's mean is taken perpendicular to
+    the axis."""
     k = FACE_STRIDE
     normal, points, real = [v[:, ::k] for v in normal], [v[:, ::k] for v in points], real[:, ::k]
 
@@ -148,11 +142,13 @@ def door_handles(points: list, normals: list, real: torch.Tensor, row: torch.Ten
     dtype = points[0].dtype
     nz = torch.nn.functional.normalize(axis_line, dim=-1)  # (D, 3)
     z = [nz[:, c:c + 1] for c in range(3)]
-    pts = points
-    n_face, c = door_face(normals, points, real & ((normals[0] * normals[0] + normals[1] * normals[1]
-                                                    + normals[2] * normals[2]) > MIN_NORMAL_NORM**2), nz) \
-        if face is None else face
+    if face is None:
+        with_normal = real & ((normals[0] * normals[0] + normals[1] * normals[1] + normals[2] * normals[2])
+                              > MIN_NORMAL_NORM**2)
+        face = door_face(normals, points, with_normal, nz)
+    n_face, c = face
     n = [n_face[:, k] for k in range(3)]
+    pts = points
     s = pts[0] * n[0][:, None] + pts[1] * n[1][:, None] + pts[2] * n[2][:, None]  # along the face normal
     standoff = s - c[:, None]
     handle = real & (standoff > HANDLE_MIN_STANDOFF_M) & (standoff < HANDLE_MAX_STANDOFF_M) & torch.isfinite(c)[:, None]

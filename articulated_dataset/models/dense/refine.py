@@ -70,7 +70,7 @@ regressed (:func:`refined_quantities`, per image and joint):
    ``p . n`` over the pixels within the last angle.  Per
    vote mode, the face seen is the outer one where ``n`` is within :data:`DOOR_FACE_MAX_DEG` of
    the door's ``y`` (the frame's ``y`` turned by the mode's ``q`` about its axis), the inner one
-   (a door seen from behind) where it is within that of ``-y``, neither where the door is seen
+   (an open door seen from its inside) where it is within that of ``-y``, neither where the door is seen
    edge-on; the origin is moved along ``n`` onto the plane ``f`` plus the fitted offset of that
    face (``door_face_offsets_m``: the outer face's ~0, the inner face's ~minus the panel's
    thickness) where that moves it by less than ``door_face_gate_m``.  The axis' line moves
@@ -491,7 +491,10 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     along = door_points[0] * door_axis[:, 0:1] + door_points[1] * door_axis[:, 1:2] + door_points[2] * door_axis[:, 2:3]
     door_row = row.view(-1).index_select(0, door_at).view(R * J, m)
     door_mid, door_cut = _door_extent(along, door_row, dok, revolute, (R, J), H)
-    face_normal, face_offset = door_face(door_normal, door_points, with_normal, zf.reshape(R * J, 3))
+    if revolute.any():  # step 10's face (and steps 7 and 9's): doors that turn only
+        face_normal, face_offset = door_face(door_normal, door_points, with_normal, zf.reshape(R * J, 3))
+    else:
+        face_normal, face_offset = x.new_zeros(R * J, 3), x.new_full((R * J,), float("nan"))
     nan = torch.tensor(float("nan"), dtype=x.dtype)
     face_m = torch.where(revolute[None], face_offset.view(R, J), nan)
     out = {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], **angles, "box_x": xf,
@@ -581,8 +584,7 @@ def door_face_side(mm: dict, r: dict) -> np.ndarray:
     z = mm["axis"] / np.maximum(np.linalg.norm(mm["axis"], axis=-1, keepdims=True), 1e-12)
     y = np.cross(z, mm["xaxis"])
     y = y / np.maximum(np.linalg.norm(y, axis=-1, keepdims=True), 1e-12)
-    c, s = np.cos(mm["q"])[..., None], np.sin(mm["q"])[..., None]
-    y_door = y * c + np.cross(z, y) * s + z * (z * y).sum(-1, keepdims=True) * (1 - c)  # Rodrigues
+    y_door = rotate_about(torch.from_numpy(y), torch.from_numpy(z), torch.from_numpy(np.asarray(mm["q"], float))).numpy()
     return (r["door_face_normal"][:, :, None] * y_door).sum(-1)
 
 
