@@ -181,6 +181,7 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -
             face_px = read & has_normal
             if face_px.any():
                 n = normals[face_px]
+                n = torch.where(((n * points[face_px]).sum(-1) > 0)[:, None], -n, n)  # facing the camera along the ray
                 perpendicular = lambda v: F.normalize(v - (v @ zf) * zf, dim=0, eps=1e-12)  # noqa: E731
                 u = perpendicular(n.sum(0))
                 for angle_deg in DH.FACE_INLIER_DEG:

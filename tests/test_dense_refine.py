@@ -569,6 +569,33 @@ def test_door_face_plane_is_read_from_the_door_pixels(q_deg):
     assert math.isnan(f[0].item())
 
 
+def test_door_face_faces_the_camera_along_the_rays_where_the_inputs_normal_does_not():
+    """A door seen obliquely at the image's side (a plane through (1.5, 1.0, 0) m whose camera-facing
+    normal m has a positive forward component): the input's normals face the camera along the optical
+    axis (n_x < 0), so there they point away from it; the face must still come out as m and m . p0
+    (negative), not as -m and -m . p0 (an open door's inner face read as its outer face, 2 cm off)."""
+    H, W, f = 108, 192, 100.0
+    K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    rays = np.stack([np.ones_like(u, float), -(u - K[0, 2]) / f, -(v - K[1, 2]) / f], -1)
+    z = np.array([0.0, 0.0, 1.0])
+    m = Rotation.from_rotvec(z * math.radians(100.0)).apply([-1.0, 0.0, 0.0])  # (0.17, -0.98, 0)
+    p0 = np.array([1.5, 1.0, 0.0])
+    assert m @ -p0 > 0 and m[0] > 0  # m faces the camera, yet points forward
+    depth = (m @ p0) / (rays @ m)
+    depth[(depth <= 0) | (depth > 4.0)] = 0.0
+    assert (depth > 0).sum() > 2000
+    depth_t, K_t = torch.tensor(depth[None], dtype=torch.float32), torch.tensor(K[None], dtype=torch.float32)
+    x = make_inputs(depth_t, K_t)["x"]
+    inner = (x[0, 4:7].reshape(3, -1).T @ torch.tensor(m, dtype=torch.float32))
+    assert (inner[x[0, 4:7].reshape(3, -1).norm(dim=0) > 0.5] < -0.99).all()  # the input's normals are -m
+    frame = np.stack([np.cross([-1.0, 0, 0], z), [-1.0, 0, 0], z], -1)
+    r = _door_refined(depth_t, K_t, frame)
+    assert r["door_face_normal"][0, 0].numpy() @ m > math.cos(math.radians(0.05))
+    assert r["door_face_m"][0, 0].item() == pytest.approx(m @ p0, abs=2e-4)
+    assert m @ p0 < 0
+
+
 def _face_modes(origin, q_rad: float, n_face):
     """One vote mode of a door hinged on the vertical axis at ``origin`` (frame x = camera y, so
     y = z x x = camera -x faces the camera) opened by ``q_rad``, and the face measurements of a door

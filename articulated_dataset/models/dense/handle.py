@@ -113,6 +113,12 @@ def door_face(normal: list, points: list, real: torch.Tensor, axis: torch.Tensor
     the axis."""
     k = FACE_STRIDE
     normal, points, real = [v[:, ::k] for v in normal], [v[:, ::k] for v in points], real[:, ::k]
+    # each normal turned to face the camera (at the origin) along its pixel's ray: n . p < 0 (the input's
+    # normals face it along the optical axis, n_x < 0, which a face seen obliquely near the image's
+    # side edges can fail: a door's inner face then reads as its outer face, 2 cm off)
+    away = (normal[0] * points[0] + normal[1] * points[1] + normal[2] * points[2]) > 0
+    facing = 1.0 - 2.0 * away.to(normal[0].dtype)
+    normal = [v * facing for v in normal]
 
     def perpendicular_mean(w):  # the weighted mean normal, perpendicular to the axis, unit
         mean = torch.stack([(w * nc).sum(-1) for nc in normal], -1)  # (D, 3)
