@@ -9,7 +9,7 @@ on either side) it sometimes puts the hinge at the handle: a mirrored door, abou
 few centimetres in front of the door's face, so the side is measured instead:
 
 1. the door's face (:func:`door_face`, which refinement step 10 reads too): the door pixels'
-   normals (they face the camera) are averaged perpendicular to the axis line, then again over
+   normals (turned to face the camera along their rays) are averaged perpendicular to the axis line, then again over
    those within each of :data:`FACE_INLIER_DEG` of the previous mean, giving the face normal
    ``n``; the face's offset ``c`` is the median of ``n . p`` over the pixels within the last
    angle (seventeenth session; before, one 10-degree round and a trimmed mean);
@@ -110,7 +110,8 @@ def door_face(normal: list, points: list, real: torch.Tensor, axis: torch.Tensor
     (three (D, m) components each) and which of them have a normal (D, m).  Reads every
     :data:`FACE_STRIDE`-th pixel.  The inlier tests compare the unit normals themselves with the
     current direction (perpendicular to the axis), and each round's mean is taken perpendicular to
-    the axis."""
+    the axis.  Each normal is first turned to face the camera (at the origin) along its pixel's
+    ray, so the normal returned faces the camera and the offset is negative."""
     k = FACE_STRIDE
     normal, points, real = [v[:, ::k] for v in normal], [v[:, ::k] for v in points], real[:, ::k]
     # each normal turned to face the camera (at the origin) along its pixel's ray: n . p < 0 (the input's

@@ -65,7 +65,8 @@ regressed (:func:`refined_quantities`, per image and joint):
    outer face (``common.xacro``'s ``side_door``: the panel's front face, at its hinge edge), and
    the door's face pixels measure that plane to a millimetre where the votes place the origin
    ~0.5 cm off it.  The door's face (:func:`~.handle.door_face`, which steps 7 and 9 read too):
-   its normal ``n`` is the mean of its pixels' normals (taken perpendicular to the axis) within
+   its normal ``n`` is the mean of its pixels' normals (each turned to face the camera along its
+   pixel's ray, taken perpendicular to the axis) within
    :data:`~.handle.FACE_INLIER_DEG` of the previous mean, and its offset ``f`` the median of
    ``p . n`` over the pixels within the last angle.  Per
    vote mode, the face seen is the outer one where ``n`` is within :data:`DOOR_FACE_MAX_DEG` of
