@@ -15,6 +15,10 @@ point under the predicted mixture's marginal over it):
 
 * ``--models DIR``: trained MDN checkpoints (``DIR/<class>.pt``, ``DIR/<class>/*.pt``) via
   :func:`articulated_dataset.models.mdn.predict.predict_split`;
+* ``--shipped dense mdn-small``: the models shipped with the package (``artdata models``), via
+  :func:`articulated_dataset.models.predict.predict_to_file` as ``artdata predict`` runs them
+  (the dense model without the point likelihood: its origins are already votes of the cloud's
+  points);
 * the Mean baseline (training-split mean; its "mixture" is one Gaussian at the mean origin
   with the training standard deviation, so snapping picks the cloud point nearest the class-
   mean origin in that metric).  Training data: ``--train-root`` (``<class>/train``), else a
@@ -22,6 +26,7 @@ point under the predicted mixture's marginal over it):
 
     python benchmarks/table2.py --out /tmp/table2                       # stand-in, Mean baseline
     python benchmarks/table2.py --out /tmp/table2 --models runs/       # stand-in, trained MDNs
+    python benchmarks/table2.py --out /tmp/table2 --shipped dense mdn-small   # stand-in, shipped models
     python benchmarks/table2.py --out /tmp/table2 --real captures/ --models runs/
 
 Prints the paper's Table 2 beside ours (cm, deg, deg | cm; mean +/- std over images).
@@ -62,6 +67,8 @@ DEFAULT_IMAGES = 64
 DEFAULT_TRAIN_OBJECTS = 100
 PAPER_METRICS = ("axis_position_error_cm", "axis_rotation_error_deg", "configuration_error")
 SNAP_SUFFIX = " + point lik."
+#: ``--shipped`` names -> the method's name in the table.
+SHIPPED_METHODS = {"dense": "dense (shipped)", "mdn-small": "MDN-small (shipped)"}
 
 
 @dataclass
@@ -161,6 +168,21 @@ def mdn_predictions(model: Path, test_dir: Path) -> tuple[dict, dict]:
     return plain, snapped
 
 
+def shipped_predictions(test_dir: Path, class_name: str, names: list[str], pred_dir: Path) -> list[Path]:
+    """predictions.h5 files of the shipped models ``names`` (``SHIPPED_METHODS``) on ``test_dir``, as
+    ``artdata predict --model NAME`` writes them; MDN-small also with the point likelihood."""
+    from articulated_dataset.models.predict import predict_to_file
+
+    files = []
+    for name in names:
+        runs = [(SHIPPED_METHODS[name], False)] + ([(SHIPPED_METHODS[name] + SNAP_SUFFIX, True)] if name != "dense" else [])
+        for method, snap in runs:
+            path = pred_dir / f"{class_name}-{test_dir.name}-shipped-{name}{'-snapped' if snap else ''}.h5"
+            predict_to_file(name, test_dir, path, snap_to_cloud=snap, method=method)
+            files.append(path)
+    return files
+
+
 def score_rows(pred_files: list[Path], test_dir: Path, class_name: str, condition: str) -> list[Row]:
     from articulated_dataset.benchmark.scoring import score
 
@@ -176,17 +198,19 @@ def _pm(v) -> str:
 def format_table(rows: list[Row], title: str) -> str:
     from articulated_dataset.registry import PRISMATIC, get_class
 
-    lines = [title, f"{'':46s} {'Axis Position Error (cm)':>24s} {'Axis Rotation Error (deg)':>26s} {'Configuration Error':>24s}"]
+    names = [f"{r.class_name.capitalize()} - {r.condition.capitalize()} - {r.method} ({r.n})" for r in rows]
+    w = max([46] + [len(n) + 1 for n in names])  # the row names' column
+    lines = [title, f"{'':{w}s} {'Axis Position Error (cm)':>24s} {'Axis Rotation Error (deg)':>26s} {'Configuration Error':>24s}"]
     for (cls, cond), paper in PAPER_TABLE2.items():
         ours = [r for r in rows if r.class_name == cls and r.condition == cond]
         if not ours:
             continue
         units = "cm" if all(t == PRISMATIC for t in get_class(cls).joint_types) else "deg"
         name = cls.capitalize() + (f" - {cond.capitalize()}" if (cls, "open") in PAPER_TABLE2 else "")
-        lines.append(f"{name + ' - paper':46s} {_pm(paper[0]):>24s} {_pm(paper[1]):>26s} {_pm(paper[2]) + ' ' + units:>24s}")
+        lines.append(f"{name + ' - paper':{w}s} {_pm(paper[0]):>24s} {_pm(paper[1]):>26s} {_pm(paper[2]) + ' ' + units:>24s}")
         for r in ours:
             m = r.metrics
-            lines.append(f"{name + ' - ' + r.method + f' ({r.n})':46s} {_pm(m[PAPER_METRICS[0]]):>24s} "
+            lines.append(f"{name + ' - ' + r.method + f' ({r.n})':{w}s} {_pm(m[PAPER_METRICS[0]]):>24s} "
                          f"{_pm(m[PAPER_METRICS[1]]):>26s} {_pm(m[PAPER_METRICS[2]]) + ' ' + units:>24s}")
     return "\n".join(lines)
 
@@ -206,6 +230,7 @@ def run_methods(test_dir: Path, class_name: str, condition: str, args, work: Pat
             files.append(path)
     elif args.models:
         print(f"table2: no checkpoint for {class_name} under {args.models}; Mean baseline only", file=sys.stderr)
+    files += shipped_predictions(test_dir, class_name, args.shipped, pred_dir)
     train_dir = training_split(Path(args.train_root) if args.train_root else None, work, class_name, args.train_objects,
                                args.seed, args.workers)
     plain, snapped = mean_predictions(train_dir, test_dir)
@@ -243,6 +268,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", required=True, help="Work folder (stand-in data, training splits, predictions, results.json).")
     parser.add_argument("--real", default=None, help="Root of ingested real splits (<class>/real, <class>/real-open).")
     parser.add_argument("--models", default=None, help="Folder of trained MDN checkpoints (<class>.pt or <class>/*.pt).")
+    parser.add_argument("--shipped", nargs="+", default=[], choices=sorted(SHIPPED_METHODS),
+                        help="Also score these shipped models (artdata models).")
     parser.add_argument("--train-root", default=None, help="Root of training splits (<class>/train) for the Mean baseline.")
     parser.add_argument("--train-objects", type=int, default=DEFAULT_TRAIN_OBJECTS, help="Objects of a generated training split.")
     parser.add_argument("--images", type=int, default=DEFAULT_IMAGES, help="Viewpoints per class in the stand-in.")

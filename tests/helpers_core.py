@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import sys
 from pathlib import Path
 
 import mujoco
@@ -179,6 +180,7 @@ def load_script(path: Path, name: str):
     """A script of the repository (benchmarks/, scripts/: not a package) imported as module ``name``."""
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # before it runs: its dataclasses look their module up there
     spec.loader.exec_module(module)
     return module
 

@@ -17,7 +17,8 @@ from articulated_dataset.camera import CameraConfig, backproject  # noqa: E402
 from articulated_dataset.cli import main  # noqa: E402
 from articulated_dataset.models.dense import aggregate as A  # noqa: E402
 from articulated_dataset.models.dense.features import (  # noqa: E402
-    backproject_torch, make_inputs, output_labels, resize_depth, scale_intrinsics, surface_normals)
+    HOLE_MAX_SPREAD_M, backproject_torch, fill_holes, make_inputs, output_labels, resize_depth, scale_intrinsics,
+    surface_normals)
 from articulated_dataset.models.dense.model import DenseConfig, DenseNet  # noqa: E402
 from articulated_dataset.models.dense.refine import REFINEMENT_VERSION  # noqa: E402
 from articulated_dataset.models.dense.checkpoint import load_dense_checkpoint  # noqa: E402
@@ -58,6 +59,47 @@ def test_resize_never_blends_background_into_surfaces():
     d[0, 0, 0] = 0.0  # one missing return inside the surface
     r = resize_depth(d, (2, 2))
     assert r[0, 0, 0] == pytest.approx(2.0) and r[0, 1, 1] == 0.0
+
+
+def test_a_sensors_dropped_returns_are_filled_and_give_their_neighbours_normals_back():
+    """1% of a tilted plane's returns dropped at random (the Kinect v2 model's holes), apart from
+    each other: every hole takes its four neighbours' mean (on this plane, its own depth to float
+    rounding), so the network input has the normals of the hole-free image; two holes side by
+    side, a gap at a depth edge (neighbours more than HOLE_MAX_SPREAD_M apart), the image's border
+    and an image without holes are left as they are."""
+    K = CameraConfig().K
+    H, W = 108, 192
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    plane = (1.5 + 0.004 * u + 0.002 * v).astype(np.float32)  # depth linear in the pixel: exact means
+    rng = np.random.default_rng(0)
+    holes = rng.random((H, W)) < 0.01
+    holes[:2], holes[-2:], holes[:, :2], holes[:, -2:] = False, False, False, False
+    near = np.zeros_like(holes)  # holes with a hole beside them: dropped
+    near[1:] |= holes[:-1]; near[:-1] |= holes[1:]; near[:, 1:] |= holes[:, :-1]; near[:, :-1] |= holes[:, 1:]  # noqa: E702
+    holes &= ~near
+    depth = torch.tensor(np.where(holes, 0.0, plane), dtype=torch.float32)[None]
+    filled = fill_holes(depth)
+    pair = depth.clone()
+    pair[0, 50, 60:62] = 0.0
+    assert (fill_holes(pair)[0, 50, 60:62] == 0).all()
+    inner = np.zeros((H, W), bool)
+    inner[1:-1, 1:-1] = True
+    assert torch.allclose(filled[0][torch.tensor(holes & inner)], torch.tensor(plane[holes & inner]), atol=1e-5)
+    assert (filled[0][0] == depth[0][0]).all() and (filled[0][:, 0] == depth[0][:, 0]).all()  # the border: no neighbours
+    Kt = torch.tensor(K, dtype=torch.float32)[None]
+    with_holes = make_inputs(depth, Kt)["x"][0, 4:7].norm(dim=0) > 0.5
+    clean = make_inputs(torch.tensor(plane)[None], Kt)["x"][0, 4:7].norm(dim=0) > 0.5
+    border = torch.zeros(H, W, dtype=torch.bool)
+    border[:2], border[-2:], border[:, :2], border[:, -2:] = True, True, True, True
+    assert holes.sum() > 100 and torch.equal(with_holes | border, clean | border)
+    # a gap between two surfaces 5 cm apart is not a hole
+    step = depth.clone()
+    step[0, :, 100:] += 0.05
+    step[0, 40, 100] = 0.0
+    assert HOLE_MAX_SPREAD_M < 0.05 and fill_holes(step)[0, 40, 100] == 0.0
+    # nothing to fill: the same tensor
+    solid = torch.tensor(plane)[None]
+    assert fill_holes(solid) is solid
 
 
 def test_normals_of_a_plane_face_the_camera():

@@ -18,7 +18,8 @@ from articulated_dataset.models.dense import refine as R  # noqa: E402
 from articulated_dataset.models.dense import handle as DH  # noqa: E402
 from articulated_dataset.models.dense.aggregate import image_groups  # noqa: E402
 from articulated_dataset.models.dense.features import (  # noqa: E402
-    N_INPUT_CHANNELS, NORMAL_MAX_STEP_M, OUTPUT_STRIDE, POINT_SCALE_M, backproject_torch, make_inputs)
+    HOLE_MAX_SPREAD_M, N_INPUT_CHANNELS, NORMAL_MAX_STEP_M, OUTPUT_STRIDE, POINT_SCALE_M,
+    backproject_torch, make_inputs)
 
 
 def _random_depth(rng: np.random.Generator, B: int, H: int, W: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -38,8 +39,19 @@ def _random_depth(rng: np.random.Generator, B: int, H: int, W: int) -> tuple[tor
     return torch.tensor(depth, dtype=torch.float32), torch.tensor(K, dtype=torch.float32)
 
 
+def _reference_fill(depth: torch.Tensor) -> torch.Tensor:
+    """features.fill_holes as a whole-image formula: every pixel without a return whose four
+    neighbours have returns within HOLE_MAX_SPREAD_M of each other takes their mean."""
+    d = depth.clone()
+    around = torch.stack([d[:, :-2, 1:-1], d[:, 2:, 1:-1], d[:, 1:-1, :-2], d[:, 1:-1, 2:]])
+    hole = (d[:, 1:-1, 1:-1] <= 0) & (around > 0).all(0) & (around.amax(0) - around.amin(0) < HOLE_MAX_SPREAD_M)
+    d[:, 1:-1, 1:-1] = torch.where(hole, around.mean(0), d[:, 1:-1, 1:-1])
+    return d
+
+
 def _reference_inputs(depth: torch.Tensor, K: torch.Tensor) -> dict:
     """The network input written as whole-image formulas (no lists of pixels)."""
+    depth = _reference_fill(depth)
     B, H, W = depth.shape
     valid = depth > 0
     w = valid.to(depth.dtype)
@@ -70,6 +82,9 @@ def _reference_inputs(depth: torch.Tensor, K: torch.Tensor) -> dict:
 def test_network_input_matches_the_whole_image_formulas(hw):
     depth, K = _random_depth(np.random.default_rng(3), 6, *hw)
     ref = _reference_inputs(depth, K)
+    filled = _reference_fill(depth)
+    assert ((filled > 0) & (depth <= 0)).sum() > 10  # holes are filled ...
+    assert (filled <= 0).sum() > 100  # ... not the other gaps
     assert (ref["x"][:, 4:7].abs().sum(1) > 0.5).sum() > 200  # normals exist
     assert (ref["weight_out"] == 0).any() and ((ref["weight_out"] > 0) & (ref["weight_out"] < 1)).any()
     got = make_inputs(depth, K)
