@@ -242,6 +242,36 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
     assert len(whole["refinement_report"]["frame_min_prob"]) == len(FRAME_PROB_CANDIDATES)
 
 
+def test_noise_augmentation_corrupts_its_share_of_a_batch_the_same_way_on_every_run(tiny_root, tmp_path):
+    """``--noise``: each image of a batch is corrupted with probability ``noise_fraction`` by the
+    named model, from the step's own stream (a resumed run draws the same), the rest untouched;
+    a run with it resumes to the identical state and records the setting."""
+    from articulated_dataset.models.dense.data import load_dense_split
+    from articulated_dataset.models.dense.train import noisy_depth
+
+    data = load_dense_split(tiny_root / "drawer" / "train", 1, (108, 192), progress=False)
+    idx = np.arange(min(16, len(data.sample_id)))
+    clean = data.depth(idx).numpy()
+    a = noisy_depth(clean, data.K[idx], "kinect2", 0.5, np.random.default_rng([0, 1, 2]))
+    b = noisy_depth(clean, data.K[idx], "kinect2", 0.5, np.random.default_rng([0, 1, 2]))
+    assert np.array_equal(a, b) and not np.shares_memory(a, clean)
+    changed = [not np.array_equal(a[i], clean[i]) for i in range(len(idx))]
+    assert 0 < sum(changed) < len(idx)  # about half: some images corrupted, others as they were
+    assert (noisy_depth(clean, data.K[idx], "kinect2", 1.0, np.random.default_rng(5)) != clean).any((1, 2)).all()  # every one
+    torch.set_num_threads(1)
+    cfg = DenseTrainConfig("drawer", epochs=1, batch_size=16, width=4, val_fraction=0.2, max_objects=3, noise="kinect2")
+    whole = train_dense(tiny_root / "drawer" / "train", tmp_path / "a.pt", cfg, progress=False, fit=False)
+    train_dense(tiny_root / "drawer" / "train", tmp_path / "b.pt", cfg, progress=False, stop_after_steps=1, fit=False)
+    resumed = train_dense(tiny_root / "drawer" / "train", tmp_path / "b.pt", cfg, progress=False, resume=True, fit=False)
+    assert whole["train_config"]["noise"] == "kinect2" and whole["train_config"]["noise_fraction"] == 0.5
+    for k, v in whole["model_state"].items():
+        assert torch.equal(v, resumed["model_state"][k]), k
+    plain = train_dense(tiny_root / "drawer" / "train", tmp_path / "c.pt",
+                        DenseTrainConfig("drawer", epochs=1, batch_size=16, width=4, val_fraction=0.2, max_objects=3),
+                        progress=False, fit=False)
+    assert any(not torch.equal(v, plain["model_state"][k]) for k, v in whole["model_state"].items())
+
+
 def test_a_two_step_run_trains_records_its_data_and_machine_and_fits_later(tiny_root, tmp_path):
     """Two steps in all (OneCycleLR's warm-up would be empty: it used to fail); ``fit=False`` leaves
     the inference fit out, and refit_inference then gives what training's own fit gives."""
@@ -296,7 +326,8 @@ def test_cli_train_dense_and_its_errors(tiny_root, tmp_path):
     assert ckpt["class_name"] == "toaster" and ckpt["finished"] and ckpt["calibration"] is not None
     for extra, needle in [(["--lr", "nan"], "--lr"), (["--epochs", "0"], "--epochs"), (["--small"], "--model mdn"),
                           (["--class", "drawer"], "not 'drawer'"), (["--origin-weight", "0"], "--origin-weight"),
-                          (["--origin-weight", "inf"], "--origin-weight")]:
+                          (["--origin-weight", "inf"], "--origin-weight"), (["--noise", "fog"], "fog"),
+                          (["--noise", "kinect2", "--noise-fraction", "0"], "--noise-fraction")]:
         args = ["train", "--model", "dense", "--class", "toaster", "--data", str(tiny_root / "toaster" / "train"),
                 "--out", str(tmp_path / "e.pt")]
         if extra[0] == "--class":

@@ -51,6 +51,8 @@ WARMUP_FRACTION = 0.1
 MIN_SCHEDULE_STEPS = 4
 CHECKPOINT_EVERY_STEPS = 200
 EPOCH_SEED_STRIDE = 1_000_003
+#: The last entry of the noise augmentation's seed (``(seed, epoch, step, NOISE_STREAM)``): a stream of its own.
+NOISE_STREAM = 7
 
 
 @dataclass(frozen=True)
@@ -70,6 +72,12 @@ class DenseTrainConfig:
     #: than 1 trades the rotation and q votes, which the geometric refinement measures anyway,
     #: for the axis position, which it can only partly measure.
     origin_weight: float = 1.0
+    #: A depth-noise model of :mod:`articulated_dataset.real.noise` (``--noise``, e.g. ``kinect2``)
+    #: applied to ``noise_fraction`` of each batch's images, drawn afresh every step (a fixed
+    #: stream per seed, epoch and step: a resumed run draws the same): the network then sees a
+    #: sensor's depth as well as renders.  None: renders only.
+    noise: str | None = None
+    noise_fraction: float = 0.5
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "width"):
@@ -84,6 +92,12 @@ class DenseTrainConfig:
             raise UserError(f"--val-fraction must be in [0, 1), got {self.val_fraction}")
         if self.max_objects is not None and self.max_objects <= 0:
             raise UserError(f"--max-objects must be positive, got {self.max_objects}")
+        if self.noise is not None:
+            from ...real.noise import get_noise_model
+
+            get_noise_model(self.noise)  # an unknown name: a UserError listing the models
+        if not (0.0 < self.noise_fraction <= 1.0):
+            raise UserError(f"--noise-fraction must be in (0, 1], got {self.noise_fraction}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -140,6 +154,19 @@ def dense_loss(model, out, inputs: dict, data: DenseData, idx: np.ndarray, q_sca
     stats = {"loss": float(total.detach()), "seg": float(pix(ce).detach()),
              "origin_cm": float((img["origin"] - o_t).norm(dim=-1).mean().detach()) * 100}
     return total, stats
+
+
+def noisy_depth(depth_m: np.ndarray, K: np.ndarray, noise: str, fraction: float, rng: np.random.Generator) -> np.ndarray:
+    """A batch's depth images (B, H, W) m with intrinsics (B, 3, 3), ``fraction`` of them (each
+    with that probability) passed through the noise model ``noise`` (:func:`~articulated_dataset.real.noise.get_noise_model`),
+    all randomness from ``rng``; the others as they are.  A new array."""
+    from ...real.noise import get_noise_model
+
+    model = get_noise_model(noise)
+    out = np.array(depth_m, np.float32, copy=True)
+    for i in np.nonzero(rng.random(len(out)) < fraction)[0]:
+        out[i] = model(out[i], K[i], rng)
+    return out
 
 
 def atomic_save(obj: dict, path: Path) -> None:
@@ -265,7 +292,11 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
         model.train()
         while pos < steps_per_epoch and step < end:
             idx = np.sort(order[pos * batch : (pos + 1) * batch])
-            inputs = make_inputs(data_.depth(idx).to(dev), torch.from_numpy(data_.K[idx]).to(dev))
+            depth = data_.depth(idx)
+            if config.noise is not None:  # the step's own stream: the same after a resume
+                rng = np.random.default_rng([config.seed, epoch, pos, NOISE_STREAM])
+                depth = torch.from_numpy(noisy_depth(depth.numpy(), data_.K[idx], config.noise, config.noise_fraction, rng))
+            inputs = make_inputs(depth.to(dev), torch.from_numpy(data_.K[idx]).to(dev))
             out_ = model(inputs["x"])
             loss, st = dense_loss(model, out_, inputs, data_, idx, q_scale_t, config.origin_weight)
             if not torch.isfinite(loss):
