@@ -175,6 +175,26 @@ def test_split_factor_none_gives_one_mode_the_weighted_mean_of_every_vote():
     assert A.vote_modes(parts, pts, valid)["weight"][0, 0, 1] > 0.3
 
 
+def test_a_mode_voting_a_joint_closed_past_its_closed_state_reads_as_closed():
+    """Every class's joints close at q = 0 (the templates' limits: each registered table's range
+    starts there), so a vote mode's q below 0 comes out as 0, in the point estimate and in its
+    mixture component; one above 0 and the other modes keep theirs."""
+    from articulated_dataset.models.dense.predict import Q_CLOSED, mixture_from_modes
+    from articulated_dataset.registry import class_names, get_class
+
+    assert all(lo == Q_CLOSED for c in class_names() for lo, _ in get_class(c).table.q)
+    N, J, M = 2, 1, 2
+    m = {"weight": np.array([[[0.7, 0.3]], [[1.0, 0.0]]]), "q": np.array([[[-0.2, 0.4]], [[0.3, 0.0]]]),
+         "q_std": np.full((N, J, M), 0.05)}
+    for key in ("origin", "axis", "xaxis", "part_offset", "origin_std", "axis_std", "xaxis_std", "offset_std"):
+        m[key] = np.tile(np.array([0.0, 0.0, 1.0]), (N, J, M, 1))
+    m["geometry"], m["geometry_std"] = np.ones((N, 4)), np.full((N, 4), 0.1)
+    out = mixture_from_modes(m, np.arange(N), J, M, None)
+    assert out["q"][0, 0] == 0.0 and out["q"][1, 0] == pytest.approx(0.3)
+    q_cols = out["mixture_means"][..., 9]  # joint 0's q column
+    assert q_cols.min() >= 0.0 and np.isclose(q_cols[0], 0.4).any()
+
+
 def test_refinement_records_its_split_factor_and_old_ones_read_the_default():
     from articulated_dataset.models.dense.refine import Refinement, split_factor_of
 
