@@ -264,20 +264,22 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
 
 def test_noise_augmentation_corrupts_its_share_of_a_batch_the_same_way_on_every_run(tiny_root, tmp_path):
     """``--noise``: each image of a batch is corrupted with probability ``noise_fraction`` by the
-    named model, from the step's own stream (a resumed run draws the same), the rest untouched;
-    a run with it resumes to the identical state and records the setting."""
+    named model, with its own generator for the epoch (a resumed run draws the same), the rest
+    untouched; a run with it resumes to the identical state and records the setting."""
     from articulated_dataset.models.dense.data import load_dense_split
     from articulated_dataset.models.dense.train import noisy_depth
 
     data = load_dense_split(tiny_root / "drawer" / "train", 1, (108, 192), progress=False)
     idx = np.arange(min(16, len(data.sample_id)))
     clean = data.depth(idx).numpy()
-    a = noisy_depth(clean, data.K[idx], "kinect2", 0.5, np.random.default_rng([0, 1, 2]))
-    b = noisy_depth(clean, data.K[idx], "kinect2", 0.5, np.random.default_rng([0, 1, 2]))
+    a = noisy_depth(clean, data.K[idx], idx, "kinect2", 0.5, seed=0, epoch=1)
+    b = noisy_depth(clean, data.K[idx], idx, "kinect2", 0.5, seed=0, epoch=1)
     assert np.array_equal(a, b) and not np.shares_memory(a, clean)
+    alone = noisy_depth(clean[3:4], data.K[idx[3:4]], idx[3:4], "kinect2", 0.5, seed=0, epoch=1)
+    assert np.array_equal(alone[0], a[3])  # an image's draw does not depend on the rest of its batch
     changed = [not np.array_equal(a[i], clean[i]) for i in range(len(idx))]
     assert 0 < sum(changed) < len(idx)  # about half: some images corrupted, others as they were
-    assert (noisy_depth(clean, data.K[idx], "kinect2", 1.0, np.random.default_rng(5)) != clean).any((1, 2)).all()  # every one
+    assert (noisy_depth(clean, data.K[idx], idx, "kinect2", 1.0, seed=5, epoch=0) != clean).any((1, 2)).all()  # every one
     torch.set_num_threads(1)
     cfg = DenseTrainConfig("drawer", epochs=1, batch_size=16, width=4, val_fraction=0.2, max_objects=3, noise="kinect2")
     whole = train_dense(tiny_root / "drawer" / "train", tmp_path / "a.pt", cfg, progress=False, fit=False)

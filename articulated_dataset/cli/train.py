@@ -29,7 +29,7 @@ from .options import ClassChoice, prepare_torch
               help="dense: multiplies the axis-origin loss terms (default 1).")
 @click.option("--noise", default=None,
               help="dense: a depth-noise model (kinect2) applied to --noise-fraction of each batch's images, "
-                   "drawn afresh every step (docs/real_data.md).")
+                   "drawn afresh every epoch (docs/real_data.md).")
 @click.option("--noise-fraction", type=float, default=None, help="dense: the share of each batch --noise corrupts (default 0.5).")
 @click.option("--val-fraction", type=float, default=None,
               help="Fraction of the training split's OBJECTS held out for validation (0: none; default: mdn 0.1, dense 0.05).")

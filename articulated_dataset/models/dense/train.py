@@ -51,8 +51,6 @@ WARMUP_FRACTION = 0.1
 MIN_SCHEDULE_STEPS = 4
 CHECKPOINT_EVERY_STEPS = 200
 EPOCH_SEED_STRIDE = 1_000_003
-#: The last entry of the noise augmentation's seed (``(seed, epoch, step, NOISE_STREAM)``): a stream of its own.
-NOISE_STREAM = 7
 
 
 @dataclass(frozen=True)
@@ -73,9 +71,9 @@ class DenseTrainConfig:
     #: for the axis position, which it can only partly measure.
     origin_weight: float = 1.0
     #: A depth-noise model of :mod:`articulated_dataset.real.noise` (``--noise``, e.g. ``kinect2``)
-    #: applied to ``noise_fraction`` of each batch's images, drawn afresh every step (a fixed
-    #: stream per seed, epoch and step: a resumed run draws the same): the network then sees a
-    #: sensor's depth as well as renders.  None: renders only.
+    #: applied to ``noise_fraction`` of the images, drawn afresh every epoch (each image's generator
+    #: fixed by the seed, epoch and image, as the loaders' transforms draw: a resumed run draws the
+    #: same): the network then sees a sensor's depth as well as renders.  None: renders only.
     noise: str | None = None
     noise_fraction: float = 0.5
 
@@ -156,16 +154,21 @@ def dense_loss(model, out, inputs: dict, data: DenseData, idx: np.ndarray, q_sca
     return total, stats
 
 
-def noisy_depth(depth_m: np.ndarray, K: np.ndarray, noise: str, fraction: float, rng: np.random.Generator) -> np.ndarray:
-    """A batch's depth images (B, H, W) m with intrinsics (B, 3, 3), ``fraction`` of them (each
-    with that probability) passed through the noise model ``noise`` (:func:`~articulated_dataset.real.noise.get_noise_model`),
-    all randomness from ``rng``; the others as they are.  A new array."""
-    from ...real.noise import get_noise_model
+def noisy_depth(depth_m: np.ndarray, K: np.ndarray, images: np.ndarray, noise: str, fraction: float, *, seed: int,
+                epoch: int) -> np.ndarray:
+    """A batch's depth images (B, H, W) m with intrinsics (B, 3, 3), of the split's images
+    ``images`` (B,), each passed with probability ``fraction`` through the noise model ``noise``
+    (:class:`~articulated_dataset.transforms.SensorNoise`), with the generator the loaders give
+    that image in that epoch (:func:`~articulated_dataset.transforms.sample_rng`); the others as
+    they are.  A new array."""
+    from ...transforms import SensorNoise, sample_rng
 
-    model = get_noise_model(noise)
+    transform = SensorNoise(noise)
     out = np.array(depth_m, np.float32, copy=True)
-    for i in np.nonzero(rng.random(len(out)) < fraction)[0]:
-        out[i] = model(out[i], K[i], rng)
+    for b, image in enumerate(images):
+        rng = sample_rng(seed, epoch, int(image))
+        if rng.random() < fraction:
+            out[b] = transform({"depth": out[b], "K": K[b]}, rng)["depth"]
     return out
 
 
@@ -293,9 +296,9 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
         while pos < steps_per_epoch and step < end:
             idx = np.sort(order[pos * batch : (pos + 1) * batch])
             depth = data_.depth(idx)
-            if config.noise is not None:  # the step's own stream: the same after a resume
-                rng = np.random.default_rng([config.seed, epoch, pos, NOISE_STREAM])
-                depth = torch.from_numpy(noisy_depth(depth.numpy(), data_.K[idx], config.noise, config.noise_fraction, rng))
+            if config.noise is not None:  # each image's own generator: the same after a resume
+                depth = torch.from_numpy(noisy_depth(depth.numpy(), data_.K[idx], idx, config.noise, config.noise_fraction,
+                                                     seed=config.seed, epoch=epoch))
             inputs = make_inputs(depth.to(dev), torch.from_numpy(data_.K[idx]).to(dev))
             out_ = model(inputs["x"])
             loss, st = dense_loss(model, out_, inputs, data_, idx, q_scale_t, config.origin_weight)
