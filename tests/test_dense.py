@@ -294,6 +294,44 @@ def test_noise_augmentation_corrupts_its_share_of_a_batch_the_same_way_on_every_
     assert any(not torch.equal(v, plain["model_state"][k]) for k, v in whole["model_state"].items())
 
 
+def test_noise_training_validates_and_fits_on_one_noisy_draw_of_the_validation_images(tiny_root, tmp_path):
+    """With ``--noise`` every validation image passes through the noise model, drawn per sample
+    (not per position: a refit, which reads only the validation objects, draws the same), its
+    labels kept; the epoch's validation errors are those noisy images' and a refit gives what
+    training's own fit gives."""
+    from articulated_dataset.models.dense.checkpoint import build_inference_model
+    from articulated_dataset.models.dense.data import load_dense_split
+    from articulated_dataset.models.dense.predict import predict_arrays, quick_errors
+    from articulated_dataset.models.dense.train import noisy_validation, refit_inference
+    from articulated_dataset.models.mdn.data import split_by_object
+
+    split = tiny_root / "drawer" / "train"
+    data = load_dense_split(split, 1, (108, 192), max_objects=3, progress=False)
+    va = np.arange(3, 11)
+    sub, idx = noisy_validation(data, va, "kinect2", seed=0)
+    assert idx.tolist() == list(range(len(va))) and np.array_equal(sub.sample_id, data.sample_id[va])
+    assert np.array_equal(sub.origin, data.origin[va]) and np.array_equal(sub.labels_out, data.labels_out[va])
+    assert (sub.depth(idx).numpy() != data.depth(va).numpy()).any((1, 2)).all()  # every image noisy
+    later, _ = noisy_validation(data, va[4:], "kinect2", seed=0)
+    assert np.array_equal(later.depth_q, sub.depth_q[4:])
+    torch.set_num_threads(1)
+    cfg = DenseTrainConfig("drawer", epochs=1, batch_size=16, width=4, val_fraction=0.2, max_objects=3, noise="kinect2")
+    unfit = train_dense(split, tmp_path / "a.pt", cfg, progress=False, fit=False)
+    whole = train_dense(split, tmp_path / "b.pt", cfg, progress=False)
+    refit = refit_inference(tmp_path / "a.pt", split, tmp_path / "c.pt", progress=False)
+    assert refit["refinement"] == whole["refinement"] and refit["calibration"] == whole["calibration"]
+    _, val_mask = split_by_object(data.object_index, cfg.val_fraction, cfg.seed)
+    va_idx = np.nonzero(val_mask)[0]
+    joints = list(unfit["joint_types"])
+    model = build_inference_model(unfit)
+    noisy, nidx = noisy_validation(data, va_idx, "kinect2", seed=cfg.seed)
+    on_noisy = quick_errors(predict_arrays(model, noisy, nidx, joint_types=joints, calibration=None), noisy, nidx, joints)
+    on_clean = quick_errors(predict_arrays(model, data, va_idx, joint_types=joints, calibration=None), data, va_idx, joints)
+    recorded = unfit["history"][-1]["val_pos_cm"]
+    assert recorded == pytest.approx(round(on_noisy["pos_cm"], 4), abs=1e-4)
+    assert recorded != pytest.approx(round(on_clean["pos_cm"], 4), abs=1e-4)
+
+
 def test_a_two_step_run_trains_records_its_data_and_machine_and_fits_later(tiny_root, tmp_path):
     """Two steps in all (OneCycleLR's warm-up would be empty: it used to fail); ``fit=False`` leaves
     the inference fit out, and refit_inference then gives what training's own fit gives."""

@@ -8,6 +8,9 @@
   After the last epoch the geometric refinement (:mod:`articulated_dataset.models.dense.refine`) is
   chosen and the uncertainty calibration (:mod:`articulated_dataset.models.dense.predict`) fitted on
   the validation objects (:func:`~articulated_dataset.models.dense.predict.fit_inference`).
+  With ``--noise`` every validation image passes through the noise model, the same draw every
+  epoch and in a refit (:func:`noisy_validation`): the errors, the refinement choice and the
+  calibration are those of the sensor the model is trained for.
 * Loss, per valid output pixel ``i`` (weighted by its valid fraction) and image:
   ``CE(seg) + 0.5 huber(|v_i - o| / 5 cm) + |r6_i - r6| / ROT_SCALE + |q_i - q| / s_q
   + |po_i - po| / 10 cm + |g_i - g| / 10 cm + BCE(chirality)``, plus the same terms on the
@@ -51,6 +54,9 @@ WARMUP_FRACTION = 0.1
 MIN_SCHEDULE_STEPS = 4
 CHECKPOINT_EVERY_STEPS = 200
 EPOCH_SEED_STRIDE = 1_000_003
+#: The epoch key of the validation images' noise (``--noise``): one fixed draw per image, which
+#: no training epoch reaches (epochs count from 0).
+VALIDATION_NOISE_EPOCH = 2**31 - 1
 
 
 @dataclass(frozen=True)
@@ -73,7 +79,8 @@ class DenseTrainConfig:
     #: A depth-noise model of :mod:`articulated_dataset.real.noise` (``--noise``, e.g. ``kinect2``)
     #: applied to ``noise_fraction`` of the images, drawn afresh every epoch (each image's generator
     #: fixed by the seed, epoch and image, as the loaders' transforms draw: a resumed run draws the
-    #: same): the network then sees a sensor's depth as well as renders.  None: renders only.
+    #: same): the network then sees a sensor's depth as well as renders.  The validation images
+    #: all pass through it (:func:`noisy_validation`).  None: renders only.
     noise: str | None = None
     noise_fraction: float = 0.5
 
@@ -172,6 +179,24 @@ def noisy_depth(depth_m: np.ndarray, K: np.ndarray, images: np.ndarray, noise: s
     return out
 
 
+def noisy_validation(data_: DenseData, va_idx: np.ndarray, noise: str, *, seed: int) -> tuple[DenseData, np.ndarray]:
+    """The validation images ``va_idx`` of ``data_`` as a :class:`DenseData` of their own (and
+    its indices, ``0..n-1``), every image's depth passed through the noise model ``noise``
+    with the generator :func:`~articulated_dataset.transforms.sample_rng` gives it for
+    ``(seed, VALIDATION_NOISE_EPOCH, sample_id)``: the same noise in every epoch's validation,
+    in the fit after training and in a refit (which reads only these objects)."""
+    from dataclasses import fields, replace
+
+    from .data import quantise_depth
+
+    va_idx = np.asarray(va_idx, np.int64)
+    sub = replace(data_, **{f.name: (None if getattr(data_, f.name) is None else getattr(data_, f.name)[va_idx])
+                            for f in fields(data_)})
+    depth = noisy_depth(sub.depth(np.arange(len(va_idx))).numpy(), sub.K, sub.sample_id, noise, 1.0, seed=seed,
+                        epoch=VALIDATION_NOISE_EPOCH)
+    return replace(sub, depth_q=quantise_depth(depth)), np.arange(len(va_idx))
+
+
 def atomic_save(obj: dict, path: Path) -> None:
     from ..mdn.checkpoint import atomic_torch_save
 
@@ -220,6 +245,8 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     t_load = time.perf_counter() - t_load
     train_mask, val_mask = split_by_object(data_.object_index, config.val_fraction, config.seed)
     tr_idx, va_idx = np.nonzero(train_mask)[0], np.nonzero(val_mask)[0]
+    val_data, val_idx = (data_, va_idx) if config.noise is None or not len(va_idx) else \
+        noisy_validation(data_, va_idx, config.noise, seed=config.seed)
     n_train = len(tr_idx)
     batch = min(config.batch_size, n_train)
     if n_train < 2:
@@ -279,9 +306,9 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     def validate() -> dict:
         if not len(va_idx):
             return {}
-        arrays = predict_arrays(model.folded().cpu(), data_, va_idx, joint_types=list(obj_class.joint_types),
+        arrays = predict_arrays(model.folded().cpu(), val_data, val_idx, joint_types=list(obj_class.joint_types),
                                 calibration=None)
-        return quick_errors(arrays, data_, va_idx, list(obj_class.joint_types))
+        return quick_errors(arrays, val_data, val_idx, list(obj_class.joint_types))
 
     end = total_steps if stop_after_steps is None else min(total_steps, stop_after_steps)
     bar = tqdm(total=total_steps, initial=step, desc=f"training {obj_class.name}", unit="step", disable=not progress)
@@ -337,7 +364,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
         return checkpoint(finished=False)
     result = checkpoint(finished=True)
     if fit and len(va_idx):  # refinement choice and uncertainty calibration on the validation objects
-        result.update(fit_inference(model.folded().cpu(), data_, va_idx, list(obj_class.joint_types),
+        result.update(fit_inference(model.folded().cpu(), val_data, val_idx, list(obj_class.joint_types),
                                     mirror_joints=obj_class.mirror_joints))
     result["load_seconds"] = round(t_load, 1)
     atomic_save(result, out)
@@ -387,7 +414,8 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     """Refit what inference needs beyond the weights (refinement choice, calibration) of a finished
     dense checkpoint on the validation objects of its training split ``data`` (the same objects
     training held out: its ``val_fraction``, ``seed`` and ``max_objects``), and write the result
-    to ``out`` atomically.  For checkpoints trained before a refinement existed."""
+    to ``out`` atomically (through the noise model when it was trained with ``--noise``, as
+    training fits).  For checkpoints trained before a refinement existed."""
     from ..mdn.data import resolve_split_dir, split_by_object, split_class
     from ...registry import get_class
     from .predict import fit_inference
@@ -409,6 +437,8 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     data_ = load_dense_split(split_dir, c.n_joints, (c.height_px, c.width_px), max_objects=config.max_objects,
                              objects=objects[val_mask], progress=progress)
     va_idx = np.arange(len(data_.sample_id))
+    if config.noise is not None:  # the validation images as training saw them (noisy_validation)
+        data_, va_idx = noisy_validation(data_, va_idx, config.noise, seed=config.seed)
     from ...format import sha256_file
 
     result = dict(ckpt)
