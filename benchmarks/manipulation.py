@@ -558,8 +558,9 @@ def main(argv=None) -> int:
     ap.add_argument("--predictions", action="append", default=[], metavar="NAME=FILE",
                     help="predictions.h5 of a method (repeat; a NAME may repeat, e.g. one file per class)")
     ap.add_argument("--model", action="append", default=[], metavar="NAME[=SPEC]",
-                    help="estimate from each observed view's depth image with a model: a shipped one (dense, mdn-small) "
-                         "or NAME=CHECKPOINT, where {class} in the path is replaced by each class (repeat)")
+                    help="estimate from each observed view's depth image with a model: a shipped one (dense, "
+                         "dense-kinect2, mdn-small) or NAME=CHECKPOINT, where {class} in the path is replaced by each "
+                         "class (repeat)")
     ap.add_argument("--closed-loop", nargs="*", default=None, metavar="NAME",
                     help="also open in closed loop (extra views, re-estimation while opening) with these --model "
                          "names (none given: every --model); reported as NAME-closed-loop")

@@ -8,9 +8,12 @@ axis position (cm), axis rotation (deg), configuration (deg | cm), 90% interval 
 inference speed (images/s, network + aggregation, the split already in memory for dense; in
 ``predict_split``'s worker processes where it uses them, their start included).
 ``--precision bfloat16``: the dense network in bfloat16 (``artdata predict --precision``).
-``--json`` writes every figure.
+``--noise kinect2``: the same objects rendered through that depth-noise model (``artdata generate
+--noise``), under ``ROOT/noise-kinect2/``, for the models meant for real sensors
+(``dense-kinect2``) and beside them.  ``--json`` writes every figure.
 
     python benchmarks/shipped_models.py --root data-shipped --test-objects 1000
+    python benchmarks/shipped_models.py --root data-shipped --test-objects 1000 --noise kinect2 --models dense dense-kinect2
     python benchmarks/shipped_models.py --root data-shipped --test-objects 50 --classes microwave
 """
 
@@ -47,6 +50,7 @@ def main(argv=None) -> int:
                    help="Dense: skip the refinement's mirror image (predict --no-mirror); predictions go to <class>-<model>-no-mirror.h5")
     p.add_argument("--precision", choices=["float32", "bfloat16"], default="float32",
                    help="the dense network's arithmetic (predict --precision)")
+    p.add_argument("--noise", default="none", help="render the test objects through this depth-noise model (generate --noise)")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--quiet", "-q", action="store_true")
     args = p.parse_args(argv)
@@ -64,12 +68,13 @@ def main(argv=None) -> int:
     classes = args.classes or class_names()
     results = []
     for cls in classes:
-        cfg = GenerationConfig(cls, split="test", n_objects=args.test_objects, seed=args.seed)
-        split_dir = generate_split(cfg, args.root, workers=args.workers, resume=True, progress=not args.quiet)
+        cfg = GenerationConfig(cls, split="test", n_objects=args.test_objects, seed=args.seed, noise=args.noise)
+        root = args.root if args.noise == "none" else args.root / f"noise-{args.noise}"
+        split_dir = generate_split(cfg, root, workers=args.workers, resume=True, progress=not args.quiet)
         for name in args.models:
             ref = resolve_model(name, cls)
             tag = ("-no-mirror" if args.no_mirror else "") + ("" if args.precision == "float32" else f"-{args.precision}")
-            out = args.root / "predictions" / f"{cls}-{name}{tag}.h5"
+            out = root / "predictions" / f"{cls}-{name}{tag}.h5"
             out.parent.mkdir(parents=True, exist_ok=True)
             t0 = time.perf_counter()
             if ref.kind == "dense":
@@ -106,7 +111,7 @@ def main(argv=None) -> int:
                    "mirror": not (args.no_mirror and ref.kind == "dense"),
                    "precision": args.precision if ref.kind == "dense" else "float32",
                    **{k: m[k][0] for k in TABLE_METRICS}, "coverage_90": m.get("coverage_90", (float("nan"),))[0],
-                   "images_per_s": speed, "test_seed": args.seed, "test_objects": args.test_objects,
+                   "images_per_s": speed, "test_seed": args.seed, "test_objects": args.test_objects, "noise": args.noise,
                    "all_metrics": {k: v[0] for k, v in m.items()}}
             results.append(rec)
             if not args.quiet:
@@ -114,12 +119,13 @@ def main(argv=None) -> int:
                       flush=True)
     from articulated_dataset.benchmark.metrics import METRIC_VERSION
 
-    print(f"\nTest: {args.test_objects} objects per class, seed {args.seed}; scorer metric version {METRIC_VERSION}")
-    print(f"{'class':<13} {'model':<10} {'pos cm':>14} {'rot deg':>14} {'config':>14} {'cov90':>6} {'img/s':>7}")
+    noise = "" if args.noise == "none" else f", depth through the {args.noise} noise model"
+    print(f"\nTest: {args.test_objects} objects per class, seed {args.seed}{noise}; scorer metric version {METRIC_VERSION}")
+    print(f"{'class':<13} {'model':<13} {'pos cm':>14} {'rot deg':>14} {'config':>14} {'cov90':>6} {'img/s':>7}")
     for r in results:
         paper = PAPER_TABLE1.get((r["class"], "MDN"))
         cells = [f"{r[k]:.2f} ({paper[i][0]:.2f})" if paper else f"{r[k]:.2f}" for i, k in enumerate(TABLE_METRICS)]
-        print(f"{r['class']:<13} {r['model']:<10} {cells[0]:>14} {cells[1]:>14} {cells[2]:>14} {r['coverage_90']:>6.3f} "
+        print(f"{r['class']:<13} {r['model']:<13} {cells[0]:>14} {cells[1]:>14} {cells[2]:>14} {r['coverage_90']:>6.3f} "
               f"{r['images_per_s']:>7.0f}")
     print("(paper's MDN in parentheses; configuration in deg, cm for the drawer)")
     if args.json:

@@ -15,7 +15,7 @@ point under the predicted mixture's marginal over it):
 
 * ``--models DIR``: trained MDN checkpoints (``DIR/<class>.pt``, ``DIR/<class>/*.pt``) via
   :func:`articulated_dataset.models.mdn.predict.predict_split`;
-* ``--shipped dense mdn-small``: the models shipped with the package (``artdata models``), via
+* ``--shipped dense dense-kinect2 mdn-small``: the models shipped with the package (``artdata models``), via
   :func:`articulated_dataset.models.predict.predict_to_file` as ``artdata predict`` runs them
   (the dense model without the point likelihood: its origins are already votes of the cloud's
   points);
@@ -27,6 +27,7 @@ point under the predicted mixture's marginal over it):
     python benchmarks/table2.py --out /tmp/table2                       # stand-in, Mean baseline
     python benchmarks/table2.py --out /tmp/table2 --models runs/       # stand-in, trained MDNs
     python benchmarks/table2.py --out /tmp/table2 --shipped dense mdn-small   # stand-in, shipped models
+    python benchmarks/table2.py --out /tmp/table2 --shipped dense dense-kinect2  # and the one trained with the noise
     python benchmarks/table2.py --out /tmp/table2 --real captures/ --models runs/
 
 Prints the paper's Table 2 beside ours (cm, deg, deg | cm; mean +/- std over images).
@@ -68,7 +69,7 @@ DEFAULT_TRAIN_OBJECTS = 100
 PAPER_METRICS = ("axis_position_error_cm", "axis_rotation_error_deg", "configuration_error")
 SNAP_SUFFIX = " + point lik."
 #: ``--shipped`` names -> the method's name in the table.
-SHIPPED_METHODS = {"dense": "dense (shipped)", "mdn-small": "MDN-small (shipped)"}
+SHIPPED_METHODS = {"dense": "dense (shipped)", "dense-kinect2": "dense-kinect2 (shipped)", "mdn-small": "MDN-small (shipped)"}
 
 
 @dataclass
@@ -175,7 +176,7 @@ def shipped_predictions(test_dir: Path, class_name: str, names: list[str], pred_
 
     files = []
     for name in names:
-        runs = [(SHIPPED_METHODS[name], False)] + ([(SHIPPED_METHODS[name] + SNAP_SUFFIX, True)] if name != "dense" else [])
+        runs = [(SHIPPED_METHODS[name], False)] + ([(SHIPPED_METHODS[name] + SNAP_SUFFIX, True)] if not name.startswith("dense") else [])
         for method, snap in runs:
             path = pred_dir / f"{class_name}-{test_dir.name}-shipped-{name}{'-snapped' if snap else ''}.h5"
             predict_to_file(name, test_dir, path, snap_to_cloud=snap, method=method)

@@ -2,14 +2,18 @@
 
     python scripts/ship_weights.py --dense-dir RUNS --mdn-dir RUNS [--results shipped.json]
     python scripts/ship_weights.py --dense-dir RUNS --mdn-dir RUNS --classes cabinet --update [--results shipped.json]
+    python scripts/ship_weights.py --dense-dir EMPTY --mdn-dir EMPTY --dense-kinect2-dir RUNS --update \
+        --results shipped.json --results shipped-kinect2.json
 
-Reads ``RUNS/dense-<class>.pt`` (``artdata train --model dense``) and
-``RUNS/mdn-small-<class>.pt`` (``artdata train --small``), keeps what inference needs
+Reads ``RUNS/dense-<class>.pt`` (``artdata train --model dense``),
+``RUNS/mdn-small-<class>.pt`` (``artdata train --small``) and, with ``--dense-kinect2-dir``,
+``RUNS/dense-kinect2-<class>.pt`` (``artdata train --model dense --noise kinect2``), keeps what inference needs
 (:func:`articulated_dataset.models.strip_for_shipping`: no optimizer, schedule or RNG
 state), writes ``articulated_dataset/weights/<model>-<class>.pt`` and
 ``articulated_dataset/weights/models.json`` (file, SHA-256, size, training data and
 recipe, history, and the test figures of ``benchmarks/shipped_models.py --json`` when
-``--results`` is given).  Only finished trainings are shipped.  ``--update`` keeps the manifest's
+``--results`` is given: ``test`` from the noise-free test split, ``test_kinect2`` from the same
+objects through the Kinect v2 noise model, ``--noise kinect2``).  Only finished trainings are shipped.  ``--update`` keeps the manifest's
 other entries (the models not shipped now) and updates their test figures from ``--results``
 where those were measured on the same file (SHA-256).
 """
@@ -31,9 +35,12 @@ from articulated_dataset.models.dense.train import split_generation
 MACHINE = "2-core x86_64 CPU VM shared with other jobs, no GPU, PyTorch 2.13.0 CPU"
 TRAIN_COMMANDS = {
     "dense": "artdata train --model dense --class {c} --data data/{c}/train --out dense-{c}.pt{opts}",
+    "dense-kinect2": "artdata train --model dense --class {c} --data data/{c}/train --out dense-kinect2-{c}.pt{opts}",
     "mdn-small": "artdata train --class {c} --data data/{c}/train --out mdn-small-{c}.pt --small --max-objects 1000 --seed 0",
 }
-FILES = {"dense": "dense-{c}.pt", "mdn-small": "mdn-small-{c}.pt"}
+FILES = {"dense": "dense-{c}.pt", "dense-kinect2": "dense-kinect2-{c}.pt", "mdn-small": "mdn-small-{c}.pt"}
+#: The test figures kept per model: manifest key -> the noise model of the test split measured.
+TEST_KEYS = {"test": "none", "test_kinect2": "kinect2"}
 
 
 def _data_command(c: str, ckpt: dict) -> tuple[str, int]:
@@ -93,7 +100,7 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
     tc = ckpt.get("train_config", {})
     data_command, seed = _data_command(c, ckpt)
     data = data_command.split("--out ")[-1]
-    if name == "dense":
+    if name.startswith("dense"):
         opts = f" --epochs {tc.get('epochs')}" + (f" --lr {tc.get('lr')}" if tc.get("lr") != 3e-3 else "")
         if tc.get("init_from"):
             opts += f" --init-from {Path(tc['init_from']).name}"
@@ -103,6 +110,11 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
             opts += f" --batch-size {tc['batch_size']}"
         if tc.get("val_fraction", 0.05) != 0.05:
             opts += f" --val-fraction {tc['val_fraction']:g}"
+        if tc.get("max_objects") is not None:
+            opts += f" --max-objects {tc['max_objects']}"
+        if tc.get("noise") is not None:
+            opts += f" --noise {tc['noise']}" + (f" --noise-fraction {tc['noise_fraction']:g}"
+                                                 if tc.get("noise_fraction", 0.5) != 0.5 else "")
         if ckpt.get("device") == "cuda":
             opts += " --device cuda"
         command = TRAIN_COMMANDS[name].format(c=c, opts=opts).replace("data/", f"{data}/")
@@ -117,10 +129,10 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
         rec["selection"] = ckpt["selection"]
     if refit is not None:  # a refit of a full checkpoint (not of a shipped file): its own record, marked
         rec["refit"] = "scripts/fit_dense_inference.py on the same validation objects"
-    if name == "dense" and tc.get("init_from"):
+    if name.startswith("dense") and tc.get("init_from"):
         rec["continued_from"] = previous if previous is not None else _unshipped_record(c, tc["init_from"], shipped)
     hist = ckpt.get("history", [])
-    if name == "dense":
+    if name.startswith("dense"):
         rec.update(objects=ckpt["data"]["n_objects"], train_images=ckpt["data"]["n_train_images"],
                    val_images=ckpt["data"]["n_val_images"], steps=ckpt["step"], cpu_seconds=round(ckpt.get("cpu_seconds", 0.0)),
                    validation=hist[-1] if hist else None)
@@ -136,14 +148,28 @@ def _test_record(r: dict, metric_version: int) -> dict:
     return {"pos_cm": r["axis_position_error_cm"], "rot_deg": r["axis_rotation_error_deg"],
             "config": r["configuration_error"], "coverage_90": r["coverage_90"],
             "images": r["n_images"], "objects": r["test_objects"], "seed": r["test_seed"],
-            "images_per_s": r["images_per_s"], "metric_version": metric_version}
+            "images_per_s": r["images_per_s"], "metric_version": metric_version,
+            **({} if r.get("noise", "none") == "none" else {"noise": r["noise"]})}
+
+
+def _tests(results: dict, name: str, c: str, sha256: str) -> dict:
+    """The manifest's test entries (:data:`TEST_KEYS`) of a model file from the measured results
+    (those measured on this very file, by SHA-256)."""
+    out = {}
+    for key, noise in TEST_KEYS.items():
+        r = results.get((name, c, noise))
+        if r is not None and r.get("sha256", sha256) == sha256:
+            out[key] = _test_record(r, r["metric_version"])
+    return out
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--dense-dir", type=Path, required=True)
     p.add_argument("--mdn-dir", type=Path, required=True)
-    p.add_argument("--results", type=Path, default=None, help="benchmarks/shipped_models.py --json output")
+    p.add_argument("--dense-kinect2-dir", type=Path, default=None, help="folder of the dense-kinect2-<class>.pt to ship")
+    p.add_argument("--results", type=Path, action="append", default=[],
+                   help="benchmarks/shipped_models.py --json output (repeatable: with and without --noise)")
     p.add_argument("--classes", nargs="+", default=None)
     p.add_argument("--previous", type=Path, action="append", default=None,
                    help="models.json of weights shipped before (repeatable; default: the current one); "
@@ -153,16 +179,18 @@ def main(argv=None) -> int:
                         "updated from --results where measured on the same file)")
     args = p.parse_args(argv)
     results = {}
-    if args.results is not None:
-        for r in json.loads(args.results.read_text())["results"]:
-            results[(r["model"], r["class"])] = r
-        metric_version = json.loads(args.results.read_text())["metric_version"]
+    for path in args.results:
+        doc = json.loads(path.read_text())
+        for r in doc["results"]:
+            results[(r["model"], r["class"], r.get("noise") or "none")] = {**r, "metric_version": doc["metric_version"]}
     WEIGHTS_DIR.mkdir(exist_ok=True)
     entries = []
     shipped = [e for path in (args.previous or [MODELS_MANIFEST]) if path.is_file()
                for e in json.loads(path.read_text())["models"]]
     for c in args.classes or class_names():
-        for name, folder in (("dense", args.dense_dir), ("mdn-small", args.mdn_dir)):
+        for name, folder in (("dense", args.dense_dir), ("dense-kinect2", args.dense_kinect2_dir), ("mdn-small", args.mdn_dir)):
+            if folder is None:
+                continue
             src = folder / FILES[name].format(c=c)
             if not src.is_file():
                 print(f"skip {name} {c}: no {src}", file=sys.stderr)
@@ -172,27 +200,23 @@ def main(argv=None) -> int:
                 print(f"skip {name} {c}: training not finished", file=sys.stderr)
                 continue
             init_from = ckpt.get("train_config", {}).get("init_from")
-            previous = _previous_record(init_from, shipped) if name == "dense" and init_from else None
+            previous = _previous_record(init_from, shipped) if name.startswith("dense") and init_from else None
             dst = WEIGHTS_DIR / FILES[name].format(c=c)
             tmp = dst.with_name(dst.name + ".partial")
             torch.save(strip_for_shipping(ckpt), tmp)
             tmp.replace(dst)
-            entry = {"name": name, "class_name": c, "kind": "dense" if name == "dense" else "mdn", "file": dst.name,
+            entry = {"name": name, "class_name": c, "kind": "dense" if name.startswith("dense") else "mdn", "file": dst.name,
                      "sha256": sha256_file(dst), "bytes": dst.stat().st_size,
                      "config_unit": "cm" if "prismatic" in str(ckpt.get("joint_types", "")) or c == "drawer" else "deg",
                      "training": _training_record(name, c, ckpt, previous, shipped)}
-            r = results.get((name, c))
-            if r is not None and r.get("sha256", entry["sha256"]) == entry["sha256"]:
-                entry["test"] = _test_record(r, metric_version)
+            entry.update(_tests(results, name, c, entry["sha256"]))
             entries.append(entry)
             print(f"{dst}: {entry['bytes'] / 1e6:.2f} MB")
     if args.update and MODELS_MANIFEST.is_file():
         shipped_now = {(e["name"], e["class_name"]) for e in entries}
         kept = [e for e in json.loads(MODELS_MANIFEST.read_text())["models"] if (e["name"], e["class_name"]) not in shipped_now]
         for e in kept:
-            r = results.get((e["name"], e["class_name"]))
-            if r is not None and r.get("sha256") == e["sha256"]:
-                e["test"] = _test_record(r, metric_version)
+            e.update(_tests({k: r for k, r in results.items() if "sha256" in r}, e["name"], e["class_name"], e["sha256"]))
         order = {(n, c): i for i, (c, n) in enumerate((c, n) for c in class_names() for n in FILES)}
         entries = sorted(entries + kept, key=lambda e: order.get((e["name"], e["class_name"]), len(order)))
     MODELS_MANIFEST.write_text(json.dumps({"models": entries}, indent=1) + "\n")

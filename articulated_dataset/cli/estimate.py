@@ -19,7 +19,9 @@ from .options import ClassChoice, no_mirror_option, precision_option, prepare_to
               help="Object mask PNG (non-zero = object); needed when the image shows a scene around the object.")
 @click.option("--depth-units", type=click.Choice(["auto", "m", "mm"]), default="auto", show_default=True,
               help="Units of the depth values (auto: 16-bit PNG = mm, float EXR/npy = m).")
-@click.option("--model", default="dense", show_default=True, help="'dense' (shipped weights) or a dense checkpoint file.")
+@click.option("--model", default="dense", show_default=True,
+              help="'dense' (shipped weights), 'dense-kinect2' (shipped weights for a real sensor's noisy depth) "
+                   "or a dense checkpoint file.")
 @no_mirror_option
 @precision_option
 @click.option("--json", "as_json", is_flag=True, help="Print the estimate as JSON.")

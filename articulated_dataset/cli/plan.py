@@ -23,7 +23,7 @@ def _fmt_vec(v, digits: int = 4) -> str:
               help="Plan from this predictions.h5 (matched by sample_id) instead of the truth labels.")
 @click.option("--model", "model", default=None,
               help="Estimate the kinematics from the image's stored depth with this model: a shipped model "
-                   "(dense, mdn-small) or a checkpoint from 'artdata train'.")
+                   "(dense, dense-kinect2, mdn-small) or a checkpoint from 'artdata train'.")
 @click.option("--closed-loop", is_flag=True,
               help="With --model and --simulate: look again while opening (extra views before grasping, one image "
                    "after each segment of the motion) and correct the plan; reports the images used.")

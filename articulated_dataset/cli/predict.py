@@ -13,7 +13,7 @@ from .options import no_mirror_option, precision_option, prepare_torch
 
 @click.command("predict")
 @click.option("--model", "model_path", required=True,
-              help="A shipped model (dense, mdn-small; see 'artdata models') or a checkpoint file from 'artdata train'.")
+              help="A shipped model (dense, dense-kinect2, mdn-small; see 'artdata models') or a checkpoint file from 'artdata train'.")
 @click.option("--data", type=click.Path(), required=True, help="Split folder to predict, e.g. data/cabinet/test.")
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="predictions.h5 to write (for 'artdata score').")
 @click.option("--estimate", type=click.Choice(["mean-of-best", "mode"]), default="mean-of-best", show_default=True,

@@ -51,13 +51,13 @@ class DepthEstimator:
 
 
 def make_estimator(model: str, class_name: str) -> DepthEstimator:
-    """The estimator of ``--model`` (a shipped name, ``dense`` or ``mdn-small``, or a checkpoint
+    """The estimator of ``--model`` (a shipped name, ``dense``, ``dense-kinect2`` or ``mdn-small``, or a checkpoint
     path of either kind) for ``class_name``.  Unknown names, a wrong class or an unreadable
     file are a :class:`UserError` (:func:`articulated_dataset.models.shipped.resolve_model`)."""
     from ..models import resolve_model
 
     ref = resolve_model(model, class_name)
-    name = ref.name if model not in ("dense", "mdn-small") else model
+    name = ref.name  # a shipped model's name, or the kind of a checkpoint file's model
     if ref.kind == "dense":
         from ..models.estimation import estimate
 

@@ -145,7 +145,8 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
 
     ``depth_m``: (H, W) z-depth in metres (0 or NaN = no return); ``K``: 3x3 intrinsics of that
     image (OpenCV convention, pixel centres at integers); ``mask``: optional (H, W) boolean object
-    mask (pixels outside it are ignored).  ``model``: ``"dense"`` (shipped weights) or a dense
+    mask (pixels outside it are ignored).  ``model``: ``"dense"`` (shipped weights),
+    ``"dense-kinect2"`` (shipped weights trained for a real sensor's noisy depth) or a dense
     checkpoint path.  ``mirror=False`` skips the refinement's mirror image where the model uses
     it (cabinet, two-door cabinet, drawer: faster, a 4-6% higher position error).
     ``precision``: the network's arithmetic, ``"float32"`` or ``"bfloat16"`` (docs/dense.md,

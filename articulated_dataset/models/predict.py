@@ -36,7 +36,7 @@ def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: 
     arithmetic (``"float32"`` or ``"bfloat16"``); the MDN: batches of 256,
     ``estimate`` and ``snap_to_cloud``.  An
     option of the other kind is a :class:`UserError`.  ``method`` names the method in the
-    file (default ``dense``, ``MDN`` or ``MDN-<preset>``)."""
+    file (default: the shipped model's name, else ``dense``, ``MDN`` or ``MDN-<preset>``)."""
     from ..benchmark.predictions import write_predictions
     from .mdn.data import resolve_split_dir, split_class
     from .shipped import resolve_model
@@ -49,7 +49,7 @@ def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: 
         from .dense.checkpoint import load_dense_checkpoint
 
         ckpt = load_dense_checkpoint(ref.path)
-        name = method or "dense"
+        name = method or ref.name  # dense, dense-kinect2 (shipped) or dense (a checkpoint file)
         class_name, arrays = predict_dense(ckpt, data, batch_size=128 if batch_size is None else batch_size,
                                            object_mask=object_mask, mirror=mirror, workers=workers, precision=precision,
                                            progress=progress)

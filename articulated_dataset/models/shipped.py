@@ -1,7 +1,9 @@
 """Shipped (pretrained) models and checkpoint files: one place that turns ``--model`` into a network.
 
 The package carries, as package data under ``articulated_dataset/weights/``, one checkpoint per
-class for each shipped model (``dense``: the per-pixel voting network; ``mdn-small``: the
+class for each shipped model (``dense``: the per-pixel voting network; ``dense-kinect2``: the same
+network continued on renders half of which pass through the Kinect v2 depth-noise model, for
+real sensors' depth (docs/real_data.md); ``mdn-small``: the
 paper's mixture density network at the ``--small`` preset) and ``models.json`` describing
 them: file, SHA-256, size, training data (command, seed, objects), epochs/steps, wall time,
 machine and test figures.  Files are checked against their SHA-256 before loading and loaded
@@ -25,7 +27,7 @@ log = logging.getLogger(__name__)
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 MODELS_MANIFEST = WEIGHTS_DIR / "models.json"
 #: Shipped model names -> checkpoint kind.
-SHIPPED = {"dense": "dense", "mdn-small": "mdn"}
+SHIPPED = {"dense": "dense", "dense-kinect2": "dense", "mdn-small": "mdn"}
 #: Checkpoint ``format`` field -> kind.
 FORMATS = {"artdata-dense": "dense", "artdata-mdn": "mdn"}
 
