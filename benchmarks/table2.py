@@ -172,11 +172,13 @@ def mdn_predictions(model: Path, test_dir: Path) -> tuple[dict, dict]:
 def shipped_predictions(test_dir: Path, class_name: str, names: list[str], pred_dir: Path) -> list[Path]:
     """predictions.h5 files of the shipped models ``names`` (``SHIPPED_METHODS``) on ``test_dir``, as
     ``artdata predict --model NAME`` writes them; MDN-small also with the point likelihood."""
+    from articulated_dataset.models import SHIPPED
     from articulated_dataset.models.predict import predict_to_file
 
     files = []
     for name in names:
-        runs = [(SHIPPED_METHODS[name], False)] + ([(SHIPPED_METHODS[name] + SNAP_SUFFIX, True)] if not name.startswith("dense") else [])
+        snapped = [(SHIPPED_METHODS[name] + SNAP_SUFFIX, True)] if SHIPPED[name] != "dense" else []
+        runs = [(SHIPPED_METHODS[name], False)] + snapped
         for method, snap in runs:
             path = pred_dir / f"{class_name}-{test_dir.name}-shipped-{name}{'-snapped' if snap else ''}.h5"
             predict_to_file(name, test_dir, path, snap_to_cloud=snap, method=method)

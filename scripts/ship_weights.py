@@ -27,16 +27,16 @@ from pathlib import Path
 
 import torch
 
-from articulated_dataset.models import MODELS_MANIFEST, WEIGHTS_DIR, strip_for_shipping
+from articulated_dataset.models import MODELS_MANIFEST, SHIPPED, WEIGHTS_DIR, strip_for_shipping
 from articulated_dataset.registry import class_names
 from articulated_dataset.format import sha256_file
 from articulated_dataset.models.dense.train import split_generation
 
 MACHINE = "2-core x86_64 CPU VM shared with other jobs, no GPU, PyTorch 2.13.0 CPU"
+#: Per model kind (``SHIPPED``): the training command, ``{file}`` the shipped model's file.
 TRAIN_COMMANDS = {
-    "dense": "artdata train --model dense --class {c} --data data/{c}/train --out dense-{c}.pt{opts}",
-    "dense-kinect2": "artdata train --model dense --class {c} --data data/{c}/train --out dense-kinect2-{c}.pt{opts}",
-    "mdn-small": "artdata train --class {c} --data data/{c}/train --out mdn-small-{c}.pt --small --max-objects 1000 --seed 0",
+    "dense": "artdata train --model dense --class {c} --data data/{c}/train --out {file}{opts}",
+    "mdn": "artdata train --class {c} --data data/{c}/train --out {file} --small --max-objects 1000 --seed 0",
 }
 FILES = {"dense": "dense-{c}.pt", "dense-kinect2": "dense-kinect2-{c}.pt", "mdn-small": "mdn-small-{c}.pt"}
 #: The test figures kept per model: manifest key -> the noise model of the test split measured.
@@ -100,7 +100,8 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
     tc = ckpt.get("train_config", {})
     data_command, seed = _data_command(c, ckpt)
     data = data_command.split("--out ")[-1]
-    if name.startswith("dense"):
+    dense = SHIPPED[name] == "dense"
+    if dense:
         opts = f" --epochs {tc.get('epochs')}" + (f" --lr {tc.get('lr')}" if tc.get("lr") != 3e-3 else "")
         if tc.get("init_from"):
             opts += f" --init-from {Path(tc['init_from']).name}"
@@ -117,9 +118,9 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
                                                  if tc.get("noise_fraction", 0.5) != 0.5 else "")
         if ckpt.get("device") == "cuda":
             opts += " --device cuda"
-        command = TRAIN_COMMANDS[name].format(c=c, opts=opts).replace("data/", f"{data}/")
+        command = TRAIN_COMMANDS["dense"].format(c=c, file=FILES[name].format(c=c), opts=opts).replace("data/", f"{data}/")
     else:
-        command = TRAIN_COMMANDS[name].format(c=c, opts="")
+        command = TRAIN_COMMANDS["mdn"].format(c=c, file=FILES[name].format(c=c))
     rec = {"data_command": data_command, "command": command, "seed": int(tc.get("seed", 0)),
            "machine": ckpt.get("machine") or MACHINE}
     if ckpt.get("refinement") is not None:
@@ -129,10 +130,10 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
         rec["selection"] = ckpt["selection"]
     if refit is not None:  # a refit of a full checkpoint (not of a shipped file): its own record, marked
         rec["refit"] = "scripts/fit_dense_inference.py on the same validation objects"
-    if name.startswith("dense") and tc.get("init_from"):
+    if dense and tc.get("init_from"):
         rec["continued_from"] = previous if previous is not None else _unshipped_record(c, tc["init_from"], shipped)
     hist = ckpt.get("history", [])
-    if name.startswith("dense"):
+    if dense:
         rec.update(objects=ckpt["data"]["n_objects"], train_images=ckpt["data"]["n_train_images"],
                    val_images=ckpt["data"]["n_val_images"], steps=ckpt["step"], cpu_seconds=round(ckpt.get("cpu_seconds", 0.0)),
                    validation=hist[-1] if hist else None)
@@ -157,13 +158,14 @@ def _test_record(r: dict, metric_version: int) -> dict:
     return rec
 
 
-def _tests(results: dict, name: str, c: str, sha256: str) -> dict:
+def _tests(results: dict, name: str, c: str, sha256: str, *, require_sha256: bool = False) -> dict:
     """The manifest's test entries (:data:`TEST_KEYS`) of a model file from the measured results
-    (those measured on this very file, by SHA-256)."""
+    measured on this very file (by SHA-256; a result without one counts as this file's unless
+    ``require_sha256``)."""
     out = {}
     for key, noise in TEST_KEYS.items():
         r = results.get((name, c, noise))
-        if r is not None and r.get("sha256", sha256) == sha256:
+        if r is not None and r.get("sha256", None if require_sha256 else sha256) == sha256:
             out[key] = _test_record(r, r["metric_version"])
     return out
 
@@ -205,12 +207,12 @@ def main(argv=None) -> int:
                 print(f"skip {name} {c}: training not finished", file=sys.stderr)
                 continue
             init_from = ckpt.get("train_config", {}).get("init_from")
-            previous = _previous_record(init_from, shipped) if name.startswith("dense") and init_from else None
+            previous = _previous_record(init_from, shipped) if SHIPPED[name] == "dense" and init_from else None
             dst = WEIGHTS_DIR / FILES[name].format(c=c)
             tmp = dst.with_name(dst.name + ".partial")
             torch.save(strip_for_shipping(ckpt), tmp)
             tmp.replace(dst)
-            entry = {"name": name, "class_name": c, "kind": "dense" if name.startswith("dense") else "mdn", "file": dst.name,
+            entry = {"name": name, "class_name": c, "kind": SHIPPED[name], "file": dst.name,
                      "sha256": sha256_file(dst), "bytes": dst.stat().st_size,
                      "config_unit": "cm" if "prismatic" in str(ckpt.get("joint_types", "")) or c == "drawer" else "deg",
                      "training": _training_record(name, c, ckpt, previous, shipped)}
@@ -221,7 +223,7 @@ def main(argv=None) -> int:
         shipped_now = {(e["name"], e["class_name"]) for e in entries}
         kept = [e for e in json.loads(MODELS_MANIFEST.read_text())["models"] if (e["name"], e["class_name"]) not in shipped_now]
         for e in kept:
-            e.update(_tests({k: r for k, r in results.items() if "sha256" in r}, e["name"], e["class_name"], e["sha256"]))
+            e.update(_tests(results, e["name"], e["class_name"], e["sha256"], require_sha256=True))
         order = {(n, c): i for i, (c, n) in enumerate((c, n) for c in class_names() for n in FILES)}
         entries = sorted(entries + kept, key=lambda e: order.get((e["name"], e["class_name"]), len(order)))
     MODELS_MANIFEST.write_text(json.dumps({"models": entries}, indent=1) + "\n")
