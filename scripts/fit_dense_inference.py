@@ -7,8 +7,9 @@ Loads the checkpoint's training split, takes the validation objects that trainin
 (:func:`articulated_dataset.models.dense.fit.fit_refinement`) and refits the calibration on them
 (:func:`articulated_dataset.models.dense.predict.fit_inference`), and writes the checkpoint to
 ``--out``.  Training does this itself since the refinement exists; this script brings older
-checkpoints (the shipped ones trained before it) up to date.  Prints the validation errors of
-every candidate.
+checkpoints (the shipped ones trained before it, or before a refinement version) up to date.
+``--clean`` fits a model trained with ``--noise`` on the noise-free validation images (training
+fits on the noisy ones).  Prints the validation errors of every candidate.
 """
 
 from __future__ import annotations
@@ -28,6 +29,9 @@ def main(argv=None) -> int:
     p.add_argument("--data", required=True, help="its training split folder")
     p.add_argument("--out", required=True, help="checkpoint to write")
     p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--clean", action="store_true",
+                   help="fit on the noise-free validation images even where training used --noise "
+                        "(a model trained with noise, fitted for noise-free depth)")
     args = p.parse_args(argv)
     import torch
 
@@ -38,7 +42,7 @@ def main(argv=None) -> int:
         torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        result = refit_inference(args.checkpoint, args.data, args.out)
+        result = refit_inference(args.checkpoint, args.data, args.out, clean=args.clean)
     except UserError as e:
         print(f"fit_dense_inference: error: {e}", file=sys.stderr)
         return 2

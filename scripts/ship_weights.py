@@ -86,6 +86,17 @@ def _unshipped_record(c: str, init_from: str, shipped) -> dict:
     return {"checkpoint": path.name, "training": _training_record("dense", c, init, previous, shipped)}
 
 
+def _refit_note(ckpt: dict) -> str:
+    """How a refitted checkpoint's inference was fitted: ``--clean`` where training used a noise
+    model and the refit did not (its ``refit_of`` records the validation images' noise)."""
+    clean = ckpt.get("train_config", {}).get("noise") is not None and \
+        "validation_noise" in ckpt["refit_of"] and ckpt["refit_of"]["validation_noise"] is None
+    if clean:
+        return (f"scripts/fit_dense_inference.py --checkpoint {ckpt['refit_of']['file']} --clean: on the same "
+                "validation objects, noise-free")
+    return "scripts/fit_dense_inference.py on the same validation objects"
+
+
 def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None, shipped=()) -> dict:
     refit = ckpt.get("refit_of")
     if refit is not None:  # shipped weights whose inference was refitted (scripts/fit_dense_inference.py)
@@ -93,7 +104,7 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
             if e["sha256"] == refit["sha256"]:
                 rec = {**e["training"], "refinement": ckpt["refinement"],
                        "refinement_validation": ckpt.get("refinement_report"),
-                       "refit": "scripts/fit_dense_inference.py on the same validation objects"}
+                       "refit": _refit_note(ckpt)}
                 if ckpt.get("selection") is not None:
                     rec["selection"] = ckpt["selection"]
                 return rec
@@ -129,7 +140,7 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
     if ckpt.get("selection") is not None:  # which candidate was shipped, chosen on validation objects
         rec["selection"] = ckpt["selection"]
     if refit is not None:  # a refit of a full checkpoint (not of a shipped file): its own record, marked
-        rec["refit"] = "scripts/fit_dense_inference.py on the same validation objects"
+        rec["refit"] = _refit_note(ckpt)
     if dense and tc.get("init_from"):
         rec["continued_from"] = previous if previous is not None else _unshipped_record(c, tc["init_from"], shipped)
     hist = ckpt.get("history", [])

@@ -255,11 +255,19 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
 
     assert whole["refinement"]["split_factor"] in SPLIT_FACTOR_CANDIDATES
     assert len(whole["refinement_report"]["split_factor_position_cm"]) == len(SPLIT_FACTOR_CANDIDATES)
-    # and the box frame's pixel threshold (refinement version 6), each candidate's errors reported
-    from articulated_dataset.models.dense.fit import FRAME_PROB_CANDIDATES
+    # and the box frame's pixel threshold (refinement version 6) with its normals (central
+    # differences only or one-sided ones too, version 12), each pair's errors reported
+    from articulated_dataset.models.dense.fit import FRAME_ONE_SIDED_CANDIDATES, FRAME_PROB_CANDIDATES
 
     assert whole["refinement"]["frame_min_prob"] in FRAME_PROB_CANDIDATES
-    assert len(whole["refinement_report"]["frame_min_prob"]) == len(FRAME_PROB_CANDIDATES)
+    assert whole["refinement"]["frame_one_sided"] in FRAME_ONE_SIDED_CANDIDATES
+    report = whole["refinement_report"]["frame_min_prob"]
+    assert len(report) == len(FRAME_PROB_CANDIDATES) * len(FRAME_ONE_SIDED_CANDIDATES)
+    best = min(report.values(), key=lambda e: (e["rotation_deg"], e["configuration"]))
+    name = ("all pixels" if whole["refinement"]["frame_min_prob"] is None
+            else f"probability>{whole['refinement']['frame_min_prob']:g}") + \
+        (", one-sided normals" if whole["refinement"]["frame_one_sided"] else "")
+    assert report[name] == best  # the pair with the lowest validation rotation error is the one kept
 
 
 def test_noise_augmentation_corrupts_its_share_of_a_batch_the_same_way_on_every_run(tiny_root, tmp_path):
@@ -320,6 +328,10 @@ def test_noise_training_validates_and_fits_on_one_noisy_draw_of_the_validation_i
     whole = train_dense(split, tmp_path / "b.pt", cfg, progress=False)
     refit = refit_inference(tmp_path / "a.pt", split, tmp_path / "c.pt", progress=False)
     assert refit["refinement"] == whole["refinement"] and refit["calibration"] == whole["calibration"]
+    assert refit["refit_of"]["validation_noise"] == "kinect2"
+    # --clean: the same validation objects without the noise model (the intervals fitted to clean depth)
+    clean = refit_inference(tmp_path / "a.pt", split, tmp_path / "d.pt", progress=False, clean=True)
+    assert clean["refit_of"]["validation_noise"] is None and clean["calibration"] != refit["calibration"]
     _, val_mask = split_by_object(data.object_index, cfg.val_fraction, cfg.seed)
     va_idx = np.nonzero(val_mask)[0]
     joints = list(unfit["joint_types"])

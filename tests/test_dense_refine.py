@@ -511,7 +511,7 @@ def test_box_frame_uses_only_the_pixels_the_segmentation_is_sure_of(part_logit, 
 
 def test_refinement_dict_reads_version_5_without_the_frame_threshold():
     ref = R.Refinement(frame=True, hinge_offset_m=-0.01, frame_min_prob=0.9, mirror_joints=(0,))
-    assert R.Refinement.from_dict(ref.to_dict()) == ref and ref.version == R.REFINEMENT_VERSION == 11
+    assert R.Refinement.from_dict(ref.to_dict()) == ref and ref.version == R.REFINEMENT_VERSION == 12
     old = {k: v for k, v in ref.to_dict().items() if k != "frame_min_prob"} | {"version": 5}
     assert R.Refinement.from_dict(old).frame_min_prob is None
 
@@ -669,3 +669,110 @@ def test_fit_recovers_the_face_offsets_and_gates_step_10():
     assert np.array_equal(R.door_face_origin(m_inner, r_inner, 0.05, (0.0, None), np.array([True])), m_inner["origin"])
     ref = R.Refinement(door_face_gate_m=0.05, door_face_offsets_m=(0.0, None))
     assert R.Refinement.from_dict(ref.to_dict()) == ref
+
+
+def _plane_depth(K: np.ndarray, hw, normal: np.ndarray, point_m: np.ndarray) -> np.ndarray:
+    """(H, W) depth of the plane through ``point_m`` with unit ``normal`` (camera frame: x forward,
+    y left, z up); 0 where the ray does not meet it in front of the camera."""
+    H, W = hw
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    rays = np.stack([np.ones_like(u, float), -(u - K[0, 2]) / K[0, 0], -(v - K[1, 2]) / K[1, 1]], -1)
+    with np.errstate(divide="ignore"):
+        depth = (normal @ point_m) / (rays @ normal)
+    depth[~np.isfinite(depth) | (depth <= 0) | (depth > 4.0)] = 0.0
+    return depth
+
+
+#: A side wall seen at 60 degrees from its normal (a cabinet's, beside its door), the box yawed 30 deg.
+_YAW = Rotation.from_euler("z", 30, degrees=True)
+_BOX = _YAW.as_matrix() @ np.stack([[0.0, 1, 0], [-1.0, 0, 0], [0.0, 0, 1]], -1)  # columns x, y, z
+_K = np.array([[100.0, 0, 95.5], [0, 100.0, 53.5], [0, 0, 1]])
+_STRIP_COLUMNS = (96, 97)  # inside output column 24 (pixels 96-99)
+
+
+def _strip_scene(door_gap_px: int = 12):
+    """A 2-pixel-wide strip (rows 30-79) of the side wall whose normal is the box's ``x``, and a door
+    face (normal: the box's ``y``) ``door_gap_px`` columns to its right (0: the columns beside it)."""
+    hw = (108, 192)
+    wall = _plane_depth(_K, hw, _BOX[:, 0], np.array([1.5, 0.0, 0.0]))
+    first = _STRIP_COLUMNS[-1] + 1 + door_gap_px
+    # the door's face meets the wall's plane on the ray between the strip's last column and the next
+    u = first - 0.5
+    ray = np.array([1.0, -(u - _K[0, 2]) / _K[0, 0], 0.0])
+    corner = ray * (_BOX[:, 0] @ np.array([1.5, 0.0, 0.0])) / (ray @ _BOX[:, 0])
+    door = _plane_depth(_K, hw, _BOX[:, 1], corner)
+    depth = np.zeros(hw)
+    depth[30:80, list(_STRIP_COLUMNS)] = wall[30:80, list(_STRIP_COLUMNS)]
+    depth[30:80, first:first + 40] = door[30:80, first:first + 40]
+    return torch.tensor(depth[None], dtype=torch.float32), torch.tensor(_K[None], dtype=torch.float32)
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return math.degrees(math.acos(min(1.0, abs(float(a @ b)) / (np.linalg.norm(a) * np.linalg.norm(b)))))
+
+
+def test_one_sided_normals_give_a_two_pixel_strip_its_planes_normal():
+    """The input's central differences need both neighbours on each image axis: a face seen as a
+    strip two pixels wide has none; the one-sided differences give every strip pixel its plane's
+    normal (facing the camera), and a one-pixel strip none."""
+    from articulated_dataset.models.dense.features import one_sided_normals
+
+    depth, K = _strip_scene()
+    inputs = make_inputs(depth, K)
+    x = inputs["x"]
+    strip = torch.zeros(108, 192, dtype=torch.bool)
+    strip[31:79, list(_STRIP_COLUMNS)] = True  # the top and bottom rows have a neighbour on one side only
+    assert x[0, 4:7][:, strip].abs().sum() == 0  # no central-difference normal on the strip
+    at = strip.flatten().nonzero()[:, 0]
+    n, ok = one_sided_normals(x, at)
+    assert ok.all()
+    for k in range(len(at)):
+        assert _angle_deg(n[:, k].double().numpy(), _BOX[:, 0]) < 0.05
+    assert (n[0] < 0).all()  # facing the camera (which looks along +x)
+    one = depth.clone()
+    one[0, :, _STRIP_COLUMNS[1]] = 0.0
+    _, ok = one_sided_normals(make_inputs(one, K)["x"], (strip & (torch.arange(192) == _STRIP_COLUMNS[0])).flatten().nonzero()[:, 0])
+    assert not ok.any()
+
+
+def test_one_sided_normals_take_only_allowed_neighbours():
+    """Beside the door (no gap) the strip's outer pixel has its nearest neighbour on the door's face:
+    its normal mixes the two faces unless the door's pixels are not allowed."""
+    from articulated_dataset.models.dense.features import one_sided_normals
+
+    depth, K = _strip_scene(door_gap_px=0)
+    x = make_inputs(depth, K)["x"]
+    at = torch.tensor([50 * 192 + _STRIP_COLUMNS[1]])
+    mixed, ok = one_sided_normals(x, at)
+    assert ok.all() and _angle_deg(mixed[:, 0].double().numpy(), _BOX[:, 0]) > 5.0
+    allowed = torch.zeros(108 * 192, dtype=torch.bool)
+    allowed.view(108, 192)[:, list(_STRIP_COLUMNS)] = True
+    n, ok = one_sided_normals(x, at, allowed)
+    assert ok.all() and _angle_deg(n[:, 0].double().numpy(), _BOX[:, 0]) < 0.05
+
+
+@pytest.mark.parametrize("one_sided", [False, True])
+def test_box_frame_reads_a_body_strip_with_one_sided_normals(one_sided):
+    """Step 2 with ``frame_one_sided`` (refinement version 12): the body seen only as a strip two
+    pixels wide beside its door (the seed-14 cabinet images with 101-499 body pixels) aligns the
+    frame, voted 5 degrees off about the axis; without it the strip has no normal and the votes stay."""
+    depth, K = _strip_scene()
+    inputs = make_inputs(depth, K)
+    h, w = inputs["weight_out"].shape[1:]
+    seg = torch.zeros(1, 2, h, w)
+    seg[:, 1] = 5.0  # the door ...
+    seg[:, 0, :, _STRIP_COLUMNS[0] // 4] = 10.0  # ... but the strip's output column: the body
+    votes = torch.tensor(Rotation.from_euler("z", 5, degrees=True).as_matrix() @ _BOX, dtype=torch.float32)
+    rot6 = torch.cat([votes[:, 2], votes[:, 0]]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w)
+    parts = {"seg": seg, "rot6": rot6, "conf": torch.zeros(1, 1, 3, h, w)}
+    modes = _modes(torch.tensor([[[[1.5, -0.3, 0.0]]]]), votes[:, 2].reshape(1, 1, 1, 3))
+    r = R.refined_quantities(parts, inputs, modes, ["revolute"], frame_min_prob=0.9, frame_one_sided=one_sided)
+    off = _angle_deg(r["xaxis"][0, 0, 0].double().numpy(), _BOX[:, 0])
+    assert off < 0.2 if one_sided else 4.5 < off < 5.5
+
+
+def test_refinement_dict_reads_version_11_without_one_sided_normals():
+    ref = R.Refinement(frame=True, frame_min_prob=0.9, frame_one_sided=True)
+    assert R.Refinement.from_dict(ref.to_dict()) == ref
+    old = {k: v for k, v in ref.to_dict().items() if k != "frame_one_sided"} | {"version": 11}
+    assert R.Refinement.from_dict(old).frame_one_sided is False

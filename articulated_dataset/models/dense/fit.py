@@ -40,6 +40,9 @@ HANDLE_HEIGHT_MIN_GAIN = 0.03
 #: objects 0.9 took the rotation error from 0.77 to 0.46 deg: an open door's pixels taken for the
 #: body's had pulled the frame towards the door's face.
 FRAME_PROB_CANDIDATES = (None, 0.9)
+#: Whether step 2 also reads one-sided normals (:attr:`~.refine.Refinement.frame_one_sided`), tried
+#: with each threshold by :func:`~.predict.fit_inference`.
+FRAME_ONE_SIDED_CANDIDATES = (False, True)
 #: Gates (m) tried for step 10 (the hinge onto the door's face plane) by :func:`fit_refinement`.
 DOOR_FACE_GATE_CANDIDATES_M = (0.01, 0.02, 0.03, 0.05, 0.1)
 #: ... whose offset from a face (outer or inner) is fitted from at least this many doors seen so.

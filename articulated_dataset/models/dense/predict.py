@@ -192,6 +192,7 @@ def refined_batch(model, depth_m, K, *, joint_types: list[str], refinement, work
                        refine=refinement is not None and refinement.needed, split_factor=split_factor_of(refinement),
                        handle_max_q_deg=None if refinement is None else refinement.handle_evidence_max_q_deg,
                        frame_min_prob=None if refinement is None else refinement.frame_min_prob,
+                       frame_one_sided=refinement is not None and refinement.frame_one_sided,
                        mirror_joints=None if refinement is None else refinement.mirror_joints,
                        door_angles=None if refinement is None else refinement.door_angles, workspace=workspace)
     return apply_refinement(m, r, refinement, joint_types)
@@ -207,13 +208,14 @@ def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: dict | N
 def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, split_factor: float | None,
                 handle_max_q_deg: float | None = None, frame_min_prob: float | None = None,
                 mirror_joints=None, door_angles: tuple[str, ...] | None = None,
-                workspace: dict | None = None) -> tuple[dict, dict | None]:
+                workspace: dict | None = None, frame_one_sided: bool = False) -> tuple[dict, dict | None]:
     """One batch of depth images (B, H, W) m and intrinsics (B, 3, 3) at the model's resolution ->
     vote modes (:func:`~.aggregate.vote_modes` with ``split_factor``, a checkpoint's
     :func:`~.refine.split_factor_of`) and, with ``refine``, the refined quantities
     (:func:`~.refine.refined_quantities`; with ``handle_max_q_deg``, also the handles of the doors
     whose angle may be below it: :func:`~.handle.handle_evidence`; ``frame_min_prob``: the box
-    frame's pixel threshold, :attr:`~.refine.Refinement.frame_min_prob`; ``door_angles``: step 5's
+    frame's pixel threshold, :attr:`~.refine.Refinement.frame_min_prob`; ``frame_one_sided``:
+    :attr:`~.refine.Refinement.frame_one_sided`; ``door_angles``: step 5's
     angles to compute, None: all), as float64 numpy arrays.
     ``workspace``: a dict a loop over batches passes to every call, which keeps the network input's
     tensor for the next batch to write into (a fresh one costs more in page faults than filling it)."""
@@ -230,7 +232,8 @@ def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, spli
         parts = model.split(network_outputs(model, inputs["x"], mirror_joints))
         modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0, split_factor=split_factor)
         r = refined_quantities(parts, inputs, modes, joint_types, frame_min_prob,
-                               DOOR_ANGLES if door_angles is None else door_angles, handle_max_q_deg) if refine else None
+                               DOOR_ANGLES if door_angles is None else door_angles, handle_max_q_deg,
+                               frame_one_sided) if refine else None
     if workspace is not None:
         workspace["x"] = inputs["x"]
     as_np = lambda d: {k: v.numpy().astype(np.float64) for k, v in d.items()}  # noqa: E731
@@ -264,12 +267,14 @@ def network_outputs(model, x, mirror_joints=None):
 def predict_modes(model, data, idx: np.ndarray, *, joint_types: list[str], refine: bool = True,
                   batch_size: int = PREDICT_BATCH, progress: bool = False,
                   split_factor: float | None, handle_max_q_deg: float | None = None,
-                  frame_min_prob: float | None = None, mirror_joints=None) -> tuple[dict, dict | None]:
+                  frame_min_prob: float | None = None, mirror_joints=None,
+                  frame_one_sided: bool = False) -> tuple[dict, dict | None]:
     """:func:`batch_modes` over the images ``idx`` of a split in memory, batch by batch, concatenated
     (the refined quantities are None without ``refine``)."""
     chunks = _over_batches(data, idx, batch_size, progress, lambda depth, K, workspace: batch_modes(
         model, depth, K, joint_types=joint_types, refine=refine, split_factor=split_factor,
         handle_max_q_deg=handle_max_q_deg, frame_min_prob=frame_min_prob, mirror_joints=mirror_joints,
+        frame_one_sided=frame_one_sided,
         workspace=workspace))
     return _concatenated([m for m, _ in chunks]), (_concatenated([r for _, r in chunks]) if refine else None)
 
@@ -410,7 +415,8 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
                   progress: bool = False) -> dict:
     """Fit what inference needs beyond the weights on validation images ``idx`` (with labels):
     the vote modes' split factor (:func:`choose_split_factor`), the refinement
-    (:func:`~.fit.fit_refinement`; then, where the class's ``mirror_joints`` is given, whether
+    (:func:`~.fit.fit_refinement`, once for each box-frame pixel threshold of
+    :data:`~.fit.FRAME_PROB_CANDIDATES` with and without one-sided normals; then, where the class's ``mirror_joints`` is given, whether
     averaging the network's outputs with its outputs on the mirror images (:mod:`.mirror`) lowers
     the position error by at least
     :data:`~.mirror.MIRROR_MIN_GAIN`), then the uncertainty calibration of the refined predictions
@@ -418,7 +424,7 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     "refinement_report": dict}`` for the checkpoint."""
     from dataclasses import replace
 
-    from .fit import FRAME_PROB_CANDIDATES, configuration_error, fit_refinement, rotation_error_deg
+    from .fit import FRAME_ONE_SIDED_CANDIDATES, FRAME_PROB_CANDIDATES, configuration_error, fit_refinement, rotation_error_deg
     from .handle import EVERY_DOOR_DEG
     from .mirror import MIRROR_MIN_GAIN
     from .refine import apply_refinement
@@ -426,21 +432,22 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     split_factor, split_report = choose_split_factor(model, data, idx)
     truth = {"axis_pose": _true_pose(data, idx), "q": data.q[idx].astype(np.float64),
              "part_offset": data.part_offset[idx].astype(np.float64)}
-    # the refinement fitted once per box-frame pixel threshold; the one with the lowest rotation
-    # error kept (the configuration decides between equal rotations: the box frame unused)
+    # the refinement fitted once per box-frame pixel threshold and normal reading (central differences
+    # only, or one-sided ones too); the one with the lowest rotation error kept (the configuration
+    # decides between equal rotations: the box frame unused; the first candidate between equal pairs)
     fits, frame_report = [], {}
-    for p in FRAME_PROB_CANDIDATES:
+    for p, one_sided in itertools.product(FRAME_PROB_CANDIDATES, FRAME_ONE_SIDED_CANDIDATES):
         m_p, r_p = predict_modes(model, data, idx, joint_types=joint_types, progress=progress,
                                  split_factor=split_factor, handle_max_q_deg=EVERY_DOOR_DEG,
-                                 frame_min_prob=p)
+                                 frame_min_prob=p, frame_one_sided=one_sided)
         refinement_p, report_p = fit_refinement(m_p, r_p, truth, joint_types)
         refined_p = apply_refinement(m_p, r_p, refinement_p, joint_types)
         errors = (round(rotation_error_deg(refined_p, truth), 9), configuration_error(refined_p, truth, joint_types))
-        frame_report["all pixels" if p is None else f"probability>{p:g}"] = {"rotation_deg": errors[0],
-                                                                             "configuration": errors[1]}
-        fits.append((errors, p, m_p, r_p, refinement_p, report_p))
-    _, p, m, r, refinement, report = min(fits, key=lambda f: f[0])
-    refinement = replace(refinement, split_factor=split_factor, frame_min_prob=p)
+        name = ("all pixels" if p is None else f"probability>{p:g}") + (", one-sided normals" if one_sided else "")
+        frame_report[name] = {"rotation_deg": errors[0], "configuration": errors[1]}
+        fits.append((errors, p, one_sided, m_p, r_p, refinement_p, report_p))
+    _, p, one_sided, m, r, refinement, report = min(fits, key=lambda f: f[0])
+    refinement = replace(refinement, split_factor=split_factor, frame_min_prob=p, frame_one_sided=one_sided)
     report["frame_min_prob"] = frame_report
     report["split_factor_position_cm"] = split_report
     refined = apply_refinement(m, r, refinement, joint_types)
@@ -448,6 +455,7 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
         mm, mr = predict_modes(model, data, idx, joint_types=joint_types, progress=progress,
                                refine=refinement.needed, split_factor=split_factor,
                                handle_max_q_deg=refinement.handle_evidence_max_q_deg, frame_min_prob=p,
+                               frame_one_sided=one_sided,
                                mirror_joints=mirror_joints)
         merged = apply_refinement(mm, mr, refinement, joint_types)
         pos = {name: quick_errors(modes_to_arrays(x, data.sample_id[idx], model, None), data, idx, joint_types)["pos_cm"]

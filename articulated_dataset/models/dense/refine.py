@@ -16,7 +16,10 @@ regressed (:func:`refined_quantities`, per image and joint):
    pixels (a drawer only translates: its front shows the pull axis where the body shows only a
    rim) (network segmentation, upsampled) are matched to the nearest signed frame axis (inliers within
    an angle that shrinks over the rounds, :data:`INLIER_ANGLES_DEG`) and the rotation that best maps the axes onto the normals is found
-   by Kabsch's SVD; :data:`PRIOR_WEIGHT_PX` pseudo-normals on
+   by Kabsch's SVD (where the fit chooses ``frame_one_sided``, the pixels the input has no normal for, a
+   face seen as a strip one or two pixels wide, get one from one-sided differences along the
+   strip and to a neighbour that is itself such a pixel: :func:`~.features.one_sided_normals`);
+   :data:`PRIOR_WEIGHT_PX` pseudo-normals on
    the current axes keep a direction no face constrains where it was.  Where the result turns a
    mode's voted frame by more than ``max_turn_deg`` (fitted; :func:`frame_turn_deg`) the voted
    frame is kept.
@@ -93,7 +96,7 @@ from torch.nn import functional as F
 
 from .aggregate import (SPLIT_FACTOR, argmax_channels, compact_mask, gram_schmidt6, image_groups, lower_median,
                         softmax_weights)
-from .features import MIN_NORMAL_NORM, OUTPUT_STRIDE, POINT_SCALE_M
+from .features import MIN_NORMAL_NORM, OUTPUT_STRIDE, POINT_SCALE_M, one_sided_normals
 from .handle import (EVERY_DOOR_DEG, HANDLE_KEYS, MIN_RADIUS_M, apply_handle_height, apply_handle_side, door_face,
                      door_handles, handle_candidates)
 
@@ -126,10 +129,10 @@ DOOR_FACE_MAX_DEG = 25.0
 #: Refinement format version stored in checkpoints (2: ``max_turn_deg``; 3: ``door_extent``;
 #: 4: ``handle_max_q_deg``; 5: ``mirror_joints``; 6: ``frame_min_prob``; 7: ``handle_height_gate_m``;
 #: 8: ``handle_cut_bars``; 9: ``door_angle_folded``; 10: ``door_angle_signed``, ``door_angle_gate_deg``;
-#: 11: ``door_face_gate_m``, ``door_face_offsets_m``; older versions read as without them).  The stored fields, not their implementation: since the tenth
+#: 11: ``door_face_gate_m``, ``door_face_offsets_m``; 12: ``frame_one_sided``; older versions read as without them).  The stored fields, not their implementation: since the tenth
 #: session every version's ``mirror_joints`` averages the network's outputs (:mod:`.mirror`), not the
 #: refined vote modes of two passes.
-REFINEMENT_VERSION = 11
+REFINEMENT_VERSION = 12
 
 
 @dataclass(frozen=True)
@@ -154,6 +157,9 @@ class Refinement:
     #: step 2 fits the box frame to the pixels whose segmentation probability of their label
     #: exceeds this (None: every pixel of the body and of prismatic parts)
     frame_min_prob: float | None = None
+    #: ... and gives those of them whose normal the input lacks (a face seen as a strip one or two
+    #: pixels wide) a normal from one-sided differences (:func:`~.features.one_sided_normals`)
+    frame_one_sided: bool = False
     #: move a door's axis origin to the door's mid-height (step 6)
     door_extent: bool = False
     #: ... only where that moves it by less than this (m; None: any distance)
@@ -226,6 +232,7 @@ class Refinement:
                    door_angle_gate_deg=_optional_float(d.get("door_angle_gate_deg")),
                    max_turn_deg=None if turn is None else float(turn), door_extent=bool(d.get("door_extent", False)),
                    frame_min_prob=_optional_float(d.get("frame_min_prob")),
+                   frame_one_sided=bool(d.get("frame_one_sided", False)),
                    door_extent_gate_m=None if gate is None else float(gate),
                    split_factor=_optional_float(d["split_factor"]) if "split_factor" in d else SPLIT_FACTOR,
                    handle_max_q_deg=_optional_float(d.get("handle_max_q_deg")),
@@ -348,9 +355,12 @@ def _align_to_normals(frame: torch.Tensor, normals: torch.Tensor, weights: torch
 
 @torch.no_grad()
 def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, frame_min_prob: float | None = None,
-                       door_angles: tuple[str, ...] = DOOR_ANGLES, handle_max_q_deg: float | None = None) -> dict:
+                       door_angles: tuple[str, ...] = DOOR_ANGLES, handle_max_q_deg: float | None = None,
+                       frame_one_sided: bool = False) -> dict:
     """Steps 1-3, 5 and 6 for a batch (see the module docstring); step 2 on the pixels whose
-    label's segmentation probability exceeds ``frame_min_prob`` (None: all of them); of step 5's
+    label's segmentation probability exceeds ``frame_min_prob`` (None: all of them), with
+    ``frame_one_sided`` also on those without a central-difference normal, from one-sided
+    differences (:attr:`Refinement.frame_one_sided`); of step 5's
     angles only ``door_angles`` (a subset of :data:`DOOR_ANGLES`: a refinement's
     :attr:`Refinement.door_angles`; the choice among them on validation objects needs all); with
     ``handle_max_q_deg`` (:attr:`Refinement.handle_evidence_max_q_deg`), also the handles of the
@@ -382,7 +392,7 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, fram
     for rows in rows_of:
         groups.append(_refine_images(x, rows, valid_px[rows], parts["seg"][rows], frame[rows], inputs["anchor"][rows],
                                      modes["origin"][rows], modes["axis"][rows], voted_q[rows], joint_types,
-                                     frame_min_prob, door_angles, handle_max_q_deg is not None))
+                                     frame_min_prob, door_angles, handle_max_q_deg is not None, frame_one_sided))
     out = {k: torch.cat([g[k] for g in groups])[back] for k in groups[0]}
     if handle_max_q_deg is not None and handle_max_q_deg < EVERY_DOOR_DEG:
         # measured for every revolute door; only the candidates keep theirs
@@ -395,7 +405,7 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, fram
 def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, seg: torch.Tensor, frame: torch.Tensor,
                    anchor: torch.Tensor, origin: torch.Tensor, voted_axis: torch.Tensor, voted_q: torch.Tensor,
                    joint_types, frame_min_prob: float | None = None, door_angles: tuple[str, ...] = (),
-                   handles: bool = False) -> dict:
+                   handles: bool = False, frame_one_sided: bool = False) -> dict:
     """:func:`refined_quantities` of the images ``rows`` of the input ``x``: their valid pixels
     (R, H * W), segmentation logits, sign-free frames (step 1), anchors, voted origins and axes and
     the voted door angles (R, J) rad."""
@@ -425,11 +435,22 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     for j, t in enumerate(joint_types):
         if t == "prismatic":
             frame_px = frame_px | (label == 1 + j)
-    frame_px &= has_normal
+    frame_px &= ok
     if frame_min_prob is not None:  # only the pixels the segmentation is sure of (an open door's pixels
         # taken for the body's would pull the frame towards the door's face)
         confidence = torch.softmax(seg, 1).amax(1).flatten(1)  # (R, h * w): the label's probability
         frame_px &= torch.gather(confidence, 1, at_out) > frame_min_prob
+    if frame_one_sided:  # the candidates without a central-difference normal get a one-sided one
+        # whose neighbours are candidates too (a strip's neighbour across its edge is another face)
+        allowed = torch.zeros(x.shape[0] * H * W, dtype=torch.bool)
+        allowed[(rows[:, None] * (H * W) + idx)[frame_px]] = True
+        missing = (frame_px & ~has_normal).view(-1).nonzero()[:, 0]  # into the (R * n) valid pixels
+        one_sided, defined = one_sided_normals(x.contiguous(), at.index_select(0, missing), allowed)
+        normals = normals.transpose(0, 1).reshape(3, R * n).index_copy(1, missing, one_sided)
+        normals = normals.view(3, R, n).transpose(0, 1)
+        frame_px = (frame_px & has_normal).view(-1).index_fill(0, missing[defined], True).view(R, n)
+    else:
+        frame_px &= has_normal
     if ALIGN_STRIDE > 1:  # the frame fit uses every ALIGN_STRIDE-th row and column (neighbouring normals share pixels)
         frame_px &= (row % ALIGN_STRIDE == 0) & (idx % W % ALIGN_STRIDE == 0)
     # the fit reads only its own pixels, gathered to the front of each row (the others have weight 0)

@@ -410,12 +410,14 @@ def _on_cpu(state):
     return state
 
 
-def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *, progress: bool = True) -> dict:
+def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *, progress: bool = True,
+                    clean: bool = False) -> dict:
     """Refit what inference needs beyond the weights (refinement choice, calibration) of a finished
     dense checkpoint on the validation objects of its training split ``data`` (the same objects
     training held out: its ``val_fraction``, ``seed`` and ``max_objects``), and write the result
     to ``out`` atomically (through the noise model when it was trained with ``--noise``, as
-    training fits).  For checkpoints trained before a refinement existed."""
+    training fits, unless ``clean``: a model trained with noise fitted for noise-free depth).
+    For checkpoints trained before a refinement existed, or a refinement version."""
     from ..mdn.data import resolve_split_dir, split_by_object, split_class
     from ...registry import get_class
     from .predict import fit_inference
@@ -437,14 +439,16 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     data_ = load_dense_split(split_dir, c.n_joints, (c.height_px, c.width_px), max_objects=config.max_objects,
                              objects=objects[val_mask], progress=progress)
     va_idx = np.arange(len(data_.sample_id))
-    if config.noise is not None:  # the validation images as training saw them (noisy_validation)
-        data_, va_idx = noisy_validation(data_, va_idx, config.noise, seed=config.seed)
+    noise = None if clean else config.noise
+    if noise is not None:  # the validation images as training saw them (noisy_validation)
+        data_, va_idx = noisy_validation(data_, va_idx, noise, seed=config.seed)
     from ...format import sha256_file
 
     result = dict(ckpt)
     result.update(fit_inference(model, data_, va_idx, list(ckpt["joint_types"]),
                                 mirror_joints=get_class(ckpt["class_name"]).mirror_joints, progress=progress))
-    result["refit_of"] = {"file": Path(checkpoint).name, "sha256": sha256_file(Path(checkpoint))}
+    result["refit_of"] = {"file": Path(checkpoint).name, "sha256": sha256_file(Path(checkpoint)),
+                          "validation_noise": noise}
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_save(result, out)
