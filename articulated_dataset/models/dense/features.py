@@ -152,15 +152,17 @@ def _listed_normals(points: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Te
     return above + W, [nc * scale for nc in n]
 
 
-def one_sided_normals(x: torch.Tensor, at: torch.Tensor, allowed: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def one_sided_normals(x: torch.Tensor, at: torch.Tensor, allowed: torch.Tensor | None = None,
+                      allowed_at: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Unit normals (3, T) facing the camera from one-sided differences, and where one is defined
     (T,), at the pixels ``at`` (flat indices of channel 0) of a network input ``x`` (B, C, H, W)
     contiguous (:func:`make_inputs`: relative points in channels 0-2, validity in channel 3).
 
     Along each image axis the difference to the neighbour on either side is taken: of the two,
     the shorter whose neighbour is valid, within :data:`NORMAL_MAX_STEP_M` and, with ``allowed``
-    (a bool tensor over the batch's pixels, (B * H * W,)), allowed; a pixel needs one along each
-    axis.  The input's central differences (:func:`surface_normals`) need both neighbours on each
+    (a flat bool tensor of images' pixels, row by row: (B * H * W,) for the batch's, or any images'
+    with ``allowed_at``, (T,), each listed pixel's index into it), allowed; a pixel needs one along
+    each axis.  The input's central differences (:func:`surface_normals`) need both neighbours on each
     axis, so a face seen as a strip one or two pixels wide has no normal there (a cabinet's side
     wall beside its door: on seed-14 cabinet images with 101-499 body pixels, 97 of the body's
     303 pixels have one on average)."""
@@ -170,6 +172,8 @@ def one_sided_normals(x: torch.Tensor, at: torch.Tensor, allowed: torch.Tensor |
     last = flat.numel() - 1
     pix = at % P
     col, row = pix % W, pix // W
+    if allowed is not None and allowed_at is None:
+        allowed_at = at // (C * P) * P + pix
     point = lambda off: [flat.index_select(0, (at + (c * P + off)).clamp(0, last)) for c in range(3)]  # noqa: E731
     here = point(0)
     max_step2 = (NORMAL_MAX_STEP_M / POINT_SCALE_M) ** 2
@@ -179,7 +183,7 @@ def one_sided_normals(x: torch.Tensor, at: torch.Tensor, allowed: torch.Tensor |
         for off, inside in ((offset, forward_ok), (-offset, backward_ok)):
             valid = inside & (flat.index_select(0, (at + (VALIDITY_CHANNEL * P + off)).clamp(0, last)) > 0)
             if allowed is not None:
-                valid &= allowed.index_select(0, (at // (C * P) * P + pix + off).clamp(0, allowed.numel() - 1))
+                valid &= allowed.index_select(0, (allowed_at + off).clamp(0, allowed.numel() - 1))
             d = [a - b for a, b in zip(point(off), here)] if off > 0 else [b - a for a, b in zip(point(off), here)]
             len2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
             len2 = torch.where(valid & (len2 < max_step2), len2, torch.full_like(len2, float("inf")))

@@ -442,20 +442,31 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
         frame_px &= torch.gather(confidence, 1, at_out) > frame_min_prob
     if frame_one_sided:  # the candidates without a central-difference normal get a one-sided one
         # whose neighbours are candidates too (a strip's neighbour across its edge is another face)
-        allowed = torch.zeros(x.shape[0] * H * W, dtype=torch.bool)
-        allowed[(rows[:, None] * (H * W) + idx)[frame_px]] = True
+        P = H * W
+        allowed = torch.zeros(R * P, dtype=torch.bool)
+        allowed[(torch.arange(R)[:, None] * P + idx)[frame_px]] = True
         missing = (frame_px & ~has_normal).view(-1).nonzero()[:, 0]  # into the (R * n) valid pixels
-        one_sided, defined = one_sided_normals(x.contiguous(), at.index_select(0, missing), allowed)
-        normals = normals.transpose(0, 1).reshape(3, R * n).index_copy(1, missing, one_sided)
-        normals = normals.view(3, R, n).transpose(0, 1)
-        frame_px = (frame_px & has_normal).view(-1).index_fill(0, missing[defined], True).view(R, n)
+        one_sided, defined = one_sided_normals(x.contiguous(), at.index_select(0, missing), allowed,
+                                               (missing // n) * P + idx.reshape(-1).index_select(0, missing))
+        missing, one_sided = missing[defined], one_sided[:, defined]
+        frame_px = (frame_px & has_normal).view(-1).index_fill(0, missing, True).view(R, n)
     else:
         frame_px &= has_normal
     if ALIGN_STRIDE > 1:  # the frame fit uses every ALIGN_STRIDE-th row and column (neighbouring normals share pixels)
         frame_px &= (row % ALIGN_STRIDE == 0) & (idx % W % ALIGN_STRIDE == 0)
     # the fit reads only its own pixels, gathered to the front of each row (the others have weight 0)
     fidx, fok = compact_mask(frame_px)
-    frame_normals = torch.gather(normals, 2, fidx[:, None].expand(R, 3, fidx.shape[1]))  # (R, 3, f)
+    f = fidx.shape[1]
+    frame_normals = torch.gather(normals, 2, fidx[:, None].expand(R, 3, f))  # (R, 3, f)
+    if frame_one_sided:  # the one-sided normals into their places there (a pixel's place in its row:
+        # the number of fit pixels before it)
+        kept = frame_px.view(-1).index_select(0, missing)  # (ALIGN_STRIDE may have left some out)
+        missing, one_sided = missing[kept], one_sided[:, kept]
+        place = (frame_px.cumsum(1) - 1).view(-1).index_select(0, missing)
+        at_fit = (missing // n) * (3 * f) + place
+        flat = frame_normals.view(-1)
+        for c in range(3):
+            flat.index_copy_(0, at_fit + c * f, one_sided[c])
     frame = _align_to_normals(frame, frame_normals.transpose(1, 2), fok.to(x.dtype))
     xf, yf, zf = frame[..., 0], frame[..., 1], frame[..., 2]  # (R, J, 3)
     # step 3: each mode's side
