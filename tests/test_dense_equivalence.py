@@ -137,8 +137,38 @@ def test_frame_alignment_matches_the_thresholded_reference():
     assert (got - frame).abs().max() > 1e-3  # the alignment did move the frames
 
 
-def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -> dict:
-    """Steps 1-3, 5, 6 and 10 image by image and joint by joint, from the whole-image input."""
+def _reference_one_sided(x: torch.Tensor, allowed: torch.Tensor, v: int, u: int):
+    """Pixel (v, u)'s one-sided normal of ``features.one_sided_normals`` from the image's input ``x``
+    (C, H, W), written out pixel by pixel: along each axis the shorter difference to a valid,
+    allowed neighbour within NORMAL_MAX_STEP_M (the forward one on a tie); None without one."""
+    from articulated_dataset.models.dense.features import NORMAL_MAX_STEP_M
+
+    H, W = x.shape[1:]
+    p = x[0:3, v, u]
+    tangents = []
+    for dv, du in ((0, 1), (1, 0)):
+        best = None
+        for sign in (1, -1):
+            vv, uu = v + sign * dv, u + sign * du
+            if not (0 <= vv < H and 0 <= uu < W) or x[3, vv, uu] <= 0 or not allowed[vv, uu]:
+                continue
+            d = (x[0:3, vv, uu] - p) if sign > 0 else (p - x[0:3, vv, uu])
+            length2 = float((d * d).sum())
+            if length2 < (NORMAL_MAX_STEP_M / POINT_SCALE_M) ** 2 and (best is None or length2 < best[0]):
+                best = (length2, d)
+        if best is None:
+            return None
+        tangents.append(best[1])
+    n = torch.linalg.cross(tangents[0], tangents[1])
+    if float((n * n).sum()) <= 1e-24:
+        return None
+    n = n / n.norm()
+    return -n if n[0] > 0 else n
+
+
+def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types, one_sided: bool = False) -> dict:
+    """Steps 1-3, 5, 6 and 10 image by image and joint by joint, from the whole-image input (with
+    ``one_sided``, step 2 with the one-sided normals of the pixels without one: _reference_one_sided)."""
     x = inputs["x"]
     B, _, H, W = x.shape
     J = len(joint_types)
@@ -163,7 +193,17 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -
             if t == "prismatic":
                 frame_px |= lab == 1 + j
         weights = (frame_px & has_normal).float()
-        frame = _reference_alignment(frames[b:b + 1], normals[None], weights[None])[0]  # (J, 3, 3)
+        fit_normals = normals
+        if one_sided:
+            allowed = torch.zeros(H, W, dtype=torch.bool)
+            allowed[valid] = frame_px
+            fit_normals = normals.clone()
+            vu = valid.nonzero()
+            for k in (frame_px & ~has_normal).nonzero()[:, 0].tolist():
+                n = _reference_one_sided(x[b], allowed, int(vu[k, 0]), int(vu[k, 1]))
+                if n is not None:
+                    fit_normals[k], weights[k] = n, 1.0
+        frame = _reference_alignment(frames[b:b + 1], fit_normals[None], weights[None])[0]  # (J, 3, 3)
         points = relative * POINT_SCALE_M + inputs["anchor"][b]
         for j, t in enumerate(joint_types):
             xf, yf, zf = frame[j, :, 0], frame[j, :, 1], frame[j, :, 2]
@@ -215,8 +255,9 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types) -
     return out
 
 
-@pytest.mark.parametrize("joint_types", [["revolute", "revolute"], ["prismatic", "revolute"]])
-def test_refined_quantities_match_a_loop_over_images(joint_types, monkeypatch):
+@pytest.mark.parametrize("joint_types, one_sided", [(["revolute", "revolute"], False), (["prismatic", "revolute"], False),
+                                                     (["revolute", "revolute"], True)])
+def test_refined_quantities_match_a_loop_over_images(joint_types, one_sided, monkeypatch):
     rng = np.random.default_rng(11)
     gen = torch.Generator().manual_seed(11)
     B, H, W, J, M = 9, 32, 48, len(joint_types), 2
@@ -233,8 +274,11 @@ def test_refined_quantities_match_a_loop_over_images(joint_types, monkeypatch):
              "weight": torch.softmax(torch.randn(B, J, M, generator=gen), -1),
              "q": torch.rand(B, J, M, generator=gen) * (math.pi / 2)}
     monkeypatch.setattr(R, "image_groups", lambda counts: image_groups(counts, 4))  # several groups of images
-    got = R.refined_quantities(parts, inputs, modes, joint_types)
-    ref = _reference_refinement(parts, inputs, modes, joint_types)
+    got = R.refined_quantities(parts, inputs, modes, joint_types, frame_one_sided=one_sided)
+    ref = _reference_refinement(parts, inputs, modes, joint_types, one_sided)
+    if one_sided:  # the one-sided normals turned the frames (else the test could not tell)
+        central = R.refined_quantities(parts, inputs, modes, joint_types)
+        assert not torch.allclose(central["box_x"], got["box_x"], atol=1e-4)
     assert set(got) == set(ref)
     assert torch.isfinite(ref["q"]).sum() >= 6 and torch.isfinite(ref["door_mid"]).sum() >= 4
     assert torch.isfinite(ref["door_face_m"]).sum() >= 4
