@@ -89,9 +89,9 @@ def _unshipped_record(c: str, init_from: str, shipped) -> dict:
 def _refit_note(ckpt: dict) -> str:
     """How a refitted checkpoint's inference was fitted: ``--clean`` where training used a noise
     model and the refit did not (its ``refit_of`` records the validation images' noise)."""
-    clean = ckpt.get("train_config", {}).get("noise") is not None and \
-        "validation_noise" in ckpt["refit_of"] and ckpt["refit_of"]["validation_noise"] is None
-    if clean:
+    # (a refit from before --clean recorded no validation_noise: it fitted as training did)
+    if ckpt.get("train_config", {}).get("noise") is not None and \
+            ckpt["refit_of"].get("validation_noise", "as trained") is None:
         return (f"scripts/fit_dense_inference.py --checkpoint {ckpt['refit_of']['file']} --clean: on the same "
                 "validation objects, noise-free")
     return "scripts/fit_dense_inference.py on the same validation objects"

@@ -148,19 +148,28 @@ def _modes(origin: torch.Tensor, axis: torch.Tensor, q_rad: float = 0.0) -> dict
     return {"origin": origin, "axis": axis, "weight": torch.ones(shape), "q": torch.full(shape, q_rad)}
 
 
+def _plane_depth(K: np.ndarray, hw, normal: np.ndarray, point_m: np.ndarray) -> np.ndarray:
+    """(H, W) depth of the plane through ``point_m`` with unit ``normal`` (camera frame: x forward,
+    y left, z up); 0 where the ray does not meet it in front of the camera."""
+    H, W = hw
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    rays = np.stack([np.ones_like(u, float), -(u - K[0, 2]) / K[0, 0], -(v - K[1, 2]) / K[1, 1]], -1)
+    with np.errstate(divide="ignore"):
+        depth = (normal @ point_m) / (rays @ normal)
+    depth[~np.isfinite(depth) | (depth <= 0) | (depth > 4.0)] = 0.0
+    return depth
+
+
 def _door_scene(q_rad: float, distance_m: float = 1.5, hw=(108, 192)):
     """Depth of a plane through (distance, 0, 0) whose normal is the camera's -x turned by q about
     the vertical, and the frame x (lateral), y (towards the camera), z (up) of its box."""
     H, W = hw
     f = 100.0
     K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
-    u, v = np.meshgrid(np.arange(W), np.arange(H))
-    rays = np.stack([np.ones_like(u, float), -(u - K[0, 2]) / f, -(v - K[1, 2]) / f], -1)
     y = np.array([-1.0, 0.0, 0.0])
     z = np.array([0.0, 0.0, 1.0])
     n = Rotation.from_rotvec(z * q_rad).apply(y)
-    depth = (n @ np.array([distance_m, 0, 0])) / (rays @ n)
-    depth[(depth <= 0) | (depth > 4.0)] = 0.0  # the plane's far side: no return
+    depth = _plane_depth(K, hw, n, np.array([distance_m, 0, 0]))
     frame = np.stack([np.cross(y, z), y, z], -1)
     return torch.tensor(depth[None], dtype=torch.float32), torch.tensor(K[None], dtype=torch.float32), frame
 
@@ -576,14 +585,11 @@ def test_door_face_faces_the_camera_along_the_rays_where_the_inputs_normal_does_
     (negative), not as -m and -m . p0 (an open door's inner face read as its outer face, 2 cm off)."""
     H, W, f = 108, 192, 100.0
     K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
-    u, v = np.meshgrid(np.arange(W), np.arange(H))
-    rays = np.stack([np.ones_like(u, float), -(u - K[0, 2]) / f, -(v - K[1, 2]) / f], -1)
     z = np.array([0.0, 0.0, 1.0])
     m = Rotation.from_rotvec(z * math.radians(100.0)).apply([-1.0, 0.0, 0.0])  # (0.17, -0.98, 0)
     p0 = np.array([1.5, 1.0, 0.0])
     assert m @ -p0 > 0 and m[0] > 0  # m faces the camera, yet points forward
-    depth = (m @ p0) / (rays @ m)
-    depth[(depth <= 0) | (depth > 4.0)] = 0.0
+    depth = _plane_depth(K, (H, W), m, p0)
     assert (depth > 0).sum() > 2000
     depth_t, K_t = torch.tensor(depth[None], dtype=torch.float32), torch.tensor(K[None], dtype=torch.float32)
     x = make_inputs(depth_t, K_t)["x"]
@@ -669,18 +675,6 @@ def test_fit_recovers_the_face_offsets_and_gates_step_10():
     assert np.array_equal(R.door_face_origin(m_inner, r_inner, 0.05, (0.0, None), np.array([True])), m_inner["origin"])
     ref = R.Refinement(door_face_gate_m=0.05, door_face_offsets_m=(0.0, None))
     assert R.Refinement.from_dict(ref.to_dict()) == ref
-
-
-def _plane_depth(K: np.ndarray, hw, normal: np.ndarray, point_m: np.ndarray) -> np.ndarray:
-    """(H, W) depth of the plane through ``point_m`` with unit ``normal`` (camera frame: x forward,
-    y left, z up); 0 where the ray does not meet it in front of the camera."""
-    H, W = hw
-    u, v = np.meshgrid(np.arange(W), np.arange(H))
-    rays = np.stack([np.ones_like(u, float), -(u - K[0, 2]) / K[0, 0], -(v - K[1, 2]) / K[1, 1]], -1)
-    with np.errstate(divide="ignore"):
-        depth = (normal @ point_m) / (rays @ normal)
-    depth[~np.isfinite(depth) | (depth <= 0) | (depth > 4.0)] = 0.0
-    return depth
 
 
 #: A side wall seen at 60 degrees from its normal (a cabinet's, beside its door), the box yawed 30 deg.
