@@ -166,8 +166,51 @@ def _reference_one_sided(x: torch.Tensor, allowed: torch.Tensor, v: int, u: int)
     return -n if n[0] > 0 else n
 
 
+def _reference_shell(points, normals, real, xf, yf, zc, front_m) -> float:
+    """refine.shell_front for one image's pixels (n, 3), written out face by face."""
+    along, best, edge = points @ zc, 0, float("nan")
+    behind = along < front_m - R.DRAWER_PANEL_M - R.SHELL_PANEL_MARGIN_M
+    for a in (xf, -xf, yf, -yf):
+        face = real & (normals @ a > math.cos(math.radians(R.SHELL_FACE_MAX_DEG)))
+        if face.any():
+            shell = face & ((points @ a - torch.quantile((points @ a)[face], 0.98)).abs() < R.SHELL_FLUSH_M) & behind
+            if shell.sum() >= max(R.SHELL_MIN_PX, best + 1):
+                best, edge = int(shell.sum()), float(along[shell].max())
+    return edge
+
+
+def test_shell_edge_matches_a_face_by_face_loop():
+    """refine.shell_front on rows of pixels with box faces in every direction (noisy normals, faces
+    at random offsets, some pixels without a normal, a row without a front) against the loop."""
+    gen = torch.Generator().manual_seed(3)
+    R_, n = 8, 400
+    frames = torch.linalg.qr(torch.randn(R_, 3, 3, generator=gen, dtype=torch.float64))[0]
+    frames[:, :, 2] *= torch.det(frames)[:, None]  # right-handed
+    axis_of = torch.randint(0, 5, (R_, n), generator=gen)  # 0-3: +-x, +-y faces; 4: the front (z)
+    dirs = torch.stack([frames[..., 0], -frames[..., 0], frames[..., 1], -frames[..., 1], -frames[..., 2]], 1)  # (R, 5, 3)
+    normals = F.normalize(dirs.gather(1, axis_of[..., None].expand(R_, n, 3)) + 0.15 * torch.randn(R_, n, 3, generator=gen,
+                                                                                                    dtype=torch.float64), dim=-1)
+    # points: on each face's plane (offset 0.2 m, or 2 cm in for a set-in tray face) at a random depth along z
+    along = -1.5 - 0.4 * torch.rand(R_, n, generator=gen, dtype=torch.float64)
+    offset = 0.2 - 0.022 * (torch.rand(R_, n, generator=gen) < 0.3)
+    lateral = 0.1 * torch.randn(R_, n, 3, generator=gen, dtype=torch.float64)
+    normal_dir = dirs.gather(1, axis_of[..., None].expand(R_, n, 3))
+    pull = -frames[..., 2]
+    points = (lateral - (lateral * normal_dir).sum(-1, keepdim=True) * normal_dir
+              - (lateral * pull[:, None]).sum(-1, keepdim=True) * pull[:, None]
+              + offset[..., None] * normal_dir + along[..., None] * pull[:, None])
+    real = torch.rand(R_, n, generator=gen) > 0.1
+    front_m = torch.full((R_,), -1.45, dtype=torch.float64)
+    front_m[3] = float("nan")
+    got = R.shell_front(list(points.permute(2, 0, 1)), list(normals.permute(2, 0, 1)), real, frames, pull, front_m)
+    want = torch.tensor([_reference_shell(points[i], normals[i], real[i], frames[i, :, 0], frames[i, :, 1], pull[i],
+                                          front_m[i]) for i in range(R_)], dtype=torch.float64)
+    assert torch.isfinite(want).sum() >= R_ - 1 and torch.isnan(want[3])
+    assert torch.equal(got.isnan(), want.isnan()) and torch.allclose(got.nan_to_num(), want.nan_to_num(), atol=1e-9)
+
+
 def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types, one_sided: bool = False) -> dict:
-    """Steps 1-3, 5, 6 and 10 image by image and joint by joint, from the whole-image input (with
+    """Steps 1-3, 5, 6, 10 and 11 image by image and joint by joint, from the whole-image input (with
     ``one_sided``, step 2 with the one-sided normals of the pixels without one: _reference_one_sided)."""
     x = inputs["x"]
     B, _, H, W = x.shape
@@ -182,11 +225,17 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types, o
            "door_px": torch.zeros(B, J), "door_mid": torch.full((B, J), nan), "door_cut": torch.zeros(B, J),
            "door_face_normal": torch.zeros(B, J, 3), "door_face_m": torch.full((B, J), nan)}
     out["xaxis"] = out["axis"].clone()
+    prismatic = "prismatic" in joint_types
+    if prismatic:
+        out.update({"front_axis": torch.zeros(B, J, 3), "front_m": torch.full((B, J), nan),
+                    "front_centre": torch.zeros(B, J, 3), "front_cut": torch.zeros(B, J),
+                    "shell_front_m": torch.full((B, J), nan)})
     rows = torch.arange(H)[:, None].expand(H, W)
+    cols_all = torch.arange(W)[None, :].expand(H, W)
     for b in range(B):
         valid = x[b, 3] > 0
         normals, relative = x[b, 4:7].permute(1, 2, 0)[valid], x[b, 0:3].permute(1, 2, 0)[valid]  # (n, 3)
-        lab, row = label[b][valid], rows[valid]
+        lab, row, cols = label[b][valid], rows[valid], cols_all[valid]
         has_normal = (normals * normals).sum(-1) > R.MIN_NORMAL_NORM**2
         frame_px = lab == 0
         for j, t in enumerate(joint_types):
@@ -252,6 +301,30 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types, o
                 if t == "revolute" and door.sum() >= R.DOOR_EXTENT_MIN_PX:
                     out["door_mid"][b, j] = 0.5 * (lo + hi)
                 out["door_cut"][b, j] = float(row[door].min() <= OUTPUT_STRIDE or row[door].max() >= H - 1 - OUTPUT_STRIDE)
+            if prismatic:  # step 11: the drawer's front, from its pixels facing along the axis
+                zc = -zf if float(zf @ inputs["anchor"][b]) > 0 else zf
+                out["front_axis"][b, j] = zc
+                facing = door & has_normal & ((normals @ zc).abs() > math.cos(math.radians(R.FRONT_MAX_DEG)))
+                if t == "prismatic" and facing.any():
+                    along = points[facing] @ zc
+                    band = along >= torch.quantile(along, 1 - R.FRONT_TOP_QUANTILE) - R.FRONT_BAND_M
+                    if band.sum() >= R.FRONT_MIN_PX:
+                        front = torch.sort(along[band]).values
+                        out["front_m"][b, j] = front[(len(front) + 1) // 2 - 1]
+                        for a in (xf, yf):
+                            u = points[facing][band] @ a
+                            mid = 0.5 * (torch.quantile(u, R.DOOR_EXTENT_QUANTILE) + torch.quantile(u, 1 - R.DOOR_EXTENT_QUANTILE))
+                            out["front_centre"][b, j] += mid * a
+                    else:
+                        out["front_centre"][b, j] = nan
+                    r_, c_ = row[facing][band], cols[facing][band]
+                    s = OUTPUT_STRIDE
+                    out["front_cut"][b, j] = float(bool(((r_ <= s) | (r_ >= H - 1 - s) | (c_ <= s) | (c_ >= W - 1 - s)).any()))
+                else:
+                    out["front_centre"][b, j] = nan
+                if t == "prismatic":  # the shell's edge, from every pixel on a face flush with the front's edges
+                    out["shell_front_m"][b, j] = _reference_shell(points, normals, has_normal, xf, yf, zc,
+                                                                  out["front_m"][b, j])
     return out
 
 
@@ -267,7 +340,9 @@ def test_refined_quantities_match_a_loop_over_images(joint_types, one_sided, mon
     h, w = H // OUTPUT_STRIDE, W // OUTPUT_STRIDE
     seg = torch.randn(B, 1 + J, h, w, generator=gen) * 2
     seg[:, 0, :, : w // 3] += 3.0  # a body on the left
-    parts = {"seg": seg, "rot6": torch.randn(B, J, 6, h, w, generator=gen) + torch.tensor([0, 0, 3.0, 3, 0, 0]).view(1, 1, 6, 1, 1),
+    # the votes' frames: z up (a door's hinge), a drawer's z along the camera's axis (its front, the planes, faces it)
+    bias = torch.tensor([[3.0, 0, 0, 0, 3, 0] if t == "prismatic" else [0, 0, 3.0, 3, 0, 0] for t in joint_types])
+    parts = {"seg": seg, "rot6": torch.randn(B, J, 6, h, w, generator=gen) + bias.view(1, J, 6, 1, 1),
              "conf": torch.randn(B, J, 3, h, w, generator=gen)}
     modes = {"origin": torch.randn(B, J, M, 3, generator=gen) + torch.tensor([1.5, 0, 0]),
              "axis": F.normalize(torch.randn(B, J, M, 3, generator=gen), dim=-1),
@@ -283,6 +358,8 @@ def test_refined_quantities_match_a_loop_over_images(joint_types, one_sided, mon
     assert torch.isfinite(ref["q"]).sum() >= 6 and torch.isfinite(ref["door_mid"]).sum() >= 4
     assert torch.isfinite(ref["door_face_m"]).sum() >= 4
     assert ref["door_cut"].sum() >= 1 and (ref["door_cut"] == 0).sum() >= 1
+    if "prismatic" in joint_types:  # step 11 measured some fronts (the planes run out of these small images: cut)
+        assert torch.isfinite(ref["front_m"]).sum() >= 3  # (no face here is parallel to the axis: see the next test)
     for key in ref:
         assert got[key].shape == ref[key].shape, key
         assert torch.equal(got[key].isnan(), ref[key].isnan()), key

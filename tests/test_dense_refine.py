@@ -448,7 +448,9 @@ def test_hinge_height_is_moved_to_the_door_panels_mid_height():
     assert np.isnan(_door_refinement_prismatic(depth, K))
 
 
-def _door_refinement_prismatic(depth, K):
+def _one_part_refined(depth, K, joint_type: str) -> dict:
+    """:func:`R.refined_quantities` of a scene whose every pixel is the part (one joint of
+    ``joint_type``), the votes' axis vertical and one mode at (1.5, 0.3, 0.2) m."""
     inputs = make_inputs(depth, K)
     h, w = inputs["weight_out"].shape[1:]
     seg = torch.zeros(1, 2, h, w)
@@ -456,7 +458,11 @@ def _door_refinement_prismatic(depth, K):
     parts = {"seg": seg, "rot6": torch.tensor([0, 0, 1, 1, 0, 0.0]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w),
              "conf": torch.zeros(1, 1, 3, h, w)}
     modes = _modes(torch.tensor([[[[1.5, 0.3, 0.2]]]]), torch.tensor([[[[0.0, 0, 1]]]]))
-    return R.refined_quantities(parts, inputs, modes, ["prismatic"])["door_mid"][0, 0].item()
+    return R.refined_quantities(parts, inputs, modes, [joint_type])
+
+
+def _door_refinement_prismatic(depth, K):
+    return _one_part_refined(depth, K, "prismatic")["door_mid"][0, 0].item()
 
 
 def test_hinge_height_leaves_a_door_cut_off_by_the_image_alone():
@@ -520,7 +526,7 @@ def test_box_frame_uses_only_the_pixels_the_segmentation_is_sure_of(part_logit, 
 
 def test_refinement_dict_reads_version_5_without_the_frame_threshold():
     ref = R.Refinement(frame=True, hinge_offset_m=-0.01, frame_min_prob=0.9, mirror_joints=(0,))
-    assert R.Refinement.from_dict(ref.to_dict()) == ref and ref.version == R.REFINEMENT_VERSION == 12
+    assert R.Refinement.from_dict(ref.to_dict()) == ref and ref.version == R.REFINEMENT_VERSION == 13
     old = {k: v for k, v in ref.to_dict().items() if k != "frame_min_prob"} | {"version": 5}
     assert R.Refinement.from_dict(old).frame_min_prob is None
 
@@ -770,3 +776,164 @@ def test_refinement_dict_reads_version_11_without_one_sided_normals():
     assert R.Refinement.from_dict(ref.to_dict()) == ref
     old = {k: v for k, v in ref.to_dict().items() if k != "frame_one_sided"} | {"version": 11}
     assert R.Refinement.from_dict(old).frame_one_sided is False
+
+
+def _frontal_rects(rects, hw=(108, 192), f: float = 100.0):
+    """Depth (1, H, W) and K (1, 3, 3) of frontal rectangles ``(distance_m, y_lo, y_hi, z_lo, z_hi)``
+    (camera frame: x forward, y left, z up), the nearest where they overlap."""
+    H, W = hw
+    K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    depth = np.zeros(hw)
+    for d, y_lo, y_hi, z_lo, z_hi in sorted(rects, reverse=True):  # far first, near ones written over
+        y_m, z_m = -(u - K[0, 2]) / f * d, -(v - K[1, 2]) / f * d
+        depth = np.where((y_m >= y_lo) & (y_m <= y_hi) & (z_m >= z_lo) & (z_m <= z_hi), d, depth)
+    return torch.tensor(depth[None], dtype=torch.float32), torch.tensor(K[None], dtype=torch.float32)
+
+
+def _drawer_front_refined(depth, K, origin_m, voted_q_m: float) -> tuple[dict, dict]:
+    """Numpy mode arrays (one mode at ``origin_m``, pull axis towards the camera, voting
+    ``voted_q_m``) and :func:`R.refined_quantities` of a scene whose every pixel the segmentation
+    calls the drawer, the rotation votes on the box frame whose ``z`` points away from the camera
+    (the front's axis is turned to face it)."""
+    inputs = make_inputs(depth, K)
+    h, w = inputs["weight_out"].shape[1:]
+    seg = torch.zeros(1, 2, h, w)
+    seg[:, 1] = 5.0  # every pixel is the drawer
+    F = torch.tensor([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]])  # columns x = left, y = up, z = forward
+    rot6 = torch.cat([F[:, 2], F[:, 0]]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w)
+    parts = {"seg": seg, "rot6": rot6, "conf": torch.zeros(1, 1, 3, h, w)}
+    pull = torch.tensor([-1.0, 0, 0])
+    modes = _modes(torch.tensor(origin_m, dtype=torch.float32).reshape(1, 1, 1, 3), pull.reshape(1, 1, 1, 3), voted_q_m)
+    r = {k: v.numpy().astype(np.float64) for k, v in R.refined_quantities(parts, inputs, modes, ["prismatic"]).items()}
+    m = {k: v.numpy().astype(np.float64) for k, v in modes.items()}
+    return m, r
+
+
+def test_drawer_front_plane_and_centre_are_read_from_the_front_pixels():
+    # an open drawer: its front panel 1.5 m away (0.5 x 0.2 m, centred 4 cm left and 2 cm up), the
+    # handle bar 3 cm in front of it, and the tray's back wall 35 cm behind, seen above the panel
+    panel = (1.5, -0.21, 0.29, -0.08, 0.12)
+    depth, K = _frontal_rects([panel, (1.47, -0.08, 0.16, 0.01, 0.03), (1.85, -0.2, 0.28, 0.12, 0.2)])
+    m, r = _drawer_front_refined(depth, K, origin_m=[1.62, 0.01, 0.0], voted_q_m=0.05)
+    assert np.allclose(r["front_axis"][0, 0], [-1.0, 0.0, 0.0], atol=1e-4)  # turned to face the camera
+    assert r["front_m"][0, 0] == pytest.approx(-1.5, abs=1e-3)  # the panel's plane: not the bar's, not the wall's
+    assert r["front_cut"][0, 0] == 0
+    centre = r["front_centre"][0, 0]
+    assert centre[1] == pytest.approx(0.04, abs=0.015) and centre[2] == pytest.approx(0.02, abs=0.015)  # a pixel: 1.5 cm
+    # q from the plane: the travel from the mode's origin (12 cm behind the front) to it
+    prismatic = np.array([True])
+    q = R.drawer_front_q(m, r, 0.1, 0.0, prismatic)
+    assert q[0, 0, 0] == pytest.approx(0.12, abs=1e-3)
+    assert R.drawer_front_q(m, r, 0.1, 0.01, prismatic)[0, 0, 0] == pytest.approx(0.11, abs=1e-3)  # less the offset
+    assert R.drawer_front_q(m, r, 0.05, 0.0, prismatic)[0, 0, 0] == m["q"][0, 0, 0]  # gated: a 7 cm move
+    assert R.drawer_front_q(m, r, 0.1, 0.0, np.array([False]))[0, 0, 0] == m["q"][0, 0, 0]  # a door: never
+    away = dict(m, axis=-m["axis"])  # a mode whose axis points into the body reads nothing
+    assert R.drawer_front_q(away, r, 0.1, 0.0, prismatic)[0, 0, 0] == m["q"][0, 0, 0]
+    # the origin across the axis onto the front's centre, its distance along the axis kept
+    moved = R.drawer_centre_origin(m, r, 0.05, prismatic)[0, 0, 0]
+    assert moved[0] == pytest.approx(1.62) and np.allclose(moved[1:], centre[1:])
+    assert np.array_equal(R.drawer_centre_origin(m, r, 0.02, prismatic), m["origin"])  # gated: a 3.6 cm move
+    # both through apply_refinement, as a checkpoint's refinement says
+    out = R.apply_refinement(m, r, R.Refinement(drawer_front_gate_m=0.1, drawer_centre_gate_m=0.05), ["prismatic"])
+    assert out["q"][0, 0, 0] == pytest.approx(0.12, abs=1e-3) and np.allclose(out["origin"][0, 0, 0], moved)
+
+
+def test_drawer_front_cut_by_the_image_keeps_the_origin_and_too_few_pixels_measure_nothing():
+    depth, K = _frontal_rects([(1.5, -0.21, 3.0, -0.08, 0.12)])  # runs out of the image's left side
+    m, r = _drawer_front_refined(depth, K, origin_m=[1.62, 0.01, 0.0], voted_q_m=0.05)
+    assert r["front_cut"][0, 0] == 1 and r["front_m"][0, 0] == pytest.approx(-1.5, abs=1e-3)
+    assert np.array_equal(R.drawer_centre_origin(m, r, 1.0, np.array([True])), m["origin"])
+    depth, K = _frontal_rects([(1.5, 0.0, 0.02, 0.0, 0.02)])  # a couple of pixels
+    m, r = _drawer_front_refined(depth, K, origin_m=[1.62, 0.01, 0.0], voted_q_m=0.05)
+    assert np.isnan(r["front_m"][0, 0])
+    assert R.drawer_front_q(m, r, 1.0, 0.0, np.array([True]))[0, 0, 0] == m["q"][0, 0, 0]
+
+
+def test_doors_get_no_drawer_front():
+    depth, K = _frontal_rects([(1.5, -0.21, 0.29, -0.08, 0.12)])
+    assert "front_m" not in _one_part_refined(depth, K, "revolute")
+    assert "front_m" in _one_part_refined(depth, K, "prismatic")
+
+
+def test_fit_chooses_the_drawer_front_where_it_lowers_the_errors():
+    rng = np.random.default_rng(0)
+    N = 400
+    z = np.array([-1.0, 0.0, 0.0])  # the pull axis, towards the camera
+    true_o = np.stack([rng.uniform(1.2, 1.8, N), rng.uniform(-0.2, 0.2, N), rng.uniform(-0.2, 0.2, N)], -1)
+    true_q = rng.uniform(0.0, 0.4, N)
+    e_o = rng.normal(0.0, 0.005, (N, 3))  # the votes' origin 5 mm off per axis, their q 4 cm
+    m = {"origin": (true_o + e_o)[:, None, None], "axis": np.broadcast_to(z, (N, 1, 1, 3)).copy(),
+         "xaxis": np.broadcast_to([0.0, -1.0, 0.0], (N, 1, 1, 3)).copy(), "weight": np.ones((N, 1, 1)),
+         "q": (true_q + rng.normal(0.0, 0.04, N))[:, None, None], "part_offset": np.zeros((N, 1, 1, 3))}
+    plane_offset_m = 0.003
+    r = {"axis": m["axis"].copy(), "xaxis": m["xaxis"].copy(),
+         "front_axis": np.broadcast_to(z, (N, 1, 3)).copy(),
+         "front_m": (true_o @ z + true_q + plane_offset_m)[:, None],
+         "front_centre": (true_o - (true_o @ z)[:, None] * z)[:, None], "front_cut": np.zeros((N, 1))}
+    shell_offset_m = 0.028  # the closed front 2.8 cm in front of the shell's edge the pixels show
+    r["shell_front_m"] = (true_o @ z - shell_offset_m + rng.normal(0.0, 0.002, N))[:, None]
+    r["shell_front_m"][::4] = np.nan  # a quarter of the shells not seen
+    quat = matrix_to_quat(np.broadcast_to(np.stack([[0.0, -1, 0], [0, 0, 1], z], -1), (N, 1, 3, 3)))  # x, y, z
+    truth = {"axis_pose": np.concatenate([true_o[:, None], quat], -1), "q": true_q[:, None],
+             "part_offset": np.zeros((N, 1, 3))}
+    ref, report = fit_refinement(m, r, truth, ["prismatic"])
+    assert ref.drawer_front_offset_m == pytest.approx(plane_offset_m, abs=1e-9)
+    assert ref.drawer_shell_offset_m == pytest.approx(shell_offset_m, abs=5e-4)
+    assert None not in (ref.drawer_front_gate_m, ref.drawer_centre_gate_m, ref.drawer_shell_gate_m)
+    out = R.apply_refinement(m, r, ref, ["prismatic"])
+    q_err = np.abs(out["q"][:, 0, 0] - true_q).mean()
+    assert q_err < 0.15 * np.abs(m["q"][:, 0, 0] - true_q).mean()  # the shell's 2 mm and, unseen, the origin's 5 mm
+    before = np.linalg.norm(m["origin"][:, 0, 0] - true_o, axis=-1).mean()
+    assert np.linalg.norm(out["origin"][:, 0, 0] - true_o, axis=-1).mean() < 0.5 * before  # across: exact
+    without_shell, _ = fit_refinement(m, {k: v for k, v in r.items() if k != "shell_front_m"}, truth, ["prismatic"])
+    assert without_shell.drawer_shell_gate_m is None and without_shell.drawer_front_gate_m is not None
+    assert report["configuration"][f"drawer_front_gate<={ref.drawer_front_gate_m:g}m"] < report["configuration"]["before_drawer_front"]
+    # fronts measured wrong by 10 cm: neither is used
+    r_bad = dict(r, front_m=r["front_m"] + 0.1, front_centre=r["front_centre"] + [0.0, 0.1, 0.0])
+    ref_bad, _ = fit_refinement(m, r_bad, truth, ["prismatic"])
+    assert ref_bad.drawer_centre_gate_m is None
+
+
+def test_refinement_dict_reads_version_12_without_the_drawer_front():
+    ref = R.Refinement(frame=True, drawer_front_gate_m=0.1, drawer_front_offset_m=0.002, drawer_centre_gate_m=0.02)
+    assert R.Refinement.from_dict(ref.to_dict()) == ref and ref.needed
+    old = {k: v for k, v in ref.to_dict().items() if not k.startswith("drawer_")} | {"version": 12}
+    back = R.Refinement.from_dict(old)
+    assert back.drawer_front_gate_m is None and back.drawer_centre_gate_m is None and back.drawer_front_offset_m == 0.0
+
+
+def _shell_pixels():
+    """Points and normals (three (1, n) components each) of an open drawer seen from above: the
+    shell's top (its edge 7 cm behind the front, x = 1.57 m), the front panel's top (2 cm deep, at the
+    front's plane x = 1.5 m), the tray's rim 2.2 cm below them, and the front face itself."""
+    rows = []  # (x, y, z, n_x, n_y, n_z)
+    for x in np.linspace(1.57, 1.9, 34):  # the shell's top, its front edge first
+        rows += [(x, y, 0.1, 0, 0, 1) for y in (-0.1, 0.0, 0.1)]
+    rows += [(x, y, 0.1, 0, 0, 1) for x in (1.5, 1.51, 1.52) for y in (-0.1, 0.0, 0.1)]  # the panel's top
+    rows += [(x, y, 0.078, 0, 0, 1) for x in (1.53, 1.55) for y in (-0.1, 0.1)]  # the tray's rim, set in
+    rows += [(1.5, y, z, -1, 0, 0) for y in (-0.1, 0.1) for z in (0.0, 0.05)]  # the front face
+    a = torch.tensor(rows, dtype=torch.float64).T[:, None]  # (6, 1, n)
+    return list(a[:3]), list(a[3:]), torch.ones(1, a.shape[-1], dtype=torch.bool)
+
+
+def test_shell_edge_is_read_from_the_box_faces_flush_with_the_front_panel():
+    points, normals, real = _shell_pixels()
+    frame = torch.tensor([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]], dtype=torch.float64)[None]  # x = y_cam, y = up, z = x_cam
+    pull = torch.tensor([[-1.0, 0, 0]], dtype=torch.float64)
+    front = torch.tensor([-1.5], dtype=torch.float64)
+    edge = R.shell_front(points, normals, real, frame, pull, front)
+    assert edge.item() == pytest.approx(-1.57)  # the shell's edge: not the panel's top, not the tray's rim
+    assert np.isnan(R.shell_front(points, normals, real, frame, pull, torch.tensor([float("nan")], dtype=torch.float64)).item())
+    few = real.clone()
+    few[0, :99] = False  # 3 shell pixels left: fewer than SHELL_MIN_PX
+    assert np.isnan(R.shell_front(points, normals, few, frame, pull, front).item())
+    # the origin moves along the axis onto the edge plus the offset (the panel's 2 cm), and q follows the front
+    r = {"front_axis": pull.numpy()[:, None], "front_m": front.numpy()[:, None], "shell_front_m": edge.numpy()[:, None]}
+    m = {"origin": np.array([[[[1.58, 0.01, 0.0]]]]), "axis": np.array([[[[-1.0, 0, 0]]]]), "q": np.array([[[0.09]]])}
+    prismatic = np.array([True])
+    moved = R.drawer_shell_origin(m, r, 0.05, 0.02, prismatic)[0, 0, 0]
+    assert np.allclose(moved, [1.55, 0.01, 0.0])
+    assert R.drawer_front_q(dict(m, origin=moved[None, None, None]), r, 0.1, 0.0, prismatic)[0, 0, 0] == pytest.approx(0.05)
+    assert np.array_equal(R.drawer_shell_origin(m, r, 0.02, 0.02, prismatic), m["origin"])  # gated: a 3 cm move
+    assert np.array_equal(R.drawer_shell_origin(m, r, 0.05, 0.02, np.array([False])), m["origin"])

@@ -31,8 +31,8 @@ class ClassChoice(click.ParamType):
 #: :func:`articulated_dataset.models.dense.mirror.with_mirror`).
 no_mirror_option = click.option(
     "--no-mirror", is_flag=True,
-    help="Dense model: skip the mirror image (the image reflected left-right, whose network outputs the cabinet, "
-         "two-door cabinet and drawer models average with the image's): one network pass instead of two, 1.1-1.5x as "
+    help="Dense model: skip the mirror image (the image reflected left-right, whose network outputs the cabinet "
+         "and two-door cabinet models average with the image's): one network pass instead of two, 1.1-1.5x as "
          "fast for those classes, with a 4-6% higher position error.")
 
 #: ``--precision`` of ``predict`` and ``estimate`` (the dense network's arithmetic:

@@ -51,6 +51,15 @@ FRAME_ONE_SIDED_CANDIDATES = (False, True)
 DOOR_FACE_GATE_CANDIDATES_M = (0.01, 0.02, 0.03, 0.05, 0.1)
 #: ... whose offset from a face (outer or inner) is fitted from at least this many doors seen so.
 DOOR_FACE_MIN_FIT = 20
+#: Gates (m) tried for step 11's ``q`` from a drawer's front plane by :func:`fit_refinement`.
+DRAWER_FRONT_GATE_CANDIDATES_M = (0.02, 0.05, 0.1, 0.2)
+#: Gates (m) tried for step 11's origin on the drawer front's centre by :func:`fit_refinement`.
+DRAWER_CENTRE_GATE_CANDIDATES_M = (0.01, 0.02, 0.05, 0.1)
+#: Gates (m) tried for step 11's origin on the shell's edge by :func:`fit_refinement`.
+DRAWER_SHELL_GATE_CANDIDATES_M = (0.02, 0.05, 0.1, 0.2)
+#: Step 11's plane and shell offsets are fitted from at least this many drawers (else 0, and the
+#: shell's edge is not used).
+DRAWER_FRONT_MIN_FIT = 20
 
 
 def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinement", dict]:
@@ -77,7 +86,13 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     :data:`HANDLE_HEIGHT_MIN_GAIN` (``r`` must hold :func:`~.handle.handle_evidence`'s keys for
     steps 7 and 9, measured for every door); last, the hinge plane from the door's face (step 10,
     with the offsets of :func:`fit_door_face_offsets`) with the gate of
-    :data:`DOOR_FACE_GATE_CANDIDATES_M` that lowers that error most, if any does.  Returns the
+    :data:`DOOR_FACE_GATE_CANDIDATES_M` that lowers that error most, if any does; for drawers, the
+    origin on the front's centre (step 11) with the gate of :data:`DRAWER_CENTRE_GATE_CANDIDATES_M`
+    that lowers the position error most, the origin along the axis on the shell's edge (with the
+    offset of :func:`fit_drawer_shell_offset`) with the gate of
+    :data:`DRAWER_SHELL_GATE_CANDIDATES_M` that lowers it most, then ``q`` from the front's plane (with the offset of
+    :func:`fit_drawer_front_offset`) with the gate of :data:`DRAWER_FRONT_GATE_CANDIDATES_M` that
+    lowers the configuration error most, each if any does.  Returns the
     :class:`Refinement` and the validation errors of every candidate.
     """
     from ...benchmark import metrics as M
@@ -130,6 +145,9 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
         origin = np.take_along_axis(mm["origin"], heaviest, axis=2)[:, :, 0]
         return float(np.mean(M.axis_position_error_cm(origin, truth["axis_pose"][..., :3])))
 
+    def position(ref):  # the position error with a refinement
+        return pos_err(apply_refinement(m, r, ref, joint_types))
+
     best_gate, use_extent = None, False
     if revolute.any() and "door_mid" in r:
         report["position_cm"] = {"votes": pos_err(apply_refinement(m, r, refinement, joint_types))}
@@ -166,16 +184,71 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
         offsets = fit_door_face_offsets(base, r, truth, joint_types)
         report.setdefault("position_cm", {})["before_door_face"] = best_pos = pos_err(base)
         report["door_face_offsets_m"] = list(offsets)
-        best_face = None
-        for gate in DOOR_FACE_GATE_CANDIDATES_M:
-            e = pos_err(apply_refinement(m, r, replace(refinement, door_face_gate_m=gate, door_face_offsets_m=offsets),
-                                         joint_types))
-            report["position_cm"][f"door_face_gate<={gate:g}m"] = e
-            if e < best_pos:
-                best_face, best_pos = gate, e
-        if best_face is not None:
-            refinement = replace(refinement, door_face_gate_m=best_face, door_face_offsets_m=offsets)
+        best_face, best_pos = _best_choice(position, refinement, {
+            f"door_face_gate<={gate:g}m": dict(door_face_gate_m=gate, door_face_offsets_m=offsets)
+            for gate in DOOR_FACE_GATE_CANDIDATES_M}, report["position_cm"], best_pos)
+        refinement = replace(refinement, **(best_face or {}))
+    if (~revolute).any() and "front_m" in r:
+        # step 11: the drawer's origin onto its front's centre (position), then q from its plane
+        report.setdefault("position_cm", {})["before_drawer_centre"] = best_pos = pos_err(
+            apply_refinement(m, r, refinement, joint_types))
+        best_centre, best_pos = _best_choice(position, refinement, {
+            f"drawer_centre_gate<={gate:g}m": dict(drawer_centre_gate_m=gate)
+            for gate in DRAWER_CENTRE_GATE_CANDIDATES_M}, report["position_cm"], best_pos)
+        refinement = replace(refinement, **(best_centre or {}))
+        shell_offset = fit_drawer_shell_offset(r, truth, joint_types) if "shell_front_m" in r else None
+        report["drawer_shell_offset_m"] = shell_offset
+        if shell_offset is not None:
+            report["position_cm"]["before_drawer_shell"] = best_pos
+            best_shell, best_pos = _best_choice(position, refinement, {
+                f"drawer_shell_gate<={gate:g}m": dict(drawer_shell_gate_m=gate, drawer_shell_offset_m=shell_offset)
+                for gate in DRAWER_SHELL_GATE_CANDIDATES_M}, report["position_cm"], best_pos)
+            refinement = replace(refinement, **(best_shell or {}))
+        offset = fit_drawer_front_offset(r, truth, joint_types)
+        report["drawer_front_offset_m"] = offset
+        report["configuration"]["before_drawer_front"] = best_cfg = cfg_err(apply_refinement(m, r, refinement, joint_types))
+        best_front, _ = _best_choice(lambda ref: cfg_err(apply_refinement(m, r, ref, joint_types)), refinement, {
+            f"drawer_front_gate<={gate:g}m": dict(drawer_front_gate_m=gate, drawer_front_offset_m=offset)
+            for gate in DRAWER_FRONT_GATE_CANDIDATES_M}, report["configuration"], best_cfg)
+        refinement = replace(refinement, **(best_front or {}))
     return refinement, report
+
+
+def _best_choice(error, refinement: Refinement, choices: dict, report: dict, best: float) -> tuple[dict | None, float]:
+    """Of ``choices`` ({report name: Refinement fields}) tried on ``refinement``, the fields whose
+    ``error(refinement with them)`` is lowest, if below ``best``, and that error (None and ``best``
+    where none is); every choice's error is written to ``report`` under its name."""
+    chosen = None
+    for name, fields in choices.items():
+        e = report[name] = error(replace(refinement, **fields))
+        if e < best:
+            chosen, best = fields, e
+    return chosen, best
+
+
+def fit_drawer_shell_offset(r: dict, truth: dict, joint_types) -> float | None:
+    """Step 11's shell offset (m): the median, over the prismatic joints whose shell edge was
+    measured, of the true origin's coordinate along the front's axis less the edge's
+    (``o . zc - r["shell_front_m"]``); None where fewer than :data:`DRAWER_FRONT_MIN_FIT` were."""
+    prismatic = np.array([t == "prismatic" for t in joint_types])
+    residual = (truth["axis_pose"][..., :3] * r["front_axis"]).sum(-1) - r["shell_front_m"]
+    seen = prismatic[None] & np.isfinite(residual)
+    return float(np.median(residual[seen])) if seen.sum() >= DRAWER_FRONT_MIN_FIT else None
+
+
+def fit_drawer_front_offset(r: dict, truth: dict, joint_types) -> float:
+    """Step 11's plane offset (m): the median, over the prismatic joints whose front was measured,
+    of the front's plane (``r["front_m"]`` along ``r["front_axis"]``) less the true outer face's
+    (``o . zc + q z . zc``, ``o``, ``z`` and ``q`` the truth's); 0 (the template's outer face) where
+    fewer than :data:`DRAWER_FRONT_MIN_FIT` fronts were measured."""
+    from ...benchmark import metrics as M
+
+    prismatic = np.array([t == "prismatic" for t in joint_types])
+    zc = r["front_axis"]
+    tz = M.quat_axis_z(truth["axis_pose"][..., 3:])
+    residual = r["front_m"] - (truth["axis_pose"][..., :3] * zc).sum(-1) - truth["q"] * (tz * zc).sum(-1)
+    seen = prismatic[None] & np.isfinite(residual)
+    return float(np.median(residual[seen])) if seen.sum() >= DRAWER_FRONT_MIN_FIT else 0.0
 
 
 def fit_door_face_offsets(mm: dict, r: dict, truth: dict, joint_types) -> tuple[float | None, float | None]:

@@ -79,6 +79,25 @@ regressed (:func:`refined_quantities`, per image and joint):
    face (``door_face_offsets_m``: the outer face's ~0, the inner face's ~minus the panel's
    thickness) where that moves it by less than ``door_face_gate_m``.  The axis' line moves
    across the hinge only; steps 6 and 9 set its height along it.
+11. **A drawer's front** (prismatic joints; :func:`drawer_front`).  The axis origin is the centre of
+   the drawer front's outer face when closed (``drawer.urdf.xacro``), so the front's plane is at
+   ``o . z + q`` along the pull axis ``z`` and its centre is the origin moved along ``z``.  The
+   front's pixels (the part's, with a normal within :data:`FRONT_MAX_DEG` of ``z``, the front-most
+   :data:`FRONT_BAND_M` of them: not the tray's back wall seen over the open top) measure both to
+   millimetres where the votes place the plane ~2 cm off (the drawer's seed-14 selection objects:
+   2.2 cm mean).  Where the front is not cut by the image's border, the origin is moved across
+   the axis to the middle of the front's extent along ``x`` and ``y`` (the
+   :data:`DOOR_EXTENT_QUANTILE` quantiles) where that moves it by less than
+   ``drawer_centre_gate_m``.  Along the axis, the origin is moved to the shell's edge
+   (:func:`shell_front`) plus a fitted offset (``drawer_shell_offset_m``: the panel's 2 cm and
+   the edge pixels' bias) where that moves it by less than ``drawer_shell_gate_m``: the box's
+   faces parallel to the axis (the shell's top, bottom and sides) are flush with the front
+   panel's edges, and the tray's are set in by the shell's wall, so on such a face the pixels
+   more than a panel behind the front are the shell's, and the front-most of them is its edge,
+   where a closed drawer's panel begins.  Last, ``q`` becomes the front plane's distance from the
+   mode's origin along its axis, less a fitted offset (``drawer_front_offset_m``, the outer face's
+   ~0), where that moves it by less than ``drawer_front_gate_m``.  Shipped drawer, validation
+   objects: position 4.01 -> 2.92 cm, configuration 4.20 -> 2.66 cm.
 
 :func:`~.fit.fit_refinement` chooses, on the training split's validation objects, which steps
 are used (each only where it lowers the validation error) and fits ``t``; the choice is stored
@@ -126,13 +145,41 @@ DOOR_EXTENT_MIN_PX = 10
 #: Step 10 reads a face as the door's outer or inner face within this angle (deg) of the door's
 #: ``y`` or ``-y``; a door seen nearer edge-on keeps its origin.
 DOOR_FACE_MAX_DEG = 25.0
+#: Step 11 reads a drawer's pixels whose normal is within this angle (deg) of its pull axis as its
+#: front's (the front panel and the handle bar's face; a central difference across the panel's
+#: edge mixes in a side and is further off).
+FRONT_MAX_DEG = 10.0
+#: ... the front-most of them within this distance (m) along the axis of the
+#: :data:`FRONT_TOP_QUANTILE` quantile: the panel and the bar 3 cm in front of it
+#: (``handle_standoff_m``), not the open tray's back wall tens of centimetres behind.
+FRONT_BAND_M = 0.05
+FRONT_TOP_QUANTILE = 0.02
+#: ... and needs at least this many such pixels.
+FRONT_MIN_PX = 10
+#: Step 11's shell edge: the box faces parallel to the pull axis (the shell's outer faces, with the
+#: front panel's edges flush with them; the tray's sides are set in by the shell's wall and
+#: clearance) are read from the pixels whose normal is within this angle (deg) of a frame axis
+#: across the pull axis ...
+SHELL_FACE_MAX_DEG = 20.0
+#: ... and which lie within this distance (m) of the face's plane (the 0.98 quantile of their
+#: coordinates along its normal: the outermost face) ...
+SHELL_FLUSH_M = 0.01
+#: ... further behind the front's plane than the front panel's thickness (``drawer.urdf.xacro``'s
+#: ``panel_m``) plus :data:`SHELL_PANEL_MARGIN_M`: the shell's pixels, whose front-most one is its
+#: edge, where the drawer leaves it; the face with the most such pixels (at least
+#: :data:`SHELL_MIN_PX`) is read.
+DRAWER_PANEL_M = 0.02
+SHELL_PANEL_MARGIN_M = 0.01
+SHELL_MIN_PX = 5
 #: Refinement format version stored in checkpoints (2: ``max_turn_deg``; 3: ``door_extent``;
 #: 4: ``handle_max_q_deg``; 5: ``mirror_joints``; 6: ``frame_min_prob``; 7: ``handle_height_gate_m``;
 #: 8: ``handle_cut_bars``; 9: ``door_angle_folded``; 10: ``door_angle_signed``, ``door_angle_gate_deg``;
-#: 11: ``door_face_gate_m``, ``door_face_offsets_m``; 12: ``frame_one_sided``; older versions read as without them).  The stored fields, not their implementation: since the tenth
+#: 11: ``door_face_gate_m``, ``door_face_offsets_m``; 12: ``frame_one_sided``; 13: ``drawer_front_gate_m``,
+#: ``drawer_front_offset_m``, ``drawer_centre_gate_m``, ``drawer_shell_gate_m``, ``drawer_shell_offset_m``;
+#: older versions read as without them).  The stored fields, not their implementation: since the tenth
 #: session every version's ``mirror_joints`` averages the network's outputs (:mod:`.mirror`), not the
 #: refined vote modes of two passes.
-REFINEMENT_VERSION = 12
+REFINEMENT_VERSION = 13
 
 
 @dataclass(frozen=True)
@@ -187,13 +234,27 @@ class Refinement:
     #: inner face (fitted: :func:`~.fit.fit_door_face_offsets`; None: that face was never seen on
     #: the validation objects, and a mode that sees it keeps its origin)
     door_face_offsets_m: tuple[float | None, float | None] = (0.0, 0.0)
+    #: step 11: a drawer's ``q`` from its front's plane where that moves it by less than this (m;
+    #: None: never) ...
+    drawer_front_gate_m: float | None = None
+    #: ... the plane's offset (m) along the pull axis from the front's outer face at ``q`` (fitted)
+    drawer_front_offset_m: float = 0.0
+    #: step 11: a drawer's origin moved across its axis to its front's centre where the front is seen
+    #: whole and that moves it by less than this (m; None: never)
+    drawer_centre_gate_m: float | None = None
+    #: step 11: a drawer's origin moved along its axis to its shell's edge plus
+    #: ``drawer_shell_offset_m`` where that moves it by less than this (m; None: never)
+    drawer_shell_gate_m: float | None = None
+    drawer_shell_offset_m: float = 0.0
     version: int = REFINEMENT_VERSION
 
     @property
     def needed(self) -> bool:
         """Whether it changes anything (else the refined quantities need not be computed)."""
         return (self.frame or self.min_door_px is not None or self.door_extent or self.handle_max_q_deg is not None
-                or self.handle_height_gate_m is not None or self.door_face_gate_m is not None)
+                or self.handle_height_gate_m is not None or self.door_face_gate_m is not None
+                or self.drawer_front_gate_m is not None or self.drawer_centre_gate_m is not None
+                or self.drawer_shell_gate_m is not None)
 
     @property
     def door_angles(self) -> tuple[str, ...]:
@@ -242,6 +303,11 @@ class Refinement:
                    mirror_joints=None if d.get("mirror_joints") is None else tuple(int(k) for k in d["mirror_joints"]),
                    door_face_gate_m=_optional_float(d.get("door_face_gate_m")),
                    door_face_offsets_m=_float_pair(d.get("door_face_offsets_m", (0.0, 0.0))),
+                   drawer_front_gate_m=_optional_float(d.get("drawer_front_gate_m")),
+                   drawer_front_offset_m=float(d.get("drawer_front_offset_m", 0.0)),
+                   drawer_centre_gate_m=_optional_float(d.get("drawer_centre_gate_m")),
+                   drawer_shell_gate_m=_optional_float(d.get("drawer_shell_gate_m")),
+                   drawer_shell_offset_m=float(d.get("drawer_shell_offset_m", 0.0)),
                    version=int(d.get("version", REFINEMENT_VERSION)))
 
 
@@ -533,11 +599,86 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     out = {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], **angles, "box_x": xf,
            "door_px": with_normal.sum(-1).view(R, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut,
            "door_face_normal": face_normal.view(R, J, 3), "door_face_m": face_m}
+    if not revolute.all():  # step 11: the drawers' fronts, from the same pixels
+        door_col = (idx % W).view(-1).index_select(0, door_at).view(R * J, m)
+        front = drawer_front(door_points, door_normal, with_normal & ~revolute.repeat(R)[:, None], door_row, door_col,
+                             frame.reshape(R * J, 3, 3), door_anchor, (H, W))
+        out.update({k: v.view(R, J, *v.shape[1:]) for k, v in front.items()})
+        # the shell's edge, from every valid pixel (the segmentation's labels are a quarter of the
+        # resolution, too coarse for an edge)
+        points = [x_flat[c * P:].index_select(0, at).view(R, n) * POINT_SCALE_M + anchor[:, c:c + 1] for c in range(3)]
+        out["shell_front_m"] = torch.stack([
+            shell_front(points, normals.unbind(1), has_normal, frame[:, j], out["front_axis"][:, j], out["front_m"][:, j])
+            if joint_types[j] == "prismatic" else torch.full((R,), float("nan"), dtype=x.dtype) for j in range(J)], 1)
     if handles:  # steps 7 and 9: the revolute doors' handles, from the same pixels
         measured = dok & revolute.repeat(R)[:, None]
         found = door_handles(door_points, door_normal, measured, door_row, door_axis, H, face=(face_normal, face_offset))
         out.update({k: v.view(R, J, *v.shape[1:]) for k, v in found.items()})
     return out
+
+
+def drawer_front(points: list, normals: list, real: torch.Tensor, row: torch.Tensor, col: torch.Tensor,
+                 frame: torch.Tensor, anchor: torch.Tensor, image_hw: tuple[int, int]) -> dict:
+    """Step 11's measurements of each part (rows R of the gathered part pixels): ``points`` and
+    ``normals`` (three (R, m) components each, camera frame, m), which of them are ``real`` with a
+    normal (R, m), their image rows and columns (R, m), the parts' box frames (R, 3, 3: columns x,
+    y, z) and the objects' anchors (R, 3).  The front's pixels: a normal within
+    :data:`FRONT_MAX_DEG` of ``z`` and a coordinate along ``zc`` (``z`` turned to face the camera,
+    from the anchor) within :data:`FRONT_BAND_M` of the :data:`FRONT_TOP_QUANTILE` quantile from the
+    front.  Returns ``front_axis`` (R, 3) ``zc``, ``front_m`` (R) their median coordinate along it
+    (NaN with fewer than :data:`FRONT_MIN_PX`), ``front_centre`` (R, 3) the point whose coordinates
+    along ``x`` and ``y`` are the middles of their :data:`DOOR_EXTENT_QUANTILE` quantiles (and 0
+    along ``z``), and ``front_cut`` (R) 1.0 where one of them lies within an output pixel of the
+    image's border (the extent is then the image's, not the front's)."""
+    H, W = image_hw
+    x, y, z = frame.unbind(-1)  # (R, 3) each
+    dot = lambda v, a: v[0] * a[:, 0:1] + v[1] * a[:, 1:2] + v[2] * a[:, 2:3]  # noqa: E731  (R, m)
+    toward = torch.where((z * anchor).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(z.dtype)  # (R, 1)
+    zc = toward * z
+    facing = real & (dot(normals, zc).abs() > math.cos(math.radians(FRONT_MAX_DEG)))
+    along = dot(points, zc)
+    top = _quantile_pair(along, facing, FRONT_TOP_QUANTILE)[1][:, None]
+    band = facing & (along >= top - FRONT_BAND_M)
+    enough = band.sum(-1) >= FRONT_MIN_PX
+    nan = torch.tensor(float("nan"), dtype=along.dtype)
+    front = torch.where(enough, lower_median(along, band), nan)
+    mids = []
+    for a in (x, y):
+        lo, hi = _quantile_pair(dot(points, a), band, DOOR_EXTENT_QUANTILE)
+        mids.append(torch.where(enough, 0.5 * (lo + hi), nan))
+    centre = mids[0][:, None] * x + mids[1][:, None] * y
+    s = OUTPUT_STRIDE
+    near_border = (row <= s) | (row >= H - 1 - s) | (col <= s) | (col >= W - 1 - s)
+    cut = (band & near_border).any(-1)
+    return {"front_axis": zc, "front_m": front, "front_centre": centre, "front_cut": cut.to(along.dtype)}
+
+
+def shell_front(points: list, normals: list, real: torch.Tensor, frame: torch.Tensor, front_axis: torch.Tensor,
+                front_m: torch.Tensor) -> torch.Tensor:
+    """Step 11's shell edge (R,) m along ``front_axis`` (R, 3): of the image's pixels (``points`` and
+    ``normals``: three (R, n) components each, camera frame, m; ``real`` those with a normal (R, n)),
+    on each box face parallel to the axis (a normal within :data:`SHELL_FACE_MAX_DEG` of ``x``,
+    ``-x``, ``y`` or ``-y`` of ``frame`` (R, 3, 3), within :data:`SHELL_FLUSH_M` of its outermost
+    plane) and further behind the front's plane ``front_m`` (R) than :data:`DRAWER_PANEL_M` plus
+    :data:`SHELL_PANEL_MARGIN_M`, the largest coordinate along the axis, read on the face with the
+    most such pixels; NaN where no face has :data:`SHELL_MIN_PX`."""
+    dot = lambda v, a: v[0] * a[:, 0:1] + v[1] * a[:, 1:2] + v[2] * a[:, 2:3]  # noqa: E731  (R, n)
+    along = dot(points, front_axis)
+    behind_front = along < (front_m - DRAWER_PANEL_M - SHELL_PANEL_MARGIN_M)[:, None]  # False where front_m is NaN
+    cos = math.cos(math.radians(SHELL_FACE_MAX_DEG))
+    best_count = torch.zeros(len(along), dtype=torch.long)
+    best = torch.full((len(along),), float("nan"), dtype=along.dtype)
+    for axis in (frame[..., 0], -frame[..., 0], frame[..., 1], -frame[..., 1]):
+        face = real & (dot(normals, axis) > cos)
+        out_m = dot(points, axis)
+        plane = _quantile_pair(out_m, face, 0.02)[1][:, None]  # NaN without face pixels: no pixel is flush
+        shell = face & ((out_m - plane).abs() < SHELL_FLUSH_M) & behind_front
+        count = shell.sum(-1)
+        edge = torch.where(shell, along, -float("inf")).amax(-1)
+        take = (count >= SHELL_MIN_PX) & (count > best_count)
+        best = torch.where(take, edge, best)
+        best_count = torch.where(take, count, best_count)
+    return best
 
 
 def _door_extent(along: torch.Tensor, row: torch.Tensor, real: torch.Tensor, revolute: torch.Tensor,
@@ -606,7 +747,71 @@ def apply_refinement(m: dict, r: dict, refinement: "Refinement | None", joint_ty
         sided = dict(sided)
         sided["origin"] = door_face_origin(sided, r, refinement.door_face_gate_m, refinement.door_face_offsets_m,
                                            revolute)
+    if refinement.drawer_centre_gate_m is not None and "front_centre" in r:
+        sided = dict(sided)
+        sided["origin"] = drawer_centre_origin(sided, r, refinement.drawer_centre_gate_m, ~revolute)
+    if refinement.drawer_shell_gate_m is not None and "shell_front_m" in r:
+        sided = dict(sided)
+        sided["origin"] = drawer_shell_origin(sided, r, refinement.drawer_shell_gate_m, refinement.drawer_shell_offset_m,
+                                              ~revolute)
+    if refinement.drawer_front_gate_m is not None and "front_m" in r:
+        sided = dict(sided)
+        sided["q"] = drawer_front_q(sided, r, refinement.drawer_front_gate_m, refinement.drawer_front_offset_m,
+                                    ~revolute)
     return sided
+
+
+#: Step 11 reads a mode's ``q`` from the front's plane only where the mode's axis is within this
+#: angle (deg) of the front's (a mode whose axis points into the body reads nothing).
+FRONT_AXIS_MAX_DEG = 25.0
+
+
+def drawer_front_travel(mm: dict, r: dict, offset_m: float) -> np.ndarray:
+    """Step 11: each vote mode's travel (B, J, M) m from its origin along its axis to the drawer
+    front's plane (``r["front_m"]`` along ``r["front_axis"]``) less ``offset_m``: the ``q`` that puts
+    the front's outer face there.  NaN where the plane was not measured or the mode's axis is not
+    within :data:`FRONT_AXIS_MAX_DEG` of the front's."""
+    a = mm["axis"] / np.maximum(np.linalg.norm(mm["axis"], axis=-1, keepdims=True), 1e-12)
+    zc = r["front_axis"][:, :, None]  # (B, J, 1, 3)
+    cos = (a * zc).sum(-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        travel = (r["front_m"][..., None] - offset_m - (mm["origin"] * zc).sum(-1)) / cos
+    return np.where(cos > math.cos(math.radians(FRONT_AXIS_MAX_DEG)), travel, np.nan)
+
+
+def drawer_front_q(mm: dict, r: dict, gate_m: float, offset_m: float, prismatic: np.ndarray) -> np.ndarray:
+    """Step 11: the vote modes' ``q`` (B, J, M) m, :func:`drawer_front_travel` where it is finite and
+    within ``gate_m`` of the mode's ``q`` (prismatic joints only)."""
+    q = drawer_front_travel(mm, r, offset_m)
+    with np.errstate(invalid="ignore"):
+        use = prismatic[None, :, None] & np.isfinite(q) & (np.abs(q - mm["q"]) < gate_m)
+    return np.where(use, q, mm["q"])
+
+
+def drawer_shell_origin(mm: dict, r: dict, gate_m: float, offset_m: float, prismatic: np.ndarray) -> np.ndarray:
+    """Step 11: the vote modes' origins (B, J, M, 3) moved along the front's axis to the shell's edge
+    (``r["shell_front_m"]``) plus ``offset_m`` where the move is shorter than ``gate_m`` (prismatic
+    joints only).  The closed drawer's outer face is there (the template's panel, 2 cm in front of
+    the shell; the fitted offset also holds the edge pixels' bias)."""
+    zc = r["front_axis"][:, :, None]  # (B, J, 1, 3)
+    with np.errstate(invalid="ignore"):
+        shift = (r["shell_front_m"] + offset_m)[..., None] - (mm["origin"] * zc).sum(-1)  # (B, J, M)
+        use = prismatic[None, :, None] & np.isfinite(shift) & (np.abs(shift) < gate_m)
+    return mm["origin"] + np.where(use, shift, 0.0)[..., None] * zc
+
+
+def drawer_centre_origin(mm: dict, r: dict, gate_m: float, prismatic: np.ndarray) -> np.ndarray:
+    """Step 11: the vote modes' origins (B, J, M, 3) moved across the front's axis onto its centre
+    (``r["front_centre"]``) where the front is not cut by the image's border and the move is
+    shorter than ``gate_m`` (prismatic joints only)."""
+    zc = r["front_axis"][:, :, None]  # (B, J, 1, 3)
+    centre = r["front_centre"][:, :, None]
+    d = centre - mm["origin"]
+    shift = d - (d * zc).sum(-1, keepdims=True) * zc  # across the axis only
+    with np.errstate(invalid="ignore"):
+        use = (prismatic[None, :, None] & (r["front_cut"][..., None] == 0) & np.isfinite(shift).all(-1)
+               & (np.linalg.norm(shift, axis=-1) < gate_m))
+    return mm["origin"] + np.where(use[..., None], shift, 0.0)
 
 
 def door_face_side(mm: dict, r: dict) -> np.ndarray:
