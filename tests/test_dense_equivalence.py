@@ -173,7 +173,7 @@ def _reference_shell(points, normals, real, xf, yf, zc, front_m) -> float:
     for a in (xf, -xf, yf, -yf):
         face = real & (normals @ a > math.cos(math.radians(R.SHELL_FACE_MAX_DEG)))
         if face.any():
-            shell = face & ((points @ a - torch.quantile((points @ a)[face], 0.98)).abs() < R.SHELL_FLUSH_M) & behind
+            shell = face & ((points @ a - torch.quantile((points @ a)[face], 1 - R.SHELL_PLANE_QUANTILE)).abs() < R.SHELL_FLUSH_M) & behind
             if shell.sum() >= max(R.SHELL_MIN_PX, best + 1):
                 best, edge = int(shell.sum()), float(along[shell].max())
     return edge

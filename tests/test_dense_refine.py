@@ -409,12 +409,19 @@ def test_a_drawer_front_aligns_the_frame(joint_type):
 def _door_panel_scene(z_lo_m: float, z_hi_m: float, distance_m: float = 1.5, hw=(108, 192)):
     """Depth of a frontal door panel at ``distance_m`` spanning heights [z_lo, z_hi] (m) and
     +-0.3 m sideways (nothing else returns), and its K."""
+    return _frontal_rects([(distance_m, -0.3, 0.3, z_lo_m, z_hi_m)], hw)
+
+
+def _frontal_rects(rects, hw=(108, 192), f: float = 100.0):
+    """Depth (1, H, W) and K (1, 3, 3) of frontal rectangles ``(distance_m, y_lo, y_hi, z_lo, z_hi)``
+    (camera frame: x forward, y left, z up), the nearest where they overlap."""
     H, W = hw
-    f = 100.0
     K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
     u, v = np.meshgrid(np.arange(W), np.arange(H))
-    y_m, z_m = -(u - K[0, 2]) / f * distance_m, -(v - K[1, 2]) / f * distance_m
-    depth = np.where((z_m >= z_lo_m) & (z_m <= z_hi_m) & (np.abs(y_m) <= 0.3), distance_m, 0.0)
+    depth = np.zeros(hw)
+    for d, y_lo, y_hi, z_lo, z_hi in sorted(rects, reverse=True):  # far first, near ones written over
+        y_m, z_m = -(u - K[0, 2]) / f * d, -(v - K[1, 2]) / f * d
+        depth = np.where((y_m >= y_lo) & (y_m <= y_hi) & (z_m >= z_lo) & (z_m <= z_hi), d, depth)
     return torch.tensor(depth[None], dtype=torch.float32), torch.tensor(K[None], dtype=torch.float32)
 
 
@@ -776,19 +783,6 @@ def test_refinement_dict_reads_version_11_without_one_sided_normals():
     assert R.Refinement.from_dict(ref.to_dict()) == ref
     old = {k: v for k, v in ref.to_dict().items() if k != "frame_one_sided"} | {"version": 11}
     assert R.Refinement.from_dict(old).frame_one_sided is False
-
-
-def _frontal_rects(rects, hw=(108, 192), f: float = 100.0):
-    """Depth (1, H, W) and K (1, 3, 3) of frontal rectangles ``(distance_m, y_lo, y_hi, z_lo, z_hi)``
-    (camera frame: x forward, y left, z up), the nearest where they overlap."""
-    H, W = hw
-    K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
-    u, v = np.meshgrid(np.arange(W), np.arange(H))
-    depth = np.zeros(hw)
-    for d, y_lo, y_hi, z_lo, z_hi in sorted(rects, reverse=True):  # far first, near ones written over
-        y_m, z_m = -(u - K[0, 2]) / f * d, -(v - K[1, 2]) / f * d
-        depth = np.where((y_m >= y_lo) & (y_m <= y_hi) & (z_m >= z_lo) & (z_m <= z_hi), d, depth)
-    return torch.tensor(depth[None], dtype=torch.float32), torch.tensor(K[None], dtype=torch.float32)
 
 
 def _drawer_front_refined(depth, K, origin_m, voted_q_m: float) -> tuple[dict, dict]:

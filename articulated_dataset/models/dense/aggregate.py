@@ -264,6 +264,13 @@ def _vote_modes(parts: dict, points: torch.Tensor, valid: torch.Tensor, split_fa
     return out
 
 
+def rows_dot(v, a: torch.Tensor) -> torch.Tensor:
+    """``v . a`` per entry: ``v`` three components (x, y, z) of (R, m) each, ``a`` (R, 3) one vector
+    per row -> (R, m), written component by component (a (R, m, 3) stack and a reduction over its
+    last axis cost about twice as much)."""
+    return v[0] * a[:, 0:1] + v[1] * a[:, 1:2] + v[2] * a[:, 2:3]
+
+
 def lower_median(values: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
     """:func:`weighted_median` with weight 1 on the ``real`` entries (last dimension) and 0 elsewhere:
     the ``ceil(c / 2)``-th smallest of a row's ``c`` real entries (NaN without any), found by

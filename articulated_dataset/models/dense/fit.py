@@ -125,20 +125,19 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     use_frame = best_rot < report["rotation_deg"]["votes"]
     refinement = Refinement(frame=bool(use_frame), hinge_offset_m=offset if use_frame else 0.0,
                             max_turn_deg=best_turn if use_frame else None)
-    best, best_cfg = {}, report["configuration"]["votes"]
+    def configuration(ref):  # the configuration error with a refinement
+        return cfg_err(apply_refinement(m, r, ref, joint_types))
+
     if revolute.any():
         # the signed angle depends on each mode's x, so the candidates are tried in the chosen frame
         readings = [(False, False)] + ([(True, False)] if "q_folded" in r else []) + ([(False, True)] if "q_signed" in r else [])
-        for fold, signed in readings:
-            for px in DOOR_PX_CANDIDATES:
-                for gate in DOOR_ANGLE_GATE_CANDIDATES_DEG:
-                    choice = dict(min_door_px=px, door_angle_folded=fold, door_angle_signed=signed, door_angle_gate_deg=gate)
-                    e = cfg_err(apply_refinement(m, r, replace(refinement, **choice), joint_types))
-                    name = f"normals>={px}px" + ("_folded" if fold else "") + ("_signed" if signed else "")
-                    report["configuration"][name + ("" if gate is None else f"_gate<={gate:g}deg")] = e
-                    if e < best_cfg:
-                        best, best_cfg = choice, e
-    refinement = replace(refinement, **best)
+        best, _ = _best_choice(configuration, refinement, {
+            f"normals>={px}px" + ("_folded" if fold else "") + ("_signed" if signed else "")
+            + ("" if gate is None else f"_gate<={gate:g}deg"):
+                dict(min_door_px=px, door_angle_folded=fold, door_angle_signed=signed, door_angle_gate_deg=gate)
+            for fold, signed in readings for px in DOOR_PX_CANDIDATES for gate in DOOR_ANGLE_GATE_CANDIDATES_DEG},
+            report["configuration"], report["configuration"]["votes"])
+        refinement = replace(refinement, **(best or {}))
 
     def pos_err(mm):
         heaviest = mm["weight"].argmax(-1)[..., None, None]  # (N, J, 1, 1)
@@ -148,27 +147,18 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     def position(ref):  # the position error with a refinement
         return pos_err(apply_refinement(m, r, ref, joint_types))
 
-    best_gate, use_extent = None, False
     if revolute.any() and "door_mid" in r:
-        report["position_cm"] = {"votes": pos_err(apply_refinement(m, r, refinement, joint_types))}
-        best_pos = report["position_cm"]["votes"]
-        for gate in DOOR_EXTENT_GATE_CANDIDATES_M:
-            e = pos_err(apply_refinement(m, r, replace(refinement, door_extent=True, door_extent_gate_m=gate), joint_types))
-            report["position_cm"]["door_extent" + ("" if gate is None else f"_gate<={gate:g}m")] = e
-            if e < best_pos:
-                best_gate, best_pos, use_extent = gate, e, True
-    refinement = replace(refinement, door_extent=use_extent, door_extent_gate_m=best_gate)
+        report["position_cm"] = {"votes": position(refinement)}
+        best_extent, best_pos = _best_choice(position, refinement, {
+            "door_extent" + ("" if gate is None else f"_gate<={gate:g}m"): dict(door_extent=True, door_extent_gate_m=gate)
+            for gate in DOOR_EXTENT_GATE_CANDIDATES_M}, report["position_cm"], report["position_cm"]["votes"])
+        refinement = replace(refinement, **(best_extent or {}))
     if revolute.any() and "handle_px" in r:
-        report.setdefault("position_cm", {})["before_handle"] = best_pos = pos_err(apply_refinement(m, r, refinement, joint_types))
-        best_handle = None
-        for q_deg in HANDLE_Q_CANDIDATES_DEG:
-            for px in HANDLE_PX_CANDIDATES:
-                e = pos_err(apply_refinement(m, r, replace(refinement, handle_max_q_deg=q_deg, handle_min_px=px), joint_types))
-                report["position_cm"][f"handle_q<{q_deg:g}deg_px>={px:g}"] = e
-                if e < best_pos:
-                    best_handle, best_pos = (q_deg, px), e
-        if best_handle is not None:
-            refinement = replace(refinement, handle_max_q_deg=best_handle[0], handle_min_px=best_handle[1])
+        report.setdefault("position_cm", {})["before_handle"] = best_pos = position(refinement)
+        best_handle, best_pos = _best_choice(position, refinement, {
+            f"handle_q<{q_deg:g}deg_px>={px:g}": dict(handle_max_q_deg=q_deg, handle_min_px=px)
+            for q_deg in HANDLE_Q_CANDIDATES_DEG for px in HANDLE_PX_CANDIDATES}, report["position_cm"], best_pos)
+        refinement = replace(refinement, **(best_handle or {}))
         report["position_cm"]["before_handle_height"] = before = best_pos
         best_gate, best_cut = None, False
         for cut in (False, True):
@@ -190,8 +180,7 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
         refinement = replace(refinement, **(best_face or {}))
     if (~revolute).any() and "front_m" in r:
         # step 11: the drawer's origin onto its front's centre (position), then q from its plane
-        report.setdefault("position_cm", {})["before_drawer_centre"] = best_pos = pos_err(
-            apply_refinement(m, r, refinement, joint_types))
+        report.setdefault("position_cm", {})["before_drawer_centre"] = best_pos = position(refinement)
         best_centre, best_pos = _best_choice(position, refinement, {
             f"drawer_centre_gate<={gate:g}m": dict(drawer_centre_gate_m=gate)
             for gate in DRAWER_CENTRE_GATE_CANDIDATES_M}, report["position_cm"], best_pos)
@@ -206,8 +195,8 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
             refinement = replace(refinement, **(best_shell or {}))
         offset = fit_drawer_front_offset(r, truth, joint_types)
         report["drawer_front_offset_m"] = offset
-        report["configuration"]["before_drawer_front"] = best_cfg = cfg_err(apply_refinement(m, r, refinement, joint_types))
-        best_front, _ = _best_choice(lambda ref: cfg_err(apply_refinement(m, r, ref, joint_types)), refinement, {
+        report["configuration"]["before_drawer_front"] = best_cfg = configuration(refinement)
+        best_front, _ = _best_choice(configuration, refinement, {
             f"drawer_front_gate<={gate:g}m": dict(drawer_front_gate_m=gate, drawer_front_offset_m=offset)
             for gate in DRAWER_FRONT_GATE_CANDIDATES_M}, report["configuration"], best_cfg)
         refinement = replace(refinement, **(best_front or {}))

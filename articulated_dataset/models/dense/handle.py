@@ -48,7 +48,7 @@ import math
 import numpy as np
 import torch
 
-from .aggregate import argmax_channels, compact_mask, lower_median
+from .aggregate import argmax_channels, compact_mask, lower_median, rows_dot
 from .features import MIN_NORMAL_NORM, OUTPUT_STRIDE, POINT_SCALE_M
 
 #: How far a handle bar stands out of its door's face (m): ``handle_standoff_m`` of common.xacro.
@@ -130,9 +130,9 @@ def door_face(normal: list, points: list, real: torch.Tensor, axis: torch.Tensor
     u = perpendicular_mean(real.to(normal[0].dtype))
     for angle_deg in FACE_INLIER_DEG:
         cos = math.cos(math.radians(angle_deg))
-        inlier = real & ((normal[0] * u[:, 0:1] + normal[1] * u[:, 1:2] + normal[2] * u[:, 2:3]) > cos)
+        inlier = real & (rows_dot(normal, u) > cos)
         u = perpendicular_mean(inlier.to(normal[0].dtype))
-    offset = points[0] * u[:, 0:1] + points[1] * u[:, 1:2] + points[2] * u[:, 2:3]
+    offset = rows_dot(points, u)
     face_m = lower_median(offset, inlier)
     return u, torch.where(inlier.sum(-1) >= FACE_MIN_PX, face_m, torch.full_like(face_m, float("nan")))
 
@@ -169,7 +169,7 @@ def door_handles(points: list, normals: list, real: torch.Tensor, row: torch.Ten
     rel = [pts[k] - point[k][:, None] for k in range(3)]
     across = torch.cross(nz, torch.stack(n, -1), dim=-1)  # along the face, perpendicular to the axis
     along = rel[0] * z[0] + rel[1] * z[1] + rel[2] * z[2]  # each pixel's height above the bar's mean point
-    wide = rel[0] * across[:, 0:1] + rel[1] * across[:, 1:2] + rel[2] * across[:, 2:3]
+    wide = rows_dot(rel, across)
     spread, _ = _row_mean([along * along, wide * wide], on)
     # a bar cut by the image's top or bottom border (step 9's cut bars): its centre is half a bar's
     # length from its one visible end, the end away from the border

@@ -114,7 +114,7 @@ import torch
 from torch.nn import functional as F
 
 from .aggregate import (SPLIT_FACTOR, argmax_channels, compact_mask, gram_schmidt6, image_groups, lower_median,
-                        softmax_weights)
+                        rows_dot, softmax_weights)
 from .features import MIN_NORMAL_NORM, OUTPUT_STRIDE, POINT_SCALE_M, one_sided_normals
 from .handle import (EVERY_DOOR_DEG, HANDLE_KEYS, MIN_RADIUS_M, apply_handle_height, apply_handle_side, door_face,
                      door_handles, handle_candidates)
@@ -161,9 +161,10 @@ FRONT_MIN_PX = 10
 #: clearance) are read from the pixels whose normal is within this angle (deg) of a frame axis
 #: across the pull axis ...
 SHELL_FACE_MAX_DEG = 20.0
-#: ... and which lie within this distance (m) of the face's plane (the 0.98 quantile of their
-#: coordinates along its normal: the outermost face) ...
+#: ... and which lie within this distance (m) of the face's plane (the ``1 - SHELL_PLANE_QUANTILE``
+#: quantile of their coordinates along its normal: the outermost face) ...
 SHELL_FLUSH_M = 0.01
+SHELL_PLANE_QUANTILE = 0.02
 #: ... further behind the front's plane than the front panel's thickness (``drawer.urdf.xacro``'s
 #: ``panel_m``) plus :data:`SHELL_PANEL_MARGIN_M`: the shell's pixels, whose front-most one is its
 #: edge, where the drawer leaves it; the face with the most such pixels (at least
@@ -552,8 +553,7 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     with_normal = dok & has_normal.view(-1).index_select(0, door_at).view(R * J, m)
     door_px_at = at.index_select(0, door_at)  # the doors' pixels in the input
     door_normal = [x_flat[c * P:].index_select(0, door_px_at).view(R * J, m) for c in (4, 5, 6)]
-    project = lambda v, a: v[0] * a[:, 0:1] + v[1] * a[:, 1:2] + v[2] * a[:, 2:3]  # noqa: E731  (R * J, m) . (R * J, 3)
-    n_x, n_y = project(door_normal, xf.reshape(R * J, 3)), project(door_normal, yf.reshape(R * J, 3))
+    n_x, n_y = rows_dot(door_normal, xf.reshape(R * J, 3)), rows_dot(door_normal, yf.reshape(R * J, 3))
     angles = {}  # equal weights; NaN for prismatic joints
     per_door = lambda values: torch.where(revolute[None], lower_median(values, with_normal).view(R, J),  # noqa: E731
                                           torch.tensor(float("nan"), dtype=x.dtype))
@@ -587,7 +587,7 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     door_anchor = anchor.repeat_interleave(J, 0)
     door_points = [x_flat[c * P:].index_select(0, door_px_at).view(R * J, m) * POINT_SCALE_M + door_anchor[:, c:c + 1]
                    for c in range(3)]
-    along = door_points[0] * door_axis[:, 0:1] + door_points[1] * door_axis[:, 1:2] + door_points[2] * door_axis[:, 2:3]
+    along = rows_dot(door_points, door_axis)
     door_row = row.view(-1).index_select(0, door_at).view(R * J, m)
     door_mid, door_cut = _door_extent(along, door_row, dok, revolute, (R, J), H)
     if revolute.any():  # step 10's face (and steps 7 and 9's): doors that turn only
@@ -632,11 +632,10 @@ def drawer_front(points: list, normals: list, real: torch.Tensor, row: torch.Ten
     image's border (the extent is then the image's, not the front's)."""
     H, W = image_hw
     x, y, z = frame.unbind(-1)  # (R, 3) each
-    dot = lambda v, a: v[0] * a[:, 0:1] + v[1] * a[:, 1:2] + v[2] * a[:, 2:3]  # noqa: E731  (R, m)
     toward = torch.where((z * anchor).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(z.dtype)  # (R, 1)
     zc = toward * z
-    facing = real & (dot(normals, zc).abs() > math.cos(math.radians(FRONT_MAX_DEG)))
-    along = dot(points, zc)
+    facing = real & (rows_dot(normals, zc).abs() > math.cos(math.radians(FRONT_MAX_DEG)))
+    along = rows_dot(points, zc)
     top = _quantile_pair(along, facing, FRONT_TOP_QUANTILE)[1][:, None]
     band = facing & (along >= top - FRONT_BAND_M)
     enough = band.sum(-1) >= FRONT_MIN_PX
@@ -644,7 +643,7 @@ def drawer_front(points: list, normals: list, real: torch.Tensor, row: torch.Ten
     front = torch.where(enough, lower_median(along, band), nan)
     mids = []
     for a in (x, y):
-        lo, hi = _quantile_pair(dot(points, a), band, DOOR_EXTENT_QUANTILE)
+        lo, hi = _quantile_pair(rows_dot(points, a), band, DOOR_EXTENT_QUANTILE)
         mids.append(torch.where(enough, 0.5 * (lo + hi), nan))
     centre = mids[0][:, None] * x + mids[1][:, None] * y
     s = OUTPUT_STRIDE
@@ -662,16 +661,15 @@ def shell_front(points: list, normals: list, real: torch.Tensor, frame: torch.Te
     plane) and further behind the front's plane ``front_m`` (R) than :data:`DRAWER_PANEL_M` plus
     :data:`SHELL_PANEL_MARGIN_M`, the largest coordinate along the axis, read on the face with the
     most such pixels; NaN where no face has :data:`SHELL_MIN_PX`."""
-    dot = lambda v, a: v[0] * a[:, 0:1] + v[1] * a[:, 1:2] + v[2] * a[:, 2:3]  # noqa: E731  (R, n)
-    along = dot(points, front_axis)
+    along = rows_dot(points, front_axis)
     behind_front = along < (front_m - DRAWER_PANEL_M - SHELL_PANEL_MARGIN_M)[:, None]  # False where front_m is NaN
     cos = math.cos(math.radians(SHELL_FACE_MAX_DEG))
     best_count = torch.zeros(len(along), dtype=torch.long)
     best = torch.full((len(along),), float("nan"), dtype=along.dtype)
     for axis in (frame[..., 0], -frame[..., 0], frame[..., 1], -frame[..., 1]):
-        face = real & (dot(normals, axis) > cos)
-        out_m = dot(points, axis)
-        plane = _quantile_pair(out_m, face, 0.02)[1][:, None]  # NaN without face pixels: no pixel is flush
+        face = real & (rows_dot(normals, axis) > cos)
+        out_m = rows_dot(points, axis)
+        plane = _quantile_pair(out_m, face, SHELL_PLANE_QUANTILE)[1][:, None]  # NaN without face pixels: none is flush
         shell = face & ((out_m - plane).abs() < SHELL_FLUSH_M) & behind_front
         count = shell.sum(-1)
         edge = torch.where(shell, along, -float("inf")).amax(-1)
