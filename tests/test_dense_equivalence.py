@@ -360,8 +360,12 @@ def test_refined_quantities_match_a_loop_over_images(joint_types, one_sided, mon
     assert ref["door_cut"].sum() >= 1 and (ref["door_cut"] == 0).sum() >= 1
     if "prismatic" in joint_types:  # step 11 measured some fronts (the planes run out of these small images: cut)
         assert torch.isfinite(ref["front_m"]).sum() >= 3  # (no face here is parallel to the axis: see the next test)
+    # With one-sided normals, one of these random images has a nearly degenerate frame fit: its
+    # float32 eigenvectors depend on the reduction order of the batch against one image, on an AMD
+    # EPYC's kernels 1.0e-4 apart in the axis and 4.0e-4 rad (0.023 deg) in q; elsewhere 2e-5 holds.
+    atol = 5e-4 if one_sided else 2e-5
     for key in ref:
         assert got[key].shape == ref[key].shape, key
         assert torch.equal(got[key].isnan(), ref[key].isnan()), key
-        assert torch.allclose(got[key].nan_to_num(), ref[key].nan_to_num(), atol=2e-5), key
+        assert torch.allclose(got[key].nan_to_num(), ref[key].nan_to_num(), atol=atol), key
 
