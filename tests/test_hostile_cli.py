@@ -546,3 +546,18 @@ def test_real_split_is_test_data_for_the_baselines(env):
     _, per_class = read_predictions(env.tmp / "p.h5")
     ids = per_class["cabinet"]["sample_id"].tolist()
     assert ids == [real_sample_id("cabinet", "real", "a"), real_sample_id("cabinet", "real", "b")]
+
+
+def test_a_checkpoint_that_would_run_code_is_refused_without_advice_to_run_it(tmp_path, monkeypatch):
+    """torch's own message advises loading with weights_only=False; the error names what was
+    refused (the global) instead, and nothing runs."""
+    from articulated_dataset.errors import UserError
+    from articulated_dataset.models.mdn.checkpoint import read_checkpoint_file
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(UserError) as err:
+        read_checkpoint_file(_pickled(tmp_path / "x.pt"))
+    message = str(err.value)
+    assert "not a readable model checkpoint" in message and "system" in message, message
+    assert "weights_only" not in message and "\n" not in message, message
+    assert not (tmp_path / "pwned").exists()

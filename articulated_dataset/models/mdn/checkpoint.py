@@ -5,6 +5,7 @@ model rebuilt from a checkpoint."""
 from __future__ import annotations
 
 import os
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,8 @@ from .config import TrainConfig, is_int
 
 CHECKPOINT_FORMAT = "artdata-mdn"
 CHECKPOINT_VERSION = 1
+#: An unreadable checkpoint's error message quotes at most this many characters of the cause.
+UNREADABLE_DETAIL_CHARS = 200
 
 
 def atomic_torch_save(obj: dict, path: Path) -> None:
@@ -52,9 +55,25 @@ def read_checkpoint_file(path: str | Path, map_location="cpu"):
         raise UserError(f"checkpoint not found: {path}")
     try:
         return torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        # torch's message advises weights_only=False (running the file's code): not ours to echo
+        raise UserError(f"{path}: not a readable model checkpoint (not tensors and plain containers only: "
+                        f"{_refusal(exc)}; checkpoints are read without running anything in them)") from None
     except Exception as exc:  # noqa: BLE001 - torch.load raises many types on a corrupt file (even IndexError)
-        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+        first = str(exc).strip().splitlines()[0][:UNREADABLE_DETAIL_CHARS] if str(exc).strip() else type(exc).__name__
         raise UserError(f"{path}: not a readable model checkpoint ({first})") from None
+
+
+def _refusal(exc: Exception) -> str:
+    """What torch's weights-only unpickler refused, from its message: its first line that is not
+    advice about ``weights_only`` (to load with ``weights_only=False``, running the file's code)
+    or a pointer to the documentation."""
+    advice = ("weights_only", "Check the documentation", "file an issue", "two options", "Alternatively")
+    for line in str(exc).splitlines():
+        line = line.strip().removeprefix("WeightsUnpickler error:").strip()
+        if line and not any(a in line for a in advice):
+            return line.split(". ")[0][:UNREADABLE_DETAIL_CHARS]
+    return type(exc).__name__
 
 
 def prepare_training_output(split_dir: Path, class_name: str, out: Path, *, resume: bool, load, config,
