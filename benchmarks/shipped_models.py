@@ -4,9 +4,10 @@ For every class (default: all six): generate (or reuse) ``ROOT/<class>/test`` wi
 ``--test-objects`` objects from ``--seed`` (default 2026: not the training seed 0 of the
 shipped weights), predict it with each shipped model (``--models``, default ``dense
 mdn-small``), score with :func:`articulated_dataset.benchmark.score`, and print one table:
-axis position (cm), axis rotation (deg), configuration (deg | cm), 90% interval coverage and
-inference speed (images/s, network + aggregation, the split already in memory for dense; in
-``predict_split``'s worker processes where it uses them, their start included).
+axis position (cm), axis rotation (deg), configuration (deg | cm), 90% interval coverage, mean
+NLL (nats per image: the scorer's, over the mixture's columns) and inference speed (images/s,
+network + aggregation, the split already in memory for dense; in ``predict_split``'s worker
+processes where it uses them, their start included).
 ``--precision bfloat16``: the dense network in bfloat16 (``artdata predict --precision``).
 ``--noise kinect2``: the same objects rendered through that depth-noise model (``artdata generate
 --noise``), under ``ROOT/noise-kinect2/``, for the models meant for real sensors
@@ -111,6 +112,7 @@ def main(argv=None) -> int:
                    "mirror": not (args.no_mirror and ref.kind == "dense"),
                    "precision": args.precision if ref.kind == "dense" else "float32",
                    **{k: m[k][0] for k in TABLE_METRICS}, "coverage_90": m.get("coverage_90", (float("nan"),))[0],
+                   "nll": m.get("nll", (float("nan"),))[0],
                    "images_per_s": speed, "test_seed": args.seed, "test_objects": args.test_objects, "noise": args.noise,
                    "all_metrics": {k: v[0] for k, v in m.items()}}
             results.append(rec)
@@ -121,12 +123,12 @@ def main(argv=None) -> int:
 
     noise = "" if args.noise == "none" else f", depth through the {args.noise} noise model"
     print(f"\nTest: {args.test_objects} objects per class, seed {args.seed}{noise}; scorer metric version {METRIC_VERSION}")
-    print(f"{'class':<13} {'model':<13} {'pos cm':>14} {'rot deg':>14} {'config':>14} {'cov90':>6} {'img/s':>7}")
+    print(f"{'class':<13} {'model':<13} {'pos cm':>14} {'rot deg':>14} {'config':>14} {'cov90':>6} {'NLL':>10} {'img/s':>7}")
     for r in results:
         paper = PAPER_TABLE1.get((r["class"], "MDN"))
         cells = [f"{r[k]:.2f} ({paper[i][0]:.2f})" if paper else f"{r[k]:.2f}" for i, k in enumerate(TABLE_METRICS)]
         print(f"{r['class']:<13} {r['model']:<13} {cells[0]:>14} {cells[1]:>14} {cells[2]:>14} {r['coverage_90']:>6.3f} "
-              f"{r['images_per_s']:>7.0f}")
+              f"{r['nll']:>10.4g} {r['images_per_s']:>7.0f}")
     print("(paper's MDN in parentheses; configuration in deg, cm for the drawer)")
     if args.json:
         args.json.write_text(json.dumps({"metric_version": METRIC_VERSION, "results": results}, indent=1))

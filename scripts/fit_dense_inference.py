@@ -9,7 +9,10 @@ Loads the checkpoint's training split, takes the validation objects that trainin
 ``--out``.  Training does this itself since the refinement exists; this script brings older
 checkpoints (the shipped ones trained before it, or before a refinement version) up to date.
 ``--clean`` fits a model trained with ``--noise`` on the noise-free validation images (training
-fits on the noisy ones).  Prints the validation errors of every candidate.
+fits on the noisy ones).  ``--calibration-only`` keeps the refinement chosen before (the same point
+estimates and modes) and refits the calibration alone: the modes' scales and the outlier
+component.  Prints the validation errors of every candidate (with ``--calibration-only``: the
+outlier component's weight and validation NLL).
 """
 
 from __future__ import annotations
@@ -32,6 +35,9 @@ def main(argv=None) -> int:
     p.add_argument("--clean", action="store_true",
                    help="fit on the noise-free validation images even where training used --noise "
                         "(a model trained with noise, fitted for noise-free depth)")
+    p.add_argument("--calibration-only", action="store_true",
+                   help="keep the checkpoint's refinement (its point estimates and modes) and refit only the "
+                        "calibration: the modes' scales and the outlier component")
     args = p.parse_args(argv)
     import torch
 
@@ -42,12 +48,16 @@ def main(argv=None) -> int:
         torch.set_num_threads(args.threads)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        result = refit_inference(args.checkpoint, args.data, args.out, clean=args.clean)
+        result = refit_inference(args.checkpoint, args.data, args.out, clean=args.clean,
+                                 calibration_only=args.calibration_only)
     except UserError as e:
         print(f"fit_dense_inference: error: {e}", file=sys.stderr)
         return 2
-    print(json.dumps({"class": result["class_name"], "refinement": result["refinement"],
-                      "validation": result["refinement_report"]}, indent=1))
+    report = {"class": result["class_name"], "refinement": result["refinement"],
+              "outlier": {k: v for k, v in (result["calibration"].get("outlier") or {}).items() if k != "scale"}}
+    if not args.calibration_only:
+        report["validation"] = result["refinement_report"]
+    print(json.dumps(report, indent=1))
     return 0
 
 

@@ -90,9 +90,14 @@ def _refit_note(ckpt: dict) -> str:
     """How a refitted checkpoint's inference was fitted: ``--clean`` where training used a noise
     model and the refit did not (its ``refit_of`` records the validation images' noise)."""
     # (a refit from before --clean recorded no validation_noise: it fitted as training did)
-    if ckpt.get("train_config", {}).get("noise") is not None and \
-            ckpt["refit_of"].get("validation_noise", "as trained") is None:
-        return (f"scripts/fit_dense_inference.py --checkpoint {ckpt['refit_of']['file']} --clean: on the same "
+    refit = ckpt["refit_of"]
+    clean = ckpt.get("train_config", {}).get("noise") is not None and refit.get("validation_noise", "as trained") is None
+    if refit.get("calibration_only"):
+        return (f"scripts/fit_dense_inference.py --checkpoint {refit['file']}{' --clean' if clean else ''} "
+                "--calibration-only: the calibration (the modes' scales and the outlier component) on the same "
+                f"validation objects{', noise-free' if clean else ''}, the refinement kept")
+    if clean:
+        return (f"scripts/fit_dense_inference.py --checkpoint {refit['file']} --clean: on the same "
                 "validation objects, noise-free")
     return "scripts/fit_dense_inference.py on the same validation objects"
 
@@ -102,9 +107,15 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
     if refit is not None:  # shipped weights whose inference was refitted (scripts/fit_dense_inference.py)
         for e in shipped:
             if e["sha256"] == refit["sha256"]:
+                note = _refit_note(ckpt)
+                if refit.get("calibration_only") and e["training"].get("refit"):  # a refit of a refit: both, in order
+                    note = f"{e['training']['refit']}; then {note}"
                 rec = {**e["training"], "refinement": ckpt["refinement"],
-                       "refinement_validation": ckpt.get("refinement_report"),
-                       "refit": _refit_note(ckpt)}
+                       "refinement_validation": ckpt.get("refinement_report"), "refit": note}
+                if (ckpt.get("data") or {}).get("generated"):  # the split it was fitted on, named by the refit
+                    before = rec["data_command"].split("--out ")[-1]
+                    rec["data_command"] = _data_command(c, ckpt)[0]
+                    rec["command"] = rec["command"].replace(f"--data {before}/", f"--data {rec['data_command'].split('--out ')[-1]}/")
                 if ckpt.get("selection") is not None:
                     rec["selection"] = ckpt["selection"]
                 return rec
@@ -161,6 +172,7 @@ def _test_record(r: dict, metric_version: int) -> dict:
     figures are measured alone on the machine)."""
     rec = {"pos_cm": r["axis_position_error_cm"], "rot_deg": r["axis_rotation_error_deg"],
            "config": r["configuration_error"], "coverage_90": r["coverage_90"],
+           **({"nll": r["nll"]} if r.get("nll") is not None else {}),
            "images": r["n_images"], "objects": r["test_objects"], "seed": r["test_seed"],
            "images_per_s": r["images_per_s"], "metric_version": metric_version}
     if r.get("noise", "none") != "none":

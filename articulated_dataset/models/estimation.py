@@ -51,6 +51,9 @@ class Estimate:
     mixture_scales: np.ndarray | None = None  # (M, D)
     mixture_layout: list[str] = field(default_factory=list)
     model: str = ""
+    #: weight of the mixture's last component, the outlier component (broad, centred on the
+    #: estimate: docs/dense.md, "Uncertainty"); 0 where the model has none
+    outlier_weight: float = 0.0
 
     def to_dict(self) -> dict:
         """JSON-ready: lists of floats, one entry per joint."""
@@ -72,7 +75,8 @@ class Estimate:
             "geometry": {"depth_m": float(g[0]), "width_m": float(g[1]), "height_m": float(g[2]), "chirality": float(g[3]),
                          "std": {k.split(".", 1)[1]: v for k, v in self.std.items() if k.startswith("geometry.")}},
             "mixture": {"weights": (self.mixture_weights.tolist() if self.mixture_weights is not None else []),
-                        "n_components": 0 if self.mixture_weights is None else int(len(self.mixture_weights))},
+                        "n_components": 0 if self.mixture_weights is None else int(len(self.mixture_weights)),
+                        "outlier_weight": float(self.outlier_weight)},
         }
 
     def summary(self) -> str:
@@ -91,8 +95,11 @@ class Estimate:
         g = self.geometry
         lines.append(f"geometry: depth {g[0]:.3f} m, width {g[1]:.3f} m, height {g[2]:.3f} m, chirality {g[3]:.2f}")
         if self.mixture_weights is not None and len(self.mixture_weights) > 1:
-            w = np.sort(self.mixture_weights)[::-1]
-            lines.append("mixture weights: " + ", ".join(f"{v:.2f}" for v in w if v > 1e-3))
+            modes = self.mixture_weights[:-1] if self.outlier_weight > 0 else self.mixture_weights
+            line = "mixture weights: " + ", ".join(f"{v:.2f}" for v in np.sort(modes)[::-1] if v > 1e-3)
+            if self.outlier_weight > 0:
+                line += f" (modes); outlier component {self.outlier_weight:.4f}"
+            lines.append(line)
         return "\n".join(lines)
 
 
@@ -201,6 +208,7 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
         part_offset_m=arrays["part_offset"][0], geometry=arrays["geometry"][0], std=std,
         mixture_weights=arrays["mixture_weights"][0], mixture_means=arrays["mixture_means"][0],
         mixture_scales=arrays["mixture_scales"][0], mixture_layout=list(arrays["mixture_layout"]), model=name,
+        outlier_weight=float(((ckpt.get("calibration") or {}).get("outlier") or {}).get("weight", 0.0)),
     )
 
 

@@ -411,16 +411,20 @@ def _on_cpu(state):
 
 
 def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *, progress: bool = True,
-                    clean: bool = False) -> dict:
+                    clean: bool = False, calibration_only: bool = False) -> dict:
     """Refit what inference needs beyond the weights (refinement choice, calibration) of a finished
     dense checkpoint on the validation objects of its training split ``data`` (the same objects
     training held out: its ``val_fraction``, ``seed`` and ``max_objects``), and write the result
     to ``out`` atomically (through the noise model when it was trained with ``--noise``, as
     training fits, unless ``clean``: a model trained with noise fitted for noise-free depth).
-    For checkpoints trained before a refinement existed, or a refinement version."""
+    For checkpoints trained before a refinement existed, or a refinement version.
+    ``calibration_only``: keep the checkpoint's refinement (and so its point estimates and
+    modes) and refit only the calibration (:func:`~.predict.fitted_calibration`: for
+    checkpoints fitted before the outlier component)."""
     from ..mdn.data import resolve_split_dir, split_by_object, split_class
     from ...registry import get_class
-    from .predict import fit_inference
+    from .predict import PREDICT_BATCH, _refined_images, fit_calibration, fit_inference, fitted_calibration, modes_to_arrays
+    from .refine import as_refinement
 
     ckpt = load_dense_checkpoint(checkpoint)
     if not ckpt.get("finished"):
@@ -429,6 +433,10 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     if split_class(split_dir) != ckpt["class_name"]:
         raise UserError(f"{split_dir}: holds class {split_class(split_dir)!r}, the checkpoint {ckpt['class_name']!r}")
     config = DenseTrainConfig.from_dict(ckpt["train_config"])
+    recorded, generated = (ckpt.get("data") or {}).get("generated"), split_generation(split_dir)
+    if recorded is not None and generated is not None and recorded != generated:
+        raise UserError(f"{split_dir}: generated as {generated}, but the checkpoint was trained on a split generated as "
+                        f"{recorded}: its validation objects are not there")
     model = build_inference_model(ckpt)
     c = model.config
     # the objects training held out (split_by_object depends on the set of objects only), then only their images
@@ -445,10 +453,26 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     from ...format import sha256_file
 
     result = dict(ckpt)
-    result.update(fit_inference(model, data_, va_idx, list(ckpt["joint_types"]),
-                                mirror_joints=get_class(ckpt["class_name"]).mirror_joints, progress=progress))
+    if calibration_only:
+        if ckpt.get("refinement") is None:
+            raise UserError(f"{checkpoint}: has no refinement to keep; refit it whole (without --calibration-only)")
+        modes = _refined_images(model, data_, va_idx, list(ckpt["joint_types"]), as_refinement(ckpt["refinement"]),
+                                PREDICT_BATCH, progress)
+        if ckpt.get("calibration") is not None:  # the same objects give the same scales as before, the outlier aside
+            plain = fit_calibration(modes_to_arrays(modes, data_.sample_id[va_idx], model, None), data_, va_idx)
+            change = max(abs(a / b - 1.0) for key in ("spread_factor", "floor")
+                         for a, b in zip(plain[key], ckpt["calibration"][key]))
+            log.info("%s: the modes' scales fitted as before differ from the checkpoint's by at most %.2g (relative): "
+                     "%s", checkpoint, change, "the same validation objects" if change < 1e-6 else
+                     "not the images the checkpoint was calibrated on (another split, or another refinement version)")
+        result["calibration"] = fitted_calibration(modes, model, data_, va_idx)
+    else:
+        result.update(fit_inference(model, data_, va_idx, list(ckpt["joint_types"]),
+                                    mirror_joints=get_class(ckpt["class_name"]).mirror_joints, progress=progress))
+    if recorded is None and generated is not None:  # checkpoints from before the record: the split named now
+        result["data"] = {**(ckpt.get("data") or {}), "generated": generated}
     result["refit_of"] = {"file": Path(checkpoint).name, "sha256": sha256_file(Path(checkpoint)),
-                          "validation_noise": noise}
+                          "validation_noise": noise, **({"calibration_only": True} if calibration_only else {})}
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_save(result, out)
