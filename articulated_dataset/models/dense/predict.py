@@ -10,7 +10,7 @@ training split's validation objects by maximum likelihood (:func:`fit_calibratio
 point estimate is the heaviest component's mean (never an average of modes).
 
 Where the calibration holds an outlier component (:func:`fit_outlier_component`), one more
-component follows the modes': centred on the point estimate, as wide as the class's own spread
+component follows the modes': centred on the point estimate, at least as wide as the class's spread
 of every column, with a small weight fitted on the same validation objects.  It stands for the
 estimate's gross failures (a door's hinge put on the wrong side, a frame turned 180 deg), which
 the modes' Gaussians, fitted to the far more numerous good estimates, would give a density of
