@@ -11,7 +11,8 @@ point estimate is the heaviest component's mean (never an average of modes).
 
 Where the calibration holds an outlier component (:func:`fit_outlier_component`), one more
 component follows the modes': centred on the point estimate, at least as wide as the class's spread
-of every column, with a small weight fitted on the same validation objects.  It stands for the
+of every column (and a floor per kind of column), with a small weight fitted on the same
+validation objects.  It stands for the
 estimate's gross failures (a door's hinge put on the wrong side, a frame turned 180 deg), which
 the modes' Gaussians, fitted to the far more numerous good estimates, would give a density of
 zero: one such image used to decide a class's mean NLL (the shipped cabinet's: 1.4e6 nats on
@@ -71,6 +72,16 @@ OUTLIER_MAX_ROUNDS = 100
 OUTLIER_TOLERANCE_NATS = 1e-6
 #: :func:`fitted_calibration` alternates the modes' scales and the outlier component this many times.
 OUTLIER_CALIBRATION_ROUNDS = 2
+#: The outlier component's smallest scale per kind of target column (label units: m, unit-vector
+#: components, rad or m for q, the chirality probability), where the class holds a column constant
+#: and the validation images show no spread in it: a vertical hinge's axis is (0, 0, -1) in every
+#: image, a door's part offset across the door about 0, a one-sided class's chirality 0 or 1.  An
+#: estimate that failed outright may still move them (a microwave's frame flipped about its door:
+#: the axis read as (0, 0, +1), off by 2; before this floor that cost 10^6 nats in the seed-2026
+#: test microwaves and refrigerators).  Half the range of a unit vector's component and of the
+#: chirality (a flipped axis is then 4 scales off: 8 nats), 5 cm, 0.1 rad (or 10 cm) of q.
+OUTLIER_MIN_SCALES = {"origin": 0.05, "axis": 0.5, "xaxis": 0.5, "q": 0.1, "offset": 0.05,
+                      "depth": 0.05, "width": 0.05, "height": 0.05, "chirality": 0.5}
 
 
 def _layout_names(J: int) -> list[str]:
@@ -416,6 +427,12 @@ def with_outlier_component(weights: np.ndarray, means: np.ndarray, scales: np.nd
             np.concatenate([spread, np.zeros((N, 1, D))], 1))
 
 
+def outlier_scale_floors(layout: list[str]) -> np.ndarray:
+    """:data:`OUTLIER_MIN_SCALES` of each column of a mixture layout (names such as ``j0.axis.z``,
+    ``j1.q``, ``geometry.chirality``: the kind is the second part)."""
+    return np.array([OUTLIER_MIN_SCALES[name.split(".")[1]] for name in layout], np.float64)
+
+
 def fit_outlier_component(arrays: dict, y: np.ndarray) -> dict:
     """The outlier component of a calibrated mixture (module docstring), fitted on validation
     images: ``arrays`` their predictions (:func:`mixture_from_modes` with the calibration,
@@ -426,10 +443,12 @@ def fit_outlier_component(arrays: dict, y: np.ndarray) -> dict:
     ``(1 - eps) p(y) + eps N(y; m, diag(s^2))``.  Expectation-maximisation: each image's
     responsibility ``g = eps N / ((1 - eps) p + eps N)``; then ``eps = mean(g)`` (within
     :data:`OUTLIER_WEIGHT_BOUNDS`) and ``s_d^2 = sum g r_d^2 / sum g`` with ``r = y - m``, but
-    never below the floor ``s0_d = max(std of y_d, rms of r_d)`` over the images: the class's own
-    spread of the column (what an estimate that failed outright is off by) or the estimates'
-    error, whichever is larger, so the component stays a broad one even where the validation
-    images show no failure.  Starts from ``eps`` = :data:`OUTLIER_INITIAL_WEIGHT` and ``s = s0``.
+    never below the floor ``s0_d = max(std of y_d, rms of r_d, c_d)`` over the images: the class's
+    own spread of the column (what an estimate that failed outright is off by), the estimates'
+    error, or the column kind's :data:`OUTLIER_MIN_SCALES` (``c_d``, where ``arrays`` names its
+    ``mixture_layout``; for the columns the class holds constant), whichever is largest, so the
+    component stays a broad one even where the validation images show no failure.  Starts from
+    ``eps`` = :data:`OUTLIER_INITIAL_WEIGHT` and ``s = s0``.
 
     Returns ``{"weight", "scale" (D,), "n_images", "validation_nll": {"without", "with"},
     "responsibility"}``: the mean NLL (nats per image) of the mixture without and with the
@@ -444,7 +463,8 @@ def fit_outlier_component(arrays: dict, y: np.ndarray) -> dict:
     n = len(y)
     point = mu[np.arange(n), w.argmax(-1)]
     r2 = (y - point) ** 2
-    floor = np.maximum(np.maximum(y.std(0), np.sqrt(r2.mean(0))), MIN_SCALE)
+    kind_floor = outlier_scale_floors(list(arrays["mixture_layout"])) if "mixture_layout" in arrays else MIN_SCALE
+    floor = np.maximum(np.maximum(y.std(0), np.sqrt(r2.mean(0))), kind_floor)
     with np.errstate(over="ignore"):  # a gross failure's mixture density underflows to 0: NLL inf
         log_core = -mixture_nll(y, w, mu, sigma)
     lo, hi = OUTLIER_WEIGHT_BOUNDS
