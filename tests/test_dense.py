@@ -432,6 +432,41 @@ def test_checkpoints_with_bad_fields_are_one_line(overfit_run, tmp_path, tiny_ro
     assert code == 2 and text.count("\n") == 1 and text.startswith("artdata: error:"), text
 
 
+def _bad_calibrations():
+    """(name, change) pairs: each makes a fitted calibration (17 columns, one joint) malformed."""
+    def outlier(**kw):
+        return lambda c: {**c, "outlier": {**c["outlier"], **kw}}
+    return [("not a dict", lambda c: [1, 2]),
+            ("short factors", lambda c: {**c, "spread_factor": c["spread_factor"][:3]}),
+            ("a NaN floor", lambda c: {**c, "floor": [float("nan")] + c["floor"][1:]}),
+            ("a text weight", outlier(weight="heavy")),
+            ("weight 1", outlier(weight=1.0)),
+            ("a zero scale", outlier(scale=[0.0] * 17)),
+            ("scales of another layout", outlier(scale=[0.1] * 30)),
+            ("an outlier list", lambda c: {**c, "outlier": [0.01]})]
+
+
+@pytest.mark.parametrize("name,change", _bad_calibrations(), ids=[n for n, _ in _bad_calibrations()])
+def test_a_malformed_calibration_is_one_line(overfit_run, tmp_path, tiny_root, name, change):
+    """A checkpoint's calibration (the modes' scales and the outlier component) is checked when
+    the file is read: predict and estimate say what is wrong in one line instead of failing
+    inside the mixture's arithmetic."""
+    from articulated_dataset.models.dense.predict import OUTLIER_MIN_SCALES, _layout_names
+
+    ckpt = dict(load_dense_checkpoint(overfit_run[0]))
+    calibration = dict(ckpt["calibration"] or {"spread_factor": [1.0] * 17, "floor": [0.01] * 17})
+    calibration.setdefault("outlier", {"weight": 0.01, "scale": [OUTLIER_MIN_SCALES[n.split(".")[1]]
+                                                                  for n in _layout_names(1)]})
+    good = tmp_path / "good.pt"
+    torch.save({**ckpt, "calibration": calibration}, good)
+    split = str(tiny_root / "microwave" / "test")
+    assert _run(["predict", "--model", str(good), "--data", split, "--out", str(tmp_path / "g.h5"), "-q"])[0] == 0
+    bad = tmp_path / "bad.pt"
+    torch.save({**ckpt, "calibration": change(calibration)}, bad)
+    code, text = _run(["predict", "--model", str(bad), "--data", split, "--out", str(tmp_path / "p.h5")])
+    assert code == 2 and text.count("\n") == 1 and "'calibration' is malformed" in text, text
+
+
 def test_origin_weight_scales_only_the_origin_terms_of_the_loss(tiny_root):
     from articulated_dataset.models.dense.data import load_dense_split
     from articulated_dataset.models.dense.features import make_inputs

@@ -29,7 +29,47 @@ def load_dense_checkpoint(path: str | Path) -> dict:
     for key, typ in need.items():
         if not isinstance(ckpt.get(key), typ):
             raise UserError(f"{path}: checkpoint field {key!r} is missing or not a {typ.__name__}")
+    problem = calibration_problem(ckpt.get("calibration"), 13 * len(ckpt["joint_types"]) + 4)
+    if problem is not None:
+        raise UserError(f"{path}: checkpoint field 'calibration' is malformed: {problem}")
     return ckpt
+
+
+def _numbers(value, n: int, *, positive: bool) -> bool:
+    """Whether ``value`` is a list of ``n`` finite numbers, each >= 0 (> 0 with ``positive``)."""
+    import math
+
+    return (isinstance(value, (list, tuple)) and len(value) == n
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                    and (v > 0 if positive else v >= 0) for v in value))
+
+
+def calibration_problem(calibration, n_columns: int) -> str | None:
+    """What is wrong with a checkpoint's ``calibration`` (None: nothing; absent is allowed, the
+    modes then keep their raw spreads): per-column ``spread_factor`` and ``floor`` lists of
+    ``n_columns`` finite non-negative numbers and, where present, an ``outlier`` component with a
+    ``weight`` in [0, 1) and ``n_columns`` positive finite ``scale`` values
+    (:func:`~.predict.fit_outlier_component`)."""
+    import math
+
+    if calibration is None:
+        return None
+    if not isinstance(calibration, dict):
+        return "not a dict"
+    for key in ("spread_factor", "floor"):
+        if not _numbers(calibration.get(key), n_columns, positive=False):
+            return f"{key!r} is not {n_columns} finite non-negative numbers"
+    outlier = calibration.get("outlier")
+    if outlier is None:
+        return None
+    if not isinstance(outlier, dict):
+        return "'outlier' is not a dict"
+    w = outlier.get("weight")
+    if not (isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) and 0 <= w < 1):
+        return "the outlier component's 'weight' is not a number in [0, 1)"
+    if not _numbers(outlier.get("scale"), n_columns, positive=True):
+        return f"the outlier component's 'scale' is not {n_columns} finite positive numbers"
+    return None
 
 
 def build_dense_model(ckpt: dict):
