@@ -589,10 +589,14 @@ def fitted_calibration(modes: dict, model, data, idx: np.ndarray) -> dict:
     :data:`OUTLIER_CALIBRATION_ROUNDS` times the outlier component of the calibrated mixture
     (:func:`fit_outlier_component`) and the modes' scales refitted with each image weighted by
     ``1 - g``, its share the modes explain (so the few gross failures no longer widen every
-    image's scales), then the outlier component of the final scales (under ``"outlier"``)."""
+    image's scales), then the outlier component of the final scales (under ``"outlier"``; none,
+    with a warning, where no image has every target column defined)."""
     uncalibrated = modes_to_arrays(modes, data.sample_id[idx], model, None)
     y = truth_columns(data, idx)
     calibration = fit_calibration(uncalibrated, data, idx)
+    if not np.isfinite(y).all(-1).any():  # labels with undefined columns in every image (real captures)
+        log.warning("no validation image has every target column defined: the mixtures get no outlier component")
+        return calibration
     for _ in range(OUTLIER_CALIBRATION_ROUNDS):
         outlier = fit_outlier_component(modes_to_arrays(modes, data.sample_id[idx], model, calibration), y)
         calibration = fit_calibration(uncalibrated, data, idx, 1.0 - outlier["responsibility"])
