@@ -37,11 +37,10 @@ def load_dense_checkpoint(path: str | Path) -> dict:
 
 def _numbers(value, n: int, *, positive: bool) -> bool:
     """Whether ``value`` is a list of ``n`` finite numbers, each >= 0 (> 0 with ``positive``)."""
-    import math
+    from ..mdn.config import is_real_number
 
     return (isinstance(value, (list, tuple)) and len(value) == n
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                    and (v > 0 if positive else v >= 0) for v in value))
+            and all(is_real_number(v) and (v > 0 if positive else v >= 0) for v in value))
 
 
 def calibration_problem(calibration, n_columns: int) -> str | None:
@@ -50,7 +49,7 @@ def calibration_problem(calibration, n_columns: int) -> str | None:
     ``n_columns`` finite non-negative numbers and, where present, an ``outlier`` component with a
     ``weight`` in [0, 1) and ``n_columns`` positive finite ``scale`` values
     (:func:`~.predict.fit_outlier_component`)."""
-    import math
+    from ..mdn.config import is_real_number
 
     if calibration is None:
         return None
@@ -65,7 +64,7 @@ def calibration_problem(calibration, n_columns: int) -> str | None:
     if not isinstance(outlier, dict):
         return "'outlier' is not a dict"
     w = outlier.get("weight")
-    if not (isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) and 0 <= w < 1):
+    if not (is_real_number(w) and 0 <= w < 1):
         return "the outlier component's 'weight' is not a number in [0, 1)"
     if not _numbers(outlier.get("scale"), n_columns, positive=True):
         return f"the outlier component's 'scale' is not {n_columns} finite positive numbers"

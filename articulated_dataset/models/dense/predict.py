@@ -469,9 +469,11 @@ def fit_outlier_component(arrays: dict, y: np.ndarray) -> dict:
         log_core = -mixture_nll(y, w, mu, sigma)
     lo, hi = OUTLIER_WEIGHT_BOUNDS
 
+    one = np.ones((n, 1))
+
     def log_terms(eps: float, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # per image: log(eps N(y; m, s)) and log of the whole density
-        a = np.log(eps) - np.sum(np.log(scale) + 0.5 * np.log(2 * np.pi) + 0.5 * r2 / scale**2, -1)
+        a = np.log(eps) - mixture_nll(y, one, point[:, None], np.broadcast_to(scale, (n, 1, len(scale))))
         return a, np.logaddexp(a, np.log1p(-eps) + log_core)
 
     eps, scale = OUTLIER_INITIAL_WEIGHT, floor.copy()
@@ -583,17 +585,18 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
             "refinement_report": report}
 
 
-def fitted_calibration(modes: dict, model, data, idx: np.ndarray) -> dict:
+def fitted_calibration(modes: dict, model, data, idx: np.ndarray, plain: dict | None = None) -> dict:
     """The calibration of a model's refined vote modes (numpy) of the validation images ``idx``,
     the modes' scales and the outlier component fitted together: :func:`fit_calibration`, then
     :data:`OUTLIER_CALIBRATION_ROUNDS` times the outlier component of the calibrated mixture
     (:func:`fit_outlier_component`) and the modes' scales refitted with each image weighted by
     ``1 - g``, its share the modes explain (so the few gross failures no longer widen every
     image's scales), then the outlier component of the final scales (under ``"outlier"``; none,
-    with a warning, where no image has every target column defined)."""
+    with a warning, where no image has every target column defined).  ``plain``: the first
+    :func:`fit_calibration` of these modes where the caller has it already."""
     uncalibrated = modes_to_arrays(modes, data.sample_id[idx], model, None)
     y = truth_columns(data, idx)
-    calibration = fit_calibration(uncalibrated, data, idx)
+    calibration = fit_calibration(uncalibrated, data, idx) if plain is None else dict(plain)
     if not np.isfinite(y).all(-1).any():  # labels with undefined columns in every image (real captures)
         log.warning("no validation image has every target column defined: the mixtures get no outlier component")
         return calibration

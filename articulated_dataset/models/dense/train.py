@@ -465,15 +465,15 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
             raise UserError(f"{checkpoint}: has no refinement to keep; refit it whole (without --calibration-only)")
         modes = _refined_images(model, data_, va_idx, list(ckpt["joint_types"]), as_refinement(ckpt["refinement"]),
                                 PREDICT_BATCH, progress)
+        plain = fit_calibration(modes_to_arrays(modes, data_.sample_id[va_idx], model, None), data_, va_idx)
         if ckpt.get("calibration") is not None:  # the same objects give the same scales as before, the outlier aside
-            plain = fit_calibration(modes_to_arrays(modes, data_.sample_id[va_idx], model, None), data_, va_idx)
             change = np.median([abs(a / b - 1.0) for key in ("spread_factor", "floor")
                                 for a, b in zip(plain[key], ckpt["calibration"][key])])
             log.info("%s: the modes' scales fitted as before differ from the checkpoint's by %.2g (median relative "
                      "difference of the columns' factors and floors): %s", checkpoint, change,
                      "the same validation objects" if change < SAME_CALIBRATION_TOLERANCE else
                      "not the images the checkpoint was calibrated on (another split, or another refinement version)")
-        result["calibration"] = fitted_calibration(modes, model, data_, va_idx)
+        result["calibration"] = fitted_calibration(modes, model, data_, va_idx, plain)
     else:
         result.update(fit_inference(model, data_, va_idx, list(ckpt["joint_types"]),
                                     mirror_joints=get_class(ckpt["class_name"]).mirror_joints, progress=progress))
