@@ -131,6 +131,8 @@ def bench_class(args, class_name: str) -> None:
         refine_options = {} if refinement is None else {"frame_min_prob": getattr(refinement, "frame_min_prob", None)}
         if getattr(refinement, "frame_one_sided", False):  # older code has no one-sided normals
             refine_options["frame_one_sided"] = True
+        if getattr(refinement, "frame_strip_elongation", None) is not None:  # older code reads no strip
+            refine_options["frame_strip_elongation"] = refinement.frame_strip_elongation
         if hasattr(refinement, "door_angles"):  # pragma: no branch - older code computes every angle
             refine_options["door_angles"] = refinement.door_angles
         handle_deg = None if refinement is None else getattr(refinement, "handle_evidence_max_q_deg",

@@ -467,6 +467,34 @@ def test_a_malformed_calibration_is_one_line(overfit_run, tmp_path, tiny_root, n
     assert code == 2 and text.count("\n") == 1 and "'calibration' is malformed" in text, text
 
 
+def _bad_refinements():
+    """(name, change) pairs: each makes a checkpoint's refinement (one joint) malformed."""
+    return [("not a dict", lambda r: [1, 2]),
+            ("a missing field", lambda r: {k: v for k, v in r.items() if k != "frame"}),
+            ("a text threshold", lambda r: {**r, "frame_min_prob": "sure"}),
+            ("a NaN offset", lambda r: {**r, "hinge_offset_m": float("nan")}),
+            ("an infinite strip elongation", lambda r: {**r, "frame_strip_elongation": float("inf")}),
+            ("a negative pixel count", lambda r: {**r, "min_door_px": -5}),
+            ("a joint that is not there", lambda r: {**r, "mirror_joints": [3]}),
+            ("one face offset", lambda r: {**r, "door_face_offsets_m": [0.0]}),
+            ("a list gate", lambda r: {**r, "door_angle_gate_deg": [1, 2]})]
+
+
+@pytest.mark.parametrize("name,change", _bad_refinements(), ids=[n for n, _ in _bad_refinements()])
+def test_a_malformed_refinement_is_one_line(overfit_run, tmp_path, tiny_root, name, change):
+    """A checkpoint's refinement is checked when the file is read: predict says what is wrong in
+    one line instead of a traceback from inside the refinement."""
+    from articulated_dataset.models.dense.refine import Refinement
+
+    ckpt = dict(load_dense_checkpoint(overfit_run[0]))
+    refinement = ckpt.get("refinement") or Refinement(frame=True).to_dict()
+    split = str(tiny_root / "microwave" / "test")
+    bad = tmp_path / "bad.pt"
+    torch.save({**ckpt, "refinement": change(dict(refinement))}, bad)
+    code, text = _run(["predict", "--model", str(bad), "--data", split, "--out", str(tmp_path / "p.h5")])
+    assert code == 2 and text.count("\n") == 1 and "'refinement' is malformed" in text, text
+
+
 def test_origin_weight_scales_only_the_origin_terms_of_the_loss(tiny_root):
     from articulated_dataset.models.dense.data import load_dense_split
     from articulated_dataset.models.dense.features import make_inputs

@@ -533,7 +533,7 @@ def test_box_frame_uses_only_the_pixels_the_segmentation_is_sure_of(part_logit, 
 
 def test_refinement_dict_reads_version_5_without_the_frame_threshold():
     ref = R.Refinement(frame=True, hinge_offset_m=-0.01, frame_min_prob=0.9, mirror_joints=(0,))
-    assert R.Refinement.from_dict(ref.to_dict()) == ref and ref.version == R.REFINEMENT_VERSION == 13
+    assert R.Refinement.from_dict(ref.to_dict()) == ref and ref.version == R.REFINEMENT_VERSION == 14
     old = {k: v for k, v in ref.to_dict().items() if k != "frame_min_prob"} | {"version": 5}
     assert R.Refinement.from_dict(old).frame_min_prob is None
 
@@ -778,11 +778,70 @@ def test_box_frame_reads_a_body_strip_with_one_sided_normals(one_sided):
     assert off < 0.2 if one_sided else 4.5 < off < 5.5
 
 
+@pytest.mark.parametrize("elongation", [None, 100.0])
+def test_box_frame_reads_the_line_of_a_body_strip(elongation):
+    """Step 2 with ``frame_strip_elongation`` (refinement version 14), without any normal on the
+    strip (no one-sided ones): the strip's points lie on the side wall, so their line across the
+    axis turns the frame, voted 5 degrees off about the axis, onto the wall; without it the votes
+    stay."""
+    depth, K = _strip_scene()
+    inputs = make_inputs(depth, K)
+    h, w = inputs["weight_out"].shape[1:]
+    seg = torch.zeros(1, 2, h, w)
+    seg[:, 1] = 5.0
+    seg[:, 0, :, _STRIP_COLUMNS[0] // 4] = 10.0
+    votes = torch.tensor(Rotation.from_euler("z", 5, degrees=True).as_matrix() @ _BOX, dtype=torch.float32)
+    rot6 = torch.cat([votes[:, 2], votes[:, 0]]).reshape(1, 1, 6, 1, 1).expand(1, 1, 6, h, w)
+    parts = {"seg": seg, "rot6": rot6, "conf": torch.zeros(1, 1, 3, h, w)}
+    modes = _modes(torch.tensor([[[[1.5, -0.3, 0.0]]]]), votes[:, 2].reshape(1, 1, 1, 3))
+    r = R.refined_quantities(parts, inputs, modes, ["revolute"], frame_min_prob=0.9,
+                             frame_strip_elongation=elongation)
+    off = _angle_deg(r["xaxis"][0, 0, 0].double().numpy(), _BOX[:, 0])
+    assert off < 0.2 if elongation is not None else 4.5 < off < 5.5
+
+
+def test_strip_normals_take_only_thin_long_strips():
+    """:func:`R.strip_normals`: points on a line across the axis give the normal across the line
+    and the axis, weighted by their count; a patch (not a line), a strip seen end-on (a point
+    across the axis), too few or too many pixels give weight 0."""
+    rng = np.random.default_rng(0)
+    heading = math.radians(30.0)
+    along = np.array([math.cos(heading), math.sin(heading), 0.0])
+    axis = torch.tensor([[0.0, 0.0, 1.0]])
+
+    def weight_and_normal(points_m: np.ndarray, min_elongation: float = 100.0):
+        pts = torch.tensor(points_m.T[None], dtype=torch.float32)  # (1, 3, n)
+        normal, weight = R.strip_normals(pts, torch.ones(1, pts.shape[2], dtype=torch.bool), axis, min_elongation)
+        return float(weight[0]), normal[0].double().numpy()
+
+    n_px = 200
+    line = np.array([1.5, 0.2, 0.3]) + rng.uniform(-0.2, 0.2, (n_px, 1)) * along + rng.uniform(-0.5, 0.5, (n_px, 1)) * [0, 0, 1]
+    weight, normal = weight_and_normal(line)
+    assert weight == n_px
+    assert _angle_deg(normal, np.cross([0.0, 0, 1], along)) < 0.01
+    noisy = line + rng.normal(0.0, 0.01, line.shape) * np.cross([0.0, 0, 1], along)  # 1 cm across a 23 cm spread
+    assert weight_and_normal(noisy)[0] == n_px and weight_and_normal(noisy, 10000.0)[0] == 0.0
+    patch = line + rng.uniform(-0.2, 0.2, (n_px, 1)) * np.cross([0.0, 0, 1], along)
+    assert weight_and_normal(patch)[0] == 0.0
+    end_on = np.array([1.5, 0.2, 0.0]) + rng.uniform(-0.5, 0.5, (n_px, 1)) * [0, 0, 1] + 1e-4 * rng.uniform(-1, 1, (n_px, 1)) * along
+    assert weight_and_normal(end_on)[0] == 0.0  # under STRIP_MIN_SPREAD_M across the axis
+    assert weight_and_normal(line[: R.STRIP_MIN_PX - 1])[0] == 0.0
+    many = np.concatenate([line] * (R.STRIP_MAX_PX // n_px + 1))
+    assert weight_and_normal(many)[0] == 0.0
+
+
 def test_refinement_dict_reads_version_11_without_one_sided_normals():
     ref = R.Refinement(frame=True, frame_min_prob=0.9, frame_one_sided=True)
     assert R.Refinement.from_dict(ref.to_dict()) == ref
     old = {k: v for k, v in ref.to_dict().items() if k != "frame_one_sided"} | {"version": 11}
     assert R.Refinement.from_dict(old).frame_one_sided is False
+
+
+def test_refinement_dict_reads_version_13_without_the_strip():
+    ref = R.Refinement(frame=True, frame_min_prob=0.9, frame_strip_elongation=1000.0)
+    assert R.Refinement.from_dict(ref.to_dict()) == ref
+    old = {k: v for k, v in ref.to_dict().items() if k != "frame_strip_elongation"} | {"version": 13}
+    assert R.Refinement.from_dict(old).frame_strip_elongation is None
 
 
 def _drawer_front_refined(depth, K, origin_m, voted_q_m: float) -> tuple[dict, dict]:

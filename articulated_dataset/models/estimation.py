@@ -31,6 +31,9 @@ MAX_UNMASKED_VALID_FRACTION = 0.9
 PLAUSIBLE_MEDIAN_DEPTH_M = (0.1, 10.0)
 #: Fewest object pixels (at the model resolution) an estimate is attempted with.
 MIN_OBJECT_PIXELS = 20
+#: Fewest pixels on each side of a depth image an estimate is attempted from (the network's input
+#: resolution is 4 times its output's, whose smallest useful size is a few pixels).
+MIN_IMAGE_SIDE_PX = 8
 
 
 @dataclass
@@ -124,8 +127,11 @@ def _load(model: str, class_name: str, precision: str = "float32"):
 def check_depth(depth_m: np.ndarray, mask: np.ndarray | None, where: str = "depth") -> None:
     """One-line errors for images no model can use (no pixels, wrong units, a scene without a mask)."""
     d = np.asarray(depth_m)
-    if d.ndim != 2 or min(d.shape) < 8:
+    if d.ndim != 2:
         raise UserError(f"{where}: expected a 2-D depth image, got shape {d.shape}")
+    if min(d.shape) < MIN_IMAGE_SIDE_PX:
+        raise UserError(f"{where}: a {d.shape[1]}x{d.shape[0]} image is too small to estimate from "
+                        f"(at least {MIN_IMAGE_SIDE_PX} pixels on each side)")
     valid = np.isfinite(d) & (d > 0)
     if mask is not None:
         if mask.shape != d.shape:

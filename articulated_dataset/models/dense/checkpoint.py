@@ -32,7 +32,41 @@ def load_dense_checkpoint(path: str | Path) -> dict:
     problem = calibration_problem(ckpt.get("calibration"), 13 * len(ckpt["joint_types"]) + 4)
     if problem is not None:
         raise UserError(f"{path}: checkpoint field 'calibration' is malformed: {problem}")
+    problem = refinement_problem(ckpt.get("refinement"), len(ckpt["joint_types"]))
+    if problem is not None:
+        raise UserError(f"{path}: checkpoint field 'refinement' is malformed: {problem}")
     return ckpt
+
+
+def refinement_problem(refinement, n_joints: int) -> str | None:
+    """What is wrong with a checkpoint's ``refinement`` (None: nothing; absent is allowed: the
+    votes are used as they are): a dict that :meth:`~.refine.Refinement.from_dict` reads, whose
+    numbers are finite (an integer pixel count non-negative) and whose ``mirror_joints`` (where
+    given) orders the ``n_joints`` joints."""
+    import dataclasses
+    import math
+
+    from .refine import Refinement
+
+    if refinement is None:
+        return None
+    if not isinstance(refinement, dict):
+        return "not a dict"
+    try:
+        r = Refinement.from_dict(refinement)
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        return f"{type(exc).__name__}: {str(exc)[:120]}"
+    for field in dataclasses.fields(r):
+        value = getattr(r, field.name)
+        values = value if isinstance(value, tuple) else (value,)
+        for v in values:
+            if isinstance(v, float) and not math.isfinite(v):
+                return f"{field.name!r} is not finite"
+            if isinstance(v, int) and not isinstance(v, bool) and v < 0 and field.name != "mirror_joints":
+                return f"{field.name!r} is negative"
+    if r.mirror_joints is not None and sorted(r.mirror_joints) != list(range(n_joints)):
+        return f"'mirror_joints' {list(r.mirror_joints)} does not order the {n_joints} joints"
+    return None
 
 
 def _numbers(value, n: int, *, positive: bool) -> bool:

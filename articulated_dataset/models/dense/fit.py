@@ -47,6 +47,13 @@ FRAME_PROB_CANDIDATES = (None, 0.7, 0.9)
 #: Whether step 2 also reads one-sided normals (:attr:`~.refine.Refinement.frame_one_sided`), tried
 #: with each threshold by :func:`~.predict.fit_inference`.
 FRAME_ONE_SIDED_CANDIDATES = (False, True)
+#: Elongations (variance along the line / across it) tried for step 2's strip of body pixels
+#: (:attr:`~.refine.Refinement.frame_strip_elongation`) by :func:`~.predict.fit_inference`, with
+#: the chosen threshold and normals.  The shipped cabinet on its seed-14 / 11 selection objects
+#: (200 each), rotation / configuration deg: without 2.18 / 1.95 and 2.37 / 2.19; 100: 2.14 / 1.85
+#: and 2.28 / 2.10; 1,000: 2.11 / 1.85 and 2.25 / 2.08; 10,000: 2.10 / 1.85 and 2.23 / 2.10 (a
+#: rendered face's points lie on its plane: the strips kept at the larger ratios are the cleaner).
+FRAME_STRIP_CANDIDATES = (100.0, 1000.0, 10000.0)
 #: Gates (m) tried for step 10 (the hinge onto the door's face plane) by :func:`fit_refinement`.
 DOOR_FACE_GATE_CANDIDATES_M = (0.01, 0.02, 0.03, 0.05, 0.1)
 #: ... whose offset from a face (outer or inner) is fitted from at least this many doors seen so.

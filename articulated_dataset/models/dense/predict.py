@@ -224,6 +224,7 @@ def refined_batch(model, depth_m, K, *, joint_types: list[str], refinement, work
                        handle_max_q_deg=None if refinement is None else refinement.handle_evidence_max_q_deg,
                        frame_min_prob=None if refinement is None else refinement.frame_min_prob,
                        frame_one_sided=refinement is not None and refinement.frame_one_sided,
+                       frame_strip_elongation=None if refinement is None else refinement.frame_strip_elongation,
                        mirror_joints=None if refinement is None else refinement.mirror_joints,
                        door_angles=None if refinement is None else refinement.door_angles, workspace=workspace)
     return apply_refinement(m, r, refinement, joint_types)
@@ -239,14 +240,16 @@ def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: dict | N
 def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, split_factor: float | None,
                 handle_max_q_deg: float | None = None, frame_min_prob: float | None = None,
                 mirror_joints=None, door_angles: tuple[str, ...] | None = None,
-                workspace: dict | None = None, frame_one_sided: bool = False) -> tuple[dict, dict | None]:
+                workspace: dict | None = None, frame_one_sided: bool = False,
+                frame_strip_elongation: float | None = None) -> tuple[dict, dict | None]:
     """One batch of depth images (B, H, W) m and intrinsics (B, 3, 3) at the model's resolution ->
     vote modes (:func:`~.aggregate.vote_modes` with ``split_factor``, a checkpoint's
     :func:`~.refine.split_factor_of`) and, with ``refine``, the refined quantities
     (:func:`~.refine.refined_quantities`; with ``handle_max_q_deg``, also the handles of the doors
     whose angle may be below it: :func:`~.handle.handle_evidence`; ``frame_min_prob``: the box
     frame's pixel threshold, :attr:`~.refine.Refinement.frame_min_prob`; ``frame_one_sided``:
-    :attr:`~.refine.Refinement.frame_one_sided`; ``door_angles``: step 5's
+    :attr:`~.refine.Refinement.frame_one_sided`; ``frame_strip_elongation``:
+    :attr:`~.refine.Refinement.frame_strip_elongation`; ``door_angles``: step 5's
     angles to compute, None: all), as float64 numpy arrays.
     ``workspace``: a dict a loop over batches passes to every call, which keeps the network input's
     tensor for the next batch to write into (a fresh one costs more in page faults than filling it)."""
@@ -264,7 +267,7 @@ def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, spli
         modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0, split_factor=split_factor)
         r = refined_quantities(parts, inputs, modes, joint_types, frame_min_prob,
                                DOOR_ANGLES if door_angles is None else door_angles, handle_max_q_deg,
-                               frame_one_sided) if refine else None
+                               frame_one_sided, frame_strip_elongation) if refine else None
     if workspace is not None:
         workspace["x"] = inputs["x"]
     as_np = lambda d: {k: v.numpy().astype(np.float64) for k, v in d.items()}  # noqa: E731
@@ -299,13 +302,13 @@ def predict_modes(model, data, idx: np.ndarray, *, joint_types: list[str], refin
                   batch_size: int = PREDICT_BATCH, progress: bool = False,
                   split_factor: float | None, handle_max_q_deg: float | None = None,
                   frame_min_prob: float | None = None, mirror_joints=None,
-                  frame_one_sided: bool = False) -> tuple[dict, dict | None]:
+                  frame_one_sided: bool = False, frame_strip_elongation: float | None = None) -> tuple[dict, dict | None]:
     """:func:`batch_modes` over the images ``idx`` of a split in memory, batch by batch, concatenated
     (the refined quantities are None without ``refine``)."""
     chunks = _over_batches(data, idx, batch_size, progress, lambda depth, K, workspace: batch_modes(
         model, depth, K, joint_types=joint_types, refine=refine, split_factor=split_factor,
         handle_max_q_deg=handle_max_q_deg, frame_min_prob=frame_min_prob, mirror_joints=mirror_joints,
-        frame_one_sided=frame_one_sided,
+        frame_one_sided=frame_one_sided, frame_strip_elongation=frame_strip_elongation,
         workspace=workspace))
     return _concatenated([m for m, _ in chunks]), (_concatenated([r for _, r in chunks]) if refine else None)
 
@@ -534,7 +537,8 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     """Fit what inference needs beyond the weights on validation images ``idx`` (with labels):
     the vote modes' split factor (:func:`choose_split_factor`), the refinement
     (:func:`~.fit.fit_refinement`, once for each box-frame pixel threshold of
-    :data:`~.fit.FRAME_PROB_CANDIDATES` with and without one-sided normals; then, where the class's ``mirror_joints`` is given, whether
+    :data:`~.fit.FRAME_PROB_CANDIDATES` with and without one-sided normals, then the best of these
+    with each strip elongation of :data:`~.fit.FRAME_STRIP_CANDIDATES`; then, where the class's ``mirror_joints`` is given, whether
     averaging the network's outputs with its outputs on the mirror images (:mod:`.mirror`) lowers
     the position error by at least
     :data:`~.mirror.MIRROR_MIN_GAIN`), then the uncertainty calibration of the refined predictions
@@ -542,7 +546,8 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     "refinement_report": dict}`` for the checkpoint."""
     from dataclasses import replace
 
-    from .fit import FRAME_ONE_SIDED_CANDIDATES, FRAME_PROB_CANDIDATES, configuration_error, fit_refinement, rotation_error_deg
+    from .fit import (FRAME_ONE_SIDED_CANDIDATES, FRAME_PROB_CANDIDATES, FRAME_STRIP_CANDIDATES, configuration_error,
+                      fit_refinement, rotation_error_deg)
     from .handle import EVERY_DOOR_DEG
     from .mirror import MIRROR_MIN_GAIN
     from .refine import apply_refinement
@@ -553,19 +558,29 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     # the refinement fitted once per box-frame pixel threshold and normal reading (central differences
     # only, or one-sided ones too); the one with the lowest rotation error kept (the configuration
     # decides between equal rotations: the box frame unused; the first candidate between equal pairs)
-    fits, frame_report = [], {}
-    for p, one_sided in itertools.product(FRAME_PROB_CANDIDATES, FRAME_ONE_SIDED_CANDIDATES):
+    # then, with the chosen pair, the body's strip (each elongation of FRAME_STRIP_CANDIDATES; kept
+    # only where it lowers the rotation error, or the configuration's at an equal one)
+    frame_report = {}
+
+    def frame_fit(p, one_sided, strip):
         m_p, r_p = predict_modes(model, data, idx, joint_types=joint_types, progress=progress,
                                  split_factor=split_factor, handle_max_q_deg=EVERY_DOOR_DEG,
-                                 frame_min_prob=p, frame_one_sided=one_sided)
+                                 frame_min_prob=p, frame_one_sided=one_sided, frame_strip_elongation=strip)
         refinement_p, report_p = fit_refinement(m_p, r_p, truth, joint_types)
         refined_p = apply_refinement(m_p, r_p, refinement_p, joint_types)
         errors = (round(rotation_error_deg(refined_p, truth), 9), configuration_error(refined_p, truth, joint_types))
-        name = ("all pixels" if p is None else f"probability>{p:g}") + (", one-sided normals" if one_sided else "")
+        name = (("all pixels" if p is None else f"probability>{p:g}") + (", one-sided normals" if one_sided else "")
+                + ("" if strip is None else f", strip elongation {strip:g}"))
         frame_report[name] = {"rotation_deg": errors[0], "configuration": errors[1]}
-        fits.append((errors, p, one_sided, m_p, r_p, refinement_p, report_p))
-    _, p, one_sided, m, r, refinement, report = min(fits, key=lambda f: f[0])
-    refinement = replace(refinement, split_factor=split_factor, frame_min_prob=p, frame_one_sided=one_sided)
+        return errors, (p, one_sided, strip, m_p, r_p, refinement_p, report_p)
+
+    best = min((frame_fit(p, one_sided, None) for p, one_sided in
+                itertools.product(FRAME_PROB_CANDIDATES, FRAME_ONE_SIDED_CANDIDATES)), key=lambda f: f[0])
+    best = min([best] + [frame_fit(best[1][0], best[1][1], strip) for strip in FRAME_STRIP_CANDIDATES],
+               key=lambda f: f[0])
+    p, one_sided, strip, m, r, refinement, report = best[1]
+    refinement = replace(refinement, split_factor=split_factor, frame_min_prob=p, frame_one_sided=one_sided,
+                         frame_strip_elongation=strip)
     report["frame_min_prob"] = frame_report
     report["split_factor_position_cm"] = split_report
     refined = apply_refinement(m, r, refinement, joint_types)
@@ -573,7 +588,7 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
         mm, mr = predict_modes(model, data, idx, joint_types=joint_types, progress=progress,
                                refine=refinement.needed, split_factor=split_factor,
                                handle_max_q_deg=refinement.handle_evidence_max_q_deg, frame_min_prob=p,
-                               frame_one_sided=one_sided,
+                               frame_one_sided=one_sided, frame_strip_elongation=strip,
                                mirror_joints=mirror_joints)
         merged = apply_refinement(mm, mr, refinement, joint_types)
         pos = {name: quick_errors(modes_to_arrays(x, data.sample_id[idx], model, None), data, idx, joint_types)["pos_cm"]
