@@ -541,7 +541,10 @@ def test_estimate_api_and_cli(overfit_run, tiny_root, tmp_path):
     Image.fromarray(np.zeros(depth.shape, np.uint8)).save(tmp_path / "empty.png")
     scene = np.where(depth > 0, depth, 3.0)
     np.save(tmp_path / "scene.npy", scene)
+    np.save(tmp_path / "tiny.npy", depth[:4, :4])
+    (tmp_path / "tiny.camera.json").write_text((tmp_path / "camera.json").read_text())
     for args, needle in [([str(tmp_path / "mm.npy")], "millimetres"),
+                         ([str(tmp_path / "tiny.npy")], "4x4 image is too small"),
                          ([str(png), "--mask", str(tmp_path / "empty.png")], "mask"),
                          ([str(tmp_path / "scene.npy"), "--camera", str(tmp_path / "camera.json")], "mask"),
                          ([str(png), "--class", "drawer"], "'microwave' model")]:
