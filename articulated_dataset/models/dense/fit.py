@@ -49,10 +49,10 @@ FRAME_PROB_CANDIDATES = (None, 0.7, 0.9)
 FRAME_ONE_SIDED_CANDIDATES = (False, True)
 #: Elongations (variance along the line / across it) tried for step 2's strip of body pixels
 #: (:attr:`~.refine.Refinement.frame_strip_elongation`) by :func:`~.predict.fit_inference`, with
-#: the chosen threshold and normals.  The shipped cabinet on its seed-14 / 11 selection objects
-#: (200 each), rotation / configuration deg: without 2.18 / 1.95 and 2.37 / 2.19; 100: 2.14 / 1.85
-#: and 2.28 / 2.10; 1,000: 2.11 / 1.85 and 2.25 / 2.08; 10,000: 2.10 / 1.85 and 2.23 / 2.10 (a
-#: rendered face's points lie on its plane: the strips kept at the larger ratios are the cleaner).
+#: the chosen threshold and normals.  The shipped cabinet (refinement version 13) on its seed-14 / 11
+#: selection objects (200 each), rotation / configuration deg: without 2.18 / 1.95 and 2.37 / 2.19;
+#: 100: 2.07 / 1.84 and 2.23 / 2.10; 1,000: 2.06 / 1.84 and 2.22 / 2.10; 10,000: 2.07 / 1.84 and
+#: 2.23 / 2.11 (position unchanged; seed 11 with a 2-cm :data:`~.refine.STRIP_MIN_SPREAD_M`).
 FRAME_STRIP_CANDIDATES = (100.0, 1000.0, 10000.0)
 #: Gates (m) tried for step 10 (the hinge onto the door's face plane) by :func:`fit_refinement`.
 DOOR_FACE_GATE_CANDIDATES_M = (0.01, 0.02, 0.03, 0.05, 0.1)
