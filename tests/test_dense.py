@@ -257,17 +257,29 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
     assert len(whole["refinement_report"]["split_factor_position_cm"]) == len(SPLIT_FACTOR_CANDIDATES)
     # and the box frame's pixel threshold (refinement version 6) with its normals (central
     # differences only or one-sided ones too, version 12), each pair's errors reported
-    from articulated_dataset.models.dense.fit import FRAME_ONE_SIDED_CANDIDATES, FRAME_PROB_CANDIDATES
+    # then the body's strip (version 14) with the best pair, each elongation's errors reported
+    from articulated_dataset.models.dense.fit import (FRAME_ONE_SIDED_CANDIDATES, FRAME_PROB_CANDIDATES,
+                                                      FRAME_STRIP_CANDIDATES)
 
     assert whole["refinement"]["frame_min_prob"] in FRAME_PROB_CANDIDATES
     assert whole["refinement"]["frame_one_sided"] in FRAME_ONE_SIDED_CANDIDATES
+    assert whole["refinement"]["frame_strip_elongation"] in (None,) + FRAME_STRIP_CANDIDATES
     report = whole["refinement_report"]["frame_min_prob"]
-    assert len(report) == len(FRAME_PROB_CANDIDATES) * len(FRAME_ONE_SIDED_CANDIDATES)
-    best = min(report.values(), key=lambda e: (e["rotation_deg"], e["configuration"]))
+    pairs = len(FRAME_PROB_CANDIDATES) * len(FRAME_ONE_SIDED_CANDIDATES)
+    assert len(report) == pairs + len(FRAME_STRIP_CANDIDATES)
+    key = lambda e: (e["rotation_deg"], e["configuration"])  # noqa: E731
+    best_pair = min(list(report.values())[:pairs], key=key)
+    strips = list(report.values())[pairs:]
+    best = min([best_pair] + strips, key=key)
+    strip = whole["refinement"]["frame_strip_elongation"]
     name = ("all pixels" if whole["refinement"]["frame_min_prob"] is None
             else f"probability>{whole['refinement']['frame_min_prob']:g}") + \
-        (", one-sided normals" if whole["refinement"]["frame_one_sided"] else "")
-    assert report[name] == best  # the pair with the lowest validation rotation error is the one kept
+        (", one-sided normals" if whole["refinement"]["frame_one_sided"] else "") + \
+        ("" if strip is None else f", strip elongation {strip:g}")
+    assert report[name] == best  # the choice with the lowest validation rotation error is the one kept
+    # the strip candidates share the best pair's threshold and normals
+    pair_name = name.split(", strip")[0]
+    assert all(k.startswith(pair_name + ", strip elongation ") for k in list(report)[pairs:])
 
 
 def test_noise_augmentation_corrupts_its_share_of_a_batch_the_same_way_on_every_run(tiny_root, tmp_path):
