@@ -259,7 +259,7 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
     # differences only or one-sided ones too, version 12), each pair's errors reported
     # then the body's strip (version 14) with the best pair, each elongation's errors reported
     from articulated_dataset.models.dense.fit import (FRAME_ONE_SIDED_CANDIDATES, FRAME_PROB_CANDIDATES,
-                                                      FRAME_STRIP_CANDIDATES)
+                                                      FRAME_STRIP_CANDIDATES, FRAME_STRIP_MIN_GAIN)
 
     assert whole["refinement"]["frame_min_prob"] in FRAME_PROB_CANDIDATES
     assert whole["refinement"]["frame_one_sided"] in FRAME_ONE_SIDED_CANDIDATES
@@ -269,8 +269,8 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
     assert len(report) == pairs + len(FRAME_STRIP_CANDIDATES)
     key = lambda e: (e["rotation_deg"], e["configuration"])  # noqa: E731
     best_pair = min(list(report.values())[:pairs], key=key)
-    strips = list(report.values())[pairs:]
-    best = min([best_pair] + strips, key=key)
+    best_strip = min(list(report.values())[pairs:], key=key)
+    best = best_strip if best_strip["rotation_deg"] < best_pair["rotation_deg"] * (1 - FRAME_STRIP_MIN_GAIN) else best_pair
     strip = whole["refinement"]["frame_strip_elongation"]
     name = ("all pixels" if whole["refinement"]["frame_min_prob"] is None
             else f"probability>{whole['refinement']['frame_min_prob']:g}") + \

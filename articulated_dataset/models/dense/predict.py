@@ -538,7 +538,8 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     the vote modes' split factor (:func:`choose_split_factor`), the refinement
     (:func:`~.fit.fit_refinement`, once for each box-frame pixel threshold of
     :data:`~.fit.FRAME_PROB_CANDIDATES` with and without one-sided normals, then the best of these
-    with each strip elongation of :data:`~.fit.FRAME_STRIP_CANDIDATES`; then, where the class's ``mirror_joints`` is given, whether
+    with each strip elongation of :data:`~.fit.FRAME_STRIP_CANDIDATES` (the best kept where it lowers
+    the rotation error by :data:`~.fit.FRAME_STRIP_MIN_GAIN`); then, where the class's ``mirror_joints`` is given, whether
     averaging the network's outputs with its outputs on the mirror images (:mod:`.mirror`) lowers
     the position error by at least
     :data:`~.mirror.MIRROR_MIN_GAIN`), then the uncertainty calibration of the refined predictions
@@ -546,8 +547,8 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     "refinement_report": dict}`` for the checkpoint."""
     from dataclasses import replace
 
-    from .fit import (FRAME_ONE_SIDED_CANDIDATES, FRAME_PROB_CANDIDATES, FRAME_STRIP_CANDIDATES, configuration_error,
-                      fit_refinement, rotation_error_deg)
+    from .fit import (FRAME_ONE_SIDED_CANDIDATES, FRAME_PROB_CANDIDATES, FRAME_STRIP_CANDIDATES, FRAME_STRIP_MIN_GAIN,
+                      configuration_error, fit_refinement, rotation_error_deg)
     from .handle import EVERY_DOOR_DEG
     from .mirror import MIRROR_MIN_GAIN
     from .refine import apply_refinement
@@ -558,8 +559,8 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     # the refinement fitted once per box-frame pixel threshold and normal reading (central differences
     # only, or one-sided ones too); the one with the lowest rotation error kept (the configuration
     # decides between equal rotations: the box frame unused; the first candidate between equal pairs)
-    # then, with the chosen pair, the body's strip (each elongation of FRAME_STRIP_CANDIDATES; kept
-    # only where it lowers the rotation error, or the configuration's at an equal one)
+    # then, with the chosen pair, the body's strip (each elongation of FRAME_STRIP_CANDIDATES; the
+    # best kept only where it lowers the rotation error by FRAME_STRIP_MIN_GAIN: it costs inference time)
     frame_report = {}
 
     def frame_fit(p, one_sided, strip):
@@ -576,8 +577,10 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
 
     best = min((frame_fit(p, one_sided, None) for p, one_sided in
                 itertools.product(FRAME_PROB_CANDIDATES, FRAME_ONE_SIDED_CANDIDATES)), key=lambda f: f[0])
-    best = min([best] + [frame_fit(best[1][0], best[1][1], strip) for strip in FRAME_STRIP_CANDIDATES],
-               key=lambda f: f[0])
+    strips = [frame_fit(best[1][0], best[1][1], strip) for strip in FRAME_STRIP_CANDIDATES]
+    best_strip = min(strips, key=lambda f: f[0])
+    if best_strip[0][0] < best[0][0] * (1 - FRAME_STRIP_MIN_GAIN):
+        best = best_strip
     p, one_sided, strip, m, r, refinement, report = best[1]
     refinement = replace(refinement, split_factor=split_factor, frame_min_prob=p, frame_one_sided=one_sided,
                          frame_strip_elongation=strip)
