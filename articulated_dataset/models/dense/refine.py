@@ -562,9 +562,16 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
         # taken for the body's would pull the frame towards the door's face)
         confidence = torch.softmax(seg, 1).amax(1).flatten(1)  # (R, h * w): the label's probability
         frame_px &= torch.gather(confidence, 1, at_out) > frame_min_prob
-    if frame_strip_elongation is not None:  # every candidate, with a normal or without
-        points = torch.stack([x_flat[c * P:].index_select(0, at).view(R, n) for c in range(3)], 1) * POINT_SCALE_M  # (R, 3, n) m
-        strip_normal, strip_weight = strip_normals(points, frame_px, frame[:, 0, :, 2], frame_strip_elongation)
+    if frame_strip_elongation is not None:  # every candidate, with a normal or without, of the images
+        # whose count may make a strip (most images show more of the body: their weight is 0 unread)
+        count = frame_px.sum(-1)
+        strip_normal, strip_weight = frame[:, 0, :, 0].clone(), x.new_zeros(R)
+        some = ((count >= STRIP_MIN_PX) & (count < STRIP_MAX_PX)).nonzero()[:, 0]
+        if len(some):
+            at_some = at.view(R, n).index_select(0, some).view(-1)
+            points = torch.stack([x_flat[c * P:].index_select(0, at_some).view(len(some), n) for c in range(3)], 1)
+            strip_normal[some], strip_weight[some] = strip_normals(points * POINT_SCALE_M, frame_px.index_select(0, some),
+                                                                   frame[some, 0, :, 2], frame_strip_elongation)
     if frame_one_sided:  # the candidates without a central-difference normal get a one-sided one
         # whose neighbours are candidates too (a strip's neighbour across its edge is another face)
         P = H * W
