@@ -44,8 +44,8 @@ def refinement_problem(refinement, n_joints: int) -> str | None:
     numbers are finite (an integer pixel count non-negative) and whose ``mirror_joints`` (where
     given) orders the ``n_joints`` joints."""
     import dataclasses
-    import math
 
+    from ..mdn.config import is_real_number
     from .refine import Refinement
 
     if refinement is None:
@@ -60,9 +60,9 @@ def refinement_problem(refinement, n_joints: int) -> str | None:
         value = getattr(r, field.name)
         values = value if isinstance(value, tuple) else (value,)
         for v in values:
-            if isinstance(v, float) and not math.isfinite(v):
+            if isinstance(v, float) and not is_real_number(v):
                 return f"{field.name!r} is not finite"
-            if isinstance(v, int) and not isinstance(v, bool) and v < 0 and field.name != "mirror_joints":
+            if isinstance(v, int) and not isinstance(v, bool) and v < 0:
                 return f"{field.name!r} is negative"
     if r.mirror_joints is not None and sorted(r.mirror_joints) != list(range(n_joints)):
         return f"'mirror_joints' {list(r.mirror_joints)} does not order the {n_joints} joints"

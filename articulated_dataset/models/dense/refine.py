@@ -443,13 +443,18 @@ def _align_to_normals(frame: torch.Tensor, normals: torch.Tensor, weights: torch
     return frame
 
 
+def strip_sized(count: torch.Tensor) -> torch.Tensor:
+    """Whether images with ``count`` (R,) box-frame pixels may be read as a strip: at least
+    :data:`STRIP_MIN_PX` and fewer than :data:`STRIP_MAX_PX`."""
+    return (count >= STRIP_MIN_PX) & (count < STRIP_MAX_PX)
+
+
 def strip_normals(points: torch.Tensor, strip: torch.Tensor, axis: torch.Tensor,
                   min_elongation: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Step 2's strip: per image, the unit normal (R, 3) across ``axis`` (R, 3) of the line its
-    ``strip`` pixels' points lie on, and its weight (R,): their count where it is within
-    [:data:`STRIP_MIN_PX`, :data:`STRIP_MAX_PX`) and the points' variance along the line is at
-    least ``min_elongation`` times the variance across it and its standard deviation at least
-    :data:`STRIP_MIN_SPREAD_M`, 0 elsewhere.  ``points`` (R, 3, n) m (any origin), ``strip`` (R, n)
+    ``strip`` pixels' points lie on, and its weight (R,): their count where :func:`strip_sized` and
+    the points' variance along the line is at least ``min_elongation`` times the variance across it
+    and its standard deviation at least :data:`STRIP_MIN_SPREAD_M`, 0 elsewhere.  ``points`` (R, 3, n) m (any origin), ``strip`` (R, n)
     bool.
 
     The points are projected on the plane across the axis (``S_h = P S P``, ``S`` their covariance,
@@ -468,7 +473,7 @@ def strip_normals(points: torch.Tensor, strip: torch.Tensor, axis: torch.Tensor,
     variance, direction = torch.linalg.eigh(P @ cov @ P)  # ascending: ~0 (along the axis), across, along
     normal = F.normalize(_cross(axis, direction[..., 2], dim=-1), dim=-1, eps=1e-12)
     line = variance[:, 2] >= min_elongation * variance[:, 1].clamp_min(torch.finfo(points.dtype).tiny)
-    used = (count >= STRIP_MIN_PX) & (count < STRIP_MAX_PX) & line & (variance[:, 2] >= STRIP_MIN_SPREAD_M**2)
+    used = strip_sized(count) & line & (variance[:, 2] >= STRIP_MIN_SPREAD_M**2)
     return normal, torch.where(used, count, 0.0)
 
 
@@ -566,7 +571,7 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
         # whose count may make a strip (most images show more of the body: their weight is 0 unread)
         count = frame_px.sum(-1)
         strip_normal, strip_weight = frame[:, 0, :, 0].clone(), x.new_zeros(R)
-        some = ((count >= STRIP_MIN_PX) & (count < STRIP_MAX_PX)).nonzero()[:, 0]
+        some = strip_sized(count).nonzero()[:, 0]
         if len(some):
             at_some = at.view(R, n).index_select(0, some).view(-1)
             points = torch.stack([x_flat[c * P:].index_select(0, at_some).view(len(some), n) for c in range(3)], 1)
