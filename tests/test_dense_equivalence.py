@@ -223,8 +223,8 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types, o
     voted_q = (modes["weight"] * modes["q"]).sum(-1)  # (B, J)
     out = {"axis": torch.zeros(B, J, modes["origin"].shape[2], 3), "q": torch.full((B, J), nan), "q_folded": torch.full((B, J), nan),
            "q_signed": torch.full((B, J), nan), "box_x": torch.zeros(B, J, 3),
-           "door_px": torch.zeros(B, J), "door_mid": torch.full((B, J), nan), "door_cut": torch.zeros(B, J),
-           "door_face_normal": torch.zeros(B, J, 3), "door_face_m": torch.full((B, J), nan)}
+           "door_px": torch.zeros(B, J), "frame_px": torch.zeros(B), "door_mid": torch.full((B, J), nan),
+           "door_cut": torch.zeros(B, J), "door_face_normal": torch.zeros(B, J, 3), "door_face_m": torch.full((B, J), nan)}
     out["xaxis"] = out["axis"].clone()
     prismatic = "prismatic" in joint_types
     if prismatic:
@@ -242,6 +242,7 @@ def _reference_refinement(parts: dict, inputs: dict, modes: dict, joint_types, o
         for j, t in enumerate(joint_types):
             if t == "prismatic":
                 frame_px |= lab == 1 + j
+        out["frame_px"][b] = frame_px.sum()
         weights = (frame_px & has_normal).to(normals.dtype)
         fit_normals = normals
         if one_sided:

@@ -331,3 +331,49 @@ def test_the_refinements_handles_are_handle_evidences(cabinet_split, max_q_deg):
         assert not seen.all()  # some doors are not candidates (their handles are not measured)
     for k in HANDLE_KEYS:
         np.testing.assert_allclose(got[k], want[k].numpy().astype(np.float64), rtol=1e-5, atol=1e-5, err_msg=k)
+
+
+def test_refinement_candidates_share_one_network_pass(cabinet_split):
+    """fit_inference's sweeps (predict.predict_candidates): each candidate refinement gets what it
+    gets alone (predict_modes), from one network pass; and the body's strip refined on the images
+    whose box-frame pixels may make one (refine.strip_sized) alone, the others keeping the pair's
+    quantities, is the strip refined on every image, to float rounding."""
+    from articulated_dataset.models import resolve_model
+    from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
+    from articulated_dataset.models.dense.data import load_dense_split
+    from articulated_dataset.models.dense.handle import EVERY_DOOR_DEG
+    from articulated_dataset.models.dense.refine import strip_sized
+
+    ckpt = load_dense_checkpoint(resolve_model("dense", "cabinet").path)
+    model = build_inference_model(ckpt)
+    c = model.config
+    data = load_dense_split(cabinet_split, c.n_joints, (c.height_px, c.width_px), with_labels=False)
+    idx = np.arange(len(data.sample_id))
+    common = dict(joint_types=list(ckpt["joint_types"]), split_factor=ckpt["refinement"]["split_factor"], batch_size=16)
+
+    def keywords(p, one_sided, strip=None):
+        return dict(handle_max_q_deg=EVERY_DOOR_DEG, frame_min_prob=p, frame_one_sided=one_sided,
+                    frame_strip_elongation=strip)
+
+    pairs = {"all": (None, False), "sure, one-sided": (0.9, True)}
+    m, rs = P.predict_candidates(model, data, idx, candidates={k: P.refinement_keywords(**keywords(*v))
+                                                                for k, v in pairs.items()}, **common)
+    for name, pair in pairs.items():
+        m_alone, r_alone = P.predict_modes(model, data, idx, **keywords(*pair), **common)
+        assert set(r_alone) == set(rs[name]) and set(m_alone) == set(m)
+        for k in m:
+            assert np.array_equal(m[k], m_alone[k], equal_nan=True), k
+        for k in r_alone:
+            assert np.array_equal(rs[name][k], r_alone[k], equal_nan=True), (name, k)
+    assert not np.allclose(rs["all"]["box_x"], rs["sure, one-sided"]["box_x"], atol=1e-4)  # they differ
+    pair = rs["sure, one-sided"]
+    rows = np.flatnonzero(strip_sized(pair["frame_px"]))
+    assert 0 < len(rows) < len(idx)
+    _, some = P.predict_candidates(model, data, idx[rows], candidates={
+        1.0: P.refinement_keywords(**keywords(0.9, True, 1.0))}, **common)
+    _, every = P.predict_modes(model, data, idx, **keywords(0.9, True, 1.0), **common)
+    merged = P._with_rows(pair, rows, some[1.0])
+    # (elongation 1: every strip-sized image's pixels read as a line, so the strip turns their frames)
+    assert not np.allclose(every["box_x"][rows], pair["box_x"][rows], atol=1e-3)
+    for k in every:
+        assert np.allclose(merged[k], every[k], atol=1e-5, rtol=0, equal_nan=True), k

@@ -237,27 +237,53 @@ def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: dict | N
     return mixture_from_modes(m, sample_id, model.config.n_joints, MAX_MODES, calibration)
 
 
+def refinement_keywords(*, handle_max_q_deg: float | None = None, frame_min_prob: float | None = None,
+                        door_angles: tuple[str, ...] | None = None, frame_one_sided: bool = False,
+                        frame_strip_elongation: float | None = None) -> dict:
+    """The keywords of :func:`~.refine.refined_quantities` for one candidate refinement: with
+    ``handle_max_q_deg``, also the handles of the doors whose angle may be below it
+    (:func:`~.handle.handle_evidence`); ``frame_min_prob``: the box frame's pixel threshold,
+    :attr:`~.refine.Refinement.frame_min_prob`; ``frame_one_sided``:
+    :attr:`~.refine.Refinement.frame_one_sided`; ``frame_strip_elongation``:
+    :attr:`~.refine.Refinement.frame_strip_elongation`; ``door_angles``: step 5's angles to
+    compute, None: all."""
+    from .refine import DOOR_ANGLES
+
+    return dict(frame_min_prob=frame_min_prob, door_angles=DOOR_ANGLES if door_angles is None else door_angles,
+                handle_max_q_deg=handle_max_q_deg, frame_one_sided=frame_one_sided,
+                frame_strip_elongation=frame_strip_elongation)
+
+
 def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, split_factor: float | None,
-                handle_max_q_deg: float | None = None, frame_min_prob: float | None = None,
-                mirror_joints=None, door_angles: tuple[str, ...] | None = None,
-                workspace: dict | None = None, frame_one_sided: bool = False,
-                frame_strip_elongation: float | None = None) -> tuple[dict, dict | None]:
+                mirror_joints=None, workspace: dict | None = None, **refinement) -> tuple[dict, dict | None]:
     """One batch of depth images (B, H, W) m and intrinsics (B, 3, 3) at the model's resolution ->
     vote modes (:func:`~.aggregate.vote_modes` with ``split_factor``, a checkpoint's
     :func:`~.refine.split_factor_of`) and, with ``refine``, the refined quantities
-    (:func:`~.refine.refined_quantities`; with ``handle_max_q_deg``, also the handles of the doors
-    whose angle may be below it: :func:`~.handle.handle_evidence`; ``frame_min_prob``: the box
-    frame's pixel threshold, :attr:`~.refine.Refinement.frame_min_prob`; ``frame_one_sided``:
-    :attr:`~.refine.Refinement.frame_one_sided`; ``frame_strip_elongation``:
-    :attr:`~.refine.Refinement.frame_strip_elongation`; ``door_angles``: step 5's
-    angles to compute, None: all), as float64 numpy arrays.
-    ``workspace``: a dict a loop over batches passes to every call, which keeps the network input's
-    tensor for the next batch to write into (a fresh one costs more in page faults than filling it)."""
+    (:func:`~.refine.refined_quantities` with ``refinement``, the keywords of
+    :func:`refinement_keywords`), as float64 numpy arrays: :func:`batch_candidates` of one candidate.
+    ``workspace``: see :func:`batch_candidates`."""
+    m, rs = batch_candidates(model, depth_m, K, joint_types=joint_types, split_factor=split_factor,
+                             mirror_joints=mirror_joints, workspace=workspace,
+                             candidates={0: refinement_keywords(**refinement)} if refine else {})
+    return m, rs.get(0)
+
+
+def batch_candidates(model, depth_m, K, *, joint_types: list[str], split_factor: float | None, candidates: dict,
+                     mirror_joints=None, workspace: dict | None = None) -> tuple[dict, dict]:
+    """One batch of depth images (B, H, W) m and intrinsics (B, 3, 3) at the model's resolution ->
+    the vote modes (:func:`~.aggregate.vote_modes` with ``split_factor``; the network's outputs
+    averaged with its outputs on the mirror images where ``mirror_joints`` is given) and, for each of
+    ``candidates`` ({name: :func:`refinement_keywords`}), the refined quantities
+    (:func:`~.refine.refined_quantities`), as float64 numpy arrays ``(modes, {name: quantities})``:
+    the network and the vote modes run once, the refinement once per candidate (how
+    :func:`fit_inference` compares refinements).  ``workspace``: a dict a loop over batches passes
+    to every call, which keeps the network input's tensor for the next batch to write into (a fresh
+    one costs more in page faults than filling it)."""
     import torch
 
     from .aggregate import vote_modes
     from .features import make_inputs
-    from .refine import DOOR_ANGLES, refined_quantities
+    from .refine import refined_quantities
 
     if model.training:
         model.eval()
@@ -265,13 +291,11 @@ def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, spli
         inputs = make_inputs(depth_m, K, out=None if workspace is None else workspace.pop("x", None))
         parts = model.split(network_outputs(model, inputs["x"], mirror_joints))
         modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0, split_factor=split_factor)
-        r = refined_quantities(parts, inputs, modes, joint_types, frame_min_prob,
-                               DOOR_ANGLES if door_angles is None else door_angles, handle_max_q_deg,
-                               frame_one_sided, frame_strip_elongation) if refine else None
+        rs = {name: refined_quantities(parts, inputs, modes, joint_types, **kw) for name, kw in candidates.items()}
     if workspace is not None:
         workspace["x"] = inputs["x"]
     as_np = lambda d: {k: v.numpy().astype(np.float64) for k, v in d.items()}  # noqa: E731
-    return as_np(modes), (as_np(r) if r is not None else None)
+    return as_np(modes), {name: as_np(r) for name, r in rs.items()}
 
 
 def network_outputs(model, x, mirror_joints=None):
@@ -299,22 +323,32 @@ def network_outputs(model, x, mirror_joints=None):
 
 
 def predict_modes(model, data, idx: np.ndarray, *, joint_types: list[str], refine: bool = True,
-                  batch_size: int = PREDICT_BATCH, progress: bool = False,
-                  split_factor: float | None, handle_max_q_deg: float | None = None,
-                  frame_min_prob: float | None = None, mirror_joints=None,
-                  frame_one_sided: bool = False, frame_strip_elongation: float | None = None) -> tuple[dict, dict | None]:
+                  batch_size: int = PREDICT_BATCH, progress: bool = False, split_factor: float | None,
+                  mirror_joints=None, **refinement) -> tuple[dict, dict | None]:
     """:func:`batch_modes` over the images ``idx`` of a split in memory, batch by batch, concatenated
-    (the refined quantities are None without ``refine``)."""
-    chunks = _over_batches(data, idx, batch_size, progress, lambda depth, K, workspace: batch_modes(
-        model, depth, K, joint_types=joint_types, refine=refine, split_factor=split_factor,
-        handle_max_q_deg=handle_max_q_deg, frame_min_prob=frame_min_prob, mirror_joints=mirror_joints,
-        frame_one_sided=frame_one_sided, frame_strip_elongation=frame_strip_elongation,
-        workspace=workspace))
-    return _concatenated([m for m, _ in chunks]), (_concatenated([r for _, r in chunks]) if refine else None)
+    (the refined quantities are None without ``refine``; ``refinement``: the keywords of
+    :func:`refinement_keywords`)."""
+    m, rs = predict_candidates(model, data, idx, joint_types=joint_types, split_factor=split_factor,
+                               candidates={0: refinement_keywords(**refinement)} if refine else {},
+                               mirror_joints=mirror_joints, batch_size=batch_size, progress=progress)
+    return m, rs.get(0)
+
+
+def predict_candidates(model, data, idx: np.ndarray, *, joint_types: list[str], split_factor: float | None,
+                       candidates: dict, mirror_joints=None, batch_size: int = PREDICT_BATCH,
+                       progress: bool = False) -> tuple[dict, dict]:
+    """:func:`batch_candidates` over the images ``idx`` of a split in memory, batch by batch,
+    concatenated: ``(modes, {name: refined quantities})``."""
+    chunks = _over_batches(data, idx, batch_size, progress, lambda depth, K, workspace: batch_candidates(
+        model, depth, K, joint_types=joint_types, split_factor=split_factor, candidates=candidates,
+        mirror_joints=mirror_joints, workspace=workspace))
+    return (_concatenated([m for m, _ in chunks]),
+            {name: _concatenated([rs[name] for _, rs in chunks]) for name in candidates})
 
 
 def mixture_from_modes(m: dict, sample_id: np.ndarray, J: int, n_modes: int, calibration: dict | None) -> dict:
-    """Mode arrays of :func:`vote_modes` (numpy) -> prediction arrays with a mixture."""
+    """Mode arrays of :func:`vote_modes` (numpy) -> prediction arrays with a mixture (``m`` is not changed)."""
+    m = dict(m)
     N = len(sample_id)
     w = m["weight"].copy()  # (N, J, M)
     unused = w <= 0
@@ -551,7 +585,7 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
                       configuration_error, fit_refinement, rotation_error_deg)
     from .handle import EVERY_DOOR_DEG
     from .mirror import MIRROR_MIN_GAIN
-    from .refine import apply_refinement
+    from .refine import apply_refinement, strip_sized
 
     split_factor, split_report = choose_split_factor(model, data, idx)
     truth = {"axis_pose": _true_pose(data, idx), "q": data.q[idx].astype(np.float64),
@@ -561,12 +595,12 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     # decides between equal rotations: the box frame unused; the first candidate between equal pairs)
     # then, with the chosen pair, the body's strip (each elongation of FRAME_STRIP_CANDIDATES; the
     # best kept only where it lowers the rotation error by FRAME_STRIP_MIN_GAIN: it costs inference time)
+    # the network and vote modes run once for the six pairs, the refinement once per pair; the strip only
+    # changes the images whose box-frame pixels may make one (refine.strip_sized), which alone are
+    # refined again with each elongation (the others' quantities are the chosen pair's)
     frame_report = {}
 
-    def frame_fit(p, one_sided, strip):
-        m_p, r_p = predict_modes(model, data, idx, joint_types=joint_types, progress=progress,
-                                 split_factor=split_factor, handle_max_q_deg=EVERY_DOOR_DEG,
-                                 frame_min_prob=p, frame_one_sided=one_sided, frame_strip_elongation=strip)
+    def frame_fit(p, one_sided, strip, m_p, r_p):
         refinement_p, report_p = fit_refinement(m_p, r_p, truth, joint_types)
         refined_p = apply_refinement(m_p, r_p, refinement_p, joint_types)
         errors = (round(rotation_error_deg(refined_p, truth), 9), configuration_error(refined_p, truth, joint_types))
@@ -575,9 +609,22 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
         frame_report[name] = {"rotation_deg": errors[0], "configuration": errors[1]}
         return errors, (p, one_sided, strip, m_p, r_p, refinement_p, report_p)
 
-    best = min((frame_fit(p, one_sided, None) for p, one_sided in
-                itertools.product(FRAME_PROB_CANDIDATES, FRAME_ONE_SIDED_CANDIDATES)), key=lambda f: f[0])
-    strips = [frame_fit(best[1][0], best[1][1], strip) for strip in FRAME_STRIP_CANDIDATES]
+    def keywords(p, one_sided, strip=None):
+        return refinement_keywords(handle_max_q_deg=EVERY_DOOR_DEG, frame_min_prob=p, frame_one_sided=one_sided,
+                                   frame_strip_elongation=strip)
+
+    pairs = list(itertools.product(FRAME_PROB_CANDIDATES, FRAME_ONE_SIDED_CANDIDATES))
+    m, rs = predict_candidates(model, data, idx, joint_types=joint_types, split_factor=split_factor,
+                               candidates={pair: keywords(*pair) for pair in pairs}, progress=progress)
+    best = min((frame_fit(*pair, None, m, rs[pair]) for pair in pairs), key=lambda f: f[0])
+    p, one_sided, r_pair = best[1][0], best[1][1], best[1][4]
+    rows = np.flatnonzero(strip_sized(r_pair["frame_px"]))
+    r_rows = dict.fromkeys(FRAME_STRIP_CANDIDATES)
+    if len(rows):
+        _, r_rows = predict_candidates(model, data, idx[rows], joint_types=joint_types, split_factor=split_factor,
+                                       candidates={strip: keywords(p, one_sided, strip) for strip in FRAME_STRIP_CANDIDATES},
+                                       progress=progress)
+    strips = [frame_fit(p, one_sided, strip, m, _with_rows(r_pair, rows, r_rows[strip])) for strip in FRAME_STRIP_CANDIDATES]
     best_strip = min(strips, key=lambda f: f[0])
     if best_strip[0][0] < best[0][0] * (1 - FRAME_STRIP_MIN_GAIN):
         best = best_strip
@@ -601,6 +648,17 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
             refinement, refined = replace(refinement, mirror_joints=tuple(mirror_joints)), merged
     return {"refinement": refinement.to_dict(), "calibration": fitted_calibration(refined, model, data, idx),
             "refinement_report": report}
+
+
+def _with_rows(r: dict, rows: np.ndarray, r_rows: dict | None) -> dict:
+    """Refined quantities ``r`` of some images with the images ``rows`` replaced by ``r_rows``'s
+    (None: none replaced)."""
+    if r_rows is None:
+        return r
+    out = {k: v.copy() for k, v in r.items()}
+    for k, v in out.items():
+        v[rows] = r_rows[k]
+    return out
 
 
 def fitted_calibration(modes: dict, model, data, idx: np.ndarray, plain: dict | None = None) -> dict:

@@ -498,7 +498,8 @@ def refined_quantities(parts: dict, inputs: dict, modes: dict, joint_types, fram
     of the box frame with each mode's side, ``q`` (B, J) normal-based door angle (rad, NaN when
     no door pixel has a normal; NaN for prismatic joints), ``q_folded`` and ``q_signed`` (B, J: the
     folded angle; the signed one modulo ``pi / 2`` for the frame whose x is ``box_x`` (B, J, 3), the
-    box frame's x before step 3's sides), ``door_px`` (B, J), and for step 6
+    box frame's x before step 3's sides), ``door_px`` (B, J), ``frame_px`` (B,: step 2's candidate
+    pixels, with a normal or without, whose number :func:`strip_sized` reads), and for step 6
     ``door_mid`` (B, J: the door's mid-height as a coordinate along ``axis[:, :, 0]``, m; NaN
     with fewer than :data:`DOOR_EXTENT_MIN_PX` door pixels or for prismatic joints) and
     ``door_cut`` (B, J: 1 where the door's pixels reach the image's top or bottom output row).
@@ -567,9 +568,9 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
         # taken for the body's would pull the frame towards the door's face)
         confidence = torch.softmax(seg, 1).amax(1).flatten(1)  # (R, h * w): the label's probability
         frame_px &= torch.gather(confidence, 1, at_out) > frame_min_prob
-    if frame_strip_elongation is not None:  # every candidate, with a normal or without, of the images
-        # whose count may make a strip (most images show more of the body: their weight is 0 unread)
-        count = frame_px.sum(-1)
+    count = frame_px.sum(-1)  # the fit's candidates, with a normal or without (whether a strip may be read)
+    if frame_strip_elongation is not None:  # every candidate of the images whose count may make a strip
+        # (most images show more of the body: their weight is 0 unread)
         strip_normal, strip_weight = frame[:, 0, :, 0].clone(), x.new_zeros(R)
         some = strip_sized(count).nonzero()[:, 0]
         if len(some):
@@ -671,7 +672,8 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
     nan = torch.tensor(float("nan"), dtype=x.dtype)
     face_m = torch.where(revolute[None], face_offset.view(R, J), nan)
     out = {"axis": side * zf[:, :, None], "xaxis": side * xf[:, :, None], **angles, "box_x": xf,
-           "door_px": with_normal.sum(-1).view(R, J).to(x.dtype), "door_mid": door_mid, "door_cut": door_cut,
+           "door_px": with_normal.sum(-1).view(R, J).to(x.dtype), "frame_px": count.to(x.dtype),
+           "door_mid": door_mid, "door_cut": door_cut,
            "door_face_normal": face_normal.view(R, J, 3), "door_face_m": face_m}
     if not revolute.all():  # step 11: the drawers' fronts, from the same pixels
         door_col = (idx % W).view(-1).index_select(0, door_at).view(R * J, m)
