@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import pickle
 
 import numpy as np
 import pytest
@@ -422,8 +423,10 @@ def test_cli_train_dense_and_its_errors(tiny_root, tmp_path):
         assert code == 2 and text.count("\n") == 1 and needle in text, text
 
 
-@pytest.mark.parametrize("content", [b"", b"not a checkpoint", b"PK\x03\x04garbage"])
+@pytest.mark.parametrize("content", [b"", b"not a checkpoint", b"PK\x03\x04garbage", pickle.dumps({"a": 1}, protocol=4)],
+                         ids=["empty", "text", "a broken zip", "a bare pickle"])
 def test_bad_checkpoint_files_are_one_line(tmp_path, tiny_root, content):
+    """(A bare pickle also drew torch's warning about its protocol: three more lines.)"""
     bad = tmp_path / "bad.pt"
     bad.write_bytes(content)
     code, text = _run(["predict", "--model", str(bad), "--data", str(tiny_root / "drawer" / "test"), "--out", str(tmp_path / "p.h5")])
@@ -442,6 +445,69 @@ def test_checkpoints_with_bad_fields_are_one_line(overfit_run, tmp_path, tiny_ro
     torch.save(ckpt, bad)
     code, text = _run(["predict", "--model", str(bad), "--data", str(tiny_root / "microwave" / "test"), "--out", str(tmp_path / "p.h5")])
     assert code == 2 and text.count("\n") == 1 and text.startswith("artdata: error:"), text
+
+
+def _state_changed(change):
+    """A checkpoint change that edits a copy of its ``model_state`` with ``change(state)``."""
+    def apply(ckpt):
+        state = dict(ckpt["model_state"])
+        change(state)
+        return {**ckpt, "model_state": state}
+    return apply
+
+
+def _first(state, suffix):
+    return next(k for k in state if k.endswith(suffix))
+
+
+def _bad_checkpoint_contents():
+    """(name, change, words) triples: each makes a dense checkpoint (one joint, the microwave) one
+    that predict and estimate must refuse in one line naming ``words``."""
+    def config(**kw):
+        return lambda c: {**c, "model_config": {**c["model_config"], **kw}}
+    return [
+        ("NaN weights", _state_changed(lambda s: s.update({_first(s, "weight"): s[_first(s, "weight")] * float("nan")})),
+         "NaN or infinite"),
+        ("an infinite bias", _state_changed(lambda s: s.update({"head.bias": s["head.bias"] + float("inf")})),
+         "NaN or infinite"),
+        ("a negative variance", _state_changed(lambda s: s.update(
+            {_first(s, "running_var"): -s[_first(s, "running_var")]})), "variance"),
+        ("integer weights", _state_changed(lambda s: s.update({"head.weight": s["head.weight"].long()})),
+         "not floating point"),
+        ("a sparse weight", _state_changed(lambda s: s.update({"head.bias": s["head.bias"].to_sparse()})), "tensors"),
+        ("a zero image height", config(height_px=0), "'height_px'"),
+        ("a text image height", config(height_px="108"), "'height_px'"),
+        ("a fractional image width", config(width_px=192.0), "'width_px'"),
+        ("a huge image", config(height_px=10 ** 7), "'height_px'"),
+        ("a zero network width", config(width=0), "'width'"),
+        ("another class's joints", lambda c: {**c, "class_name": "cabinet2"}, "joint types"),
+        ("an unknown class", lambda c: {**c, "class_name": "../../etc"}, "../../etc"),
+        ("a drawer's joint on a microwave", lambda c: {**c, "joint_types": ["prismatic"]}, "joint types"),
+        ("no step", lambda c: {k: v for k, v in c.items() if k != "step"}, "'step'"),
+        ("a text step", lambda c: {**c, "step": "3"}, "'step'"),
+        ("a text q scale", lambda c: {**c, "q_scale": ["a"]}, "'q_scale'"),
+        ("a NaN q scale", lambda c: {**c, "q_scale": [float("nan")]}, "'q_scale'"),
+        ("a negative q scale", lambda c: {**c, "q_scale": [-1.0]}, "'q_scale'"),
+        ("an MDN's format with a list config", lambda c: {**c, "format": "artdata-mdn", "train_config": [1]}, "bad.pt"),
+    ]
+
+
+@pytest.mark.parametrize("name,change,words", _bad_checkpoint_contents(), ids=[n for n, _, _ in _bad_checkpoint_contents()])
+def test_checkpoints_with_bad_contents_are_one_line(overfit_run, tmp_path, tiny_root, name, change, words):
+    """Weights, network configuration, class, step and q scale of a dense checkpoint are checked
+    when the file is read (before, NaN weights failed inside an eigendecomposition, a zero image
+    height inside the network, another class's name inside the refinement, a missing step after
+    the whole split was predicted)."""
+    from articulated_dataset.registry import class_names
+
+    changed = change(dict(load_dense_checkpoint(overfit_run[0])))
+    bad = tmp_path / "bad.pt"
+    torch.save(changed, bad)
+    # the split of the class the file claims (a relabelled file must fail on its own, not on the data's class)
+    split = str(tiny_root / (changed["class_name"] if changed["class_name"] in class_names() else "microwave") / "test")
+    code, text = _run(["predict", "--model", str(bad), "--data", split, "--out", str(tmp_path / "p.h5")])
+    assert code == 2 and text.count("\n") == 1 and text.startswith("artdata: error:") and words in text, text
+    assert not (tmp_path / "p.h5").exists()
 
 
 def _bad_calibrations():
@@ -489,7 +555,16 @@ def _bad_refinements():
             ("a negative pixel count", lambda r: {**r, "min_door_px": -5}),
             ("a joint that is not there", lambda r: {**r, "mirror_joints": [3]}),
             ("one face offset", lambda r: {**r, "door_face_offsets_m": [0.0]}),
-            ("a list gate", lambda r: {**r, "door_angle_gate_deg": [1, 2]})]
+            ("a list gate", lambda r: {**r, "door_angle_gate_deg": [1, 2]}),
+            ("a text switch", lambda r: {**r, "frame": "yes"}),
+            ("a text gate", lambda r: {**r, "max_turn_deg": "20"}),
+            ("a probability above 1", lambda r: {**r, "frame_min_prob": 5.0}),
+            ("a negative gate", lambda r: {**r, "max_turn_deg": -20.0}),
+            ("a gate beyond a half turn", lambda r: {**r, "door_angle_gate_deg": 400.0}),
+            ("an offset of a kilometre", lambda r: {**r, "hinge_offset_m": 1000.0}),
+            ("a version from the future", lambda r: {**r, "version": 999}),
+            ("a fractional pixel count", lambda r: {**r, "min_door_px": 20.5}),
+            ("a null switch", lambda r: {**r, "frame": None})]
 
 
 @pytest.mark.parametrize("name,change", _bad_refinements(), ids=[n for n, _ in _bad_refinements()])
@@ -563,6 +638,69 @@ def test_estimate_api_and_cli(overfit_run, tiny_root, tmp_path):
         cls = [] if "--class" in args else ["--class", "microwave"]
         code, text = _run(["estimate", *args, *cls, "--model", str(overfit_run[0])])
         assert code == 2 and text.count("\n") == 1 and needle in text, text
+
+
+def _huge_exr(path, depth):
+    """An EXR of ``depth`` whose header then declares a 20001 x 20001 data window (400 million
+    pixels) in a few kilobytes."""
+    import struct
+
+    from articulated_dataset.exr.files import write_depth_exr
+
+    write_depth_exr(path, depth)
+    raw = bytearray(path.read_bytes())
+    at = raw.index(b"dataWindow\x00box2i\x00") + len(b"dataWindow\x00box2i\x00") + 4  # after the attribute's size
+    raw[at:at + 16] = struct.pack("<4i", 0, 0, 20000, 20000)
+    path.write_bytes(bytes(raw))
+
+
+def test_estimate_refuses_hostile_inputs(overfit_run, tiny_root, tmp_path):
+    """Files and arrays that once hung, exhausted memory or gave a wrong answer silently: a YAML
+    camera file's aliases (nested, a few hundred bytes expand to billions of numbers), a camera
+    file of megabytes, an EXR header declaring 400 million pixels (its pixels were decoded
+    before its size was checked), boolean or complex depth, a transposed or scaled K; a camera
+    file with a byte-order mark is read."""
+    import h5py
+
+    import articulated_dataset as ad
+    from articulated_dataset.errors import UserError
+
+    with h5py.File(next((tiny_root / "microwave" / "test").glob("shard-*.h5")), "r") as f:
+        depth, K = f["depth"][5], f["K"][()]
+    np.save(tmp_path / "d.npy", depth)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    model = ["--class", "microwave", "--model", str(overfit_run[0])]
+    (tmp_path / "alias.yaml").write_text(f"f: &f {fx}\nfx: *f\nfy: *f\ncx: {cx}\ncy: {cy}\n")
+    (tmp_path / "plain.yaml").write_text(f"fx: {fx}\nfy: {fy}\ncx: {cx}\ncy: {cy}\n")
+    (tmp_path / "bom.json").write_bytes(b"\xef\xbb\xbf" + json.dumps({"fx": fx, "fy": fy, "cx": cx, "cy": cy}).encode())
+    (tmp_path / "big.json").write_text(json.dumps({"fx": fx, "fy": fy, "cx": cx, "cy": cy, "pad": "x" * 2_000_000}))
+    _huge_exr(tmp_path / "huge.exr", depth)
+    (tmp_path / "huge.camera.json").write_text(json.dumps({"fx": fx, "fy": fy, "cx": cx, "cy": cy}))
+    for camera in ("plain.yaml", "bom.json"):
+        code, text = _run(["estimate", str(tmp_path / "d.npy"), "--camera", str(tmp_path / camera), *model])
+        assert code == 0, text
+    for args, needle in [([str(tmp_path / "d.npy"), "--camera", str(tmp_path / "alias.yaml")], "aliases"),
+                         ([str(tmp_path / "d.npy"), "--camera", str(tmp_path / "big.json")], "bytes"),
+                         ([str(tmp_path / "huge.exr")], "not a depth sensor's image")]:
+        code, text = _run(["estimate", *args, *model])
+        assert code == 2 and text.count("\n") == 1 and needle in text, text
+    for depth_, K_, needle in [(depth > 0, K, "real numbers"), (depth.astype(complex), K, "real numbers"),
+                               (depth, K.T, "no skew"), (depth, 2 * K, "no skew"), (depth, K + [[0, 50, 0], [0] * 3, [0] * 3], "no skew"),
+                               (depth, K.astype(complex), "real numbers")]:
+        with pytest.raises(UserError, match=needle):
+            ad.estimate(depth_, K_, "microwave", model=str(overfit_run[0]))
+    with pytest.raises(UserError, match="checkpoint's path"):
+        ad.estimate(depth, K, "microwave", model=None)
+
+
+def test_predict_with_the_dense_model_refuses_mdn_options(overfit_run, tiny_root, tmp_path):
+    split = str(tiny_root / "microwave" / "test")
+    for extra, needle in [(["--device", "cuda"], "--device"), (["--estimate", "mode"], "--estimate")]:
+        code, text = _run(["predict", "--model", str(overfit_run[0]), "--data", split, "--out", str(tmp_path / "p.h5"), *extra])
+        assert code == 2 and text.count("\n") == 1 and needle in text, text
+    code, text = _run(["predict", "--model", str(overfit_run[0]), "--data", split, "--out", str(tmp_path / "p.h5"),
+                       "--device", "cpu", "-q"])
+    assert code == 0, text
 
 
 def test_init_from_continues_a_finished_training(overfit_run, tiny_root, tmp_path):

@@ -271,7 +271,7 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
            ("val-fraction-one", ["--val-fraction", "1"], "--val-fraction"),
            ("max-objects-zero", ["--max-objects", "0"], "--max-objects"), ("threads-zero", ["--threads", "0"], "--threads"),
            ("threads-huge", ["--threads", str(10**9)], "--threads"),
-           ("device-tpu", ["--device", "tpu"], "--device"), ("components-huge", ["--components", str(10**12)], "memory"),
+           ("device-tpu", ["--device", "tpu"], "--device"), ("components-huge", ["--components", str(10**12)], "--components must be at most"),
        ]},
     "train:class-mismatch": (lambda e: ["train", "--class", "drawer", "--data", e.split(split="train"), "--out", "m.pt", "-q"],
                              "not 'drawer'"),

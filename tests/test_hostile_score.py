@@ -152,6 +152,23 @@ def _huge_declared(c: Case):
     return score_args(c, p), ["of memory", "available"]
 
 
+def _huge_mixture(c: Case):
+    """A mixture of 2 million components per image in a few kilobytes (unallocated chunks): refused
+    from its shape, before it is read (it took 3.6 GB of memory to refuse)."""
+    p = c.work / "p.h5"
+    n = len(c.good["q"])
+    with h5py.File(p, "w") as f:
+        f.attrs.update(format_version=PREDICTIONS_FORMAT_VERSION, method="hostile")
+        g = f.create_group(CLASS)
+        for k in ("sample_id", "axis_pose", "q"):
+            g.create_dataset(k, data=c.good[k])
+        g.attrs["mixture_layout"] = json.dumps(["j0.q"])
+        g.create_dataset("mixture_weights", shape=(n, 2_000_000), dtype=np.float64, chunks=(1, 4096))
+        for k in ("mixture_means", "mixture_scales"):
+            g.create_dataset(k, shape=(n, 2_000_000, 1), dtype=np.float64, chunks=(1, 4096, 1))
+    return score_args(c, p), ["2000000 components", "at most"]
+
+
 def _soft_link(c: Case):
     p = c.preds()
     with h5py.File(p, "a") as f:
@@ -400,6 +417,7 @@ CASES = {
     # files
     "corrupt chunk": _corrupt_chunk,
     "huge declared dataset": _huge_declared,
+    "huge declared mixture": _huge_mixture,
     "soft link": _soft_link,
     "external link": _external_link,
     "external storage": _external_storage,

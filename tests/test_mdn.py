@@ -389,3 +389,15 @@ def test_a_split_read_in_two_processes_is_the_same_inputs(tiny_root):
             assert a.dtype == b.dtype and torch.equal(a, b), name
         else:
             assert a.dtype == b.dtype and np.array_equal(a, b), name
+
+
+def test_more_components_than_the_predictions_format_holds_are_refused():
+    """--components above the predictions format's limit would train for hours and fail when
+    the predictions are written; it is refused when the configuration is resolved."""
+    from articulated_dataset.benchmark.predictions import MAX_MIXTURE_COMPONENTS
+    from articulated_dataset.errors import UserError
+    from articulated_dataset.models.mdn.config import TrainConfig
+
+    assert TrainConfig(class_name="drawer", preset="small", n_components=MAX_MIXTURE_COMPONENTS).resolved()
+    with pytest.raises(UserError, match="--components must be at most"):
+        TrainConfig(class_name="drawer", preset="small", n_components=MAX_MIXTURE_COMPONENTS + 1).resolved()

@@ -375,3 +375,31 @@ def test_real_split_with_uneven_images_per_object(real_split, tmp_path):
     result = run_show(real_split, "--out", tmp_path / "r.png", "--rgb")
     assert result.exit_code == 2 and "real captures" in result.output and len(result.output.strip().splitlines()) == 1
     assert not (tmp_path / "r.png").exists()
+
+
+def test_predictions_that_match_no_drawn_image_are_refused(tiny_root, tmp_path):
+    """--predictions of another split (no drawn image's sample id) or with another class's number
+    of joints drew no predicted axis and said nothing; now one line, exit 2."""
+    from articulated_dataset.benchmark.predictions import write_predictions
+
+    split = tiny_root / "microwave" / "test"
+    good = _write_predictions(split, tmp_path / "good.h5", [(0, 0), (0, 1)])
+    out = tmp_path / "g.png"
+    r = CliRunner().invoke(main, ["show", str(split), "--predictions", str(good), "--objects", "0", "--images", "0,1",
+                                  "--out", str(out)])
+    assert r.exit_code == 0 and out.is_file(), r.output
+    view = SplitView.open(split)
+    s = view.sample(0, 0)
+    view.close()
+    other = tmp_path / "other.h5"  # another split's sample ids
+    write_predictions(other, "test", {"microwave": {"sample_id": np.array([int(s["sample_id"]) + 1]),
+                                                    "axis_pose": s["axis_pose"][None].astype(np.float64),
+                                                    "q": s["q"][None].astype(np.float64)}})
+    two = tmp_path / "two.h5"  # two joints per microwave image
+    write_predictions(two, "test", {"microwave": {"sample_id": np.array([int(s["sample_id"])]),
+                                                  "axis_pose": np.repeat(s["axis_pose"][None], 2, 1).astype(np.float64),
+                                                  "q": np.repeat(s["q"][None], 2, 1).astype(np.float64)}})
+    for preds, needle in [(other, "hold none of the drawn"), (two, "2 joint(s)")]:
+        r = CliRunner().invoke(main, ["show", str(split), "--predictions", str(preds), "--objects", "0", "--images", "0",
+                                      "--out", str(tmp_path / "x.png")])
+        assert r.exit_code == 2 and r.output.count("\n") == 1 and needle in r.output, r.output

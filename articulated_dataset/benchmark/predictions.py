@@ -64,6 +64,10 @@ WEIGHT_SUM_TOL = 1e-3
 #: Objects are metres from the camera: a value past this is not an estimate but a bug, and
 #: it keeps every metric (squares of differences, sums over 10^6 images) far from overflow.
 MAX_ABS_VALUE = 1e6
+#: Most mixture components per image (the dense model writes at most 5, the paper's MDN 20 by
+#: default); checked from a dataset's shape before it is read (a file of a few kilobytes of
+#: compressed zeros can declare gigabytes of components).
+MAX_MIXTURE_COMPONENTS = 4096
 #: Longest method name (it is a table label and appears in messages).
 MAX_METHOD_CHARS = 100
 #: A class group's name: a registry-style name (letters, digits, ``_ . -``; 1-32 characters).
@@ -196,6 +200,8 @@ def validate_class(where: str, arrays: dict, *, normalise: bool = True) -> dict:
         w = np.asarray(arrays["mixture_weights"])
         _check_shape(where, "mixture_weights", w, (N, None))
         M = w.shape[1]
+        if M > MAX_MIXTURE_COMPONENTS:
+            raise DataFormatError(f"{where}/mixture_weights: {M} components per image (at most {MAX_MIXTURE_COMPONENTS})")
         if M == 0:
             raise DataFormatError(f"{where}/mixture_weights: zero components")
         mu = np.asarray(arrays["mixture_means"])
@@ -364,6 +370,9 @@ def read_predictions(path: str | Path) -> tuple[dict, dict[str, dict[str, np.nda
                     raise DataFormatError(f"{where}: unknown dataset {name[:40]!r} (expected {', '.join(ALL_DATASETS)})")
                 if ds.dtype.kind not in "fiub":
                     raise DataFormatError(f"{where}/{name}: dtype {ds.dtype} is not numeric")
+                if name in MIXTURE_DATASETS and len(ds.shape) >= 2 and ds.shape[1] > MAX_MIXTURE_COMPONENTS:
+                    raise DataFormatError(f"{where}/{name}: {ds.shape[1]} components per image "
+                                          f"(at most {MAX_MIXTURE_COMPONENTS})")
                 arrays[name] = _read_dataset(ds, f"{where}/{name}")
             if MIXTURE_LAYOUT_ATTR in grp.attrs:
                 arrays[MIXTURE_LAYOUT_ATTR] = _read_attr(grp.attrs, MIXTURE_LAYOUT_ATTR, where)

@@ -51,7 +51,7 @@ def json_value(v):
 # --------------------------------------------------------------------------------------
 
 @contextlib.contextmanager
-def _c_output_silenced():
+def c_output_silenced():
     """Point file descriptors 1 and 2 at /dev/null meanwhile: the OpenEXR C++ library prints
     its own diagnostics for damaged files there; we raise one clear error instead."""
     sys.stdout.flush()
@@ -84,6 +84,17 @@ def _size_mismatch(path: Path, what: str, width: int, height: int, expect_hw) ->
         raise DataFormatError(f"{path}: {what} is {width}x{height} px, expected {expect_hw[1]}x{expect_hw[0]}")
 
 
+def exr_size(path: str | Path) -> tuple[int, int]:
+    """``(width, height)`` of an EXR file's data window, read from its header alone (no pixel is
+    decoded: a hostile header cannot make the caller allocate its size); OpenEXR's own errors
+    (RuntimeError, ValueError, OSError, KeyError, TypeError) propagate, its C++ diagnostics silenced."""
+    import OpenEXR
+
+    with c_output_silenced(), OpenEXR.File(str(path), header_only=True) as f:
+        lo, hi = f.header()["dataWindow"]
+    return int(hi[0]) - int(lo[0]) + 1, int(hi[1]) - int(lo[1]) + 1
+
+
 def read_depth_exr(path: str | Path, expect_hw: tuple[int, int] | None = None) -> np.ndarray:
     """Read the float32 "Z" channel of an EXR file; anything else is a DataFormatError.
 
@@ -96,10 +107,8 @@ def read_depth_exr(path: str | Path, expect_hw: tuple[int, int] | None = None) -
         raise DataFormatError(f"{path}: missing depth image")
     try:
         if expect_hw is not None:
-            with _c_output_silenced(), OpenEXR.File(str(path), header_only=True) as f:
-                lo, hi = f.header()["dataWindow"]
-            _size_mismatch(path, "depth", int(hi[0]) - int(lo[0]) + 1, int(hi[1]) - int(lo[1]) + 1, expect_hw)
-        with _c_output_silenced(), OpenEXR.File(str(path)) as f:
+            _size_mismatch(path, "depth", *exr_size(path), expect_hw)
+        with c_output_silenced(), OpenEXR.File(str(path)) as f:
             channels = f.channels()
             if DEPTH_CHANNEL not in channels:
                 raise DataFormatError(f"{path}: no {DEPTH_CHANNEL!r} channel (has {sorted(channels)})")

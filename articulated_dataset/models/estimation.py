@@ -152,6 +152,19 @@ def check_depth(depth_m: np.ndarray, mask: np.ndarray | None, where: str = "dept
                         f"pass a segmentation mask of the object")
 
 
+def _real_array(value, what: str) -> np.ndarray:
+    """``value`` as a numpy array of real numbers (floating point or integer); booleans, complex
+    numbers, strings, objects and ragged lists are a :class:`UserError` (never converted: a
+    boolean image read as 1 m, a complex one without its imaginary part, would be a wrong answer)."""
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise UserError(f"{what} must be an array of numbers ({str(exc).splitlines()[0][:80]})") from None
+    if a.dtype.kind not in "fiu":
+        raise UserError(f"{what} must be an array of real numbers, got dtype {a.dtype}")
+    return a
+
+
 def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarray | None = None,
              model: str = "dense", mirror: bool = True, precision: str = "float32") -> Estimate:
     """Estimate the articulation of a ``class_name`` object in one depth image.
@@ -172,16 +185,14 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     from .dense.mirror import with_mirror
     from .dense.predict import check_precision, modes_to_arrays, refined_batch
     from ..registry import get_class
-    from ..real.intrinsics import check_intrinsics
+    from ..real.intrinsics import check_intrinsics, pinhole_matrix
     from ..real.resample import crop_intrinsics, mask_fraction_inside, resample_depth
 
     obj_class = get_class(class_name)
-    depth = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    depth = np.nan_to_num(_real_array(depth_m, "depth").astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     m = None if mask is None else np.asarray(mask).astype(bool)
     check_depth(depth, m)
-    K = np.asarray(K, np.float64)
-    if K.shape != (3, 3) or not np.isfinite(K).all():
-        raise UserError(f"intrinsics must be a finite 3x3 matrix, got shape {K.shape}")
+    K = pinhole_matrix(_real_array(K, "intrinsics"), "intrinsics")
     check_intrinsics(K, (depth.shape[1], depth.shape[0]), "intrinsics")
     check_precision(precision)
     ckpt, net, name = _load(model, obj_class.name, precision)

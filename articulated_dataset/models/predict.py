@@ -45,6 +45,10 @@ def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: 
     if ref.kind == "dense":
         if snap_to_cloud:
             raise UserError("--snap-to-cloud applies to MDN models; the dense model's origins are already point votes")
+        if estimate != "mean-of-best":
+            raise UserError("--estimate applies to MDN models; the dense model always gives its heaviest vote mode")
+        if device not in ("auto", "cpu"):
+            raise UserError(f"--device {device}: the dense model runs on the CPU (--device applies to MDN models)")
         from .dense.predict import predict_split as predict_dense
         from .dense.checkpoint import load_dense_checkpoint
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -71,6 +72,9 @@ def resolve_model(spec: str, class_name: str | None) -> ModelRef:
     class that differs from the checkpoint's is a one-line :class:`UserError`.  Results are
     cached per file state (path, modification time, size), so repeated calls cost nothing.
     """
+    if not isinstance(spec, (str, os.PathLike)):
+        raise UserError(f"a model is a shipped model's name ({', '.join(SHIPPED)}) or a checkpoint's path, "
+                        f"got {type(spec).__name__}")
     if spec in SHIPPED:
         entry = next((m for m in shipped_models() if m["name"] == spec and m["class_name"] == class_name), None)
         target = WEIGHTS_DIR / entry["file"] if entry is not None else None
@@ -112,7 +116,9 @@ def _resolve(spec: str, class_name: str | None) -> ModelRef:
     file_class = str(ckpt.get("class_name"))
     if class_name is not None and file_class != class_name:
         raise UserError(f"{path}: a {file_class!r} model, but the data is {class_name!r}")
-    name = "dense" if kind == "dense" else ("MDN-" + str(ckpt.get("train_config", {}).get("preset", "full"))).replace("MDN-full", "MDN")
+    train_config = ckpt.get("train_config")
+    preset = train_config.get("preset", "full") if isinstance(train_config, dict) else "full"
+    name = "dense" if kind == "dense" else ("MDN-" + str(preset)).replace("MDN-full", "MDN")
     return ModelRef(kind, path, name, file_class)
 
 

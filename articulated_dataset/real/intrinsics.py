@@ -19,6 +19,8 @@ MAX_PLAUSIBLE_FOV_DEG = 170.0
 #: Largest source frame accepted (pixels): ten times a 12-megapixel frame; larger is not a
 #: depth sensor's image (and would exhaust memory when rasterised).
 MAX_SOURCE_PIXELS = 120_000_000
+#: Largest camera-info or label file read (bytes): a camera's intrinsics take a few hundred.
+MAX_MAPPING_BYTES = 1_000_000
 
 
 def _is_number(v) -> bool:
@@ -46,6 +48,18 @@ def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float, where: str = "
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
+def pinhole_matrix(m: np.ndarray, where: str = "intrinsics") -> np.ndarray:
+    """A 3x3 camera matrix ``m`` checked to be a pinhole camera's ``[[fx, 0, cx], [0, fy, cy],
+    [0, 0, 1]]`` (no skew; finite; positive focal lengths), as float64 (:func:`intrinsics_matrix`);
+    anything else (a transposed matrix, a scaled one) is a :class:`UserError`."""
+    m = np.asarray(m, np.float64)
+    if m.shape != (3, 3) or not np.isfinite(m).all():
+        raise UserError(f"{where} must be a finite 3x3 matrix, got shape {m.shape}")
+    if abs(m[0, 1]) > 0 or abs(m[1, 0]) > 0 or abs(m[2, 2] - 1.0) > 1e-9 or m[2, 0] != 0 or m[2, 1] != 0:
+        raise UserError(f"{where} must be [[fx,0,cx],[0,fy,cy],[0,0,1]] (no skew), got {np.round(m, 3).tolist()}")
+    return intrinsics_matrix(m[0, 0], m[1, 1], m[0, 2], m[1, 2], where)
+
+
 def check_intrinsics(K: np.ndarray, size: tuple[int, int], where: str) -> None:
     """Intrinsics ``K`` must describe a pinhole camera for a ``size`` = (W, H) image: both
     fields of view within [:data:`MIN_PLAUSIBLE_FOV_DEG`, :data:`MAX_PLAUSIBLE_FOV_DEG`] and
@@ -71,10 +85,16 @@ def check_source_size(size: tuple[int, int], where: str) -> None:
 
 
 def read_mapping(path: Path) -> dict:
+    """A camera-info or label file (JSON, or YAML by its suffix; UTF-8, a byte-order mark allowed) as
+    a dict; a file above :data:`MAX_MAPPING_BYTES`, one that does not parse, YAML aliases and a
+    top level that is not a mapping are a :class:`UserError`."""
     if not path.is_file():
         raise UserError(f"file not found: {path}")
     try:
-        text = path.read_bytes().decode("utf-8")
+        if path.stat().st_size > MAX_MAPPING_BYTES:
+            raise UserError(f"{path}: {path.stat().st_size:,} bytes is not a camera or label file "
+                            f"(at most {MAX_MAPPING_BYTES:,})")
+        text = path.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise UserError(f"{path}: not UTF-8 text (byte {exc.start}); save it as UTF-8 JSON or YAML") from None
     except OSError as exc:
@@ -85,7 +105,7 @@ def read_mapping(path: Path) -> dict:
                 import yaml
             except ImportError:
                 raise UserError(f"{path}: reading YAML needs PyYAML (pip install pyyaml), or give the file as JSON") from None
-            data = yaml.safe_load(text)
+            data = yaml.load(text, Loader=_no_alias_loader(yaml))
         else:
             data = json.loads(text)
     except UserError:
@@ -95,6 +115,17 @@ def read_mapping(path: Path) -> dict:
     if not isinstance(data, dict):
         raise UserError(f"{path}: expected a mapping (object) at the top level")
     return data
+
+
+def _no_alias_loader(yaml):
+    """PyYAML's SafeLoader refusing aliases (``*name``): a camera or label file never needs
+    them, and nested aliases expand a few hundred bytes into billions of values (a hang)."""
+    class NoAliasLoader(yaml.SafeLoader):
+        def compose_node(self, parent, index):
+            if self.check_event(yaml.AliasEvent):
+                raise yaml.YAMLError("YAML aliases (*name) are not accepted")
+            return super().compose_node(parent, index)
+    return NoAliasLoader
 
 
 def load_intrinsics(path: str | Path) -> tuple[np.ndarray, tuple[int, int] | None]:
@@ -118,10 +149,7 @@ def load_intrinsics(path: str | Path) -> tuple[np.ndarray, tuple[int, int] | Non
         m = read_numbers(raw, f"{path}: camera matrix")
         if m.size != 9:
             raise UserError(f"{path}: camera matrix must have 9 numbers, got {m.size}")
-        m = m.reshape(3, 3)
-        if abs(m[0, 1]) > 0 or abs(m[1, 0]) > 0 or abs(m[2, 2] - 1.0) > 1e-9 or m[2, 0] != 0 or m[2, 1] != 0:
-            raise UserError(f"{path}: camera matrix must be [[fx,0,cx],[0,fy,cy],[0,0,1]] (no skew)")
-        K = intrinsics_matrix(m[0, 0], m[1, 1], m[0, 2], m[1, 2], str(path))
+        K = pinhole_matrix(m.reshape(3, 3), f"{path}: camera matrix")
     w = d.get("width", d.get("image_width"))
     h = d.get("height", d.get("image_height"))
     size = None

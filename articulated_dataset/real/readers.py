@@ -38,7 +38,7 @@ def _to_metres(raw: np.ndarray, units: str, path: Path) -> np.ndarray:
     top = float(depth.max(initial=0.0))
     if top > MAX_PLAUSIBLE_DEPTH_M:
         hint = "; it looks like millimetres: pass --depth-units mm" if units == "m" else ""
-        raise UserError(f"{path}: depth up to {top:.1f} m is not plausible for a depth sensor{hint}")
+        raise UserError(f"{path}: depth up to {top:.4g} m is not plausible for a depth sensor{hint}")
     returns = depth[depth > 0]
     median = float(np.median(returns)) if returns.size else 0.0
     if returns.size and median < MIN_PLAUSIBLE_DEPTH_M:
@@ -88,8 +88,16 @@ def load_depth(path: str | Path, units: str = "auto") -> np.ndarray:
     if suffix == ".exr":
         import OpenEXR
 
+        from ..exr.files import c_output_silenced, exr_size
+
         try:
-            channels = OpenEXR.File(str(path)).channels()
+            size = exr_size(path)
+        except Exception as exc:
+            raise UserError(f"{path}: not a readable EXR file ({str(exc).splitlines()[0]})") from None
+        check_source_size(size, str(path))  # before any pixel is decoded (a 300 KB file can declare 10^9)
+        try:
+            with c_output_silenced(), OpenEXR.File(str(path)) as f:
+                channels = {c: np.asarray(v.pixels) for c, v in f.channels().items()}
         except Exception as exc:
             raise UserError(f"{path}: not a readable EXR file ({str(exc).splitlines()[0]})") from None
         name = next((c for c in ("Z", "depth", "Y", "R") if c in channels), None)
@@ -97,7 +105,7 @@ def load_depth(path: str | Path, units: str = "auto") -> np.ndarray:
             name = next(iter(channels))
         if name is None:
             raise UserError(f"{path}: no depth channel (expected Z, depth, Y or R; found {', '.join(sorted(channels))})")
-        raw = np.asarray(channels[name].pixels)
+        raw = channels[name]
         if raw.ndim != 2:
             raise UserError(f"{path}: channel {name!r} has shape {raw.shape}, expected a single-channel image")
         return _to_metres(raw, "m" if units == "auto" else units, path)

@@ -188,8 +188,14 @@ def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi
                 raise UserError(f"the predictions hold no {cls!r} images (they hold: {', '.join(sorted(pred_by_class))})")
             for smp in ss:
                 hit = pred_by_class[cls].get(int(smp["sample_id"]))
-                if hit is not None and hit["axis_pose"].shape[0] == len(v.joint_types):
+                if hit is not None and hit["axis_pose"].shape[0] != len(v.joint_types):
+                    raise UserError(f"the predictions give {hit['axis_pose'].shape[0]} joint(s) per {cls!r} image, "
+                                    f"{v.name} has {len(v.joint_types)}")
+                if hit is not None:
                     smp["prediction"] = hit
+            if not any("prediction" in smp for smp in ss):
+                raise UserError(f"the predictions hold none of the drawn {v.name} images (sample ids of another "
+                                f"split?); predict this split or choose --objects/--images that were predicted")
         samples.append(ss)
         if stored_colour(v):  # a --rgb split: its own colour images, nothing rebuilt
             sh_rows = [v.locate(o) for o, _ in pairs]

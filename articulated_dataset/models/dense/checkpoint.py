@@ -11,6 +11,12 @@ from ...errors import UserError
 
 CHECKPOINT_FORMAT = "artdata-dense"
 CHECKPOINT_VERSION = 1
+#: Bounds of a checkpoint's ``model_config``, checked before anything is allocated from it: the
+#: network's base width (the shipped models': 16) and the sides of its input image (192 x 108; the
+#: network downsamples by 32).
+MAX_NETWORK_WIDTH = 256
+MIN_IMAGE_SIDE_PX = 32
+MAX_IMAGE_SIDE_PX = 4096
 
 
 def load_dense_checkpoint(path: str | Path) -> dict:
@@ -29,6 +35,31 @@ def load_dense_checkpoint(path: str | Path) -> dict:
     for key, typ in need.items():
         if not isinstance(ckpt.get(key), typ):
             raise UserError(f"{path}: checkpoint field {key!r} is missing or not a {typ.__name__}")
+    from ...registry import get_class
+    from ..mdn.checkpoint import state_problem
+    from ..mdn.config import is_int
+
+    try:
+        obj_class = get_class(ckpt["class_name"])
+    except UserError as exc:
+        raise UserError(f"{path}: {exc}") from None
+    if list(ckpt["joint_types"]) != list(obj_class.joint_types):
+        raise UserError(f"{path}: checkpoint joint types {str(ckpt['joint_types'])[:80]} are not the "
+                        f"{obj_class.name!r} class's {list(obj_class.joint_types)}")
+    limits = {"n_joints": (obj_class.n_joints, obj_class.n_joints), "width": (1, MAX_NETWORK_WIDTH),
+              "height_px": (MIN_IMAGE_SIDE_PX, MAX_IMAGE_SIDE_PX), "width_px": (MIN_IMAGE_SIDE_PX, MAX_IMAGE_SIDE_PX)}
+    for key, (lo, hi) in limits.items():
+        value = ckpt["model_config"].get(key)
+        if not (is_int(value) and lo <= value <= hi):
+            raise UserError(f"{path}: checkpoint field 'model_config' {key!r} must be a whole number in "
+                            f"[{lo}, {hi}], got {str(value)[:40]}")
+    problem = state_problem(ckpt["model_state"])
+    if problem is not None:
+        raise UserError(f"{path}: checkpoint field 'model_state' {problem}")
+    if not _numbers(ckpt["q_scale"], obj_class.n_joints, positive=True):
+        raise UserError(f"{path}: checkpoint field 'q_scale' must hold {obj_class.n_joints} positive finite numbers")
+    if not (is_int(ckpt.get("step")) and ckpt["step"] >= 0):
+        raise UserError(f"{path}: checkpoint field 'step' is missing or not a whole number >= 0")
     problem = calibration_problem(ckpt.get("calibration"), 13 * len(ckpt["joint_types"]) + 4)
     if problem is not None:
         raise UserError(f"{path}: checkpoint field 'calibration' is malformed: {problem}")
@@ -38,32 +69,79 @@ def load_dense_checkpoint(path: str | Path) -> dict:
     return ckpt
 
 
+#: A refinement's probability fields lie in [0, 1); its gates (deg, m) and ratios are positive;
+#: its angle gates (deg) at most a half turn.
+_REFINEMENT_PROBABILITIES = ("frame_min_prob",)
+_REFINEMENT_POSITIVE = ("door_angle_gate_deg", "max_turn_deg", "door_extent_gate_m", "split_factor",
+                        "handle_height_gate_m", "door_face_gate_m", "drawer_front_gate_m", "drawer_centre_gate_m",
+                        "drawer_shell_gate_m", "frame_strip_elongation")
+_REFINEMENT_ANGLES_DEG = ("door_angle_gate_deg", "max_turn_deg", "handle_max_q_deg")
+HALF_TURN_DEG = 180.0
+#: ... and its lengths (offsets and gates, m) are within this of zero.
+MAX_REFINEMENT_LENGTH_M = 10.0
+
+
 def refinement_problem(refinement, n_joints: int) -> str | None:
     """What is wrong with a checkpoint's ``refinement`` (None: nothing; absent is allowed: the
-    votes are used as they are): a dict that :meth:`~.refine.Refinement.from_dict` reads, whose
-    numbers are finite (an integer pixel count non-negative) and whose ``mirror_joints`` (where
-    given) orders the ``n_joints`` joints."""
+    votes are used as they are): a dict whose fields have their declared types (a switch true or
+    false, never a string; a number finite; a count a non-negative whole number; null only where a
+    field may be), which :meth:`~.refine.Refinement.from_dict` reads, whose probabilities lie in
+    [0, 1), gates and ratios are positive, angle gates at most :data:`HALF_TURN_DEG`, version is
+    one this package reads, and whose ``mirror_joints`` (where given) orders the ``n_joints``
+    joints."""
     import dataclasses
 
-    from ..mdn.config import is_real_number
-    from .refine import Refinement
+    from ..mdn.config import is_int, is_real_number
+    from .refine import REFINEMENT_VERSION, Refinement
 
     if refinement is None:
         return None
     if not isinstance(refinement, dict):
         return "not a dict"
+    for field in dataclasses.fields(Refinement):
+        if field.name not in refinement:
+            continue
+        v, kind = refinement[field.name], str(field.type)
+        if v is None:
+            if not kind.endswith("| None"):  # an optional field's type ends so (a pair's items may be None)
+                return f"{field.name!r} may not be null"
+        elif kind.startswith("bool"):
+            if not isinstance(v, bool):
+                return f"{field.name!r} must be true or false, got {str(v)[:40]!r}"
+        elif kind.startswith("int"):
+            if not is_int(v) or v < 0:
+                return f"{field.name!r} must be a whole number >= 0, got {str(v)[:40]!r}"
+        elif kind.startswith("float"):
+            if not is_real_number(v):
+                return f"{field.name!r} must be a finite number, got {str(v)[:40]!r}"
+        elif kind.startswith("tuple"):
+            item_ok = is_int if "int" in kind else (lambda x: x is None or is_real_number(x))
+            if not (isinstance(v, (list, tuple)) and all(item_ok(x) for x in v)):
+                return f"{field.name!r} must be a list of {'joint indices' if 'int' in kind else 'finite numbers'}"
     try:
         r = Refinement.from_dict(refinement)
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
         return f"{type(exc).__name__}: {str(exc)[:120]}"
-    for field in dataclasses.fields(r):
-        value = getattr(r, field.name)
-        values = value if isinstance(value, tuple) else (value,)
-        for v in values:
-            if isinstance(v, float) and not is_real_number(v):
-                return f"{field.name!r} is not finite"
-            if isinstance(v, int) and not isinstance(v, bool) and v < 0:
-                return f"{field.name!r} is negative"
+    for name in _REFINEMENT_PROBABILITIES:
+        if getattr(r, name) is not None and not 0.0 <= getattr(r, name) < 1.0:
+            return f"{name!r} must be a probability in [0, 1), got {getattr(r, name)}"
+    for name in _REFINEMENT_POSITIVE:
+        if getattr(r, name) is not None and not getattr(r, name) > 0:
+            return f"{name!r} must be positive, got {getattr(r, name)}"
+    for field in dataclasses.fields(r):  # lengths (m): within a room's size
+        values = getattr(r, field.name) if field.name.endswith("_m") else None
+        for v in values if isinstance(values, tuple) else (values,):
+            if v is not None and abs(v) > MAX_REFINEMENT_LENGTH_M:
+                return f"{field.name!r} must be within +-{MAX_REFINEMENT_LENGTH_M:g} m, got {v:.4g}"
+    for name in _REFINEMENT_ANGLES_DEG:
+        if getattr(r, name) is not None and not 0 <= getattr(r, name) <= HALF_TURN_DEG:
+            return f"{name!r} must be an angle in [0, {HALF_TURN_DEG:g}] deg, got {getattr(r, name)}"
+    if r.handle_min_px < 0:
+        return "'handle_min_px' is negative"
+    if not 1 <= r.version <= REFINEMENT_VERSION:
+        return f"version {r.version} is not one this package reads (1-{REFINEMENT_VERSION})"
+    if len(r.door_face_offsets_m) != 2:
+        return "'door_face_offsets_m' must hold two offsets"
     if r.mirror_joints is not None and sorted(r.mirror_joints) != list(range(n_joints)):
         return f"'mirror_joints' {list(r.mirror_joints)} does not order the {n_joints} joints"
     return None

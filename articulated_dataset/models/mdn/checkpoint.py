@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +55,9 @@ def read_checkpoint_file(path: str | Path, map_location="cpu"):
     if not path.is_file():
         raise UserError(f"checkpoint not found: {path}")
     try:
-        return torch.load(path, map_location=map_location, weights_only=True)
+        with warnings.catch_warnings():  # torch's warnings on a foreign file (e.g. a bare pickle's protocol):
+            warnings.simplefilter("ignore")  # the one error line below says what is wrong
+            return torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
         # torch's message advises weights_only=False (running the file's code): not ours to echo
         raise UserError(f"{path}: not a readable model checkpoint (not tensors and plain containers only: "
@@ -192,13 +195,33 @@ def check_checkpoint(ckpt: dict, path) -> None:
         raise bad(f"norm_stats ({str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__})") from None
     if not finite or not (np.asarray(stats.std, np.float64) > 0).all():
         raise bad("norm_stats must have finite means and positive finite standard deviations")
-    state = ckpt["model_state"]
-    if not all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()):
-        raise bad("model_state must map parameter names to tensors")
-    if not all(bool(torch.isfinite(v).all()) for v in state.values() if v.is_floating_point()):
-        raise bad("model_state holds NaN or infinite weights")
+    problem = state_problem(ckpt["model_state"])
+    if problem is not None:
+        raise bad(f"model_state {problem}")
     if not is_int(ckpt.get("epoch", 0)) or ckpt.get("epoch", 0) < 0:
         raise bad("epoch must be a whole number >= 0")
+
+
+#: The one integer buffer of a network's state: a batch normalisation's count of training batches.
+BATCH_COUNTER_SUFFIX = "num_batches_tracked"
+
+
+def state_problem(state: dict) -> str | None:
+    """What is wrong with a checkpoint's ``model_state`` (None: nothing): it must map parameter
+    names to tensors, floating point (but for :data:`BATCH_COUNTER_SUFFIX`) and finite, every batch normalisation's running
+    variance non-negative (a negative one is a NaN after its square root)."""
+    import torch
+
+    if not all(isinstance(k, str) and isinstance(v, torch.Tensor) and v.layout == torch.strided for k, v in state.items()):
+        return "must map parameter names to (dense) tensors"
+    whole = [k for k, v in state.items() if not v.is_floating_point() and not k.endswith(BATCH_COUNTER_SUFFIX)]
+    if whole:
+        return f"holds weights that are not floating point ({whole[0][:60]!r})"
+    if not all(bool(torch.isfinite(v).all()) for v in state.values() if v.is_floating_point()):
+        return "holds NaN or infinite weights"
+    if any(bool((v < 0).any()) for k, v in state.items() if k.endswith("running_var")):
+        return "holds a negative batch-normalisation variance"
+    return None
 
 
 def build_model_from_checkpoint(ckpt: dict, device="cpu"):

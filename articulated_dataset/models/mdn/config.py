@@ -99,6 +99,11 @@ class TrainConfig:
                         ("input height", c.height_px), ("input width", c.width_px), ("network width", c.width)):
             if not is_int(v) or v <= 0:
                 raise UserError(f"{name} must be a positive whole number, got {v!r}")
+        from ...benchmark.predictions import MAX_MIXTURE_COMPONENTS
+
+        if c.n_components > MAX_MIXTURE_COMPONENTS:
+            raise UserError(f"--components must be at most {MAX_MIXTURE_COMPONENTS} (the predictions format's limit), "
+                            f"got {c.n_components}")
         if not (isinstance(c.blocks, tuple) and c.blocks and all(is_int(b) and b > 0 for b in c.blocks)):
             raise UserError(f"network blocks must be positive whole numbers, got {c.blocks!r}")
         if not is_real_number(c.lr) or not 0.0 < c.lr <= MAX_LR:
