@@ -25,7 +25,8 @@ def _ckpt(class_name, joint_types, seed, width=4):
         p.data.normal_()
     return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "class_name": class_name,
             "joint_types": list(joint_types), "model_config": net.config.to_dict(), "train_config": {"seed": 3},
-            "model_state": net.state_dict(), "q_scale": [0.4] * len(joint_types), "finished": True}
+            "model_state": net.state_dict(), "q_scale": [0.4] * len(joint_types), "finished": True,
+            "step": 100}
 
 
 def test_the_trunk_and_the_matching_head_rows_come_from_the_source(tmp_path):

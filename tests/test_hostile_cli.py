@@ -561,3 +561,13 @@ def test_a_checkpoint_that_would_run_code_is_refused_without_advice_to_run_it(tm
     assert "not a readable model checkpoint" in message and "system" in message, message
     assert "weights_only" not in message and "\n" not in message, message
     assert not (tmp_path / "pwned").exists()
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (Linux)")
+def test_a_full_output_is_one_line():
+    """Standard output on a full device (as a full disk): one line and the environment's exit code,
+    not a traceback from inside click's echo."""
+    with open("/dev/full", "w") as full:
+        r = subprocess.run([sys.executable, "-m", "articulated_dataset.cli", "models"], stdout=full,
+                           stderr=subprocess.PIPE, text=True, timeout=120)
+    assert r.returncode == 3 and r.stderr.count("\n") == 1 and "No space left" in r.stderr, r.stderr

@@ -13,11 +13,13 @@ output...) and every click usage error (unknown option, bad value, missing optio
 argument, bad choice) are printed as one line ``artdata: error: ...`` and exit with code 2;
 anything else is a bug and keeps its traceback.  A machine that cannot render offscreen (no
 EGL/OSMesa) gets one line and exit code 3 from the commands that render; the others
-(``score``, ``info``, ``verify``, ...) work without a GL library.
+(``score``, ``info``, ``verify``, ...) work without a GL library.  A full disk (or standard
+output on one) is also one line and exit code 3.
 """
 
 from __future__ import annotations
 
+import errno
 import functools
 import importlib
 import logging
@@ -30,8 +32,11 @@ from .. import __version__
 from ..errors import RenderError, UserError
 
 EXIT_USER_ERROR = 2
-#: The machine lacks something rendering needs (EGL/OSMesa libraries).
+#: The machine lacks something a command needs (EGL/OSMesa libraries for rendering, disk space).
 EXIT_ENVIRONMENT_ERROR = 3
+#: Errors of writing that are the machine's (a full disk or quota, standard output on /dev/full):
+#: one line and :data:`EXIT_ENVIRONMENT_ERROR`, not a traceback.
+FULL_OUTPUT_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 #: Every subcommand and the module of this package that defines it
 #: (tests/test_import_light.py checks it against the modules' ``COMMANDS``).
 COMMAND_MODULES = {
@@ -110,6 +115,13 @@ class _Group(click.Group):
             ctx.exit(EXIT_USER_ERROR)
         except RenderError as exc:
             click.echo(f"artdata: error: {_one_line(exc)}", err=True)
+            ctx.exit(EXIT_ENVIRONMENT_ERROR)
+        except OSError as exc:
+            if exc.errno not in FULL_OUTPUT_ERRNOS:
+                raise
+            # a full disk, or standard output redirected to one (> /dev/full): the machine's, not a bug
+            click.echo(f"artdata: error: cannot write: {exc.strerror or exc}"
+                       + (f" ({exc.filename})" if exc.filename else ""), err=True)
             ctx.exit(EXIT_ENVIRONMENT_ERROR)
 
 

@@ -16,6 +16,9 @@ from .options import no_mirror_option, precision_option, prepare_torch
               help="A shipped model (dense, dense-kinect2, mdn-small; see 'artdata models') or a checkpoint file from 'artdata train'.")
 @click.option("--data", type=click.Path(), required=True, help="Split folder to predict, e.g. data/cabinet/test.")
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="predictions.h5 to write (for 'artdata score').")
+@click.option("--as-class", default=None,
+              help="Read a third-party split (generate --urdf) as this built-in class: its joints must be the "
+                   "class's, in order; the class's model predicts it and 'artdata score' compares with its labels.")
 @click.option("--estimate", type=click.Choice(["mean-of-best", "mode"]), default="mean-of-best", show_default=True,
               help="MDN point estimate: mean of the heaviest component, or the mixture's mode (fixed-point search). "
                    "The dense model always gives its heaviest vote mode.")
@@ -35,7 +38,7 @@ from .options import no_mirror_option, precision_option, prepare_torch
                    "(default: one per thread for splits of 4,096 images or more, else 1: this process).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or summary.")
-def predict_cmd(model_path, data, out, estimate, snap_to_cloud, object_mask, no_mirror, precision, method, batch_size,
+def predict_cmd(model_path, data, out, as_class, estimate, snap_to_cloud, object_mask, no_mirror, precision, method, batch_size,
                 device, threads, workers, overwrite, quiet):
     """Predict axis poses, configurations, geometry and the full mixture for every image of a split."""
     out = Path(out)
@@ -49,7 +52,7 @@ def predict_cmd(model_path, data, out, estimate, snap_to_cloud, object_mask, no_
     t0 = time.perf_counter()
     run = predict_to_file(model_path, data, out, estimate=estimate, snap_to_cloud=snap_to_cloud, object_mask=object_mask,
                           method=method, batch_size=batch_size, device=device, mirror=not no_mirror,
-                          workers=workers, precision=precision, progress=not quiet)
+                          workers=workers, precision=precision, progress=not quiet, as_class=as_class)
     if not quiet:
         click.echo(f"{out}: {run.n_images} {run.class_name} images predicted by {run.method}"
                    f"{' (snapped to the cloud)' if snap_to_cloud else ''} in {time.perf_counter() - t0:.1f} s")

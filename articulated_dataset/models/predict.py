@@ -25,7 +25,8 @@ class PredictionRun:
 def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: str = "mean-of-best",
                     snap_to_cloud: bool = False, object_mask: bool = False, method: str | None = None,
                     batch_size: int | None = None, device: str = "auto", mirror: bool = True,
-                    workers: int | None = None, precision: str = "float32", progress: bool = False) -> PredictionRun:
+                    workers: int | None = None, precision: str = "float32", progress: bool = False,
+                    as_class: str | None = None) -> PredictionRun:
     """Predict every image of the split ``data`` with ``model`` and write ``out`` (``predictions.h5``).
 
     The dense model: batches of 128 by default, its heaviest vote mode, ``object_mask`` keeps
@@ -36,12 +37,20 @@ def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: 
     arithmetic (``"float32"`` or ``"bfloat16"``); the MDN: batches of 256,
     ``estimate`` and ``snap_to_cloud``.  An
     option of the other kind is a :class:`UserError`.  ``method`` names the method in the
-    file (default: the shipped model's name, else ``dense``, ``MDN`` or ``MDN-<preset>``)."""
+    file (default: the shipped model's name, else ``dense``, ``MDN`` or ``MDN-<preset>``).
+    ``as_class``: the split is a third-party object (``generate --urdf``) of that built-in class
+    (the same joint types, in order), predicted by the class's model and written under the
+    split's own class (:func:`~.mdn.data.checked_split_class`), so ``score`` compares them with
+    its labels."""
     from ..benchmark.predictions import write_predictions
     from .mdn.data import resolve_split_dir, split_class
     from .shipped import resolve_model
 
-    ref = resolve_model(model, split_class(resolve_split_dir(data)))
+    if as_class is not None:
+        from ..registry import get_class
+
+        as_class = get_class(as_class).name  # an unknown name: one line listing the classes
+    ref = resolve_model(model, split_class(resolve_split_dir(data)) if as_class is None else as_class)
     if ref.kind == "dense":
         if snap_to_cloud:
             raise UserError("--snap-to-cloud applies to MDN models; the dense model's origins are already point votes")
@@ -56,8 +65,8 @@ def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: 
         name = method or ref.name  # dense, dense-kinect2 (shipped) or dense (a checkpoint file)
         class_name, arrays = predict_dense(ckpt, data, batch_size=128 if batch_size is None else batch_size,
                                            object_mask=object_mask, mirror=mirror, workers=workers, precision=precision,
-                                           progress=progress)
-        attrs = {"model": str(model), "estimate": "heaviest-mode", "steps": int(ckpt["step"]),
+                                           progress=progress, as_class=as_class)
+        attrs = {"model": str(model), **({"as_class": as_class} if as_class else {}), "estimate": "heaviest-mode", "steps": int(ckpt["step"]),
                  "object_mask": int(object_mask), "mirror": int(mirror), "precision": precision}
     else:
         if object_mask:
@@ -76,8 +85,8 @@ def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: 
         name = method or ("MDN" if preset == "full" else f"MDN-{preset}")
         class_name, arrays = predict_split(ref.path, data, estimate=estimate, snap_to_cloud=snap_to_cloud,
                                            batch_size=256 if batch_size is None else batch_size, device=device,
-                                           progress=progress)
-        attrs = {"model": str(model), "estimate": estimate, "snap_to_cloud": int(snap_to_cloud),
+                                           progress=progress, as_class=as_class)
+        attrs = {"model": str(model), **({"as_class": as_class} if as_class else {}), "estimate": estimate, "snap_to_cloud": int(snap_to_cloud),
                  "epochs": int(ckpt["epoch"]), "preset": preset}
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -96,8 +96,11 @@ def _resolve(spec: str, class_name: str | None) -> ModelRef:
         entry = next((m for m in shipped_models() if m["name"] == spec and m["class_name"] == class_name), None)
         if entry is None:
             have = sorted({m["class_name"] for m in shipped_models() if m["name"] == spec})
+            from ..registry import class_names
+
+            third_party = "" if class_name in class_names() else "; a third-party object of one of them: pass --as-class CLASS"
             raise UserError(f"no shipped {spec!r} model for class {class_name!r}"
-                            + (f" (shipped: {', '.join(have)})" if have else " (this installation ships no weights)"))
+                            + (f" (shipped: {', '.join(have)}{third_party})" if have else " (this installation ships no weights)"))
         path = WEIGHTS_DIR / entry["file"]
         if not path.is_file():
             raise UserError(f"shipped model file missing: {path} (reinstall the package)")

@@ -725,7 +725,7 @@ def check_precision(precision: str) -> None:
 
 def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BATCH, object_mask: bool = False,
                   mirror: bool = True, workers: int | None = None, precision: str = "float32",
-                  progress: bool = True) -> tuple[str, dict]:
+                  progress: bool = True, as_class: str | None = None) -> tuple[str, dict]:
     """Run a loaded dense checkpoint on the split at ``data``; ``(class_name, arrays)`` as
     :func:`articulated_dataset.benchmark.predictions.write_predictions` takes them.  Labels are not
     read; with ``object_mask`` the split's mask keeps only the object's pixels
@@ -733,8 +733,10 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
     logs a warning: the model was trained on isolated objects and reads every pixel with depth.
     ``mirror=False`` skips the refinement's mirror image (:func:`~.mirror.with_mirror`).
     ``workers``: processes that share the images (:func:`predict_arrays`); None:
-    :func:`default_workers`.  ``precision``: the network's arithmetic (:func:`check_precision`)."""
-    from ..mdn.data import resolve_split_dir, split_class
+    :func:`default_workers`.  ``precision``: the network's arithmetic (:func:`check_precision`).
+    ``as_class``: read a third-party split (``generate --urdf``) as the checkpoint's class
+    (:func:`~articulated_dataset.models.mdn.data.checked_split_class`); the returned class is the split's."""
+    from ..mdn.data import checked_split_class, resolve_split_dir
     from .checkpoint import build_inference_model
     from .data import load_dense_split
     from .mirror import with_mirror
@@ -750,9 +752,7 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
     check_precision(precision)
     class_name = ckpt["class_name"]
     split_dir = resolve_split_dir(data)
-    data_class = split_class(split_dir)
-    if data_class != class_name:
-        raise UserError(f"{split_dir}: holds class {data_class!r} but the dense model was trained on {class_name!r}")
+    data_class = checked_split_class(split_dir, class_name, as_class, "the dense model")
     if not object_mask:
         from ...format import read_manifest
 
@@ -775,4 +775,4 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
     log.info("dense: %d images in %.1f s (%d process%s)", n, time.perf_counter() - t0, workers,
              "" if workers == 1 else "es")
     arrays.pop("spread")
-    return class_name, arrays
+    return data_class, arrays

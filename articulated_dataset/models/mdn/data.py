@@ -42,6 +42,32 @@ def split_class(split_dir: Path) -> str:
     return Split(split_dir).class_name
 
 
+def checked_split_class(split_dir: Path, model_class: str, as_class: str | None = None, what: str = "the model") -> str:
+    """The class of the split at ``split_dir``, which a model trained on ``model_class`` predicts:
+    the same class, or, with ``as_class`` (``predict --as-class``; it must be ``model_class``), a
+    third-party split (``generate --urdf``) whose joint types are the class's, in order (a
+    PartNet-Mobility microwave read as a microwave).  Returns the split's class, the predictions'
+    group (``score`` compares them with the split's labels); anything else is a UserError."""
+    from ...registry import class_names, get_class
+
+    data_class = split_class(split_dir)
+    if as_class is not None and as_class != model_class:
+        raise UserError(f"--as-class {as_class}: {what} was trained on {model_class!r}")
+    if data_class == model_class:
+        return data_class
+    if as_class is None:
+        hint = "" if data_class in class_names() else f" (a third-party object of that class: pass --as-class {model_class})"
+        raise UserError(f"{split_dir}: holds class {data_class!r} but {what} was trained on {model_class!r}{hint}")
+    if data_class in class_names():
+        raise UserError(f"--as-class {as_class}: {split_dir} holds the built-in class {data_class!r}; --as-class reads "
+                        f"a third-party split (generate --urdf) as a class")
+    types, expected = list(Split(split_dir).joint_types()), list(get_class(as_class).joint_types)
+    if types != expected:
+        raise UserError(f"--as-class {as_class}: {split_dir} has joints {types}, the {as_class!r} class {expected} "
+                        f"(choose and order its joints with generate --urdf --joints)")
+    return data_class
+
+
 def load_split(split_dir: Path, layout, input_config, *, max_objects: int | None = None, progress: bool = False,
                with_targets: bool = True, workers: int | None = 1) -> PreparedSplit:
     """Read every shard of ``split_dir`` and reduce it to model inputs (and encoded targets).

@@ -31,10 +31,12 @@ DEFAULT_PREDICT_BATCH = 256
 
 
 def predict_split(model_path: str | Path, data: str | Path, *, estimate: str = "mean-of-best", snap_to_cloud: bool = False,
-                  batch_size: int = DEFAULT_PREDICT_BATCH, device: str | None = None, progress: bool = True) -> tuple[str, dict]:
-    """Run the checkpoint at ``model_path`` on the split at ``data``.
+                  batch_size: int = DEFAULT_PREDICT_BATCH, device: str | None = None, progress: bool = True,
+                  as_class: str | None = None) -> tuple[str, dict]:
+    """Run the checkpoint at ``model_path`` on the split at ``data`` (of the checkpoint's class, or,
+    with ``as_class``, a third-party split read as that class: :func:`~.data.checked_split_class`).
 
-    Returns ``(class_name, arrays)`` with the datasets of
+    Returns ``(the split's class, arrays)`` with the datasets of
     :func:`articulated_dataset.benchmark.predictions.write_predictions` (``sample_id``, ``axis_pose``,
     ``q``, ``geometry``, ``part_offset``, ``mixture_weights``, ``mixture_means``,
     ``mixture_scales``, ``mixture_layout``).
@@ -45,7 +47,7 @@ def predict_split(model_path: str | Path, data: str | Path, *, estimate: str = "
     from .loss import point_estimate
     from .preprocess import InputConfig, assemble_inputs
     from .checkpoint import build_model_from_checkpoint, load_checkpoint
-    from .data import expand_active, load_split, resolve_split_dir, shift_anchored, split_class
+    from .data import checked_split_class, expand_active, load_split, resolve_split_dir, shift_anchored
     from .train import resolve_device
 
     if estimate not in ESTIMATES:
@@ -55,9 +57,7 @@ def predict_split(model_path: str | Path, data: str | Path, *, estimate: str = "
     ckpt = load_checkpoint(model_path)
     class_name = ckpt["class_name"]
     split_dir = resolve_split_dir(data)
-    data_class = split_class(split_dir)
-    if data_class != class_name:
-        raise UserError(f"{split_dir}: holds class {data_class!r} but the model {model_path} was trained on {class_name!r}")
+    data_class = checked_split_class(split_dir, class_name, as_class, f"the model {model_path}")
     layout = TargetLayout.for_class(class_name)
     names = list(layout.names)
     if names != list(ckpt["layout_names"]):
@@ -112,7 +112,7 @@ def predict_split(model_path: str | Path, data: str | Path, *, estimate: str = "
     }
     if snap_to_cloud:
         arrays["axis_pose"] = _snap(split_dir, prepared, arrays, names, progress)
-    return class_name, arrays
+    return data_class, arrays
 
 
 def _snap(split_dir: Path, prepared, arrays: dict, names: list[str], progress: bool) -> np.ndarray:
