@@ -659,7 +659,7 @@ def test_estimate_refuses_hostile_inputs(overfit_run, tiny_root, tmp_path):
     camera file's aliases (nested, a few hundred bytes expand to billions of numbers), a camera
     file of megabytes, an EXR header declaring 400 million pixels (its pixels were decoded
     before its size was checked), boolean or complex depth, a transposed or scaled K; a camera
-    file with a byte-order mark is read."""
+    file with a byte-order mark is read; a float mask of fractions (0.5 was truncated to "no object pixel")."""
     import h5py
 
     import articulated_dataset as ad
@@ -675,13 +675,18 @@ def test_estimate_refuses_hostile_inputs(overfit_run, tiny_root, tmp_path):
     (tmp_path / "bom.json").write_bytes(b"\xef\xbb\xbf" + json.dumps({"fx": fx, "fy": fy, "cx": cx, "cy": cy}).encode())
     (tmp_path / "big.json").write_text(json.dumps({"fx": fx, "fy": fy, "cx": cx, "cy": cy, "pad": "x" * 2_000_000}))
     _huge_exr(tmp_path / "huge.exr", depth)
+    from PIL import Image
+
+    Image.fromarray(np.where(depth > 0, 0.5, 0.0).astype(np.float32), mode="F").save(tmp_path / "half.tiff")
     (tmp_path / "huge.camera.json").write_text(json.dumps({"fx": fx, "fy": fy, "cx": cx, "cy": cy}))
     for camera in ("plain.yaml", "bom.json"):
         code, text = _run(["estimate", str(tmp_path / "d.npy"), "--camera", str(tmp_path / camera), *model])
         assert code == 0, text
     for args, needle in [([str(tmp_path / "d.npy"), "--camera", str(tmp_path / "alias.yaml")], "aliases"),
                          ([str(tmp_path / "d.npy"), "--camera", str(tmp_path / "big.json")], "bytes"),
-                         ([str(tmp_path / "huge.exr")], "not a depth sensor's image")]:
+                         ([str(tmp_path / "huge.exr")], "not a depth sensor's image"),
+                         ([str(tmp_path / "d.npy"), "--camera", str(tmp_path / "plain.yaml"), "--mask",
+                           str(tmp_path / "half.tiff")], "whole numbers")]:
         code, text = _run(["estimate", *args, *model])
         assert code == 2 and text.count("\n") == 1 and needle in text, text
     for depth_, K_, needle in [(depth > 0, K, "real numbers"), (depth.astype(complex), K, "real numbers"),

@@ -260,6 +260,7 @@ def estimate_file(depth_path: str | Path, class_name: str, *, camera_path: str |
     mask = None
     if mask_path is not None:
         mask = load_mask(mask_path, d.shape, get_class(class_name).n_joints) > 0
+    check_depth(d, mask, str(depth_path))  # the checks estimate() makes, naming the file
     if before_model is not None:
         before_model()
     return estimate(d, K, class_name, mask=mask, model=model, mirror=mirror, precision=precision)

@@ -140,7 +140,11 @@ def load_mask(path: str | Path, shape: tuple[int, int], n_joints: int) -> np.nda
         raise UserError(f"{path}: mask must be a single-channel image, got mode {mode}")
     if raw.shape != tuple(shape):
         raise UserError(f"{path}: mask is {raw.shape[1]}x{raw.shape[0]} px but the depth is {shape[1]}x{shape[0]} px")
-    values = set(np.unique(raw).tolist())
+    unique = np.unique(raw)
+    if not np.isfinite(unique).all() or (unique != np.round(unique)).any():  # a float image of fractions
+        raise UserError(f"{path}: mask values must be whole numbers (0/255, 0/1 or labels), got "
+                        f"{[float(v) for v in unique[unique != np.round(unique)][:4]]}")
+    values = set(unique.tolist())
     if values <= {0, 255} or values <= {0, 1}:
         return (raw > 0).astype(np.uint8) * np.uint8(MASK_BODY)
     top = MASK_FIRST_PART + n_joints - 1
