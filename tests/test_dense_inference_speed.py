@@ -377,3 +377,21 @@ def test_refinement_candidates_share_one_network_pass(cabinet_split):
     assert not np.allclose(every["box_x"][rows], pair["box_x"][rows], atol=1e-3)
     for k in every:
         assert np.allclose(merged[k], every[k], atol=1e-5, rtol=0, equal_nan=True), k
+
+
+def test_the_fit_benchmark_reports_its_time_and_choice(tmp_path, capsys):
+    """benchmarks/fit_inference.py (the figures of docs/dense.md, "Twenty-fifth session") runs and
+    prints each class's seconds, images and the refinement chosen."""
+    from pathlib import Path
+
+    from helpers_core import load_script
+
+    bench = load_script(Path(__file__).resolve().parent.parent / "benchmarks" / "fit_inference.py", "fit_inference_bench")
+    threads = torch.get_num_threads()
+    try:
+        assert bench.main(["--class", "toaster", "--objects", "2", "--root", str(tmp_path)]) == 0
+    finally:
+        torch.set_num_threads(threads)  # the benchmark sets its own
+    line = capsys.readouterr().out.splitlines()[-1]
+    assert line.startswith("toaster: ") and " s for 32 images on 1 thread(s); refinement chosen: {" in line
+    assert json.loads(line.split("refinement chosen: ", 1)[1])["version"] > 0
