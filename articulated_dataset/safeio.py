@@ -271,21 +271,32 @@ def check_writable_dir(path: str | Path) -> None:
     _remove_quietly(probe)
 
 
-def check_outputs_distinct(inputs: list, outputs: list, names: str = "the outputs") -> None:
-    """Refuse an output path that is one of the inputs (writing it would replace an input) or
-    named twice (the second write would replace the first); ``None``, ``""`` and ``-`` (stdout)
-    outputs are skipped.  ``names`` names the outputs in the message."""
-    def same(a, b) -> bool:
+def check_outputs_distinct(inputs: list, outputs: list, names: str = "the outputs", input_folders: list = ()) -> None:
+    """Refuse an output path that is one of the input files ``inputs`` (writing it would replace
+    an input: a checkpoint, a predictions file), lies inside one of ``input_folders`` (a split
+    whose manifest or shard it would replace), or is named twice (the second write would replace
+    the first); ``None``, ``""`` and ``-`` (stdout) outputs and inputs, and inputs that are no file,
+    are skipped.  ``names``
+    names the outputs in the message."""
+    def resolved(p) -> Path | None:
         try:
-            return Path(a).resolve() == Path(b).resolve()
+            return Path(p).resolve()
         except (OSError, RuntimeError):
-            return False
+            return None
+
+    def same(a, b) -> bool:
+        return resolved(a) is not None and resolved(a) == resolved(b)
 
     files = [o for o in outputs if o and o != "-"]
     for i, out in enumerate(files):
         for inp in inputs:
-            if same(out, inp):
-                raise UserError(f"output {out} is also an input (predictions file {inp}); choose another name")
+            if inp and inp != "-" and Path(inp).is_file() and same(out, inp):  # (not a shipped model's name)
+                raise UserError(f"output {out} is also an input ({inp}); choose another name")
+        target = resolved(out)
+        for folder in input_folders:
+            root = resolved(folder) if folder else None
+            if target is not None and root is not None and root in target.parents:
+                raise UserError(f"output {out} lies inside the input folder {folder}; write it elsewhere")
         if any(same(out, other) for other in files[:i]):
             raise UserError(f"{names} name the same file {out}; choose two names")
 

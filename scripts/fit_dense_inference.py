@@ -39,6 +39,8 @@ def main(argv=None) -> int:
                    help="keep the checkpoint's refinement (its point estimates and modes) and refit only the "
                         "calibration: the modes' scales and the outlier component")
     args = p.parse_args(argv)
+    if args.threads is not None and args.threads < 1:
+        p.error(f"--threads must be positive, got {args.threads}")
     import torch
 
     from articulated_dataset.models.dense.train import refit_inference

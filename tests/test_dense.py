@@ -343,6 +343,13 @@ def test_noise_training_validates_and_fits_on_one_noisy_draw_of_the_validation_i
     assert refit["refinement"] == whole["refinement"] and refit["calibration"] == whole["calibration"]
     assert refit["refit_of"]["validation_noise"] == "kinect2"
     # --clean: the same validation objects without the noise model (the intervals fitted to clean depth)
+    # an output that cannot be written is one line before the fit, and leaves nothing behind
+    (tmp_path / "folder.pt").mkdir()
+    from articulated_dataset.errors import UserError
+
+    with pytest.raises(UserError):
+        refit_inference(tmp_path / "a.pt", split, tmp_path / "folder.pt", progress=False)
+    assert not list(tmp_path.glob("*.partial")) and not any((tmp_path / "folder.pt").iterdir())
     clean = refit_inference(tmp_path / "a.pt", split, tmp_path / "d.pt", progress=False, clean=True)
     assert clean["refit_of"]["validation_noise"] is None and clean["calibration"] != refit["calibration"]
     _, val_mask = split_by_object(data.object_index, cfg.val_fraction, cfg.seed)
@@ -412,15 +419,22 @@ def test_cli_train_dense_and_its_errors(tiny_root, tmp_path):
     for extra, needle in [(["--lr", "nan"], "--lr"), (["--epochs", "0"], "--epochs"), (["--small"], "--model mdn"),
                           (["--class", "drawer"], "not 'drawer'"), (["--origin-weight", "0"], "--origin-weight"),
                           (["--origin-weight", "inf"], "--origin-weight"), (["--noise", "fog"], "fog"),
-                          (["--noise", "kinect2", "--noise-fraction", "0"], "--noise-fraction")]:
+                          (["--noise", "kinect2", "--noise-fraction", "0"], "--noise-fraction"),
+                          (["--lr", "1e9"], "--lr"), (["--seed", "-1"], "--seed"),
+                          (["--seed", "99999999999999999999"], "--seed"), (["--width", "257"], "--width"),
+                          (["--init-from", str(out)], "--init-from"),  # a toaster model: another configuration
+                          (["--out", str(out / "x.pt")], "")]:  # a parent that is a file: before the training
         args = ["train", "--model", "dense", "--class", "toaster", "--data", str(tiny_root / "toaster" / "train"),
                 "--out", str(tmp_path / "e.pt")]
         if extra[0] == "--class":
             args[args.index("--class") + 1] = "drawer"
+        elif extra[0] == "--out":
+            args[args.index("--out") + 1] = extra[1]
         else:
             args += extra
         code, text = _run(args)
         assert code == 2 and text.count("\n") == 1 and needle in text, text
+    assert load_dense_checkpoint(out)["finished"]  # untouched by the failures
 
 
 @pytest.mark.parametrize("content", [b"", b"not a checkpoint", b"PK\x03\x04garbage", pickle.dumps({"a": 1}, protocol=4)],
@@ -580,6 +594,90 @@ def test_a_malformed_refinement_is_one_line(overfit_run, tmp_path, tiny_root, na
     torch.save({**ckpt, "refinement": change(dict(refinement))}, bad)
     code, text = _run(["predict", "--model", str(bad), "--data", split, "--out", str(tmp_path / "p.h5")])
     assert code == 2 and text.count("\n") == 1 and "'refinement' is malformed" in text, text
+
+
+def _bad_training_states():
+    """(name, change) pairs: each makes an unfinished checkpoint's training state one that
+    --resume must refuse in one line (they ended in tracebacks, some after replacing the file)."""
+    def moment(value):
+        def change(c):
+            opt = c["optimizer_state"]
+            k = next(iter(opt["state"]))
+            state = {**opt["state"], k: {**opt["state"][k], "exp_avg": value(opt["state"][k]["exp_avg"])}}
+            return {**c, "optimizer_state": {**opt, "state": state}}
+        return change
+    return [("no history", lambda c: {**c, "history": None}),
+            ("a text history", lambda c: {**c, "history": "abc"}),
+            ("a text optimizer state", lambda c: {**c, "optimizer_state": "x"}),
+            ("a moment of another shape", moment(lambda v: torch.zeros(3))),
+            ("a NaN moment", moment(lambda v: torch.full_like(v, float("nan")))),
+            ("a schedule past its end", lambda c: {**c, "scheduler_state": {**c["scheduler_state"], "last_epoch": 10 ** 9}}),
+            ("a random state of another size", lambda c: {**c, "rng_state": torch.zeros(3, dtype=torch.uint8)}),
+            ("a text CPU time", lambda c: {**c, "cpu_seconds": "x"}),
+            ("a step past the training", lambda c: {**c, "step": 10 ** 6})]
+
+
+@pytest.mark.parametrize("name,change", _bad_training_states(), ids=[n for n, _ in _bad_training_states()])
+def test_a_malformed_training_state_is_not_resumed(tiny_root, tmp_path, name, change):
+    torch.set_num_threads(1)
+    cfg = DenseTrainConfig("drawer", epochs=2, batch_size=16, width=4, val_fraction=0.2, max_objects=3)
+    out = tmp_path / "b.pt"
+    train_dense(tiny_root / "drawer" / "train", out, cfg, progress=False, stop_after_steps=1)
+    ckpt = torch.load(out, weights_only=True)
+    torch.save(change(ckpt), out)
+    before = out.read_bytes()
+    code, text = _run(["train", "--model", "dense", "--class", "drawer", "--data", str(tiny_root / "drawer" / "train"),
+                       "--out", str(out), "--resume", "--epochs", "2", "--batch-size", "16", "--width", "4",
+                       "--val-fraction", "0.2", "--max-objects", "3", "-q"])
+    assert code == 2 and text.count("\n") == 1 and str(out) in text, text
+    assert out.read_bytes() == before  # the file is kept as it was
+
+
+def test_a_diverging_training_keeps_its_last_checkpoint(tiny_root, tmp_path, monkeypatch):
+    """Weights that turn non-finite stop the training in one line before a checkpoint is written:
+    the last good one stays (a --resume would refuse diverged weights)."""
+    from articulated_dataset.errors import UserError
+
+    torch.set_num_threads(1)
+    cfg = DenseTrainConfig("drawer", epochs=2, batch_size=16, width=4, val_fraction=0.2, max_objects=3)
+    out = tmp_path / "b.pt"
+    train_dense(tiny_root / "drawer" / "train", out, cfg, progress=False, stop_after_steps=1)
+    before = out.read_bytes()
+    step = torch.optim.AdamW.step
+
+    def diverging(self, *a, **kw):  # the update makes one weight NaN (an --lr too large would)
+        result = step(self, *a, **kw)
+        self.param_groups[0]["params"][0].data.fill_(float("nan"))
+        return result
+    monkeypatch.setattr(torch.optim.AdamW, "step", diverging)
+    with pytest.raises(UserError, match="lower --lr"):
+        train_dense(tiny_root / "drawer" / "train", out, cfg, progress=False, resume=True)
+    assert out.read_bytes() == before
+
+
+def test_outputs_that_are_inputs_are_refused(overfit_run, tiny_root, tmp_path):
+    """predict and plan never write over what they read: the checkpoint, the predictions, a
+    split's manifest or shard (they did, and exited 0)."""
+    import shutil
+
+    split = tmp_path / "data" / "microwave" / "test"
+    shutil.copytree(tiny_root / "microwave" / "test", split)
+    model = tmp_path / "m.pt"
+    shutil.copy(overfit_run[0], model)
+    preds = tmp_path / "p.h5"
+    assert _run(["predict", "--model", str(model), "--data", str(split), "--out", str(preds), "-q"])[0] == 0
+    kept = {p: p.read_bytes() for p in (model, preds, split / "manifest.json")}
+    for args in (["predict", "--model", str(model), "--data", str(split), "--out", str(model), "--overwrite"],
+                 ["predict", "--model", str(model), "--data", str(split), "--out", str(split / "manifest.json"), "--overwrite"],
+                 ["plan", "--data", str(split), "--index", "0", "-q", "--model", str(model), "--out", str(model)],
+                 ["plan", "--data", str(split), "--index", "0", "-q", "--predictions", str(preds), "--out", str(preds)],
+                 ["plan", "--data", str(split), "--index", "0", "-q", "--out", str(split / "manifest.json")]):
+        code, text = _run(args)
+        assert code == 2 and text.count("\n") == 1 and ("also an input" in text or "inside the input folder" in text), text
+    assert all(p.read_bytes() == b for p, b in kept.items())
+    # beside the split (the folder above it) is fine
+    assert _run(["predict", "--model", str(model), "--data", str(tmp_path / "data"), "--out",
+                 str(tmp_path / "data" / "q.h5"), "-q"])[0] == 0
 
 
 def test_origin_weight_scales_only_the_origin_terms_of_the_loss(tiny_root):

@@ -55,9 +55,14 @@ def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, no_to
         raise UserError("give either --model (estimate from the image) or --predictions (a predictions file), not both")
     if closed_loop and (model is None or not simulate):
         raise UserError("--closed-loop needs --model (it re-estimates from new images) and --simulate (the scene it looks at)")
+    if no_touch and not closed_loop:
+        raise UserError("--no-touch applies to --closed-loop (the first grasp's touch)")
     if out_path:
-        from ..safeio import check_can_create
+        from ..models.mdn.data import resolve_split_dir
+        from ..safeio import check_can_create, check_outputs_distinct
 
+        # the split read, the model and the predictions are never written over
+        check_outputs_distinct([model, predictions_path], [out_path], input_folders=[resolve_split_dir(data_dir)])
         check_can_create(out_path)  # before any work: a read-only or missing place is one line now
     if model is not None and threads is not None and threads <= 0:
         raise UserError(f"--threads must be positive, got {threads}")

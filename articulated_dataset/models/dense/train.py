@@ -96,8 +96,15 @@ class DenseTrainConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v <= 0:
                 raise UserError(f"--{name.replace('_', '-')} must be a positive integer, got {v!r}")
-        if not (math.isfinite(self.lr) and self.lr > 0):
-            raise UserError(f"--lr must be a positive finite number, got {self.lr}")
+        from ..mdn.config import MAX_LR, MAX_SEED
+        from .checkpoint import MAX_NETWORK_WIDTH
+
+        if self.width > MAX_NETWORK_WIDTH:  # a checkpoint no reader would load (load_dense_checkpoint)
+            raise UserError(f"--width must be at most {MAX_NETWORK_WIDTH}, got {self.width}")
+        if not (math.isfinite(self.lr) and 0 < self.lr <= MAX_LR):
+            raise UserError(f"--lr must be a number in (0, {MAX_LR:g}], got {self.lr}")
+        if not isinstance(self.seed, int) or not 0 <= self.seed <= MAX_SEED:
+            raise UserError(f"--seed must be a whole number in [0, {MAX_SEED}], got {self.seed!r}")
         if not (math.isfinite(self.origin_weight) and self.origin_weight > 0):
             raise UserError(f"--origin-weight must be a positive finite number, got {self.origin_weight}")
         if not (0.0 <= self.val_fraction < 1.0):
@@ -242,7 +249,10 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     if ckpt is not None and ckpt.get("finished"):
         log.info("%s: training already finished", out)
         return ckpt
-    out.parent.mkdir(parents=True, exist_ok=True)
+    from ...safeio import check_can_create, ensure_dir
+
+    ensure_dir(out.parent)  # a parent that is a file, /proc: one line now, not after the training
+    check_can_create(out)
 
     J = obj_class.n_joints
     model_config = DenseConfig(n_joints=J, width=config.width)
@@ -265,9 +275,12 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     model = DenseNet(model_config)
     if config.init_from is not None and ckpt is None:
         init = load_dense_checkpoint(config.init_from)
-        if init["class_name"] != obj_class.name or DenseConfig.from_dict(init["model_config"]) != model_config:
-            raise UserError(f"--init-from {config.init_from}: a {init['class_name']!r} model of another configuration "
-                            f"({init['model_config']}); expected {obj_class.name!r} {model_config.to_dict()}")
+        if init["class_name"] != obj_class.name:
+            raise UserError(f"--init-from {config.init_from}: a {init['class_name']!r} model; this training is of "
+                            f"{obj_class.name!r} (scripts/transplant_dense.py moves weights between classes)")
+        if DenseConfig.from_dict(init["model_config"]) != model_config:
+            raise UserError(f"--init-from {config.init_from}: a model of another configuration "
+                            f"({init['model_config']}); expected {model_config.to_dict()}")
         model.load_state_dict(build_dense_model(init).state_dict())
         if "q_scale" in init:
             q_scale = np.asarray(init["q_scale"], np.float64)
@@ -288,9 +301,17 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     if ckpt is not None:
         from ..mdn.checkpoint import restore_training_state
 
-        history = restore_training_state(ckpt, model, optimizer, scheduler)
+        try:
+            history = restore_training_state(ckpt, model, optimizer, scheduler)
+        except UserError as exc:  # name the file
+            raise UserError(f"{out}: {exc}") from None
         step = int(ckpt["step"])
-        cpu_seconds = float(ckpt.get("cpu_seconds", 0.0))
+        if step > total_steps:
+            raise UserError(f"--resume: {out} is at step {step} of a training of {total_steps} steps; not resumable")
+        try:
+            cpu_seconds = float(ckpt.get("cpu_seconds", 0.0))
+        except (TypeError, ValueError):
+            raise UserError(f"{out}: checkpoint field 'cpu_seconds' is not a number") from None
     log.info("%s: %d train / %d val images, %s parameters, device %s", obj_class.name, n_train, len(va_idx),
              f"{count_parameters(model):,}", dev)
     generated = split_generation(split_dir)
@@ -337,7 +358,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
             out_ = model(inputs["x"])
             loss, st = dense_loss(model, out_, inputs, data_, idx, q_scale_t, config.origin_weight)
             if not torch.isfinite(loss):
-                raise RuntimeError(f"non-finite training loss at step {step}; lower --lr")
+                raise UserError(f"non-finite training loss at step {step}; {out} keeps the last checkpoint; lower --lr")
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), GRAD_CLIP_NORM)
@@ -352,6 +373,10 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
             if step % 10 == 0:
                 bar.set_postfix({k: f"{v / n_run:.3g}" for k, v in running.items()})
             if step % CHECKPOINT_EVERY_STEPS == 0 or pos == steps_per_epoch or step == end:
+                # never replace the last checkpoint with diverged weights (a --resume would refuse them)
+                if not all(bool(torch.isfinite(t).all()) for t in model.state_dict().values() if t.is_floating_point()):
+                    raise UserError(f"training diverged by step {step} (non-finite weights); {out} keeps the last "
+                                    f"checkpoint; lower --lr")
                 cpu_seconds += time.process_time() - cpu0
                 cpu0 = time.process_time()
                 if pos == steps_per_epoch or step == total_steps:
@@ -370,6 +395,10 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     if step < total_steps:
         return checkpoint(finished=False)
     result = checkpoint(finished=True)
+    if fit and not len(va_idx):
+        log.warning("%s: no validation objects (--val-fraction %g of the split's objects): the checkpoint gets no "
+                    "refinement or uncertainty calibration, and its estimates are the plain votes", out,
+                    config.val_fraction)
     if fit and len(va_idx):  # refinement choice and uncertainty calibration on the validation objects
         result.update(fit_inference(model.folded().cpu(), val_data, val_idx, list(obj_class.joint_types),
                                     mirror_joints=obj_class.mirror_joints))
@@ -433,9 +462,12 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     from .predict import PREDICT_BATCH, _refined_images, fit_calibration, fit_inference, fitted_calibration, modes_to_arrays
     from .refine import as_refinement
 
+    from ...safeio import check_can_create
+
     ckpt = load_dense_checkpoint(checkpoint)
     if not ckpt.get("finished"):
         raise UserError(f"{checkpoint}: training is not finished (resume it first)")
+    check_can_create(out)  # a folder, /proc, a parent that is a file: one line before the fit, not after it
     split_dir = resolve_split_dir(data)
     if split_class(split_dir) != ckpt["class_name"]:
         raise UserError(f"{split_dir}: holds class {split_class(split_dir)!r}, the checkpoint {ckpt['class_name']!r}")
@@ -482,6 +514,8 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     result["refit_of"] = {"file": Path(checkpoint).name, "sha256": sha256_file(Path(checkpoint)),
                           "validation_noise": noise, **({"calibration_only": True} if calibration_only else {})}
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    from ...safeio import ensure_dir
+
+    ensure_dir(out.parent)
     atomic_save(result, out)
     return result

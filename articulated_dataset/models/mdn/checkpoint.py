@@ -25,9 +25,13 @@ UNREADABLE_DETAIL_CHARS = 200
 def atomic_torch_save(obj: dict, path: Path) -> None:
     import torch
 
-    tmp = path.with_name(path.name + ".partial")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    from ...safeio import atomic_path
+
+    # through safeio: an unwritable place (a folder, /proc, a full disk) is one line and the
+    # .partial file is removed; torch.save of a path raises RuntimeError, of a file object OSError
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
 
 
 def restore_training_state(ckpt: dict, model, optimizer, scheduler, scaler=None) -> list[dict]:
@@ -36,13 +40,44 @@ def restore_training_state(ckpt: dict, model, optimizer, scheduler, scaler=None)
     state and torch's CPU random state; returns a copy of its per-epoch history."""
     import torch
 
-    model.load_state_dict(ckpt["model_state"])
-    optimizer.load_state_dict(ckpt["optimizer_state"])
-    scheduler.load_state_dict(ckpt["scheduler_state"])
-    if scaler is not None:
-        scaler.load_state_dict(ckpt["scaler_state"])
-    torch.set_rng_state(ckpt["rng_state"])
-    return list(ckpt["history"])
+    what = "the training state"
+    try:
+        what = "'model_state'"
+        model.load_state_dict(ckpt["model_state"])
+        what = "'optimizer_state'"
+        optimizer.load_state_dict(ckpt["optimizer_state"])
+        params = {id(p): p for group in optimizer.param_groups for p in group["params"]}
+        for group in optimizer.param_groups:  # torch checks only the groups' sizes; a wrong moment fails at step 1
+            if not all(isinstance(v, (int, float, bool, tuple, list, str, type(None))) for v in group.values()) or \
+                    not all(isinstance(group[k], (int, float)) for k in ("lr", "weight_decay", "eps") if k in group):
+                raise ValueError("a parameter group holds values of the wrong type")
+        for p, st in optimizer.state.items():
+            for k, v in st.items():
+                if torch.is_tensor(v) and v.dim() > 0 and v.shape != params.get(id(p), p).shape:
+                    raise ValueError(f"state {k!r} of shape {tuple(v.shape)} for a parameter of shape {tuple(p.shape)}")
+                if torch.is_tensor(v) and v.is_floating_point() and not bool(torch.isfinite(v).all()):
+                    raise ValueError(f"state {k!r} holds NaN or infinite values")
+        what = "'scheduler_state'"
+        total = getattr(scheduler, "total_steps", None)
+        scheduler.load_state_dict(ckpt["scheduler_state"])
+        if getattr(scheduler, "total_steps", None) != total:
+            raise ValueError(f"a schedule of {getattr(scheduler, 'total_steps', None)} steps, this training has {total}")
+        with warnings.catch_warnings():  # get_lr outside step() warns; it raises for a step past the schedule
+            warnings.simplefilter("ignore")
+            scheduler.get_lr()
+        if scaler is not None:
+            what = "'scaler_state'"
+            scaler.load_state_dict(ckpt["scaler_state"])
+        what = "'rng_state'"
+        torch.set_rng_state(ckpt["rng_state"])
+        what = "'history'"
+        history = ckpt["history"]
+        if not isinstance(history, list) or not all(isinstance(r, dict) for r in history):
+            raise TypeError("not a list of per-epoch records")
+        return list(history)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError) as exc:
+        raise UserError(f"checkpoint field {what} cannot be restored ({type(exc).__name__}: "
+                        f"{str(exc).splitlines()[0][:160] if str(exc) else ''}); it is not resumable") from None
 
 
 def read_checkpoint_file(path: str | Path, map_location="cpu"):

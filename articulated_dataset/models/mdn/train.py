@@ -170,7 +170,10 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
     if ckpt is not None and ckpt.get("finished"):
         log.info("%s: training already finished (%d epochs)", out, ckpt["epoch"])
         return ckpt
-    out.parent.mkdir(parents=True, exist_ok=True)
+    from ...safeio import check_can_create, ensure_dir
+
+    ensure_dir(out.parent)
+    check_can_create(out)
 
     dev = resolve_device(device)
     layout = TargetLayout.for_class(obj_class.name)
@@ -226,8 +229,13 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
     history: list[dict] = []
     start_epoch = 0
     if ckpt is not None:
-        history = restore_training_state(ckpt, model, optimizer, scheduler, scaler)
+        try:
+            history = restore_training_state(ckpt, model, optimizer, scheduler, scaler)
+        except UserError as exc:  # name the file
+            raise UserError(f"{out}: {exc}") from None
         start_epoch = int(ckpt["epoch"])
+        if start_epoch > config.epochs:
+            raise UserError(f"--resume: {out} is at epoch {start_epoch} of a training of {config.epochs}; not resumable")
     log.info("%s: %d train / %d val images, %s parameters, device %s", obj_class.name, n_train, len(va_idx),
              f"{count_parameters(model):,}", dev)
 
