@@ -498,6 +498,7 @@ def _bad_checkpoint_contents():
         ("an unknown class", lambda c: {**c, "class_name": "../../etc"}, "../../etc"),
         ("a drawer's joint on a microwave", lambda c: {**c, "joint_types": ["prismatic"]}, "joint types"),
         ("no step", lambda c: {k: v for k, v in c.items() if k != "step"}, "'step'"),
+        ("a text finished", lambda c: {**c, "finished": "no"}, "'finished'"),
         ("a text step", lambda c: {**c, "step": "3"}, "'step'"),
         ("a text q scale", lambda c: {**c, "q_scale": ["a"]}, "'q_scale'"),
         ("a NaN q scale", lambda c: {**c, "q_scale": [float("nan")]}, "'q_scale'"),
@@ -578,7 +579,8 @@ def _bad_refinements():
             ("an offset of a kilometre", lambda r: {**r, "hinge_offset_m": 1000.0}),
             ("a version from the future", lambda r: {**r, "version": 999}),
             ("a fractional pixel count", lambda r: {**r, "min_door_px": 20.5}),
-            ("a null switch", lambda r: {**r, "frame": None})]
+            ("a null switch", lambda r: {**r, "frame": None}),
+            ("an unknown field", lambda r: {**r, "frame_sharpness": 3.0})]
 
 
 @pytest.mark.parametrize("name,change", _bad_refinements(), ids=[n for n, _ in _bad_refinements()])
@@ -780,6 +782,10 @@ def test_estimate_refuses_hostile_inputs(overfit_run, tiny_root, tmp_path):
     for camera in ("plain.yaml", "bom.json"):
         code, text = _run(["estimate", str(tmp_path / "d.npy"), "--camera", str(tmp_path / camera), *model])
         assert code == 0, text
+    Image.fromarray(np.where(depth > 0, 65535, 0).astype(np.uint16)).save(tmp_path / "white16.png")  # binary, 16-bit
+    code, text = _run(["estimate", str(tmp_path / "d.npy"), "--camera", str(tmp_path / "plain.yaml"), "--mask",
+                       str(tmp_path / "white16.png"), *model])
+    assert code == 0, text
     for args, needle in [([str(tmp_path / "d.npy"), "--camera", str(tmp_path / "alias.yaml")], "aliases"),
                          ([str(tmp_path / "d.npy"), "--camera", str(tmp_path / "big.json")], "bytes"),
                          ([str(tmp_path / "huge.exr")], "not a depth sensor's image"),

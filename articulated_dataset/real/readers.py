@@ -129,7 +129,7 @@ def load_depth(path: str | Path, units: str = "auto") -> np.ndarray:
 def load_mask(path: str | Path, shape: tuple[int, int], n_joints: int) -> np.ndarray:
     """A segmentation mask as dataset labels (uint8: 0 background, 1 body, 2 + j part j).
 
-    A mask whose values are all in {0, 255} or {0, 1} is binary (object = body).  Otherwise its
+    A mask whose values are all in {0, 255}, {0, 65535} or {0, 1} is binary (object = body).  Otherwise its
     values must be labels 0 .. 1 + J.  Its size must equal ``shape`` (H, W) of the depth.
     """
     path = Path(path)
@@ -145,7 +145,7 @@ def load_mask(path: str | Path, shape: tuple[int, int], n_joints: int) -> np.nda
         raise UserError(f"{path}: mask values must be whole numbers (0/255, 0/1 or labels), got "
                         f"{[float(v) for v in unique[unique != np.round(unique)][:4]]}")
     values = set(unique.tolist())
-    if values <= {0, 255} or values <= {0, 1}:
+    if values <= {0, 255} or values <= {0, 1} or values <= {0, 65535}:  # binary (8- or 16-bit white)
         return (raw > 0).astype(np.uint8) * np.uint8(MASK_BODY)
     top = MASK_FIRST_PART + n_joints - 1
     if max(values) > top or min(values) < 0:

@@ -58,6 +58,8 @@ def load_dense_checkpoint(path: str | Path) -> dict:
         raise UserError(f"{path}: checkpoint field 'model_state' {problem}")
     if not _numbers(ckpt["q_scale"], obj_class.n_joints, positive=True):
         raise UserError(f"{path}: checkpoint field 'q_scale' must hold {obj_class.n_joints} positive finite numbers")
+    if not isinstance(ckpt.get("finished", False), bool):
+        raise UserError(f"{path}: checkpoint field 'finished' must be true or false")
     if not (is_int(ckpt.get("step")) and ckpt["step"] >= 0):
         raise UserError(f"{path}: checkpoint field 'step' is missing or not a whole number >= 0")
     problem = calibration_problem(ckpt.get("calibration"), 13 * len(ckpt["joint_types"]) + 4)
@@ -98,6 +100,10 @@ def refinement_problem(refinement, n_joints: int) -> str | None:
         return None
     if not isinstance(refinement, dict):
         return "not a dict"
+    known = {field.name for field in dataclasses.fields(Refinement)}
+    unknown = [k for k in refinement if k not in known]
+    if unknown:
+        return f"unknown field {str(unknown[0])[:40]!r}"
     for field in dataclasses.fields(Refinement):
         if field.name not in refinement:
             continue
