@@ -457,6 +457,11 @@ def test_a_third_party_object_predicted_as_a_built_in_class(objects, tmp_path):
     code, text = run("predict", "--model", "dense", "--data", str(tiny_root_cabinet2(tmp_path)), "--out", str(out),
                      "--as-class", "cabinet")
     assert code == 2 and text.count("\n") == 1 and "built-in class 'cabinet2'" in text, text
+    from articulated_dataset.models import resolve_model
+
+    microwave = str(resolve_model("dense", "microwave").path)  # a checkpoint file of another class
+    code, text = run("predict", "--model", microwave, "--data", str(split), "--out", str(out), "--as-class", "cabinet")
+    assert code == 2 and text.count("\n") == 1 and "is a 'microwave' model" in text, text
     for model in ("dense", "mdn-small"):
         code, text = run("predict", "--model", model, "--data", str(split), "--out", str(out), "--as-class", "cabinet",
                          "--overwrite", "-q")
