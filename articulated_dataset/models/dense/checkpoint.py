@@ -15,8 +15,8 @@ CHECKPOINT_VERSION = 1
 #: network's base width (the shipped models': 16) and the sides of its input image (192 x 108; the
 #: network downsamples by 32).
 MAX_NETWORK_WIDTH = 256
-MIN_IMAGE_SIDE_PX = 32
-MAX_IMAGE_SIDE_PX = 4096
+MIN_INPUT_SIDE_PX = 32
+MAX_INPUT_SIDE_PX = 4096
 
 
 def load_dense_checkpoint(path: str | Path) -> dict:
@@ -47,7 +47,7 @@ def load_dense_checkpoint(path: str | Path) -> dict:
         raise UserError(f"{path}: checkpoint joint types {str(ckpt['joint_types'])[:80]} are not the "
                         f"{obj_class.name!r} class's {list(obj_class.joint_types)}")
     limits = {"n_joints": (obj_class.n_joints, obj_class.n_joints), "width": (1, MAX_NETWORK_WIDTH),
-              "height_px": (MIN_IMAGE_SIDE_PX, MAX_IMAGE_SIDE_PX), "width_px": (MIN_IMAGE_SIDE_PX, MAX_IMAGE_SIDE_PX)}
+              "height_px": (MIN_INPUT_SIDE_PX, MAX_INPUT_SIDE_PX), "width_px": (MIN_INPUT_SIDE_PX, MAX_INPUT_SIDE_PX)}
     for key, (lo, hi) in limits.items():
         value = ckpt["model_config"].get(key)
         if not (is_int(value) and lo <= value <= hi):
