@@ -112,7 +112,7 @@ def _parse_layout(where: str, value) -> list[str]:
     if isinstance(value, str):
         try:
             value = json.loads(value)
-        except json.JSONDecodeError:
+        except (json.JSONDecodeError, RecursionError):
             raise DataFormatError(f"{where}: attribute {MIXTURE_LAYOUT_ATTR!r} is not a JSON list of column names") from None
     if isinstance(value, np.ndarray):
         value = value.tolist()

@@ -38,7 +38,8 @@ def _label_array(records: list[dict], name: str, where: Path) -> np.ndarray:
             raise ValueError("expected integers")
         if a.size and a.dtype.kind not in "iuf":
             raise ValueError("expected numbers")
-        return a.astype(f.dtype)
+        with np.errstate(over="ignore", invalid="ignore"):  # 1e300 -> inf: verification names it
+            return a.astype(f.dtype)
     except (ValueError, TypeError, AttributeError, UnicodeEncodeError) as exc:
         raise DataFormatError(f"{where}: label {name!r} has malformed values ({exc})") from None
 

@@ -88,7 +88,7 @@ class SplitConfig:
             raise UserError(f"seed must be in [0, 2**63 - 1] (it is stored as a 64-bit integer), got {self.seed}")
         if self.mean and self.n_objects != 1:
             raise UserError("--mean renders exactly one object (the class's mean object)")
-        if not self.split or "/" in self.split or self.split.startswith("."):
+        if not self.split or "/" in self.split or self.split.startswith(".") or not is_utf8(self.split):
             raise UserError(f"invalid split name {self.split!r}")
         if self.scene not in SCENE_NAMES:
             raise UserError(f"unknown scene {str(self.scene)[:40]!r}; choose from: {', '.join(SCENE_NAMES)}")
@@ -165,6 +165,16 @@ def split_config(manifest: dict, where: str = "") -> SplitConfig:
                               f"{str(exc).splitlines()[0][:200] if str(exc) else ''})") from None
 
 
+def is_utf8(text: str) -> bool:
+    """``text`` encodes as UTF-8 (a command-line argument or file name that was not UTF-8
+    arrives holding lone surrogates, which no seed hash, JSON file or HDF5 attribute can store)."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
 def check_manifest_names(manifest: dict, where: str) -> dict:
     """Check the names a manifest gives to paths: its ``class_name`` and every shard's
     ``file``.  Returns ``manifest``; raises :class:`DataFormatError` naming ``where``."""
@@ -179,6 +189,10 @@ def check_manifest_names(manifest: dict, where: str) -> dict:
         n = r.get("n_images", 0)
         if not isinstance(n, int) or isinstance(n, bool) or n < 0:
             raise DataFormatError(f"{where}: corrupt manifest ({r['file']}: n_images must be a count, got {str(n)[:40]!r})")
+    files = [r["file"] for r in records]
+    if len(set(files)) != len(files):  # readers would serve that shard's images twice
+        twice = next(f for f in files if files.count(f) > 1)
+        raise DataFormatError(f"{where}: corrupt manifest (shard {twice} is listed twice; run 'artdata verify')")
     return manifest
 
 

@@ -316,6 +316,8 @@ def read_json_object(path: str | Path, what: str) -> dict:
         data = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataFormatError(f"{path}: corrupt {what} ({exc})") from None
+    except RecursionError:  # '[[[[...' nested deeper than the parser's recursion limit
+        raise DataFormatError(f"{path}: corrupt {what} (nested too deeply)") from None
     if not isinstance(data, dict):
         raise DataFormatError(f"{path}: corrupt {what} (not a JSON object)")
     return data

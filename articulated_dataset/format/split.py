@@ -133,7 +133,7 @@ class Split:
         """Joint names from the first shard's attributes (empty if unreadable)."""
         try:
             return list(json.loads(self.attrs.get("joint_names", "[]")))
-        except (ValueError, TypeError):
+        except (ValueError, TypeError, RecursionError):
             return []
 
     def joint_types(self) -> tuple[str, ...]:
@@ -143,7 +143,7 @@ class Split:
         for sh in self.shards:
             try:
                 types = tuple(json.loads(sh.attrs["joint_types"]))
-            except (KeyError, TypeError, json.JSONDecodeError):
+            except (KeyError, TypeError, json.JSONDecodeError, RecursionError):
                 raise DataFormatError(f"{sh.path}: missing or invalid 'joint_types' attribute") from None
             if any(t not in JOINT_TYPES for t in types):
                 raise DataFormatError(f"{sh.path}: unknown joint type in {list(types)}")

@@ -56,7 +56,7 @@ def _joints(split: Split) -> tuple[list[str], list[str]]:
     try:
         attrs = split.attrs
         return list(json.loads(attrs.get("joint_names", "[]"))), list(json.loads(attrs.get("joint_types", "[]")))
-    except (ValueError, TypeError):
+    except (ValueError, TypeError, RecursionError):
         return [], []
 
 

@@ -74,8 +74,8 @@ def plan_epoch(shard_sizes, *, batch_size: int, seed: int = 0, epoch: int = 0, s
        matter to a training step, and sorted indices are read without reordering copies.
     """
     sizes = np.asarray(shard_sizes, dtype=np.int64).reshape(-1)
-    if batch_size is None or int(batch_size) <= 0:
-        raise UserError(f"batch size must be positive, got {batch_size}")
+    if not isinstance(batch_size, (int, np.integer)) or isinstance(batch_size, bool) or batch_size <= 0:
+        raise UserError(f"batch size must be a positive integer, got {batch_size!r}")
     if block_size is None or int(block_size) <= 0:
         raise UserError(f"block size must be positive, got {block_size}")
     if part_count <= 0 or not 0 <= part_index < part_count:

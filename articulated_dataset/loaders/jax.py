@@ -57,7 +57,7 @@ class ShardDataSource(ShardReader):
     :class:`ShardReader` (a dict of numpy arrays)."""
 
     def _getitems(self, indices: Sequence[int]) -> list[dict]:
-        batch = self.get_batch(np.asarray(indices, dtype=np.int64))
+        batch = self.get_batch(indices)  # get_batch refuses non-integer indices
         return [{k: v[i] for k, v in batch.items()} for i in range(len(indices))]
 
     def __repr__(self) -> str:  # stable across processes: grain checkpoints compare it

@@ -266,11 +266,20 @@ class DepthDataset(_SharedEpoch, Dataset):
             return {k: v[0] for k, v in self._load(np.asarray([j], dtype=np.int64)).items()}
         if isinstance(i, torch.Tensor):
             i = i.numpy()
-        return self._load(np.asarray(i, dtype=np.int64))
+        return self._load(_index_array(i))
 
     def __getitems__(self, indices) -> list[dict]:
         """DataLoader auto-batching hook: one batched read, returned as per-sample dicts."""
-        return _split_batch(self._load(np.asarray(indices, dtype=np.int64)), len(indices))
+        return _split_batch(self._load(_index_array(indices)), len(indices))
+
+
+def _index_array(indices) -> np.ndarray:
+    """``indices`` as int64, refusing what is not integers (1.5, "1", a slice) instead of
+    truncating it to another sample."""
+    a = np.asarray(indices)
+    if a.size and a.dtype.kind not in "iu":
+        raise TypeError(f"sample indices must be integers, got {type(indices).__name__} of dtype {a.dtype}")
+    return a.astype(np.int64)
 
 
 class EpochBatchSampler(Sampler):
@@ -326,6 +335,9 @@ class ShardIterableDataset(_SharedEpoch, IterableDataset):
         self.reader = _reader(source, fields)
         self.processor = BatchProcessor(self.reader.fields, transform=transform, target=target, norm=norm, seed=seed)
         self.rank, self.world_size = distributed_rank_world(rank, world_size)
+        if batch_size is not None and (not isinstance(batch_size, (int, np.integer)) or isinstance(batch_size, bool)
+                                       or batch_size <= 0):  # 0 would silently read batches of read_size
+            raise UserError(f"batch size must be a positive integer or None (single samples), got {batch_size!r}")
         self.batch_size = batch_size
         self.read_size = int(batch_size or read_size)
         self.shuffle, self.seed, self.block_size = bool(shuffle), seed, block_size

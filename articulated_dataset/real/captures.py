@@ -51,6 +51,12 @@ def find_captures(paths: list[str | Path]) -> list[CaptureFiles]:
         else:
             raise UserError(f"no such file or directory: {p}")
     names = [c.name for c in found]
+    from ..format.manifest import is_utf8
+
+    for c in found:
+        if not is_utf8(c.name):
+            raise UserError(f"{c.data}: capture names must be UTF-8 text (the name is stored and hashed); "
+                            f"rename the file")
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise UserError(f"capture names must be unique; repeated: {', '.join(dup[:5])}")

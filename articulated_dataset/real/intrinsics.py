@@ -30,10 +30,10 @@ def _is_number(v) -> bool:
 def read_numbers(value, what: str) -> np.ndarray:
     """``value`` (a number or nested lists of numbers, as read from JSON/YAML) as float64;
     strings, booleans, null and mappings are a :class:`UserError` (never converted)."""
-    def ok(v) -> bool:
-        return _is_number(v) or (isinstance(v, (list, tuple)) and all(ok(x) for x in v))
+    def ok(v, depth: int = 0) -> bool:  # labels nest at most 2 deep; numpy allows 32 dimensions
+        return _is_number(v) or (isinstance(v, (list, tuple)) and depth < 32 and all(ok(x, depth + 1) for x in v))
     if not ok(value):
-        raise UserError(f"{what} must be numbers, got {str(value)[:80]}")
+        raise UserError(f"{what} must be numbers (nested at most 32 deep), got {str(value)[:80]}")
     try:
         return np.asarray(value, np.float64)
     except (TypeError, ValueError, OverflowError):  # ragged lists, integers beyond float64
@@ -114,6 +114,9 @@ def read_mapping(path: Path) -> dict:
         raise UserError(f"cannot parse {path}: {str(exc).splitlines()[0]}") from None
     if not isinstance(data, dict):
         raise UserError(f"{path}: expected a mapping (object) at the top level")
+    bad = [k for k in data if not isinstance(k, str)]
+    if bad:  # YAML allows 1:, ~:, true: keys; every key we read is a name
+        raise UserError(f"{path}: keys must be names (text), got {str(bad[0])[:40]!r}")
     return data
 
 

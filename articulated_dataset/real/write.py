@@ -16,6 +16,7 @@ import numpy as np
 from ..camera import R_CAMERA_TO_OPTICAL, CameraConfig
 from ..errors import UserError
 from ..format import FIELDS, SplitConfig, visible_pixels
+from ..format.manifest import is_utf8
 from ..format.records import shard_attrs, split_manifest
 from ..registry import get_class
 from .ingest import Capture, DEPTH_QUANTUM_M, IngestOptions
@@ -46,9 +47,10 @@ def _appendable(manifest: dict, split_dir: Path) -> tuple[list, list, list, tupl
 
     try:
         real, cam, shards = manifest["real"], manifest["config"]["camera"], manifest["shards"]
-        size = (cam["width_px"], cam["height_px"])
+        size = (cam["width_px"], cam["height_px"], cam["vfov_deg"])
         ok = (isinstance(real, dict) and names(real.get("objects")) and names(real.get("captures"))
-              and all(isinstance(v, int) and not isinstance(v, bool) for v in size) and isinstance(shards, list)
+              and all(isinstance(v, int) and not isinstance(v, bool) for v in size[:2])
+              and isinstance(size[2], (int, float)) and not isinstance(size[2], bool) and isinstance(shards, list)
               and all(isinstance(r, dict) and isinstance(r.get("object_images", {}), dict)
                       and all(str(k).isdigit() and isinstance(c, int) and not isinstance(c, bool) and c > 0
                               for k, c in r.get("object_images", {}).items()) for r in shards))
@@ -75,7 +77,7 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
 
     if not captures:
         raise UserError("no captures to ingest")
-    if not split or "/" in split or "\0" in split or split.startswith("."):
+    if not split or "/" in split or "\0" in split or split.startswith(".") or not is_utf8(split):
         raise UserError(f"invalid split name {split!r}")
     if append and overwrite:
         raise UserError("--append and --overwrite are mutually exclusive")
@@ -102,9 +104,10 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
             if old.get("class_name") != class_name or "real" not in old:
                 raise UserError(f"{split_dir} does not hold ingested real data of class {class_name}; cannot --append")
             old_shards, objects, names, old_size = _appendable(old, split_dir)
-            if old_size != (camera.width_px, camera.height_px):
-                raise UserError(f"{split_dir} holds {old_size[0]}x{old_size[1]} images; "
-                                f"cannot --append {camera.width_px}x{camera.height_px}")
+            if old_size[:2] != (camera.width_px, camera.height_px) or abs(old_size[2] - camera.vfov_deg) > 1e-9:
+                raise UserError(f"{split_dir} holds {old_size[0]}x{old_size[1]} images of a {old_size[2]:g} deg "
+                                f"training camera; cannot --append {camera.width_px}x{camera.height_px} at "
+                                f"{camera.vfov_deg:g} deg (pass --like {split_dir})")
         else:
             raise UserError(f"{split_dir} already holds data; pass --append to add captures or --overwrite to replace them")
     clash = sorted(set(names) & {c.name for c in captures})

@@ -180,7 +180,7 @@ def _check_real_labels(f64: dict, attrs: dict, table, J: int, p: list) -> None:
 def _json_list(text) -> list:
     try:
         v = json.loads(text)
-    except (json.JSONDecodeError, TypeError):
+    except (json.JSONDecodeError, TypeError, RecursionError):
         return []
     return v if isinstance(v, list) else []
 

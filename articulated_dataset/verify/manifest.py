@@ -36,7 +36,7 @@ def load_manifest(split_dir: Path) -> tuple[dict | None, list[Problem]]:
         return None, [Problem(MANIFEST_NAME, "missing (not a complete generated split; shards checked without it)")]
     try:
         manifest = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
         return None, [Problem(MANIFEST_NAME, f"corrupt JSON ({one_line(exc)})")]
     except OSError as exc:
         return None, [Problem(MANIFEST_NAME, f"cannot read ({exc.strerror or exc})")]

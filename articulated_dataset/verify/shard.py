@@ -205,7 +205,7 @@ def _capture_names(attrs: dict) -> tuple[list | None, str | None]:
         names = json.loads(attrs["capture_names"])
     except KeyError:
         return None, "real shard without attribute capture_names; cannot check the datasets"
-    except (json.JSONDecodeError, TypeError):
+    except (json.JSONDecodeError, TypeError, RecursionError):
         return None, "attribute capture_names is not a JSON list; cannot check the datasets"
     if not isinstance(names, list) or not names or not all(isinstance(n, str) and n for n in names):
         return None, "attribute capture_names must be a non-empty JSON list of names; cannot check the datasets"
@@ -225,7 +225,7 @@ def _check_registry(attrs: dict, J: int, p: list) -> None:
         p.append(f"n_joints = {J}, class {obj_class.name} has {obj_class.n_joints}")
     try:
         types = tuple(json.loads(attrs.get("joint_types", "[]")))
-    except (json.JSONDecodeError, TypeError):
+    except (json.JSONDecodeError, TypeError, RecursionError):
         p.append("attribute joint_types is not a JSON list")
         return
     if types != obj_class.joint_types:
@@ -283,5 +283,5 @@ def _table(attrs: dict):
         return SamplingTable.from_dict(json.loads(attrs["sampling_table"])), None
     except KeyError:
         return None, None  # already reported as a missing attribute
-    except (json.JSONDecodeError, TypeError, ValueError, AttributeError, UserError) as exc:
+    except (json.JSONDecodeError, TypeError, ValueError, AttributeError, UserError, RecursionError) as exc:
         return None, f"attribute sampling_table is not a valid table ({one_line(exc)})"

@@ -1,0 +1,152 @@
+"""Hostile files and arguments found by a third sweep (issue 14's session 25): JSON nested past the
+parser's recursion limit, label numbers nested hundreds deep, YAML keys that are not text, names
+that are not UTF-8, a manifest listing a shard twice, loaders given non-integer batch sizes and
+indices, ``ingest --append`` with another training camera.  Each was a traceback or a silently
+wrong result; each is now one line (exit 2) or a clear exception."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from articulated_dataset.cli import main
+from articulated_dataset.errors import UserError
+from articulated_dataset.format import open_split
+from helpers_real import write_capture
+
+#: Nesting far past Python's recursion limit (the JSON parser recurses once per level).
+DEEP = 100_000
+
+
+def _run(args):
+    r = CliRunner().invoke(main, [str(a) for a in args])
+    return r.exit_code, r.output
+
+
+def _one_line(code, text, needle=""):
+    assert code == 2 and text.count("\n") == 1 and text.startswith("artdata: error:") and needle in text, (code, text)
+
+
+@pytest.fixture
+def split(tiny_root, tmp_path):
+    """A writable copy of the tiny microwave test split."""
+    dst = tmp_path / "data" / "microwave" / "test"
+    shutil.copytree(tiny_root / "microwave" / "test", dst)
+    return dst
+
+
+def test_json_nested_past_the_recursion_limit(split):
+    manifest = json.loads((split / "manifest.json").read_text())
+    text = json.dumps({**manifest, "zz": []})
+    (split / "manifest.json").write_text(text.replace('"zz": []', '"zz": ' + "[" * DEEP + "]" * DEEP))
+    for command in ("info", "show"):
+        _one_line(*_run([command, split, *(["--out", split.parent / "g.png"] if command == "show" else [])]))
+    code, text = _run(["verify", split])
+    assert code != 0 and "Traceback" not in text and "corrupt JSON" in text, text
+
+
+def test_a_shard_attribute_nested_past_the_recursion_limit(split):
+    shard = next(split.glob("shard-*.h5"))
+    with h5py.File(shard, "r+") as f:
+        f.attrs["joint_types"] = "[" * DEEP + "]" * DEEP
+    code, text = _run(["info", split])  # the summary leaves the joints out (it was a RecursionError)
+    assert code in (0, 2) and "Traceback" not in text and "RecursionError" not in text, text
+    code, text = _run(["verify", split])
+    assert code != 0 and "Traceback" not in text and "joint_types" in text, text
+
+
+def test_a_manifest_listing_a_shard_twice_is_refused_by_the_readers(split):
+    from articulated_dataset.loaders.reader import ShardReader
+
+    manifest = json.loads((split / "manifest.json").read_text())
+    manifest["shards"].append(dict(manifest["shards"][0]))
+    (split / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(UserError, match="listed twice"):
+        ShardReader(split)  # it served the shard's images twice
+    _one_line(*_run(["info", split]), "listed twice")
+
+
+def test_loaders_refuse_non_integer_batch_sizes_and_indices(split):
+    pytest.importorskip("torch")
+    from articulated_dataset.loaders.torch import DepthDataset, make_loader
+
+    for bad in (0, 1.5, True):
+        with pytest.raises(UserError, match="batch size"):
+            make_loader(split, batch_size=bad)  # 0 gave one batch of every image
+    ds = DepthDataset(split)
+    for bad in ([0.4, 1.9], 1.5, "1"):
+        with pytest.raises((TypeError, UserError)):
+            ds[bad]  # [0.4, 1.9] read samples 0 and 1
+    assert len(ds[[0, 1]]["depth"]) == 2
+
+
+def _capture(tiny_root, folder, labels=None, camera=None):
+    _, shards = open_split(tiny_root / "microwave" / "test")
+    sh = shards[0]
+    write_capture(folder, "frame", sh.sample(0), sh.K, labels)
+    if camera is not None:
+        (folder / "camera.json").write_text(camera)
+    return folder
+
+
+def test_ingest_refuses_deep_numbers_text_free_keys_and_non_utf8_names(tiny_root, tmp_path):
+    deep = _capture(tiny_root, tmp_path / "deep", labels=None, camera='{"fx": ' + "[" * 600 + "100" + "]" * 600
+                    + ', "fy": 100, "cx": 95.5, "cy": 53.5}')
+    _one_line(*_run(["ingest", deep, "--class", "microwave", "--out", tmp_path / "o1", "-q"]), "nested")
+    keys = _capture(tiny_root, tmp_path / "keys")
+    (keys / "frame.labels.yaml").write_text("q: [0.1]\n1: 2\n")
+    _one_line(*_run(["ingest", keys / "frame.png", "--labels", keys / "frame.labels.yaml", "--class", "microwave",
+                     "--out", tmp_path / "o2", "-q"]), "keys must be names")
+    good = _capture(tiny_root, tmp_path / "good")
+    _one_line(*_run(["ingest", good, "--class", "microwave", "--out", tmp_path / "o3", "--split", "r\udcff", "-q"]),
+              "invalid split name")
+    if os.name == "posix":  # a file name that is not UTF-8 (bytes a Linux file system allows)
+        bad = tmp_path / "badname"
+        shutil.copytree(good, bad)
+        for p in bad.glob("frame*"):
+            os.rename(os.fsencode(p), os.fsencode(p).replace(b"frame", b"fr\xffme"))
+        _one_line(*_run(["ingest", bad, "--class", "microwave", "--out", tmp_path / "o4", "-q"]), "UTF-8")
+    assert not any((tmp_path / o).exists() for o in ("o1", "o2", "o3", "o4"))
+
+
+def test_generate_refuses_a_split_name_that_is_not_utf8(tmp_path):
+    _one_line(*_run(["generate", "--class", "microwave", "--n", "1", "--images", "4", "--split", "t\udcff",
+                     "--out", tmp_path]), "invalid split name")
+
+
+def test_ingest_append_refuses_another_training_camera(tiny_root, tmp_path):
+    caps = _capture(tiny_root, tmp_path / "caps")
+    assert _run(["ingest", caps, "--class", "microwave", "--out", tmp_path / "o", "-q"])[0] == 0
+    manifest = tmp_path / "o" / "microwave" / "real" / "manifest.json"
+    before = manifest.read_bytes()
+    more = tmp_path / "more"
+    shutil.copytree(caps, more)
+    for p in more.glob("frame*"):
+        p.rename(p.with_name(p.name.replace("frame", "other")))
+    _one_line(*_run(["ingest", more, "--class", "microwave", "--out", tmp_path / "o", "--append", "--vfov", "70", "-q"]),
+              "--like")
+    assert manifest.read_bytes() == before  # its camera was rewritten to 70 deg
+    assert _run(["ingest", more, "--class", "microwave", "--out", tmp_path / "o", "--append", "-q"])[0] == 0
+    assert Path(manifest).read_bytes() != before
+
+
+def test_import_exr_of_a_label_beyond_float32_is_one_line(split, tmp_path):
+    """A label of 1e300 was refused after numpy's overflow warning (three lines on stderr)."""
+    import subprocess
+    import sys
+
+    assert _run(["export", split, tmp_path / "exp", "-q"])[0] == 0
+    label = next((tmp_path / "exp").rglob("o000000_i000.json"))
+    data = json.loads(label.read_text())
+    data["q"] = [1e300] * len(data["q"])
+    label.write_text(json.dumps(data))
+    r = subprocess.run([sys.executable, "-m", "articulated_dataset.cli", "import-exr", str(label.parent), "--out",
+                        str(tmp_path / "back"), "-q"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and r.stderr.startswith("artdata: error:"), r.stderr
