@@ -198,7 +198,16 @@ def remove_created_dirs(created: list[Path]) -> None:
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary sibling path to write; on success it is fsync'ed and renamed to
     ``path``.  On any failure the temporary file is removed and ``path`` is untouched."""
+    import stat
+
     path = Path(path)
+    try:
+        mode = os.stat(path).st_mode  # follows a link: /dev/stdout -> /proc/self/fd/1 -> a pipe
+    except OSError:
+        mode = None
+    if mode is not None and not stat.S_ISREG(mode) and not stat.S_ISDIR(mode):
+        raise WriteError(f"cannot write {path}: not a regular file (a device, FIFO or socket would be replaced); "
+                         "use '-' for standard output where offered", str(path), errno.EINVAL)
     tmp = temporary_sibling(path)
     try:
         yield tmp

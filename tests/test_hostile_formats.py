@@ -150,3 +150,68 @@ def test_import_exr_of_a_label_beyond_float32_is_one_line(split, tmp_path):
     r = subprocess.run([sys.executable, "-m", "articulated_dataset.cli", "import-exr", str(label.parent), "--out",
                         str(tmp_path / "back"), "-q"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and r.stderr.startswith("artdata: error:"), r.stderr
+
+
+# ---- a fourth sweep: baselines, score, show, training options -----------------------------------
+
+def test_a_baseline_or_a_report_never_replaces_a_shard_of_its_inputs(tiny_root, split, tmp_path):
+    train = tmp_path / "data" / "microwave" / "train"
+    shutil.copytree(tiny_root / "microwave" / "train", train)
+    shard = next(split.glob("shard-*.h5"))
+    before = shard.read_bytes()
+    _one_line(*_run(["baseline", "mean", "--train", train, "--test", split, "--out", shard, "--overwrite"]),
+              "inside the input folder")
+    preds = tmp_path / "mean.h5"
+    assert _run(["baseline", "mean", "--train", train, "--test", split, "--out", preds])[0] == 0
+    _one_line(*_run(["score", preds, "--truth", split, "--csv", shard]), "inside the input folder")
+    assert shard.read_bytes() == before  # both replaced the truth's shard, exit 0
+    if Path("/proc/version").exists():  # a report that cannot be written: neither is, not one of two
+        _one_line(*_run(["score", preds, "--truth", split, "--json", tmp_path / "r.json", "--csv", "/proc/version"]))
+        assert not (tmp_path / "r.json").exists()
+    if hasattr(os, "mkfifo"):  # a FIFO (or a device, or a link to standard output) was replaced by a file
+        fifo = tmp_path / "fifo"
+        os.mkfifo(fifo)
+        _one_line(*_run(["score", preds, "--truth", split, "--json", fifo]), "not a regular file")
+        assert fifo.is_fifo()
+
+
+def test_show_refuses_huge_ranges_and_non_ascii_digits(split, tmp_path):
+    for option, value in (("--objects", "0-99999999999999999"), ("--images", "0-99999999"), ("--objects", "\u0661")):
+        _one_line(*_run(["show", split, option, value, "--out", tmp_path / "g.png"]), option)
+
+
+def test_training_refuses_absurd_epochs_and_a_resume_on_another_split(tiny_root, tmp_path):
+    pytest.importorskip("torch")
+    from articulated_dataset.models.dense.train import DenseTrainConfig, train_dense
+
+    for model in ("dense", "mdn"):
+        _one_line(*_run(["train", "--model", model, "--class", "drawer", "--data", tiny_root / "drawer" / "train",
+                         "--out", tmp_path / f"{model}.pt", "--epochs", str(10 ** 20)]), "--epochs")
+    cfg = DenseTrainConfig("drawer", epochs=2, batch_size=16, width=4, val_fraction=0.2, max_objects=3)
+    out = tmp_path / "d.pt"
+    train_dense(tiny_root / "drawer" / "train", out, cfg, progress=False, stop_after_steps=1)
+    with pytest.raises(UserError, match="was trained on"):  # it trained on the test split, silently
+        train_dense(tiny_root / "drawer" / "test", out, cfg, progress=False, resume=True)
+
+
+def test_a_mixture_of_no_column_is_refused(tiny_root, tmp_path):
+    from articulated_dataset.benchmark.predictions import write_predictions
+
+    _, shards = open_split(tiny_root / "microwave" / "test")
+    ids = shards[0].read("sample_id").astype(np.int64)
+    n = len(ids)
+    arrays = {"sample_id": ids, "axis_pose": shards[0].read("axis_pose"),
+              "q": shards[0].read("q"), "mixture_weights": np.ones((n, 1)), "mixture_means": np.zeros((n, 1, 0)),
+              "mixture_scales": np.ones((n, 1, 0)), "mixture_layout": []}
+    with pytest.raises(UserError, match="names no column"):  # it scored NLL 0.00 +/- 0.00
+        write_predictions(tmp_path / "p.h5", "hostile", {"microwave": arrays})
+
+
+def test_opd_success_is_undefined_where_the_truth_gives_no_axis():
+    from articulated_dataset.benchmark.metrics import opd_success
+
+    got = opd_success(np.array([1.0, np.nan, 1.0, 1.0]), np.array([1.0, 1.0, np.nan, 99.0]),
+                      np.array([1.0, 1.0, 1.0, 1.0]), np.array([True, True, True, True]))
+    assert got[0] == 1.0 and np.isnan(got[1]) and np.isnan(got[2]) and got[3] == 0.0  # it was 0: a failure
+    prismatic = opd_success(np.array([1.0]), np.array([np.nan]), np.array([np.nan]), np.array([False]))
+    assert prismatic[0] == 1.0  # a prismatic origin is not checked

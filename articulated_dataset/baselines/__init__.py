@@ -40,10 +40,12 @@ def run_baseline(name: str, train_dir, test_dir, out, *, mean_dir=None, workers:
     import os
 
     from ..errors import UserError
-    from ..safeio import check_can_create
+    from ..safeio import check_can_create, check_outputs_distinct
     from .common import write_result
 
     out = Path(out)
+    # a shard or manifest of an input split must never be replaced by the predictions
+    check_outputs_distinct([], [out], input_folders=[d for d in (train_dir, test_dir, mean_dir) if d])
     if out.exists() and not overwrite:
         raise UserError(f"{out} exists; pass --overwrite to replace it")
     check_can_create(out)  # a read-only or full target is one line now, not after the run

@@ -243,11 +243,20 @@ def opd_success(direction_error_deg: np.ndarray, origin_error_cm: np.ndarray, di
     where ``check_origin`` is true (revolute joints); a prismatic axis has no meaningful
     position.  ``side_correct`` (:func:`mechanism_side_correct`; NaN = undefined, not checked)
     fails a mirrored door, which the folded direction and the origin-to-line test cannot see.
+    NaN (undefined, left out of the means as every metric's undefined values are) where the
+    direction error is NaN (the truth gives no axis) or, where the origin is checked, its error or
+    the diagonal is (no axis position or geometry): such an image is neither a success nor a failure.
     """
     ok_dir = np.asarray(direction_error_deg) < OPD_MAX_DIRECTION_ERROR_DEG
     ok_origin = np.asarray(origin_error_cm) < OPD_MAX_ORIGIN_ERROR_DIAGONALS * CM_PER_M * np.asarray(diagonal_m)
     ok_side = True if side_correct is None else np.asarray(side_correct) != 0.0  # NaN != 0: not checked
-    return (ok_dir & (ok_origin | ~np.asarray(check_origin, bool)) & ok_side).astype(np.float64)
+    success = (ok_dir & (ok_origin | ~np.asarray(check_origin, bool)) & ok_side).astype(np.float64)
+    # undefined (NaN, excluded from the means like every other metric) where the truth lacks the
+    # axis (direction error NaN) or, for a checked origin, the axis line or geometry (diagonal NaN)
+    undefined = np.isnan(np.asarray(direction_error_deg, np.float64))
+    undefined = undefined | (np.asarray(check_origin, bool)
+                             & np.isnan(np.asarray(origin_error_cm, np.float64) + np.asarray(diagonal_m, np.float64)))
+    return np.where(undefined, np.nan, success)
 
 
 # --------------------------------------------------------------------------------------

@@ -119,6 +119,8 @@ def _parse_layout(where: str, value) -> list[str]:
     if not isinstance(value, (list, tuple)) or not all(isinstance(v, (str, bytes)) for v in value):
         raise DataFormatError(f"{where}: attribute {MIXTURE_LAYOUT_ATTR!r} must be a list of column names")
     names = [v.decode() if isinstance(v, bytes) else v for v in value]
+    if not names:  # a 0-column mixture has density 1 everywhere: NLL 0 with nothing predicted
+        raise DataFormatError(f"{where}: attribute {MIXTURE_LAYOUT_ATTR!r} names no column")
     if len(set(names)) != len(names):
         raise DataFormatError(f"{where}: attribute {MIXTURE_LAYOUT_ATTR!r} repeats column names")
     return names

@@ -46,7 +46,18 @@ def score_cmd(predictions, truth_path, split, json_path, csv_path, require_compl
     from ..benchmark.scoring import score
     from ..safeio import check_outputs_distinct
 
-    check_outputs_distinct(list(predictions), [json_path, csv_path], "--json and --csv")
+    from ..format import find_split_dirs
+
+    try:  # the truth's split folders: a report must not replace one of their shards or manifests
+        truth_splits = find_split_dirs(truth_path)
+    except UserError:
+        truth_splits = []  # score() reports the bad --truth itself
+    check_outputs_distinct(list(predictions), [json_path, csv_path], "--json and --csv", input_folders=truth_splits)
+    from ..safeio import check_can_create
+
+    for target in (json_path, csv_path):  # both writable before either is written: no half-written report
+        if target and target != "-":
+            check_can_create(target)
     report = score(list(predictions), truth_path, split=split)
     if require_complete:
         partial = [f"{r.class_name} - {r.method} ({r.n_scored}/{r.n_truth})" for r in report.rows if not r.complete]

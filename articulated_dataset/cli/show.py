@@ -9,6 +9,11 @@ import click
 from ..errors import UserError
 
 
+#: the most indices one range of --objects/--images may expand to (a typo like 0-99999999999 must
+#: not allocate gigabytes before the bounds check).
+MAX_RANGE = 1_000_000
+
+
 def parse_index_list(text: str | None, what: str) -> list[int] | None:
     """``"0,3,5-7"`` -> [0, 3, 5, 6, 7]; None stays None."""
     if text is None:
@@ -23,8 +28,12 @@ def parse_index_list(text: str | None, what: str) -> list[int] | None:
                 lo, hi = (int(x) for x in part.split("-", 1))
                 if hi < lo:
                     raise ValueError
+                if hi - lo >= MAX_RANGE:  # every index past the split's end is refused later anyway
+                    raise UserError(f"--{what}: range {part} is longer than {MAX_RANGE:,} indices")
                 out.extend(range(lo, hi + 1))
             else:
+                if not part.isascii():
+                    raise ValueError  # int() would read '١' as 1
                 out.append(int(part))
         except ValueError:
             raise UserError(f"--{what}: expected indices like 0,3,5-7, got {text!r}") from None

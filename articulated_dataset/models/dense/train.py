@@ -96,7 +96,10 @@ class DenseTrainConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or v <= 0:
                 raise UserError(f"--{name.replace('_', '-')} must be a positive integer, got {v!r}")
-        from ..mdn.config import MAX_LR, MAX_SEED
+        from ..mdn.config import MAX_EPOCHS, MAX_LR, MAX_SEED
+
+        if self.epochs > MAX_EPOCHS:
+            raise UserError(f"--epochs must be at most {MAX_EPOCHS:,}, got {self.epochs}")
         from .checkpoint import MAX_NETWORK_WIDTH
 
         if self.width > MAX_NETWORK_WIDTH:  # a checkpoint no reader would load (load_dense_checkpoint)

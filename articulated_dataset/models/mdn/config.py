@@ -18,6 +18,8 @@ MAX_SEED = 2**32 - 1
 #: Largest peak learning rate: AdamW's step is about lr per weight, so beyond 1 every step
 #: moves the weights by more than their own scale and training diverges (NaN losses).
 MAX_LR = 1.0
+#: --epochs above this is a typo (1e6 epochs of the smallest split already take days).
+MAX_EPOCHS = 1_000_000
 #: Most torch threads per logical CPU: more only adds context switches (and a huge count would
 #: make OpenMP try to start that many threads).
 MAX_THREADS_PER_CPU = 4
@@ -99,6 +101,8 @@ class TrainConfig:
                         ("input height", c.height_px), ("input width", c.width_px), ("network width", c.width)):
             if not is_int(v) or v <= 0:
                 raise UserError(f"{name} must be a positive whole number, got {v!r}")
+        if c.epochs > MAX_EPOCHS:
+            raise UserError(f"--epochs must be at most {MAX_EPOCHS:,}, got {c.epochs!r}")
         from ...benchmark.predictions import MAX_MIXTURE_COMPONENTS
 
         if c.n_components > MAX_MIXTURE_COMPONENTS:
