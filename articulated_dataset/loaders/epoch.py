@@ -20,6 +20,17 @@ PLAN_STREAM = 0x5EED0001
 SAMPLE_ORDER_STREAM = 0x5EED0002
 
 
+def check_batch_size(value, *, allow_none: bool = False) -> int | None:
+    """A batch size: a positive whole number (a bool, 1.5 or 0 is a UserError), or with
+    ``allow_none`` None (single samples)."""
+    if value is None and allow_none:
+        return None
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
+        raise UserError(f"batch size must be a positive integer{' or None (single samples)' if allow_none else ''}, "
+                        f"got {value!r}")
+    return int(value)
+
+
 def check_seed(name: str, value) -> int:
     if not isinstance(value, (int, np.integer)) or value < 0:
         raise UserError(f"{name} must be a non-negative integer, got {value!r}")
@@ -74,8 +85,7 @@ def plan_epoch(shard_sizes, *, batch_size: int, seed: int = 0, epoch: int = 0, s
        matter to a training step, and sorted indices are read without reordering copies.
     """
     sizes = np.asarray(shard_sizes, dtype=np.int64).reshape(-1)
-    if not isinstance(batch_size, (int, np.integer)) or isinstance(batch_size, bool) or batch_size <= 0:
-        raise UserError(f"batch size must be a positive integer, got {batch_size!r}")
+    check_batch_size(batch_size)
     if block_size is None or int(block_size) <= 0:
         raise UserError(f"block size must be positive, got {block_size}")
     if part_count <= 0 or not 0 <= part_index < part_count:

@@ -36,7 +36,7 @@ import numpy as np
 
 from ..errors import UserError
 from .batch import BatchProcessor, load_batch
-from .epoch import DEFAULT_BLOCK_SIZE, SAMPLE_ORDER_STREAM, n_batches, part_bounds, plan_epoch
+from .epoch import DEFAULT_BLOCK_SIZE, SAMPLE_ORDER_STREAM, check_batch_size, n_batches, part_bounds, plan_epoch
 from .reader import ShardReader, TORCH_INSTALL, require
 
 torch = require("torch", "articulated_dataset.loaders.torch", TORCH_INSTALL)
@@ -335,9 +335,7 @@ class ShardIterableDataset(_SharedEpoch, IterableDataset):
         self.reader = _reader(source, fields)
         self.processor = BatchProcessor(self.reader.fields, transform=transform, target=target, norm=norm, seed=seed)
         self.rank, self.world_size = distributed_rank_world(rank, world_size)
-        if batch_size is not None and (not isinstance(batch_size, (int, np.integer)) or isinstance(batch_size, bool)
-                                       or batch_size <= 0):  # 0 would silently read batches of read_size
-            raise UserError(f"batch size must be a positive integer or None (single samples), got {batch_size!r}")
+        check_batch_size(batch_size, allow_none=True)  # 0 would silently read batches of read_size
         self.batch_size = batch_size
         self.read_size = int(batch_size or read_size)
         self.shuffle, self.seed, self.block_size = bool(shuffle), seed, block_size

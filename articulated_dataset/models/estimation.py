@@ -179,8 +179,13 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     "Precision").  Bad input
     raises :class:`~articulated_dataset.errors.UserError`.
     """
-    import torch
+    return _estimate(depth_m, K, class_name, mask, model, mirror, precision)
 
+
+def _estimate(depth_m, K, class_name: str, mask, model: str, mirror: bool, precision: str, *, where: str = "depth",
+              before_model: Callable[[], object] | None = None) -> Estimate:
+    """:func:`estimate`, its depth named ``where`` in error messages (a file's path), with
+    ``before_model`` run once the inputs are checked and before the model is loaded."""
     from ..camera import CameraConfig
     from .dense.mirror import with_mirror
     from .dense.predict import check_precision, modes_to_arrays, refined_batch
@@ -191,10 +196,14 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     obj_class = get_class(class_name)
     depth = np.nan_to_num(_real_array(depth_m, "depth").astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     m = None if mask is None else np.asarray(mask).astype(bool)
-    check_depth(depth, m)
+    check_depth(depth, m, where)
     K = pinhole_matrix(_real_array(K, "intrinsics"), "intrinsics")
     check_intrinsics(K, (depth.shape[1], depth.shape[0]), "intrinsics")
     check_precision(precision)
+    if before_model is not None:
+        before_model()
+    import torch  # once the inputs are checked: a wrong file fails before torch's import
+
     ckpt, net, name = _load(model, obj_class.name, precision)
     cfg = net.config
     if m is not None:
@@ -260,7 +269,4 @@ def estimate_file(depth_path: str | Path, class_name: str, *, camera_path: str |
     mask = None
     if mask_path is not None:
         mask = load_mask(mask_path, d.shape, get_class(class_name).n_joints) > 0
-    check_depth(d, mask, str(depth_path))  # the checks estimate() makes, naming the file
-    if before_model is not None:
-        before_model()
-    return estimate(d, K, class_name, mask=mask, model=model, mirror=mirror, precision=precision)
+    return _estimate(d, K, class_name, mask, model, mirror, precision, where=str(depth_path), before_model=before_model)

@@ -46,13 +46,12 @@ def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: 
     from .mdn.data import resolve_split_dir, split_class
     from .shipped import SHIPPED, resolve_model
 
-    if as_class is not None:
-        from ..registry import get_class
-
-        as_class = get_class(as_class).name  # an unknown name: one line listing the classes
     if as_class is None:
         ref = resolve_model(model, split_class(resolve_split_dir(data)))
     else:
+        from ..registry import get_class
+
+        as_class = get_class(as_class).name  # an unknown name: one line listing the classes
         ref = resolve_model(model, as_class if model in SHIPPED else None)  # a checkpoint file: its own class
         if ref.class_name != as_class:
             raise UserError(f"--as-class {as_class}: {model} is a {ref.class_name!r} model")

@@ -19,6 +19,9 @@ MAX_PLAUSIBLE_FOV_DEG = 170.0
 #: Largest source frame accepted (pixels): ten times a 12-megapixel frame; larger is not a
 #: depth sensor's image (and would exhaust memory when rasterised).
 MAX_SOURCE_PIXELS = 120_000_000
+#: Deepest nesting of a file's lists of numbers (labels nest 2 deep; numpy allows 32 dimensions; the
+#: check recurses once per level, so 600 levels were a RecursionError).
+MAX_NUMBER_NESTING = 32
 #: Largest camera-info or label file read (bytes): a camera's intrinsics take a few hundred.
 MAX_MAPPING_BYTES = 1_000_000
 
@@ -30,10 +33,11 @@ def _is_number(v) -> bool:
 def read_numbers(value, what: str) -> np.ndarray:
     """``value`` (a number or nested lists of numbers, as read from JSON/YAML) as float64;
     strings, booleans, null and mappings are a :class:`UserError` (never converted)."""
-    def ok(v, depth: int = 0) -> bool:  # labels nest at most 2 deep; numpy allows 32 dimensions
-        return _is_number(v) or (isinstance(v, (list, tuple)) and depth < 32 and all(ok(x, depth + 1) for x in v))
+    def ok(v, depth: int = 0) -> bool:
+        return _is_number(v) or (isinstance(v, (list, tuple)) and depth < MAX_NUMBER_NESTING
+                                 and all(ok(x, depth + 1) for x in v))
     if not ok(value):
-        raise UserError(f"{what} must be numbers (nested at most 32 deep), got {str(value)[:80]}")
+        raise UserError(f"{what} must be numbers (nested at most {MAX_NUMBER_NESTING} deep), got {str(value)[:80]}")
     try:
         return np.asarray(value, np.float64)
     except (TypeError, ValueError, OverflowError):  # ragged lists, integers beyond float64

@@ -221,12 +221,8 @@ def refined_batch(model, depth_m, K, *, joint_types: list[str], refinement, work
     refinement = as_refinement(refinement)
     m, r = batch_modes(model, depth_m, K, joint_types=joint_types,
                        refine=refinement is not None and refinement.needed, split_factor=split_factor_of(refinement),
-                       handle_max_q_deg=None if refinement is None else refinement.handle_evidence_max_q_deg,
-                       frame_min_prob=None if refinement is None else refinement.frame_min_prob,
-                       frame_one_sided=refinement is not None and refinement.frame_one_sided,
-                       frame_strip_elongation=None if refinement is None else refinement.frame_strip_elongation,
-                       mirror_joints=None if refinement is None else refinement.mirror_joints,
-                       door_angles=None if refinement is None else refinement.door_angles, workspace=workspace)
+                       mirror_joints=None if refinement is None else refinement.mirror_joints, workspace=workspace,
+                       **refinement_keywords_of(refinement))
     return apply_refinement(m, r, refinement, joint_types)
 
 
@@ -252,6 +248,17 @@ def refinement_keywords(*, handle_max_q_deg: float | None = None, frame_min_prob
     return dict(frame_min_prob=frame_min_prob, door_angles=DOOR_ANGLES if door_angles is None else door_angles,
                 handle_max_q_deg=handle_max_q_deg, frame_one_sided=frame_one_sided,
                 frame_strip_elongation=frame_strip_elongation)
+
+
+def refinement_keywords_of(refinement) -> dict:
+    """The arguments of :func:`refinement_keywords` that a checkpoint's
+    :class:`~.refine.Refinement` (None: none) asks for: the handles, box-frame pixels, normals,
+    strip and door angles its steps read."""
+    if refinement is None:
+        return {}
+    return dict(handle_max_q_deg=refinement.handle_evidence_max_q_deg, frame_min_prob=refinement.frame_min_prob,
+                door_angles=refinement.door_angles, frame_one_sided=refinement.frame_one_sided,
+                frame_strip_elongation=refinement.frame_strip_elongation)
 
 
 def batch_modes(model, depth_m, K, *, joint_types: list[str], refine: bool, split_factor: float | None,
@@ -636,10 +643,8 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
     refined = apply_refinement(m, r, refinement, joint_types)
     if mirror_joints is not None:
         mm, mr = predict_modes(model, data, idx, joint_types=joint_types, progress=progress,
-                               refine=refinement.needed, split_factor=split_factor,
-                               handle_max_q_deg=refinement.handle_evidence_max_q_deg, frame_min_prob=p,
-                               frame_one_sided=one_sided, frame_strip_elongation=strip,
-                               mirror_joints=mirror_joints)
+                               refine=refinement.needed, split_factor=split_factor, mirror_joints=mirror_joints,
+                               **refinement_keywords_of(refinement))
         merged = apply_refinement(mm, mr, refinement, joint_types)
         pos = {name: quick_errors(modes_to_arrays(x, data.sample_id[idx], model, None), data, idx, joint_types)["pos_cm"]
                for name, x in (("without", refined), ("with", merged))}

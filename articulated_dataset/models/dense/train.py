@@ -235,7 +235,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     import torch
     from tqdm.auto import tqdm
 
-    from ..mdn.checkpoint import prepare_training_output
+    from ..mdn.checkpoint import prepare_training_output, state_problem
     from ..mdn.data import resolve_split_dir, split_by_object
     from ..mdn.train import resolve_device
     from ...registry import get_class
@@ -377,7 +377,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
                 bar.set_postfix({k: f"{v / n_run:.3g}" for k, v in running.items()})
             if step % CHECKPOINT_EVERY_STEPS == 0 or pos == steps_per_epoch or step == end:
                 # never replace the last checkpoint with diverged weights (a --resume would refuse them)
-                if not all(bool(torch.isfinite(t).all()) for t in model.state_dict().values() if t.is_floating_point()):
+                if state_problem(model.state_dict()) is not None:
                     raise UserError(f"training diverged by step {step} (non-finite weights); {out} keeps the last "
                                     f"checkpoint; lower --lr")
                 cpu_seconds += time.process_time() - cpu0
