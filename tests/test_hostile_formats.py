@@ -190,8 +190,11 @@ def test_training_refuses_absurd_epochs_and_a_resume_on_another_split(tiny_root,
     cfg = DenseTrainConfig("drawer", epochs=2, batch_size=16, width=4, val_fraction=0.2, max_objects=3)
     out = tmp_path / "d.pt"
     train_dense(tiny_root / "drawer" / "train", out, cfg, progress=False, stop_after_steps=1)
-    with pytest.raises(UserError, match="was trained on"):  # it trained on the test split, silently
+    with pytest.raises(UserError, match="was trained on another split"):  # it trained on the test split, silently
         train_dense(tiny_root / "drawer" / "test", out, cfg, progress=False, resume=True)
+    moved = tmp_path / "moved" / "drawer" / "train"  # the same split in another folder resumes
+    shutil.copytree(tiny_root / "drawer" / "train", moved)
+    assert train_dense(moved, out, cfg, progress=False, resume=True, stop_after_steps=2)["step"] == 2
 
 
 def test_a_mixture_of_no_column_is_refused(tiny_root, tmp_path):

@@ -236,7 +236,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     from tqdm.auto import tqdm
 
     from ..mdn.checkpoint import prepare_training_output, state_problem
-    from ..mdn.data import resolve_split_dir, split_by_object
+    from ..mdn.data import resolve_split_dir, split_by_object, split_identity
     from ..mdn.train import resolve_device
     from ...registry import get_class
     from .features import make_inputs
@@ -325,7 +325,8 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
             "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "class_name": obj_class.name,
             "joint_types": list(obj_class.joint_types), "model_config": model_config.to_dict(),
             "train_config": config.to_dict(), "q_scale": [float(v) for v in q_scale],
-            "data": {"split_dir": str(split_dir), "n_train_images": int(n_train), "n_val_images": int(len(va_idx)),
+            "data": {"split_dir": str(split_dir), "split": split_identity(split_dir), "n_train_images": int(n_train),
+                     "n_val_images": int(len(va_idx)),
                      "n_objects": int(len(np.unique(data_.object_index))), "generated": generated},
             "machine": machine, "device": dev.type,
             "step": step, "total_steps": total_steps, "finished": finished, "history": history,

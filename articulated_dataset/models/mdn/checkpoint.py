@@ -140,12 +140,14 @@ def prepare_training_output(split_dir: Path, class_name: str, out: Path, *, resu
         diff = [k for k in config.to_dict() if config.to_dict()[k] != old.to_dict().get(k)]
         raise UserError(f"--resume: {out} was trained with different settings ({', '.join(diff)}); "
                         f"repeat the original options")
-    old_dir = (ckpt.get("data") or {}).get("split_dir")
-    # another split that is still there (a split moved since, whose old folder is gone, may resume)
-    if isinstance(old_dir, str) and old_dir and Path(old_dir).is_dir() and \
-            Path(old_dir).resolve() != Path(split_dir).resolve():
-        raise UserError(f"--resume: {out} was trained on {old_dir}, not {split_dir} (--data); resume on the same "
-                        f"split or start a new --out")
+    # the split's identity, not its recorded path (a path from a file is never looked up; a split
+    # moved since still resumes); checkpoints from before the record are not checked
+    from .data import split_identity
+
+    recorded, current = (ckpt.get("data") or {}).get("split"), split_identity(split_dir)
+    if recorded is not None and current is not None and recorded != current:
+        raise UserError(f"--resume: {out} was trained on another split ({str(recorded)[:160]}), not {split_dir} "
+                        f"({current}); resume on the same split or start a new --out")
     return ckpt
 
 

@@ -42,6 +42,20 @@ def split_class(split_dir: Path) -> str:
     return Split(split_dir).class_name
 
 
+def split_identity(split_dir: Path) -> dict | None:
+    """What names a generated split, from its manifest: class, split name, seed and objects (None
+    for a split without them, e.g. ingested captures); a checkpoint records it so that ``--resume``
+    continues on the same split wherever its folder now is."""
+    from ...format import read_manifest
+
+    try:
+        cfg = read_manifest(split_dir)["config"]
+        return {"class_name": str(cfg["class_name"]), "split": str(cfg["split"]), "seed": int(cfg["seed"]),
+                "n_objects": int(cfg["n_objects"])}
+    except (KeyError, TypeError, ValueError, UserError):
+        return None
+
+
 def checked_split_class(split_dir: Path, model_class: str, as_class: str | None = None, what: str = "the model") -> str:
     """The class of the split at ``split_dir``, which a model trained on ``model_class`` predicts:
     the same class, or, with ``as_class`` (``predict --as-class``; it must be ``model_class``), a

@@ -38,7 +38,7 @@ from .checkpoint import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, atomic_torch_sav
                          prepare_training_output, restore_training_state)
 from .config import TrainConfig, check_per_cpu
 from .data import (active_columns, anchored_columns, expand_active, load_split, resolve_split_dir, shift_anchored,
-                   split_by_object)
+                   split_by_object, split_identity)
 
 log = logging.getLogger(__name__)
 
@@ -244,7 +244,8 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
             "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "class_name": obj_class.name,
             "layout_names": names, "anchored_columns": [list(c) for c in anchored], "active_columns": [int(i) for i in active], "norm_stats": _plain(stats.to_dict()), "model_config": model_config.to_dict(),
             "input_config": input_config.to_dict(), "train_config": config.to_dict(),
-            "data": {"split_dir": str(split_dir), "n_train": int(n_train), "n_val": int(len(va_idx))},
+            "data": {"split_dir": str(split_dir), "split": split_identity(split_dir), "n_train": int(n_train),
+                     "n_val": int(len(va_idx))},
             "epoch": epoch, "finished": finished, "history": history,
             "model_state": model.state_dict(), "optimizer_state": optimizer.state_dict(),
             "scheduler_state": scheduler.state_dict(), "scaler_state": scaler.state_dict(),
