@@ -858,3 +858,25 @@ def test_a_split_read_for_some_objects_is_the_full_reads_images_of_them(tiny_roo
 
     with pytest.raises(UserError, match="no images selected"):
         load_dense_split(split, 1, (108, 192), max_objects=5, objects=np.array([7]), workers=1)
+
+
+def test_depth_quantisation_rounds_to_the_store_quantum_and_drops_what_it_cannot_hold():
+    """quantise_depth scales float32 depths in float32 (exact: the quantum is a power of two); the
+    result is the float64 formula's, edge cases included."""
+    from articulated_dataset.models.dense.data import DEPTH_STORE_QUANTUM_M, quantise_depth
+
+    def reference(d):
+        d = np.nan_to_num(np.asarray(d, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+        q = np.rint(d / DEPTH_STORE_QUANTUM_M)
+        q[(q < 0) | (q > 65535)] = 0
+        return q.astype(np.uint16)
+
+    rng = np.random.default_rng(0)
+    d = (rng.random((40, 50)) * 9 - 0.5).astype(np.float32)  # beyond the 8 m range and negative too
+    d[0, :6] = [np.nan, np.inf, -np.inf, -1.0, 1e30, -0.0]
+    d[1, :3] = [1.5 * DEPTH_STORE_QUANTUM_M, 2.5 * DEPTH_STORE_QUANTUM_M, 65535.5 * DEPTH_STORE_QUANTUM_M]  # ties
+    for a in (d, d.astype(np.float64), rng.random((9, 9)) * 8.1):
+        q = quantise_depth(a)
+        assert q.dtype == np.uint16 and np.array_equal(q, reference(a))
+    assert quantise_depth(np.float32([1.5, 2.5]) * DEPTH_STORE_QUANTUM_M).tolist() == [2, 2]  # half to even
+    assert quantise_depth(np.float32([np.nan, 8.5, -0.1, 1.0])).tolist() == [0, 0, 0, 8192]

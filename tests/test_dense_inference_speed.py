@@ -45,6 +45,38 @@ def test_the_folded_network_computes_the_same_function():
     assert (a - b).abs().max().item() <= 1e-4 * max(1.0, a.abs().max().item())
 
 
+def test_the_inference_copy_prepacks_its_convolutions_and_computes_the_same_function():
+    """On a CPU build with oneDNN, folded() computes every convolution (and the ReLU after it) with
+    weights reordered once (PackedConv2d): the unpacked folded function to float rounding, on any
+    batch size and after the input's size changes; pickled (to a prediction worker) without the
+    opaque packed weights, which the copy makes again."""
+    import pickle
+
+    from articulated_dataset.models.dense import model as M
+
+    if not M._mkldnn_packing_available():
+        pytest.skip("this PyTorch has no oneDNN convolution with prepacked weights")
+    model = _random_statistics(DenseNet(DenseConfig(n_joints=2, width=8))).eval()
+    packed = model.folded()
+    convs = [m for m in packed.modules() if isinstance(m, (torch.nn.Conv2d, M.PackedConv2d))]
+    assert convs and all(isinstance(m, M.PackedConv2d) for m in convs)
+    assert sum(m.relu for m in convs) == sum(isinstance(m, torch.nn.ReLU) for m in model.modules()
+                                             if m is not model.context[1])  # every ReLU after a convolution fused
+    assert not any(isinstance(m, torch.nn.ReLU) for m in packed.modules() if m is not packed.context[1])
+    g = torch.Generator().manual_seed(3)
+    with torch.inference_mode():
+        for shape in ((3, 9, 108, 192), (1, 9, 108, 192), (2, 9, 64, 96)):
+            x = torch.randn(*shape, generator=g)
+            a, b = model(x), packed(x)
+            assert a.shape == b.shape and b.is_contiguous()
+            assert (a - b).abs().max().item() <= 1e-4 * max(1.0, a.abs().max().item()), shape
+        assert convs[0]._packed is not None
+        copy = pickle.loads(pickle.dumps(packed))
+        assert all(m._packed is None for m in copy.modules() if isinstance(m, M.PackedConv2d))
+        assert torch.equal(copy(x), packed(x))
+    assert not any(isinstance(m, M.PackedConv2d) for m in model.folded("bfloat16").modules())
+
+
 def test_folding_a_training_model_uses_its_running_statistics():
     """folded() is the eval-mode function even of a model in training mode (whose batch
     normalisation would use the batch's statistics)."""
