@@ -27,9 +27,6 @@ from .options import ClassChoice, prepare_torch
               help="dense: start from this checkpoint's weights with a fresh schedule (continue a finished training).")
 @click.option("--origin-weight", type=float, default=None,
               help="dense: multiplies the axis-origin loss terms (default 1).")
-@click.option("--distill-mirror", is_flag=True,
-              help="dense, with --init-from: also learn the --init-from model's outputs averaged with its outputs on "
-                   "the mirror image, so one network pass gives what two gave (docs/dense.md).")
 @click.option("--noise", default=None,
               help="dense: a depth-noise model (kinect2) applied to --noise-fraction of each batch's images, "
                    "drawn afresh every epoch (docs/real_data.md).")
@@ -43,7 +40,7 @@ from .options import ClassChoice, prepare_torch
 @click.option("--resume", is_flag=True, help="Continue the interrupted training stored in --out (same options).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or per-epoch lines.")
 def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, components, width, init_from,
-              origin_weight, distill_mirror, noise, noise_fraction, val_fraction, max_objects, seed, device, threads, resume, quiet):
+              origin_weight, noise, noise_fraction, val_fraction, max_objects, seed, device, threads, resume, quiet):
     """Train one class's estimator on its training split (checkpoints after every epoch; --resume continues)."""
     prepare_torch(threads)
     from ..models.train import TrainingInterrupted, train_model
@@ -52,8 +49,7 @@ def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, 
     try:
         run = train_model(model_kind, class_name, data, out, small=small, epochs=epochs, batch_size=batch_size, lr=lr,
                           components=components, width=width, init_from=init_from, origin_weight=origin_weight,
-                          noise=noise, noise_fraction=noise_fraction, distill_mirror=distill_mirror,
-                          val_fraction=val_fraction,
+                          noise=noise, noise_fraction=noise_fraction, val_fraction=val_fraction,
                           max_objects=max_objects, seed=seed, device=device, resume=resume, progress=not quiet,
                           echo=None if quiet else click.echo)
     except TrainingInterrupted as exc:

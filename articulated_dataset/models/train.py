@@ -32,14 +32,14 @@ def train_model(kind: str, class_name: str, data: str | Path, out: str | Path, *
                 epochs: int | None = None, batch_size: int | None = None, lr: float | None = None,
                 components: int | None = None, width: int | None = None, init_from: str | None = None,
                 origin_weight: float | None = None, val_fraction: float | None = None, max_objects: int | None = None, seed: int = 0,
-                noise: str | None = None, noise_fraction: float | None = None, distill_mirror: bool = False,
+                noise: str | None = None, noise_fraction: float | None = None,
                 device: str = "auto", resume: bool = False, progress: bool = False,
                 echo: Callable[[str], None] | None = None) -> TrainingRun:
     """Train a ``kind`` (``mdn`` or ``dense``) network for ``class_name`` on the training split
     ``data`` into the checkpoint ``out``.  ``None`` settings take the kind's defaults (mdn: the
     ``small`` or full preset and 10% validation objects; dense: :class:`DenseTrainConfig`'s).
-    ``small``/``components`` belong to mdn, ``width``/``init_from``/``origin_weight``/``noise``/``noise_fraction``/
-    ``distill_mirror`` to dense: given to the other
+    ``small``/``components`` belong to mdn, ``width``/``init_from``/``origin_weight``/``noise``/``noise_fraction``
+    to dense: given to the other
     kind they are a :class:`UserError`.  Ctrl-C raises :class:`TrainingInterrupted`."""
     if kind not in KINDS:
         raise UserError(f"unknown model kind {kind!r}; expected one of {', '.join(KINDS)}")
@@ -53,7 +53,7 @@ def train_model(kind: str, class_name: str, data: str | Path, out: str | Path, *
         given = {"epochs": epochs, "batch_size": batch_size, "lr": lr, "width": width, "val_fraction": val_fraction,
                  "origin_weight": origin_weight, "noise": noise, "noise_fraction": noise_fraction}
         config = DenseTrainConfig(class_name=class_name, max_objects=max_objects, seed=seed, init_from=init_from,
-                                  distill_mirror=distill_mirror, **{k: v for k, v in given.items() if v is not None})
+                                  **{k: v for k, v in given.items() if v is not None})
         try:
             ckpt = train_dense(data, out, config, resume=resume, progress=progress, echo=echo, device=device)
         except KeyboardInterrupt:
@@ -62,9 +62,8 @@ def train_model(kind: str, class_name: str, data: str | Path, out: str | Path, *
         return TrainingRun(ckpt, f"dense {ckpt['class_name']}, {ckpt['step']} steps ({ckpt['data']['n_train_images']} "
                                  f"training / {ckpt['data']['n_val_images']} validation images)")
     if width is not None or init_from is not None or origin_weight is not None or noise is not None \
-            or noise_fraction is not None or distill_mirror:
-        raise UserError("--width, --init-from, --origin-weight, --noise, --noise-fraction and --distill-mirror belong to "
-                        "--model dense")
+            or noise_fraction is not None:
+        raise UserError("--width, --init-from, --origin-weight, --noise and --noise-fraction belong to --model dense")
     from .mdn.config import TrainConfig
     from .mdn.train import train
 

@@ -90,13 +90,6 @@ class DenseTrainConfig:
     #: all pass through it (:func:`noisy_validation`).  None: renders only.
     noise: str | None = None
     noise_fraction: float = 0.5
-    #: Distil the mirror image into one network pass (``--distill-mirror``; needs ``init_from`` and a
-    #: class whose mirror image is again of the class): besides the labels, the network learns
-    #: what the ``init_from`` network (the teacher, frozen) gives on the same input averaged with
-    #: its outputs on the mirror image (refinement step 8, :func:`~.mirror.merge_mirrored_outputs`):
-    #: :func:`mirror_distill_loss`.  The fit after training then leaves step 8 out, so inference
-    #: runs the network once (docs/dense.md "One pass for two").
-    distill_mirror: bool = False
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "width"):
@@ -127,16 +120,6 @@ class DenseTrainConfig:
             get_noise_model(self.noise)  # an unknown name: a UserError listing the models
         if not (0.0 < self.noise_fraction <= 1.0):
             raise UserError(f"--noise-fraction must be in (0, 1], got {self.noise_fraction}")
-        if not isinstance(self.distill_mirror, bool):
-            raise UserError(f"distill_mirror must be true or false, got {self.distill_mirror!r}")
-        if self.distill_mirror:
-            from ...registry import get_class
-
-            if self.init_from is None:
-                raise UserError("--distill-mirror needs --init-from: the model whose mirror-averaged outputs are learnt")
-            if get_class(self.class_name).mirror_joints is None:
-                raise UserError(f"--distill-mirror: the mirror image of a {self.class_name} is not a {self.class_name} "
-                                f"(only classes with a mirror image average with it)")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -193,61 +176,6 @@ def dense_loss(model, out, inputs: dict, data: DenseData, idx: np.ndarray, q_sca
     stats = {"loss": float(total.detach()), "seg": float(pix(ce).detach()),
              "origin_cm": float((img["origin"] - o_t).norm(dim=-1).mean().detach()) * 100}
     return total, stats
-
-
-#: Weight of :func:`mirror_distill_loss` beside the label loss (``--distill-mirror``).
-DISTILL_WEIGHT = 1.0
-
-
-def mirror_distill_loss(model, out, target, weight_out, q_scale) -> "object":
-    """How far the raw outputs ``out`` (B, C, h, w) are from the teacher's ``target`` (its outputs
-    averaged with those on the mirror image), per valid output pixel ``i`` (weighted by
-    ``weight_out``) and image, in the label loss's units: ``KL(softmax(T_seg) || softmax(S_seg))
-    + sum_j (|o_S - o_T| / 5 cm + |r6_S - r6_T|_1 / ROT_SCALE + |q_S - q_T| / s_q + |po_S - po_T|_1
-    / 10 cm + |c_S - c_T|_1) + |g_S - g_T|_1 / 10 cm + |chi_S - chi_T| + |gc_S - gc_T|`` (``o`` the
-    offset to the axis origin, ``c`` the three vote-confidence logits, ``g`` depth, width, height,
-    ``chi`` the chirality logit, ``gc`` the geometry confidence logit).  Linear in every
-    difference, so small ones still pull (the label loss's origin term is quadratic below 5 cm)."""
-    from torch.nn import functional as F
-
-    s, t = model.split(out), model.split(target)
-    w = weight_out
-    norm = w.sum().clamp_min(1.0)
-    kl = F.kl_div(F.log_softmax(s["seg"], 1), F.log_softmax(t["seg"], 1), log_target=True, reduction="none").sum(1)
-    per_joint = ((s["offset"] - t["offset"]).norm(dim=2) / ORIGIN_SCALE_M
-                 + (s["rot6"] - t["rot6"]).abs().sum(2) / ROT_SCALE
-                 + (s["q"] - t["q"]).abs() / q_scale.view(1, -1, 1, 1)
-                 + (s["part_offset"] - t["part_offset"]).abs().sum(2) / OFFSET_SCALE_M
-                 + (s["conf"] - t["conf"]).abs().sum(2))
-    g, gt = s["geometry"], t["geometry"]
-    per_pixel = (kl + per_joint.sum(1) + (g[:, :3] - gt[:, :3]).abs().sum(1) / GEOMETRY_SCALE_M
-                 + (g[:, 3] - gt[:, 3]).abs() + (s["geometry_conf"] - t["geometry_conf"]).abs())
-    return (per_pixel * w).sum() / norm
-
-
-def load_init_checkpoint(config: "DenseTrainConfig", model_config) -> dict:
-    """The ``--init-from`` checkpoint, checked to be of the training's class and architecture."""
-    from .model import DenseConfig
-
-    init = load_dense_checkpoint(config.init_from)
-    if init["class_name"] != config.class_name:
-        raise UserError(f"--init-from {config.init_from}: a {init['class_name']!r} model; this training is of "
-                        f"{config.class_name!r} (scripts/transplant_dense.py moves weights between classes)")
-    if DenseConfig.from_dict(init["model_config"]) != model_config:
-        raise UserError(f"--init-from {config.init_from}: a model of another configuration "
-                        f"({init['model_config']}); expected {model_config.to_dict()}")
-    return init
-
-
-def load_mirror_teacher(config: "DenseTrainConfig", model_config, dev):
-    """The frozen network ``--distill-mirror`` learns from (``config.init_from``, folded, on
-    ``dev``) and the SHA-256 of its file (a resumed run must find the same teacher)."""
-    from ...format import sha256_file
-
-    teacher = build_dense_model(load_init_checkpoint(config, model_config)).to(dev).folded()
-    for p in teacher.parameters():
-        p.requires_grad_(False)
-    return teacher, sha256_file(Path(config.init_from))
 
 
 def noisy_depth(depth_m: np.ndarray, K: np.ndarray, images: np.ndarray, noise: str, fraction: float, *, seed: int,
@@ -313,7 +241,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     from ...registry import get_class
     from .features import make_inputs
     from .model import DenseConfig, DenseNet, count_parameters
-    from .predict import fit_inference, network_outputs, predict_arrays, quick_errors
+    from .predict import fit_inference, predict_arrays, quick_errors
 
     out = Path(out)
     dev = resolve_device(device)
@@ -349,16 +277,19 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     torch.manual_seed(config.seed)
     model = DenseNet(model_config)
     if config.init_from is not None and ckpt is None:
-        init = load_init_checkpoint(config, model_config)
+        init = load_dense_checkpoint(config.init_from)
+        if init["class_name"] != obj_class.name:
+            raise UserError(f"--init-from {config.init_from}: a {init['class_name']!r} model; this training is of "
+                            f"{obj_class.name!r} (scripts/transplant_dense.py moves weights between classes)")
+        if DenseConfig.from_dict(init["model_config"]) != model_config:
+            raise UserError(f"--init-from {config.init_from}: a model of another configuration "
+                            f"({init['model_config']}); expected {model_config.to_dict()}")
         model.load_state_dict(build_dense_model(init).state_dict())
         if "q_scale" in init:
             q_scale = np.asarray(init["q_scale"], np.float64)
             q_scale_t = torch.tensor(q_scale, dtype=torch.float32)
     model.to(dev)
     q_scale_t = q_scale_t.to(dev)
-    teacher, teacher_sha = load_mirror_teacher(config, model_config, dev) if config.distill_mirror else (None, None)
-    if teacher is not None and ckpt is not None and (ckpt.get("distill") or {}).get("sha256") != teacher_sha:
-        raise UserError(f"--resume: {config.init_from} is not the teacher {out} was distilled from (its SHA-256 differs)")
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=WEIGHT_DECAY)
     steps_per_epoch = n_train // batch
     total_steps = steps_per_epoch * config.epochs
@@ -400,8 +331,6 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
             "machine": machine, "device": dev.type,
             "step": step, "total_steps": total_steps, "finished": finished, "history": history,
             "cpu_seconds": cpu_seconds, "calibration": calibration,
-            **({"distill": {"mirror": True, "teacher": Path(config.init_from).name, "sha256": teacher_sha}}
-               if teacher is not None else {}),
             "model_state": _on_cpu(model.state_dict()), "optimizer_state": _on_cpu(optimizer.state_dict()),
             "scheduler_state": scheduler.state_dict(), "rng_state": torch.get_rng_state(),
         }
@@ -432,13 +361,6 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
             inputs = make_inputs(depth.to(dev), torch.from_numpy(data_.K[idx]).to(dev))
             out_ = model(inputs["x"])
             loss, st = dense_loss(model, out_, inputs, data_, idx, q_scale_t, config.origin_weight)
-            if teacher is not None:
-                with torch.no_grad():
-                    target = network_outputs(teacher, inputs["x"], obj_class.mirror_joints)
-                l_d = mirror_distill_loss(model, out_, target, inputs["weight_out"], q_scale_t)
-                loss = loss + DISTILL_WEIGHT * l_d
-                st["distill"] = float(l_d.detach())
-                st["loss"] = float(loss.detach())
             if not torch.isfinite(loss):
                 raise UserError(f"non-finite training loss at step {step}; {out} keeps the last checkpoint; lower --lr")
             optimizer.zero_grad(set_to_none=True)
@@ -483,19 +405,10 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
                     config.val_fraction)
     if fit and len(va_idx):  # refinement choice and uncertainty calibration on the validation objects
         result.update(fit_inference(model.folded().cpu(), val_data, val_idx, list(obj_class.joint_types),
-                                    mirror_joints=fitted_mirror_joints(config)))
+                                    mirror_joints=obj_class.mirror_joints))
     result["load_seconds"] = round(t_load, 1)
     atomic_save(result, out)
     return result
-
-
-def fitted_mirror_joints(config: DenseTrainConfig):
-    """The class's ``mirror_joints`` for :func:`~.predict.fit_inference` to try step 8 with, or
-    None: never for a network that learnt the mirror image's average (``--distill-mirror``),
-    which runs once."""
-    from ...registry import get_class
-
-    return None if config.distill_mirror else get_class(config.class_name).mirror_joints
 
 
 def split_generation(split_dir: Path) -> dict | None:
@@ -549,6 +462,7 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     modes) and refit only the calibration (:func:`~.predict.fitted_calibration`: for
     checkpoints fitted before the outlier component)."""
     from ..mdn.data import resolve_split_dir, split_by_object, split_class
+    from ...registry import get_class
     from .predict import PREDICT_BATCH, _refined_images, fit_calibration, fit_inference, fitted_calibration, modes_to_arrays
     from .refine import as_refinement
 
@@ -598,7 +512,7 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
         result["calibration"] = fitted_calibration(modes, model, data_, va_idx, plain)
     else:
         result.update(fit_inference(model, data_, va_idx, list(ckpt["joint_types"]),
-                                    mirror_joints=fitted_mirror_joints(config), progress=progress))
+                                    mirror_joints=get_class(ckpt["class_name"]).mirror_joints, progress=progress))
     if recorded is None and generated is not None:  # checkpoints from before the record: the split named now
         result["data"] = {**(ckpt.get("data") or {}), "generated": generated}
     result["refit_of"] = {"file": Path(checkpoint).name, "sha256": sha256_file(Path(checkpoint)),
