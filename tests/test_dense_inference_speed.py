@@ -77,6 +77,28 @@ def test_the_inference_copy_prepacks_its_convolutions_and_computes_the_same_func
     assert not any(isinstance(m, M.PackedConv2d) for m in model.folded("bfloat16").modules())
 
 
+def test_a_convolution_oneDNN_cannot_prepack_runs_unpacked(monkeypatch, caplog):
+    """Prepacking refused at run time (another CPU, a shape oneDNN declines): the plain
+    convolution, the same function, and a warning."""
+    from articulated_dataset.models.dense import model as M
+
+    if not M._mkldnn_packing_available():
+        pytest.skip("this PyTorch has no oneDNN convolution with prepacked weights")
+    model = _random_statistics(DenseNet(DenseConfig(n_joints=1, width=4))).eval()
+    packed = model.folded()
+
+    def refuse(*args, **kwargs):
+        raise RuntimeError("no kernel for this CPU")
+
+    monkeypatch.setattr(torch.ops.mkldnn, "_reorder_convolution_weight", refuse)
+    monkeypatch.setattr(M, "_PACKING_WARNED", [])
+    x = torch.randn(2, 9, 108, 192, generator=torch.Generator().manual_seed(4))
+    with torch.inference_mode(), caplog.at_level("WARNING"):
+        a, b = model(x), packed(x)
+    assert (a - b).abs().max().item() <= 1e-4 * max(1.0, a.abs().max().item())
+    assert caplog.text.count("prepacking failed") == 1  # once, not once per convolution
+
+
 def test_folding_a_training_model_uses_its_running_statistics():
     """folded() is the eval-mode function even of a model in training mode (whose batch
     normalisation would use the batch's statistics)."""

@@ -17,6 +17,7 @@ connections back to the output resolution (input / 4).  Per output pixel it pred
 
 from __future__ import annotations
 
+import logging
 from dataclasses import asdict, dataclass
 
 import torch
@@ -24,6 +25,10 @@ from torch import nn
 from torch.nn import functional as F
 
 from .features import N_INPUT_CHANNELS
+
+log = logging.getLogger(__name__)
+#: Non-empty once a :class:`PackedConv2d` has warned that oneDNN refused to prepack (one warning per process).
+_PACKING_WARNED: list = []
 
 #: Offsets are predicted in units of this (m).
 OFFSET_SCALE_M = 0.5
@@ -98,7 +103,18 @@ class PackedConv2d(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         key = tuple(x.shape[1:])
         if self._packed is None or self._packed[0] != key:
-            self._packed = (key, torch.ops.mkldnn._reorder_convolution_weight(self.weight, *self.conv_args, list(x.shape)))
+            try:
+                packed = torch.ops.mkldnn._reorder_convolution_weight(self.weight, *self.conv_args, list(x.shape))
+            except RuntimeError as exc:  # oneDNN refuses this CPU or shape: the plain convolution, same function
+                if not _PACKING_WARNED:
+                    log.warning("oneDNN weight prepacking failed (%s); computing the convolutions unpacked", exc)
+                    _PACKING_WARNED.append(True)
+                packed = None
+            self._packed = (key, packed)
+        if self._packed[1] is None:
+            padding, stride, dilation, groups = self.conv_args
+            y = F.conv2d(x, self.weight, self.bias, stride, padding, dilation, groups)
+            return F.relu(y) if self.relu else y
         return torch.ops.mkldnn._convolution_pointwise(x, self._packed[1], self.bias, *self.conv_args,
                                                       "relu" if self.relu else "none", [], "")
 
