@@ -163,3 +163,15 @@ def test_discovery(generated, tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(UserError, match="no generated split found"):
         find_splits(tmp_path / "empty")
+
+
+def test_json_list_reads_a_list_and_nothing_else():
+    """format.shards.json_list: the one parser of a shard attribute's JSON list; text that is not
+    JSON (malformed, not UTF-8, not text, nested past the parser's recursion limit) or another JSON
+    value is None, never an exception."""
+    from articulated_dataset.format.shards import json_list
+
+    assert json_list('["revolute", "prismatic"]') == ["revolute", "prismatic"]
+    assert json_list(b'["door"]') == ["door"] and json_list("[]") == []
+    for bad in ('{"a": 1}', '"revolute"', "1", "null", "[1,", b"\xff\xfe", None, 3, "[" * 100_000):
+        assert json_list(bad) is None, repr(bad)[:40]

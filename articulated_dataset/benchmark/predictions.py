@@ -41,6 +41,7 @@ import numpy as np
 from ..errors import DataFormatError, UserError
 from ..safeio import atomic_write_h5, available_memory_bytes, format_bytes
 from ..format import attr_value, open_h5
+from ..format.shards import JSON_TEXT_ERRORS
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +113,7 @@ def _parse_layout(where: str, value) -> list[str]:
     if isinstance(value, str):
         try:
             value = json.loads(value)
-        except (json.JSONDecodeError, RecursionError):
+        except JSON_TEXT_ERRORS:
             raise DataFormatError(f"{where}: attribute {MIXTURE_LAYOUT_ATTR!r} is not a JSON list of column names") from None
     if isinstance(value, np.ndarray):
         value = value.tolist()

@@ -306,6 +306,23 @@ def _short(exc: Exception) -> str:
     return str(exc).splitlines()[0][:200]
 
 
+#: What parsing a data file's JSON text raises when the text is not JSON: malformed text, bytes that
+#: are not UTF-8, a value that is not text, or nesting deeper than the parser's recursion limit
+#: (``'[[[[...'``: a ``RecursionError``).  Data, never a bug: readers turn these into their own error.
+JSON_TEXT_ERRORS = (json.JSONDecodeError, UnicodeDecodeError, TypeError, RecursionError)
+
+
+def json_list(text) -> list | None:
+    """The JSON list in ``text`` (a shard attribute: ``joint_names``, ``joint_types``,
+    ``capture_names``...), or None where ``text`` is not JSON text (:data:`JSON_TEXT_ERRORS`) or
+    holds something else than a list."""
+    try:
+        value = json.loads(text)
+    except JSON_TEXT_ERRORS:
+        return None
+    return value if isinstance(value, list) else None
+
+
 def read_json_object(path: str | Path, what: str) -> dict:
     """A JSON object from ``path``; a missing, unparsable or non-object file is a DataFormatError
     naming ``what`` (e.g. "manifest")."""
@@ -314,10 +331,10 @@ def read_json_object(path: str | Path, what: str) -> dict:
         raise DataFormatError(f"{path}: missing {what}")
     try:
         data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataFormatError(f"{path}: corrupt {what} ({exc})") from None
     except RecursionError:  # '[[[[...' nested deeper than the parser's recursion limit
         raise DataFormatError(f"{path}: corrupt {what} (nested too deeply)") from None
+    except JSON_TEXT_ERRORS as exc:
+        raise DataFormatError(f"{path}: corrupt {what} ({exc})") from None
     if not isinstance(data, dict):
         raise DataFormatError(f"{path}: corrupt {what} (not a JSON object)")
     return data

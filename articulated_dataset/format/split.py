@@ -9,7 +9,6 @@ every shard path resolved inside the folder, and each shard's own checks
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Iterable
 
@@ -18,7 +17,7 @@ import numpy as np
 from ..errors import DataFormatError
 from .manifest import read_manifest, shard_paths, split_config
 from .schema import IMAGE_FIELDS, JOINT_TYPES, LABEL_FIELDS
-from .shards import Shard
+from .shards import Shard, json_list
 
 
 def check_inside(split_dir: Path, path: Path) -> None:
@@ -131,20 +130,17 @@ class Split:
 
     def joint_names(self) -> list[str]:
         """Joint names from the first shard's attributes (empty if unreadable)."""
-        try:
-            return list(json.loads(self.attrs.get("joint_names", "[]")))
-        except (ValueError, TypeError, RecursionError):
-            return []
+        return json_list(self.attrs.get("joint_names", "[]")) or []
 
     def joint_types(self) -> tuple[str, ...]:
         """The joint types every shard declares; missing, unknown or differing types are a
         DataFormatError naming the shard."""
         joint_types = None
         for sh in self.shards:
-            try:
-                types = tuple(json.loads(sh.attrs["joint_types"]))
-            except (KeyError, TypeError, json.JSONDecodeError, RecursionError):
-                raise DataFormatError(f"{sh.path}: missing or invalid 'joint_types' attribute") from None
+            types = json_list(sh.attrs.get("joint_types"))
+            if types is None:
+                raise DataFormatError(f"{sh.path}: missing or invalid 'joint_types' attribute")
+            types = tuple(types)
             if any(t not in JOINT_TYPES for t in types):
                 raise DataFormatError(f"{sh.path}: unknown joint type in {list(types)}")
             if joint_types is None:

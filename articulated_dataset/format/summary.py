@@ -7,12 +7,12 @@ occluders, camera) and min/mean/max of the main labels per named column (with un
 
 from __future__ import annotations
 
-import json
 
 import numpy as np
 
 from ..errors import DataFormatError
 from .manifest import MANIFEST_NAME
+from .shards import json_list
 from .split import Split
 
 _SUMMARY_FIELDS = ("q", "axis_origin", "geometry", "object_yaw", "visible_pixels")
@@ -53,11 +53,8 @@ def _column_stats(a: np.ndarray) -> dict:
 
 def _joints(split: Split) -> tuple[list[str], list[str]]:
     """Joint names and types from the first shard's attributes (empty if unreadable)."""
-    try:
-        attrs = split.attrs
-        return list(json.loads(attrs.get("joint_names", "[]"))), list(json.loads(attrs.get("joint_types", "[]")))
-    except (ValueError, TypeError, RecursionError):
-        return [], []
+    attrs = split.attrs
+    return json_list(attrs.get("joint_names", "[]")) or [], json_list(attrs.get("joint_types", "[]")) or []
 
 
 def _columns(field: str, width: int, names: list[str], types: list[str]) -> list[dict]:

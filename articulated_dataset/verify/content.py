@@ -4,13 +4,13 @@ generation order and sample ids; a real split's own rules).  See :mod:`articulat
 
 from __future__ import annotations
 
-import json
 import math
 
 import numpy as np
 
 from ..errors import UserError
 from ..format import MASK_BACKGROUND, MASK_FIRST_PART
+from ..format.shards import json_list
 from ..rotations import quat_to_matrix
 from ..generation.context_labels import context_mask_codes
 from ..generation.viewpoint import is_head_mount
@@ -169,20 +169,12 @@ def _check_real_labels(f64: dict, attrs: dict, table, J: int, p: list) -> None:
         obj_class = get_class(str(attrs.get("class_name")))
         types, ranges = obj_class.joint_types, obj_class.table.q
     except UserError:  # a class from another package: the shard's own table and types
-        types = tuple(_json_list(attrs.get("joint_types")))
+        types = tuple(json_list(attrs.get("joint_types")) or [])
         ranges = table.q if table is not None else ()
     if len(types) != J or len(ranges) != J:
         types, ranges = (), ()
     for message, bad in real_label_problems({k: f64[k] for k in REAL_LABEL_FIELDS}, types, ranges, gt):
         p.append(f"{message} in {_where(bad)}")
-
-
-def _json_list(text) -> list:
-    try:
-        v = json.loads(text)
-    except (json.JSONDecodeError, TypeError, RecursionError):
-        return []
-    return v if isinstance(v, list) else []
 
 
 def _check_class(a: dict, attrs: dict, p: list) -> str:

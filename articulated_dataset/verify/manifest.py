@@ -10,6 +10,7 @@ from pathlib import Path
 
 from ..errors import DataFormatError, UserError
 from ..format import MANIFEST_NAME, check_version, shard_name
+from ..format.shards import JSON_TEXT_ERRORS
 from .shard import one_line
 
 #: Manifest keys the generator writes and the checks below read.
@@ -36,7 +37,7 @@ def load_manifest(split_dir: Path) -> tuple[dict | None, list[Problem]]:
         return None, [Problem(MANIFEST_NAME, "missing (not a complete generated split; shards checked without it)")]
     try:
         manifest = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+    except JSON_TEXT_ERRORS as exc:
         return None, [Problem(MANIFEST_NAME, f"corrupt JSON ({one_line(exc)})")]
     except OSError as exc:
         return None, [Problem(MANIFEST_NAME, f"cannot read ({exc.strerror or exc})")]

@@ -16,6 +16,7 @@ from ..camera import R_CAMERA_TO_OPTICAL, CameraConfig
 from ..errors import DataFormatError, UserError
 from ..format import (FIELDS, K_DATASET, R_DATASET, ROOT_ATTRS, check_h5_layout, check_version, resolve_shape, sha256_file)
 from ..generation.context_labels import occlusion_problems
+from ..format.shards import JSON_TEXT_ERRORS, json_list
 from .content import check_content, rgb_problems
 
 #: Relative tolerance when comparing the stored intrinsics with the camera config's K.
@@ -201,13 +202,12 @@ def _is_real(attrs: dict) -> bool:
 
 def _capture_names(attrs: dict) -> tuple[list | None, str | None]:
     """The ``capture_names`` attribute of a real shard (a JSON list of unique names), or a problem."""
-    try:
-        names = json.loads(attrs["capture_names"])
-    except KeyError:
+    if "capture_names" not in attrs:
         return None, "real shard without attribute capture_names; cannot check the datasets"
-    except (json.JSONDecodeError, TypeError, RecursionError):
+    names = json_list(attrs["capture_names"])
+    if names is None:
         return None, "attribute capture_names is not a JSON list; cannot check the datasets"
-    if not isinstance(names, list) or not names or not all(isinstance(n, str) and n for n in names):
+    if not names or not all(isinstance(n, str) and n for n in names):
         return None, "attribute capture_names must be a non-empty JSON list of names; cannot check the datasets"
     if len(set(names)) != len(names):
         return None, "attribute capture_names names a capture twice"
@@ -223,11 +223,11 @@ def _check_registry(attrs: dict, J: int, p: list) -> None:
         return  # a class from another package: nothing to compare with
     if J != obj_class.n_joints:
         p.append(f"n_joints = {J}, class {obj_class.name} has {obj_class.n_joints}")
-    try:
-        types = tuple(json.loads(attrs.get("joint_types", "[]")))
-    except (json.JSONDecodeError, TypeError, RecursionError):
+    types = json_list(attrs.get("joint_types", "[]"))
+    if types is None:
         p.append("attribute joint_types is not a JSON list")
         return
+    types = tuple(types)
     if types != obj_class.joint_types:
         p.append(f"joint_types {list(types)} differ from class {obj_class.name}'s {list(obj_class.joint_types)}")
 
@@ -283,5 +283,5 @@ def _table(attrs: dict):
         return SamplingTable.from_dict(json.loads(attrs["sampling_table"])), None
     except KeyError:
         return None, None  # already reported as a missing attribute
-    except (json.JSONDecodeError, TypeError, ValueError, AttributeError, UserError, RecursionError) as exc:
+    except (*JSON_TEXT_ERRORS, ValueError, AttributeError, UserError) as exc:
         return None, f"attribute sampling_table is not a valid table ({one_line(exc)})"
