@@ -449,3 +449,19 @@ def test_the_fit_benchmark_reports_its_time_and_choice(tmp_path, capsys):
     line = capsys.readouterr().out.splitlines()[-1]
     assert line.startswith("toaster: ") and " s for 32 images on 1 thread(s); refinement chosen: {" in line
     assert json.loads(line.split("refinement chosen: ", 1)[1])["version"] > 0
+
+
+def test_the_training_runs_inference_copy_is_the_cpu_packed_folded_network():
+    """train.inference_copy (the per-epoch validation's and the fit's network): the folded function
+    on the CPU, prepacked where oneDNN can, the training network left as it was."""
+    from articulated_dataset.models.dense import model as M
+    from articulated_dataset.models.dense.train import inference_copy
+
+    model = _random_statistics(DenseNet(DenseConfig(n_joints=1, width=4))).train()
+    copy = inference_copy(model)
+    assert model.training and not copy.training
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())
+    assert any(isinstance(m, M.PackedConv2d) for m in copy.modules()) == M._mkldnn_packing_available()
+    x = torch.randn(2, 9, 108, 192, generator=torch.Generator().manual_seed(5))
+    with torch.inference_mode():
+        assert torch.allclose(copy(x), model.eval()(x), atol=1e-4, rtol=1e-4)

@@ -338,7 +338,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     def validate() -> dict:
         if not len(va_idx):
             return {}
-        arrays = predict_arrays(model.folded().cpu(), val_data, val_idx, joint_types=list(obj_class.joint_types),
+        arrays = predict_arrays(inference_copy(model), val_data, val_idx, joint_types=list(obj_class.joint_types),
                                 calibration=None)
         return quick_errors(arrays, val_data, val_idx, list(obj_class.joint_types))
 
@@ -404,11 +404,20 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
                     "refinement or uncertainty calibration, and its estimates are the plain votes", out,
                     config.val_fraction)
     if fit and len(va_idx):  # refinement choice and uncertainty calibration on the validation objects
-        result.update(fit_inference(model.folded().cpu(), val_data, val_idx, list(obj_class.joint_types),
+        result.update(fit_inference(inference_copy(model), val_data, val_idx, list(obj_class.joint_types),
                                     mirror_joints=obj_class.mirror_joints))
     result["load_seconds"] = round(t_load, 1)
     atomic_save(result, out)
     return result
+
+
+def inference_copy(model):
+    """The CPU inference copy (:meth:`~.model.DenseNet.folded`) of a network in training, wherever it
+    trains: moved to the CPU before folding, so a GPU-trained network's copy gets the CPU's
+    prepacked convolutions too (the validation and the inference fit run on the CPU)."""
+    import copy
+
+    return copy.deepcopy(model).cpu().folded()
 
 
 def split_generation(split_dir: Path) -> dict | None:
