@@ -421,16 +421,14 @@ def inference_copy(model):
 
 
 def split_generation(split_dir: Path) -> dict | None:
-    """The generation settings of a split (class, seed, objects), from its manifest: how the
-    training data of a checkpoint is made again once the folder is gone."""
-    from ...format import read_manifest
+    """The generation settings of a split (class, seed, objects): its identity
+    (:func:`~articulated_dataset.models.mdn.data.split_identity`, read from its manifest) without
+    the split's name; how the training data of a checkpoint is made again once the folder is gone.
+    None for a split without them (an ingested one, an unreadable manifest)."""
+    from ..mdn.data import split_identity
 
-    try:
-        cfg = read_manifest(split_dir)["config"]
-        return {"class_name": str(cfg.get("class_name", "")), "seed": int(cfg["seed"]),
-                "n_objects": int(cfg["n_objects"])}
-    except Exception:  # noqa: BLE001 - a split without a readable manifest: nothing to record
-        return None
+    identity = split_identity(split_dir)
+    return None if identity is None else {k: identity[k] for k in ("class_name", "seed", "n_objects")}
 
 
 def machine_description(dev) -> str:
