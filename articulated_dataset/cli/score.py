@@ -44,17 +44,14 @@ def score_cmd(predictions, truth_path, split, json_path, csv_path, require_compl
     of images scored) followed by the standard metrics.  See docs/scoring.md.
     """
     from ..benchmark.scoring import score
-    from ..safeio import check_outputs_distinct
-
     from ..format import find_split_dirs
+    from ..safeio import check_can_create, check_outputs_distinct
 
     try:  # the truth's split folders: a report must not replace one of their shards or manifests
         truth_splits = find_split_dirs(truth_path)
     except UserError:
         truth_splits = []  # score() reports the bad --truth itself
     check_outputs_distinct(list(predictions), [json_path, csv_path], "--json and --csv", input_folders=truth_splits)
-    from ..safeio import check_can_create
-
     for target in (json_path, csv_path):  # both writable before either is written: no half-written report
         if target and target != "-":
             check_can_create(target)

@@ -7,7 +7,6 @@ occluders, camera) and min/mean/max of the main labels per named column (with un
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from ..errors import DataFormatError
@@ -53,8 +52,7 @@ def _column_stats(a: np.ndarray) -> dict:
 
 def _joints(split: Split) -> tuple[list[str], list[str]]:
     """Joint names and types from the first shard's attributes (empty if unreadable)."""
-    attrs = split.attrs
-    return json_list(attrs.get("joint_names", "[]")) or [], json_list(attrs.get("joint_types", "[]")) or []
+    return split.joint_names(), json_list(split.attrs.get("joint_types", "[]")) or []
 
 
 def _columns(field: str, width: int, names: list[str], types: list[str]) -> list[dict]:

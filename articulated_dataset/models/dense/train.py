@@ -317,7 +317,8 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
             raise UserError(f"{out}: checkpoint field 'cpu_seconds' is not a number") from None
     log.info("%s: %d train / %d val images, %s parameters, device %s", obj_class.name, n_train, len(va_idx),
              f"{count_parameters(model):,}", dev)
-    generated = split_generation(split_dir)
+    identity = split_identity(split_dir)  # read once: every checkpoint records it
+    generated = generation_of(identity)
     machine = machine_description(dev)
 
     def checkpoint(finished: bool, calibration=None) -> dict:
@@ -325,7 +326,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
             "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "class_name": obj_class.name,
             "joint_types": list(obj_class.joint_types), "model_config": model_config.to_dict(),
             "train_config": config.to_dict(), "q_scale": [float(v) for v in q_scale],
-            "data": {"split_dir": str(split_dir), "split": split_identity(split_dir), "n_train_images": int(n_train),
+            "data": {"split_dir": str(split_dir), "split": identity, "n_train_images": int(n_train),
                      "n_val_images": int(len(va_idx)),
                      "n_objects": int(len(np.unique(data_.object_index))), "generated": generated},
             "machine": machine, "device": dev.type,
@@ -427,7 +428,11 @@ def split_generation(split_dir: Path) -> dict | None:
     None for a split without them (an ingested one, an unreadable manifest)."""
     from ..mdn.data import split_identity
 
-    identity = split_identity(split_dir)
+    return generation_of(split_identity(split_dir))
+
+
+def generation_of(identity: dict | None) -> dict | None:
+    """A split's generation settings (:func:`split_generation`) from its identity (None: none)."""
     return None if identity is None else {k: identity[k] for k in ("class_name", "seed", "n_objects")}
 
 

@@ -238,13 +238,14 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
             raise UserError(f"--resume: {out} is at epoch {start_epoch} of a training of {config.epochs}; not resumable")
     log.info("%s: %d train / %d val images, %s parameters, device %s", obj_class.name, n_train, len(va_idx),
              f"{count_parameters(model):,}", dev)
+    identity = split_identity(split_dir)  # read once: every checkpoint records it
 
     def checkpoint(epoch: int, finished: bool) -> dict:
         return {
             "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "class_name": obj_class.name,
             "layout_names": names, "anchored_columns": [list(c) for c in anchored], "active_columns": [int(i) for i in active], "norm_stats": _plain(stats.to_dict()), "model_config": model_config.to_dict(),
             "input_config": input_config.to_dict(), "train_config": config.to_dict(),
-            "data": {"split_dir": str(split_dir), "split": split_identity(split_dir), "n_train": int(n_train),
+            "data": {"split_dir": str(split_dir), "split": identity, "n_train": int(n_train),
                      "n_val": int(len(va_idx))},
             "epoch": epoch, "finished": finished, "history": history,
             "model_state": model.state_dict(), "optimizer_state": optimizer.state_dict(),
