@@ -461,6 +461,8 @@ def test_the_training_runs_inference_copy_is_the_cpu_packed_folded_network():
     copy = inference_copy(model)
     assert model.training and not copy.training
     assert any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())
+    shared = {t.data_ptr() for t in model.state_dict().values()} & {t.data_ptr() for t in copy.state_dict().values()}
+    assert not shared  # a copy: training on never changes it
     assert any(isinstance(m, M.PackedConv2d) for m in copy.modules()) == M._mkldnn_packing_available()
     x = torch.randn(2, 9, 108, 192, generator=torch.Generator().manual_seed(5))
     with torch.inference_mode():

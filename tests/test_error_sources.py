@@ -42,6 +42,8 @@ def test_per_image_errors_match_the_scorer(predicted):
               (e["seen"] & ~e["top"] & ~e["bottom"]), ~e["seen"]]
     assert (sum(g.astype(int) for g in groups) == 1).all()
     assert e["body_px"].shape == (32,) and (e["body_px"] >= 0).all()
+    # an image showing the whole object has no part on its top or bottom row, and shows every part
+    assert e["whole"].shape == (32,) and not (e["whole"][:, None] & (e["top"] | e["bottom"] | ~e["seen"])).any()
 
 
 def test_prints_both_tables(predicted, capsys):
@@ -51,6 +53,7 @@ def test_prints_both_tables(predicted, capsys):
     text = capsys.readouterr().out
     assert text.startswith("cabinet2: 32 images; mean position")
     assert "by the body's visible pixels" in text and "joint 1:" in text
+    assert "shows the whole object" in text and "  cut off " in text
 
 
 def test_a_missing_truth_folder_is_one_line(predicted, tmp_path, capsys):

@@ -251,8 +251,6 @@ def opd_success(direction_error_deg: np.ndarray, origin_error_cm: np.ndarray, di
     ok_origin = np.asarray(origin_error_cm) < OPD_MAX_ORIGIN_ERROR_DIAGONALS * CM_PER_M * np.asarray(diagonal_m)
     ok_side = True if side_correct is None else np.asarray(side_correct) != 0.0  # NaN != 0: not checked
     success = (ok_dir & (ok_origin | ~np.asarray(check_origin, bool)) & ok_side).astype(np.float64)
-    # undefined (NaN, excluded from the means like every other metric) where the truth lacks the
-    # axis (direction error NaN) or, for a checked origin, the axis line or geometry (diagonal NaN)
     undefined = np.isnan(np.asarray(direction_error_deg, np.float64))
     undefined = undefined | (np.asarray(check_origin, bool)
                              & np.isnan(np.asarray(origin_error_cm, np.float64) + np.asarray(diagonal_m, np.float64)))

@@ -25,6 +25,7 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import time
@@ -415,10 +416,13 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
 def inference_copy(model):
     """The CPU inference copy (:meth:`~.model.DenseNet.folded`) of a network in training, wherever it
     trains: moved to the CPU before folding, so a GPU-trained network's copy gets the CPU's
-    prepacked convolutions too (the validation and the inference fit run on the CPU)."""
+    prepacked convolutions too (the validation and the inference fit run on the CPU).  A CPU network
+    is copied once (by ``folded``); a GPU network is first copied to the CPU (``deepcopy`` then
+    ``cpu()``, which moves the copy in place)."""
     import copy
 
-    return copy.deepcopy(model).cpu().folded()
+    on_cpu = all(t.device.type == "cpu" for t in itertools.chain(model.parameters(), model.buffers()))
+    return (model if on_cpu else copy.deepcopy(model).cpu()).folded()
 
 
 def split_generation(split_dir: Path) -> dict | None:
