@@ -100,7 +100,7 @@ def get_class(name: str) -> ObjectClass:
     _load_builtins()
     try:
         return _REGISTRY[name]
-    except KeyError:
+    except (KeyError, TypeError):  # TypeError: an unhashable name (a list) from the Python API
         folded = [n for n in _REGISTRY if isinstance(name, str) and n.lower() == name.strip().lower()]
         hint = f"did you mean {folded[0]!r}? " if folded else ""
         raise UserError(f"unknown object class {name!r}; {hint}choose from: {', '.join(_REGISTRY)}") from None

@@ -61,12 +61,22 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def _usage_error_line(exc: click.UsageError) -> str:
-    """``artdata: error: <message> (see artdata CMD --help)`` for a click usage error."""
-    where = "artdata"
+def _usage_error_line(exc: click.UsageError, args=(), group: click.Group | None = None) -> str:
+    """``artdata: error: <message> (see artdata CMD --help)`` for a click usage error.  Click gives
+    some option errors no context (``--out`` without its value); their command is then read from
+    the command line's ``args``: the words that name a command of ``group``, then of that command
+    if it is a group, and so on."""
+    words = ["artdata"]
     if exc.ctx is not None:
-        words = exc.ctx.command_path.split()
-        where = " ".join(["artdata", *words[1:]])
+        words += exc.ctx.command_path.split()[1:]
+    elif group is not None:
+        command: click.Command = group
+        for a in args or ():
+            sub = command.get_command(None, a) if isinstance(command, click.Group) and isinstance(a, str) else None
+            if sub is not None:
+                words.append(a)
+                command = sub
+    where = " ".join(words)
     return f"artdata: error: {_one_line(exc.format_message())} (see {where} --help)"
 
 
@@ -93,7 +103,7 @@ class _Group(click.Group):
                 click.echo(_usage_error_line(click.UsageError(f"missing command (one of: {names})", exc.ctx)), err=True)
                 code = EXIT_USER_ERROR
         except click.UsageError as exc:
-            click.echo(_usage_error_line(exc), err=True)
+            click.echo(_usage_error_line(exc, sys.argv[1:] if args is None else args, self), err=True)
             code = EXIT_USER_ERROR
         except click.ClickException as exc:
             click.echo(f"artdata: error: {_one_line(exc.format_message())}", err=True)

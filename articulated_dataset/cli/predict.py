@@ -47,10 +47,11 @@ def predict_cmd(model_path, data, out, as_class, estimate, snap_to_cloud, object
     if out.is_dir():
         raise UserError(f"--out {out} is a directory; give a file name such as predictions.h5")
     from ..models.mdn.data import resolve_split_dir
-    from ..safeio import check_outputs_distinct
+    from ..safeio import check_can_create, check_outputs_distinct
 
     # the checkpoint and the split read are never written over (beside the split, as data/p.h5, is fine)
     check_outputs_distinct([model_path], [out], input_folders=[resolve_split_dir(data)])
+    check_can_create(out)  # before predicting: a parent that is a file, /proc, a read-only folder is one line now
     prepare_torch(threads)
     from ..models.predict import predict_to_file
 

@@ -72,9 +72,11 @@ def show_cmd(path, out, per_sample_dir, n_samples, objects, images, cols, rgb, n
     from ..viz.gallery import make_gallery
     from ..viz.style import DEFAULT_COLUMNS, DEFAULT_COLUMNS_RGB
 
-    from ..safeio import check_can_create
+    from ..safeio import check_can_create, check_outputs_distinct
 
     split_dirs = find_split_dirs(path)
+    # the predictions drawn are never written over (an --out of the same name replaced them with the gallery)
+    check_outputs_distinct([predictions], [out])
     if out is not None:
         check_can_create(out)  # before drawing: a read-only or missing target is one line now
     if per_sample_dir is not None:

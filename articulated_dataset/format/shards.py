@@ -145,13 +145,25 @@ class Shard:
         if "format_version" not in f.attrs:
             raise DataFormatError(f"{where}: not an articulated_dataset shard (no format_version attribute)")
         check_version(str(f.attrs["format_version"]), where)
-        N, H, W = f["depth"].shape if "depth" in f else (0, 0, 0)
+        shape = f["depth"].shape if isinstance(f.get("depth"), h5py.Dataset) else (0, 0, 0)
+        if len(shape) != 3:
+            raise DataFormatError(f"{where}: dataset 'depth' has shape {shape}, expected (images, height, width)")
+        N, H, W = shape
         size = self.path.stat().st_size
         if N * MIN_STORED_BYTES_PER_IMAGE > size:
             raise DataFormatError(f"{where}: declares {N} images but holds only {size} bytes (every stored image "
                                   f"takes at least {MIN_STORED_BYTES_PER_IMAGE}); damaged or not written by artdata")
-        J = int(f.attrs.get("n_joints", 0))
+        J = attr_value(f.attrs.get("n_joints", 0))
+        if not (isinstance(J, int) and not isinstance(J, bool) and J >= 0):
+            raise DataFormatError(f"{where}: attribute 'n_joints' is {str(J)[:40]!r}, not a whole number >= 0")
         validate_arrays({k: f[k] for k in FIELDS_BY_NAME if k in f}, N=N, J=J, H=H, W=W, where=where)
+        for name in (K_DATASET, R_DATASET):  # the camera's 3x3 matrices, read by every reader of the images
+            ds = f.get(name)
+            if not isinstance(ds, h5py.Dataset):
+                raise DataFormatError(f"{where}: missing dataset {name!r}")
+            if ds.shape != (3, 3) or ds.dtype.kind != "f" or not np.isfinite(ds[()]).all():
+                raise DataFormatError(f"{where}: dataset {name!r} is {ds.dtype} {ds.shape}, expected a finite "
+                                      f"3x3 float matrix")
 
     @property
     def attrs(self) -> dict:

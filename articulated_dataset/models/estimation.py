@@ -147,21 +147,29 @@ def check_depth(depth_m: np.ndarray, mask: np.ndarray | None, where: str = "dept
         raise UserError(f"{where}: median depth {med:g} m is implausible; are the values millimetres? (give metres)")
     if med < lo:
         raise UserError(f"{where}: median depth {med:g} m is implausible; are the values in other units? (give metres)")
+    from ..real.readers import MAX_PLAUSIBLE_DEPTH_M  # the file readers' bound
+
+    top = float(d[valid].max())
+    if top > MAX_PLAUSIBLE_DEPTH_M:  # as the file readers refuse it: one far pixel moved the estimate to infinity
+        raise UserError(f"{where}: depth up to {top:g} m is not plausible for a depth sensor "
+                        f"(at most {MAX_PLAUSIBLE_DEPTH_M:g} m); give metres, and mask out what is not the object")
     if mask is None and valid.mean() > MAX_UNMASKED_VALID_FRACTION:
         raise UserError(f"{where}: {100 * valid.mean():.0f}% of the pixels have depth (a scene, not an isolated object); "
                         f"pass a segmentation mask of the object")
 
 
-def _real_array(value, what: str) -> np.ndarray:
+def _real_array(value, what: str, kinds: str = "fiu") -> np.ndarray:
     """``value`` as a numpy array of real numbers (floating point or integer); booleans, complex
     numbers, strings, objects and ragged lists are a :class:`UserError` (never converted: a
-    boolean image read as 1 m, a complex one without its imaginary part, would be a wrong answer)."""
+    boolean image read as 1 m, a complex one without its imaginary part, would be a wrong answer).
+    ``kinds``: the numpy dtype kinds accepted (``"bfiu"`` for a mask, which may be boolean)."""
     try:
         a = np.asarray(value)
     except (TypeError, ValueError) as exc:
         raise UserError(f"{what} must be an array of numbers ({str(exc).splitlines()[0][:80]})") from None
-    if a.dtype.kind not in "fiu":
-        raise UserError(f"{what} must be an array of real numbers, got dtype {a.dtype}")
+    if a.dtype.kind not in kinds:
+        raise UserError(f"{what} must be an array of {'booleans or ' if 'b' in kinds else ''}real numbers, "
+                        f"got dtype {a.dtype}")
     return a
 
 
@@ -195,7 +203,10 @@ def _estimate(depth_m, K, class_name: str, mask, model: str, mirror: bool, preci
 
     obj_class = get_class(class_name)
     depth = np.nan_to_num(_real_array(depth_m, "depth").astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    m = None if mask is None else np.asarray(mask).astype(bool)
+    m = None if mask is None else _real_array(mask, "mask", "bfiu")
+    if m is not None and m.dtype.kind == "f" and not np.isfinite(m).all():
+        raise UserError("mask holds NaN or infinite values")
+    m = None if m is None else m.astype(bool)
     check_depth(depth, m, where)
     K = pinhole_matrix(_real_array(K, "intrinsics"), "intrinsics")
     check_intrinsics(K, (depth.shape[1], depth.shape[0]), "intrinsics")
@@ -223,7 +234,14 @@ def _estimate(depth_m, K, class_name: str, mask, model: str, mirror: bool, preci
                           torch.from_numpy(K_dst.astype(np.float32))[None], joint_types=joint_types,
                           refinement=with_mirror(ckpt.get("refinement"), mirror))
     arrays = modes_to_arrays(modes, np.zeros(1, np.int64), net, ckpt.get("calibration"))
+    from ..benchmark.predictions import ALL_DATASETS, MIXTURE_LAYOUT_ATTR, validate_class
+    from ..errors import DataFormatError
     from ..rotations import quat_to_matrix
+
+    try:  # as a predictions file is checked before it is written: finite, within bounds, unit quaternions
+        validate_class(name, {k: v for k, v in arrays.items() if k in ALL_DATASETS or k == MIXTURE_LAYOUT_ATTR})
+    except DataFormatError as exc:  # a checkpoint whose weights pass its checks but compute nonsense
+        raise UserError(f"the model's estimate is not usable ({exc}); is its checkpoint damaged?") from None
 
     pose = arrays["axis_pose"][0]
     best = int(arrays["mixture_weights"][0].argmax())

@@ -4,6 +4,7 @@ with the intrinsics (nearest point per pixel)."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -59,9 +60,11 @@ def _read_image(path: Path, what: str) -> tuple[np.ndarray, str]:
     from PIL import Image
 
     try:
-        with Image.open(path) as im:
-            check_source_size(im.size, str(path))
-            return np.array(im), im.mode
+        with warnings.catch_warnings():  # PIL warns above 89 million pixels; the size is checked below (120 million)
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                check_source_size(im.size, str(path))
+                return np.array(im), im.mode
     except UserError:
         raise
     except Exception as exc:
@@ -114,6 +117,9 @@ def load_depth(path: str | Path, units: str = "auto") -> np.ndarray:
             raw = np.load(path, allow_pickle=False, mmap_mode="r")
         except Exception as exc:
             raise UserError(f"{path}: not a readable .npy array ({str(exc).splitlines()[0]})") from None
+        if not isinstance(raw, np.ndarray):  # np.load reads a .npz archive whatever its name
+            getattr(raw, "close", lambda: None)()
+            raise UserError(f"{path}: a .npz archive of arrays, not a .npy array; save the depth image with np.save")
         if raw.ndim != 2 or raw.dtype.kind not in "fiu":
             raise UserError(f"{path}: expected a 2-D numeric depth array, got shape {raw.shape} dtype {raw.dtype}")
         check_source_size((raw.shape[1], raw.shape[0]), str(path))

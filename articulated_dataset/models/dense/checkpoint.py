@@ -17,6 +17,9 @@ CHECKPOINT_VERSION = 1
 MAX_NETWORK_WIDTH = 256
 MIN_INPUT_SIDE_PX = 32
 MAX_INPUT_SIDE_PX = 4096
+#: Largest whole number a checkpoint's counts (its step, a refinement's pixel counts) may hold: they
+#: are compared with numpy integers and stored as HDF5 attributes (64-bit), and 10**400 is a Python int.
+MAX_CHECKPOINT_COUNT = 2**31 - 1
 
 
 def load_dense_checkpoint(path: str | Path) -> dict:
@@ -60,8 +63,8 @@ def load_dense_checkpoint(path: str | Path) -> dict:
         raise UserError(f"{path}: checkpoint field 'q_scale' must hold {obj_class.n_joints} positive finite numbers")
     if not isinstance(ckpt.get("finished", False), bool):
         raise UserError(f"{path}: checkpoint field 'finished' must be true or false")
-    if not (is_int(ckpt.get("step")) and ckpt["step"] >= 0):
-        raise UserError(f"{path}: checkpoint field 'step' is missing or not a whole number >= 0")
+    if not (is_int(ckpt.get("step")) and 0 <= ckpt["step"] <= MAX_CHECKPOINT_COUNT):
+        raise UserError(f"{path}: checkpoint field 'step' is missing or not a whole number in [0, {MAX_CHECKPOINT_COUNT}]")
     problem = calibration_problem(ckpt.get("calibration"), 13 * len(ckpt["joint_types"]) + 4)
     if problem is not None:
         raise UserError(f"{path}: checkpoint field 'calibration' is malformed: {problem}")
@@ -115,8 +118,8 @@ def refinement_problem(refinement, n_joints: int) -> str | None:
             if not isinstance(v, bool):
                 return f"{field.name!r} must be true or false, got {str(v)[:40]!r}"
         elif kind.startswith("int"):
-            if not is_int(v) or v < 0:
-                return f"{field.name!r} must be a whole number >= 0, got {str(v)[:40]!r}"
+            if not is_int(v) or not 0 <= v <= MAX_CHECKPOINT_COUNT:
+                return f"{field.name!r} must be a whole number in [0, {MAX_CHECKPOINT_COUNT}], got {str(v)[:40]!r}"
         elif kind.startswith("float"):
             if not is_real_number(v):
                 return f"{field.name!r} must be a finite number, got {str(v)[:40]!r}"
@@ -153,12 +156,21 @@ def refinement_problem(refinement, n_joints: int) -> str | None:
     return None
 
 
-def _numbers(value, n: int, *, positive: bool) -> bool:
-    """Whether ``value`` is a list of ``n`` finite numbers, each >= 0 (> 0 with ``positive``)."""
+def _numbers(value, n: int, *, positive: bool, at_most: float = float("inf")) -> bool:
+    """Whether ``value`` is a list of ``n`` finite numbers, each >= 0 (> 0 with ``positive``) and
+    at most ``at_most``."""
     from ..mdn.config import is_real_number
 
     return (isinstance(value, (list, tuple)) and len(value) == n
-            and all(is_real_number(v) and (v > 0 if positive else v >= 0) for v in value))
+            and all(is_real_number(v) and (v > 0 if positive else v >= 0) and v <= at_most for v in value))
+
+
+#: Bounds of a calibration's numbers: the fit chooses spread factors in [0.05, 50]
+#: (``predict.CAL_SPREAD_FACTORS``) and floors and outlier scales of centimetres and degrees; a
+#: factor or floor of 1e300 overflowed the scales to infinity (a RuntimeWarning, then "Infinity"
+#: in ``estimate --json`` and a refused predictions file after the whole split was predicted).
+MAX_CALIBRATION_FACTOR = 1000.0
+MAX_CALIBRATION_SCALE = 100.0
 
 
 def calibration_problem(calibration, n_columns: int) -> str | None:
@@ -174,8 +186,9 @@ def calibration_problem(calibration, n_columns: int) -> str | None:
     if not isinstance(calibration, dict):
         return "not a dict"
     for key in ("spread_factor", "floor"):
-        if not _numbers(calibration.get(key), n_columns, positive=False):
-            return f"{key!r} is not {n_columns} finite non-negative numbers"
+        bound = MAX_CALIBRATION_FACTOR if key == "spread_factor" else MAX_CALIBRATION_SCALE
+        if not _numbers(calibration.get(key), n_columns, positive=False, at_most=bound):
+            return f"{key!r} is not {n_columns} finite non-negative numbers of at most {bound:g}"
     outlier = calibration.get("outlier")
     if outlier is None:
         return None
@@ -184,8 +197,8 @@ def calibration_problem(calibration, n_columns: int) -> str | None:
     w = outlier.get("weight")
     if not (is_real_number(w) and 0 <= w < 1):
         return "the outlier component's 'weight' is not a number in [0, 1)"
-    if not _numbers(outlier.get("scale"), n_columns, positive=True):
-        return f"the outlier component's 'scale' is not {n_columns} finite positive numbers"
+    if not _numbers(outlier.get("scale"), n_columns, positive=True, at_most=MAX_CALIBRATION_SCALE):
+        return f"the outlier component's 'scale' is not {n_columns} finite positive numbers of at most {MAX_CALIBRATION_SCALE:g}"
     return None
 
 

@@ -296,7 +296,11 @@ def batch_candidates(model, depth_m, K, *, joint_types: list[str], split_factor:
         model.eval()
     with torch.inference_mode():
         inputs = make_inputs(depth_m, K, out=None if workspace is None else workspace.pop("x", None))
-        parts = model.split(network_outputs(model, inputs["x"], mirror_joints))
+        out = network_outputs(model, inputs["x"], mirror_joints)
+        if not bool(torch.isfinite(out).all()):  # finite weights can still overflow float32 (e.g. 1e38)
+            raise UserError("the model's network gives NaN or infinite outputs: its checkpoint's weights overflow "
+                            "float32 arithmetic (a damaged or foreign checkpoint)")
+        parts = model.split(out)
         modes = vote_modes(parts, inputs["points_out"], inputs["weight_out"] > 0, split_factor=split_factor)
         rs = {name: refined_quantities(parts, inputs, modes, joint_types, **kw) for name, kw in candidates.items()}
     if workspace is not None:
@@ -762,11 +766,13 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
         from ...format import read_manifest
 
         config = read_manifest(split_dir).get("config", {})
-        if config.get("scene", "none") != "none" or int(config.get("occluders", 0) or 0) > 0:
+        config = config if isinstance(config, dict) else {}  # a record of how the split was made: only read here
+        occluders = config.get("occluders", 0)
+        if config.get("scene", "none") != "none" or occluders not in (0, None):
             log.warning("%s: the split has a scene or occluders (scene %s, %s occluders per image); the model was "
                         "trained on isolated objects and reads every pixel with depth: pass --object-mask to give it "
                         "only the object's pixels, as a robot's segmentation would", split_dir,
-                        config.get("scene", "none"), config.get("occluders", 0))
+                        config.get("scene", "none"), occluders)
     model = build_inference_model(ckpt, precision)
     cfg = model.config
     d = load_dense_split(split_dir, cfg.n_joints, (cfg.height_px, cfg.width_px), with_labels=False,

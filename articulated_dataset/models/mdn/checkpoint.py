@@ -257,6 +257,8 @@ def state_problem(state: dict) -> str | None:
 
     if not all(isinstance(k, str) and isinstance(v, torch.Tensor) and v.layout == torch.strided for k, v in state.items()):
         return "must map parameter names to (dense) tensors"
+    if not all(v.device.type == "cpu" for v in state.values()):  # read with map_location="cpu": a meta tensor stays one
+        return "holds tensors without values (meta tensors)"
     whole = [k for k, v in state.items() if not v.is_floating_point() and not k.endswith(BATCH_COUNTER_SUFFIX)]
     if whole:
         return f"holds weights that are not floating point ({whole[0][:60]!r})"
