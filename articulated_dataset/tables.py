@@ -77,7 +77,10 @@ def _number(name: str, v) -> float:
     """``v`` as a finite float; strings, booleans, lists... are the user's mistake."""
     if isinstance(v, bool) or not isinstance(v, numbers.Real):
         raise UserError(f"sampling table: {name} must be a number, got {_show(v)}")
-    f = float(v)
+    try:
+        f = float(v)
+    except OverflowError:  # a JSON/TOML integer beyond a float (10**400): no finite value
+        raise UserError(f"sampling table: {name} must be finite, got an integer of {len(str(abs(v)))} digits") from None
     if not math.isfinite(f):
         raise UserError(f"sampling table: {name} must be finite, got {f}")
     return f

@@ -209,6 +209,23 @@ def test_shard_symlink_leading_out_is_refused(base, world, cmd):
     world.assert_untouched()
 
 
+@pytest.mark.parametrize("listed", [True, False], ids=["listed", "no-manifest"])
+def test_verify_reports_a_shard_symlink_leading_out_without_reading_it(base, world, listed):
+    """verify followed the link: it hashed and read the file outside the split and said "OK"
+    (every other reader refuses the split)."""
+    split = _copy_split(base, world)
+    outside = _outside_shard(base, world)
+    (split / "shard-00000.h5").unlink()
+    (split / "shard-00000.h5").symlink_to(outside)
+    if not listed:
+        (split / MANIFEST_NAME).unlink()
+    world.freeze()
+    result = run("verify", split, "--workers", 1)
+    assert result.exit_code == 1, result.output
+    assert "leads outside" in result.output and "Traceback" not in result.output
+    world.assert_untouched()
+
+
 @pytest.mark.parametrize("value", BAD_CLASS_NAMES[:8], ids=CLASS_IDS[:8])
 def test_loader_refuses_manifest_names(base, world, value):
     from articulated_dataset.loaders.reader import ShardReader
@@ -238,6 +255,48 @@ def test_overwrite_replaces_only_our_own_folders(base, world, cmd, marker):
     world.freeze()
     args = [source, world.root / "out"] if cmd == "export" else [source, "--out", world.root / "out"]
     assert_refused(run(cmd, *args, "--overwrite", "-q"), f"holds no {marker}")
+    world.assert_untouched()
+
+
+@pytest.mark.parametrize("cmd", ["export", "import-exr"])
+@pytest.mark.parametrize("overwrite", [False, True], ids=["plain", "overwrite"])
+def test_two_sources_with_one_target_are_refused_before_writing(base, world, cmd, overwrite):
+    """A copied class folder (its manifest still names drawer): both splits went to
+    out/drawer/train, so the run failed after writing the first (a partial output) or, with
+    --overwrite, replaced the first by the second and reported both as exported (exit 0)."""
+    if cmd == "export":
+        source = _copy_split(base, world)
+        shutil.copytree(source, world.root / "data" / "drawer_backup" / "train")
+        args = [world.root / "data", world.root / "out"]
+    else:
+        source = _copy_export(base, world)
+        shutil.copytree(source, world.root / "exp" / "drawer_backup" / "train")
+        args = [world.root / "exp", "--out", world.root / "out"]
+    world.freeze()
+    assert_refused(run(cmd, *args, "-q", *(["--overwrite"] if overwrite else [])), "both be written")
+    world.assert_untouched()
+
+
+@pytest.mark.parametrize("case", ["image-twice", "negative-image", "across-shards"])
+def test_export_refuses_indices_that_would_overwrite_or_garble_files(base, world, case):
+    """Two images with one (object, image) index: the second overwrote the first's files and
+    the export ended with exit 0, holding fewer images than split.json lists (import-exr then
+    refused it); a negative index gave stems import-exr refuses."""
+    import h5py
+
+    split = _copy_split(base, world)
+    shard = split / ("shard-00001.h5" if case == "across-shards" else "shard-00000.h5")
+    with h5py.File(shard, "r+") as f:
+        if case == "across-shards":  # shard 1 claims object 0, as shard 0 does
+            values, name = np.zeros_like(f["object_index"][:]), "object_index"
+        else:
+            values, name = np.array([0, 0] if case == "image-twice" else [-1, 1], f["image_index"].dtype), "image_index"
+        del f[name]
+        f.create_dataset(name, data=values)
+    _edit_json(split / MANIFEST_NAME, lambda m: m["shards"][int(case == "across-shards")].update(
+        bytes=shard.stat().st_size, sha256=__import__("hashlib").sha256(shard.read_bytes()).hexdigest()))
+    world.freeze()
+    assert_refused(run("export", split, world.root / "out", "-q"), "artdata verify")
     world.assert_untouched()
 
 
@@ -825,6 +884,36 @@ def test_bad_meshes(urdf_world, case):
     suffix = ".stl" if make else ".obj"
     name = _mesh_file(urdf_world, "bad" + suffix, content, make() if make else None)
     assert_refused(_generate_urdf(urdf_world, _urdf(door_geom=f'<mesh filename="{name}"/>')), needle)
+    urdf_world.assert_untouched()
+
+
+@pytest.mark.parametrize("buffer", ["fifo", "directory"])
+def test_a_mesh_buffer_that_is_not_a_regular_file(urdf_world, buffer):
+    """A glTF inside the URDF's folder naming a FIFO as its buffer: the import blocked forever
+    reading it (the mesh file itself must be a regular file; the files it names were not checked)."""
+    import threading
+
+    folder = _urdf_folder(urdf_world)
+    door = trimesh.creation.box(extents=[0.02, OBJ_D, OBJ_D])
+    door.apply_translation([-0.01, -OBJ_D / 2, OBJ_D / 2])
+    gltf = json.loads(trimesh.exchange.gltf.export_gltf(trimesh.Scene(door))["model.gltf"])
+    gltf["buffers"][0]["uri"] = "door.bin"
+    (folder / "door.gltf").write_text(json.dumps(gltf))
+    if buffer == "fifo":
+        os.mkfifo(folder / "door.bin")
+    else:
+        (folder / "door.bin").mkdir()
+    result = []
+    worker = threading.Thread(target=lambda: result.append(
+        _generate_urdf(urdf_world, _urdf(door_geom='<mesh filename="door.gltf"/>'))), daemon=True)
+    worker.start()
+    worker.join(60)
+    if worker.is_alive():  # unblock the reader so the test process can end
+        with open(folder / "door.bin", "wb"):
+            pass
+        worker.join(10)
+        pytest.fail("reading the mesh's buffer blocked")
+    assert_refused(result[0], "door.gltf")
     urdf_world.assert_untouched()
 
 

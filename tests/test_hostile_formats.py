@@ -218,3 +218,15 @@ def test_opd_success_is_undefined_where_the_truth_gives_no_axis():
     assert got[0] == 1.0 and np.isnan(got[1]) and np.isnan(got[2]) and got[3] == 0.0  # it was 0: a failure
     prismatic = opd_success(np.array([1.0]), np.array([np.nan]), np.array([np.nan]), np.array([False]))
     assert prismatic[0] == 1.0  # a prismatic origin is not checked
+
+
+@pytest.mark.parametrize("edit", ["bytes", "n_images", "width_px"])
+def test_info_on_counts_beyond_a_float_is_one_line(split, edit):
+    """info divided a byte count of 10**400 by the image count: OverflowError (a traceback)."""
+    m = json.loads((split / "manifest.json").read_text())
+    target = {"bytes": m["shards"][0], "n_images": m, "width_px": m["config"]["camera"]}[edit]
+    target[edit] = 10**400
+    (split / "manifest.json").write_text(json.dumps(m))
+    result = CliRunner().invoke(main, ["info", str(split)])
+    lines = result.output.strip().splitlines()
+    assert result.exit_code == 2 and len(lines) == 1 and lines[0].startswith("artdata: error: "), result.output

@@ -196,6 +196,9 @@ BAD_TABLES = {
     "not-json": ("{geometry: ", "cannot parse"),
     "empty-file": ("", "cannot parse"),
     "deeply-nested": ("[" * 100000 + "]" * 100000, "sampling table"),
+    # integers beyond a float (JSON and TOML read them exactly): float() overflowed (a traceback)
+    "integer-beyond-float": ('{"chirality_p": 1%s}' % ("0" * 400), "chirality_p"),
+    "range-integer-beyond-float": ('{"pose": {"x_m": [1, 1%s]}}' % ("0" * 400), "pose.x_m"),
 }
 
 
@@ -399,6 +402,21 @@ CORRUPT_MANIFESTS = {
 }
 
 
+def test_integer_beyond_a_float_in_a_manifest_table(sandbox, tiny_split):
+    """A manifest's table holding 10**400 (an exact JSON integer): verify reports it and
+    --resume refuses it in one line (both raised OverflowError)."""
+    split = copy_split(tiny_split, sandbox / "out")
+    manifest = json.loads((split / "manifest.json").read_text())
+    manifest["config"]["table"]["chirality_p"] = 10**400
+    (split / "manifest.json").write_text(json.dumps(manifest))
+    before = snapshot(sandbox)
+    result = CliRunner().invoke(main, ["verify", "-q", str(split)])
+    assert result.exit_code == 1 and "chirality_p" in result.output, (result.output, result.exception)
+    assert_one_line_error(generate(*TINY, "--n", "2", "--objects-per-shard", "1", "--resume", "--out", sandbox / "out"),
+                          "chirality_p")
+    assert snapshot(sandbox) == before
+
+
 @pytest.mark.parametrize("case", sorted(CORRUPT_MANIFESTS))
 def test_resume_with_a_corrupt_manifest(sandbox, tiny_split, case):
     split = copy_split(tiny_split, sandbox / "out")
@@ -421,6 +439,54 @@ def test_resume_with_a_foreign_shard_file(sandbox, tiny_split, content):
     (split / "shard-00001.h5").write_bytes(content)
     before = snapshot(sandbox)
     assert_one_line_error(generate(*TINY, "--n", "2", "--objects-per-shard", "1", "--resume", "--out", sandbox / "out"))
+    assert snapshot(sandbox) == before
+
+
+TAMPERED_RECORDS = {
+    "n-images-beyond-float": ("n_images", 10**400),  # was an OverflowError in the free-space check
+    "object-range": ("object_stop", 10**6),
+    "negative-start": ("object_start", -5),
+    "checksum-not-hex": ("sha256", "../../x"),
+    "checksum-other": ("sha256", "0" * 64),  # a wrong (but well-formed) checksum is verify's to find
+    "pose-attempts": ("pose_attempts", 10**400),
+}
+
+
+@pytest.mark.parametrize("case", sorted(TAMPERED_RECORDS))
+def test_resume_never_carries_a_tampered_record_into_a_complete_manifest(sandbox, tiny_split, case):
+    """--resume kept a listed record as it was (only its size was compared): the run ended
+    "complete" with exit 0 and a manifest that verify rejects, or in a traceback."""
+    split = copy_split(tiny_split, sandbox / "out")
+    original = json.loads((split / "manifest.json").read_text())
+    manifest = json.loads(json.dumps(original))
+    (split / "shard-00001.h5").unlink()
+    manifest["shards"], manifest["complete"] = manifest["shards"][:1], False
+    key, value = TAMPERED_RECORDS[case]
+    manifest["shards"][0][key] = value
+    (split / "manifest.json").write_text(json.dumps(manifest))
+    result = generate(*TINY, "--n", "2", "--objects-per-shard", "1", "--resume", "--out", sandbox / "out")
+    if case == "checksum-other":  # kept, as any listed shard of the right size; verify reports it
+        assert result.exit_code == 0, result.output
+        return
+    assert result.exit_code == 0, (result.output, result.exception)
+    resumed = json.loads((split / "manifest.json").read_text())
+    assert resumed["shards"] == original["shards"] and resumed["complete"] is True
+    assert CliRunner().invoke(main, ["verify", "-q", str(split)]).exit_code == 0
+
+
+def test_resume_never_adopts_a_shard_symlink_leading_out(sandbox, tiny_split):
+    """An unlisted shard-00001.h5 linking to a valid shard elsewhere was opened, hashed and
+    adopted (exit 0); every reader then refuses the split."""
+    split = copy_split(tiny_split, sandbox / "out")
+    manifest = json.loads((split / "manifest.json").read_text())
+    manifest["shards"], manifest["complete"] = manifest["shards"][:1], False
+    (split / "manifest.json").write_text(json.dumps(manifest))
+    outside = sandbox / "canaries" / "shard-00001.h5"
+    shutil.move(split / "shard-00001.h5", outside)
+    (split / "shard-00001.h5").symlink_to(outside)
+    before = snapshot(sandbox)
+    assert_one_line_error(generate(*TINY, "--n", "2", "--objects-per-shard", "1", "--resume", "--out", sandbox / "out"),
+                          "leads outside")
     assert snapshot(sandbox) == before
 
 

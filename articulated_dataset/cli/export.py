@@ -2,10 +2,27 @@
 
 from __future__ import annotations
 
+import os
+
 import click
+
+from ..errors import UserError
 
 #: Interchange formats ``artdata export`` can write.
 EXPORT_FORMATS = ("exr",)
+
+
+def _distinct_targets(sources, targets) -> None:
+    """Refuse, before anything is written, two sources with one output folder (two class
+    folders whose manifests name the same class, e.g. a copy ``data/drawer_backup``): the
+    second refused after the first was written, or with --overwrite silently replaced it."""
+    seen = {}
+    for source, target in zip(sources, targets):
+        key = os.path.normpath(os.path.abspath(target))
+        if key in seen:
+            raise UserError(f"{seen[key]} and {source} would both be written to {target} (their manifests name the "
+                            "same class and split); give them one at a time with different outputs")
+        seen[key] = source
 
 
 @click.command("export")
@@ -30,6 +47,7 @@ def export_cmd(path, out_root, fmt, overwrite, quiet):
     split_dirs = find_split_dirs(path)
     opened = [Split(d) for d in split_dirs]  # names and shard paths checked before any output
     targets = [target_dir(out_root, s.manifest, s.name) for s in opened]
+    _distinct_targets(split_dirs, targets)
     total = sum(len(sh) for s in opened for sh in s.shards)
     for s in opened:
         s.close()
@@ -55,6 +73,7 @@ def import_cmd(path, out_root, overwrite, quiet):
     exports = find_exports(path)
     indexes = [load_index(d) for d in exports]  # bad folders fail here, before any output
     targets = [target_dir(out_root, ix, d.name) for d, ix in zip(exports, indexes)]
+    _distinct_targets(exports, targets)
     total = sum(len(s["samples"]) for ix in indexes for s in ix["shards"])
     with tqdm(total=total, unit="img", desc="import exr", disable=quiet, dynamic_ncols=True, leave=False) as bar:
         for d, target in zip(exports, targets):

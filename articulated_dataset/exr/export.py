@@ -90,6 +90,7 @@ def _export_into(out_dir: Path, manifest: dict, shards: list, progress) -> None:
     }
     if manifest.get("config", {}).get("rgb") is True:  # a --rgb split: its colour images too
         index["rgb"] = {"suffix": RGB_SUFFIX, "mode": "8-bit RGB", "meaning": RGB_FIELDS_BY_NAME["rgb"].description}
+    written: dict[str, str] = {}  # stem -> where it came from: a stem seen twice would overwrite an image
     for sh in shards:
         f = sh.file
         with reading(sh.path):
@@ -101,6 +102,11 @@ def _export_into(out_dir: Path, manifest: dict, shards: list, progress) -> None:
         stems = []
         for row in range(depth.shape[0]):
             stem = sample_stem(labels["object_index"][row], labels["image_index"][row])
+            if stem in written or int(labels["object_index"][row]) < 0 or int(labels["image_index"][row]) < 0:
+                raise UserError(f"{sh.path}: image {row} has object/image index {stem}"
+                                + (f", as {written[stem]}" if stem in written else " (negative)")
+                                + "; the split is damaged, run 'artdata verify' on it")
+            written[stem] = f"image {row} of {sh.path.name}"
             stems.append(stem)
             write_depth_exr(out_dir / (stem + DEPTH_SUFFIX), depth[row],
                             {"sample_id": str(int(labels["sample_id"][row])), "depth_units": "m"})

@@ -74,6 +74,18 @@ def _columns(field: str, width: int, names: list[str], types: list[str]) -> list
     return [{"name": f"{field}[{i}]", "unit": ""} for i in range(width)]
 
 
+#: Largest count or byte size a manifest may state (a 64-bit integer, as the shards store them).
+MAX_MANIFEST_COUNT = 2**63 - 1
+
+
+def _count(v, what: str) -> int:
+    """A manifest count or size: a whole number in [0, 2**63) (10**400 is damage, not a size)."""
+    n = int(v)
+    if not 0 <= n <= MAX_MANIFEST_COUNT:
+        raise ValueError(f"{what} {str(n)[:20]}{'...' if len(str(n)) > 20 else ''} is not a count")
+    return n
+
+
 def _manifest_summary(split_dir, manifest: dict) -> dict:
     return {
         "path": str(split_dir),
@@ -82,11 +94,12 @@ def _manifest_summary(split_dir, manifest: dict) -> dict:
         "seed": int(manifest["seed"]),
         "format_version": str(manifest["format_version"]),
         "complete": bool(manifest["complete"]),
-        "objects": int(manifest["n_objects"]),
-        "images": int(manifest["n_images"]),
+        "objects": _count(manifest["n_objects"], "n_objects"),
+        "images": _count(manifest["n_images"], "n_images"),
         "shards": len(manifest["shards"]),
-        "bytes": int(sum(int(s["bytes"]) for s in manifest["shards"])),
-        "image_size": [int(manifest["config"]["camera"]["width_px"]), int(manifest["config"]["camera"]["height_px"])],
+        "bytes": _count(sum(_count(s["bytes"], "bytes") for s in manifest["shards"]), "bytes"),
+        "image_size": [_count(manifest["config"]["camera"]["width_px"], "width_px"),
+                       _count(manifest["config"]["camera"]["height_px"], "height_px")],
         **_table_summary(manifest["config"]),
         **_context_summary(manifest["config"]),
         "labels": {},

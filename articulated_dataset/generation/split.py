@@ -203,7 +203,7 @@ def _begin(split_dir: Path, config: GenerationConfig, *, resume: bool, overwrite
 def _resume_records(split_dir: Path, config: GenerationConfig) -> dict[int, dict]:
     """Records of the shards a run of ``config`` already completed in ``split_dir``; a
     manifest or shard of other settings is refused (never adopted)."""
-    from ..format import MANIFEST_NAME, Shard, read_manifest, sha256_file
+    from ..format import MANIFEST_NAME, Shard, read_manifest, resolve_inside, sha256_file
 
     records: dict[int, dict] = {}
     manifest_path = split_dir / MANIFEST_NAME
@@ -226,9 +226,12 @@ def _resume_records(split_dir: Path, config: GenerationConfig) -> dict[int, dict
     # Shards listed but missing or of another size are generated again; shards on disk but
     # not in the manifest (killed between rename and manifest update) are complete by
     # construction (atomic rename) if they were written with these settings.
+    # A listed record is kept only as this command would have written it; any other (a
+    # tampered count, object range or checksum) is dropped, so its file is checked and
+    # adopted below like an unlisted one (or generated again).
     for i, rec in list(records.items()):
         path = split_dir / rec["file"]
-        if not path.is_file() or path.stat().st_size != rec.get("bytes"):
+        if not path.is_file() or path.stat().st_size != rec.get("bytes") or not _record_as_written(rec, config, i):
             del records[i]
     for path in sorted(split_dir.iterdir()):
         m = _SHARD_FILE.fullmatch(path.name)
@@ -237,6 +240,7 @@ def _resume_records(split_dir: Path, config: GenerationConfig) -> dict[int, dict
         i = int(m.group(1))
         if i >= config.n_shards:
             raise UserError(f"{path} is not a shard of this command ({config.n_shards} shards); {different}")
+        resolve_inside(split_dir, path.name)  # a symbolic link leading out is refused, never read or adopted
         sh = Shard(path)
         try:
             attrs, n = sh.attrs, len(sh)
@@ -252,6 +256,19 @@ def _resume_records(split_dir: Path, config: GenerationConfig) -> dict[int, dict
                       "object_start": objects.start, "object_stop": objects.stop,
                       "pose_attempts": int(attrs.get("pose_attempts", 0))}
     return records
+
+
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+
+
+def _record_as_written(rec: dict, config: GenerationConfig, i: int) -> bool:
+    """Whether manifest record ``rec`` of shard ``i`` holds what a run of ``config`` writes."""
+    objects = config.shard_objects(i)
+    pose_attempts = rec.get("pose_attempts", 0)
+    return (rec.get("object_start") == objects.start and rec.get("object_stop") == objects.stop
+            and rec.get("n_images") == len(objects) * config.images_per_object
+            and isinstance(rec.get("sha256"), str) and _SHA256.fullmatch(rec["sha256"]) is not None
+            and isinstance(pose_attempts, int) and not isinstance(pose_attempts, bool) and 0 <= pose_attempts < 2**63)
 
 
 def _finish_overwrite(run: _Run) -> None:

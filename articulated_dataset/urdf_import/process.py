@@ -33,13 +33,37 @@ FLAT_MESH_THICKNESS_M = 1e-4
 MUJOCO_MAX_STL_FACES = 200_000
 
 
+def _regular_file_resolver(path: str):
+    """trimesh's resolver for the files a mesh refers to (a glTF's buffers), reading only
+    regular files: its own reads any path inside the mesh's folder, so a FIFO named as a
+    buffer blocked the import forever (and /dev-like files are no mesh data either)."""
+    import stat
+
+    from trimesh.resolvers import FilePathResolver
+
+    class RegularFiles(FilePathResolver):
+        def get(self, name: str):
+            for candidate in (name.strip(), name.strip().lstrip("/"), os.path.split(name)[-1]):
+                try:
+                    target = self.absolute(candidate)
+                    mode = os.stat(target).st_mode
+                except (ValueError, OSError):
+                    continue
+                if not stat.S_ISREG(mode):
+                    raise ValueError(f"{name[:80]!r} referred to by the mesh is not a regular file")
+                break
+            return super().get(name)
+
+    return RegularFiles(path)
+
+
 def _load_mesh(path: str):
     import trimesh
 
     try:
         # trimesh reads the files a mesh refers to (materials, buffers) only inside the
-        # mesh's folder; materials are skipped anyway.
-        mesh = trimesh.load_mesh(path, process=False, skip_materials=True)
+        # mesh's folder, and only regular files; materials are skipped anyway.
+        mesh = trimesh.load_mesh(path, process=False, skip_materials=True, resolver=_regular_file_resolver(path))
     except Exception as exc:  # unreadable or unsupported file: the user's
         raise UserError(f"cannot read mesh file {path}: {one_line(exc)}") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..format import MANIFEST_NAME, TMP_SUFFIX, find_split_dirs
+from ..errors import DataFormatError
+from ..format import MANIFEST_NAME, TMP_SUFFIX, find_split_dirs, resolve_inside
 from ..format.discovery import SHARD_GLOB
 from .manifest import Problem, check_manifest_counts, check_real_manifest, load_manifest, manifest_config
 from .shard import ShardExpectation, check_shard
@@ -56,17 +57,29 @@ def _check_shard_task(args):
     return path, check_shard(path, expect, content=content)
 
 
+def _inside(split_dir: Path, name: str, report: SplitReport) -> bool:
+    """Whether shard ``name`` stays inside ``split_dir`` (a symbolic link leading out is
+    reported as a problem and never read, as every other reader refuses it)."""
+    try:
+        resolve_inside(split_dir, name)
+    except DataFormatError as exc:
+        report.problems.append(Problem(name, f"{str(exc).split(': ', 1)[-1]} (not read)"))
+        return False
+    return True
+
+
 def _plan_split(split_dir: Path, content: bool) -> tuple[SplitReport, list]:
     """Manifest-level checks of one split and the shard tasks still to run."""
     report = SplitReport(split_dir, content_checked=content)
     manifest, problems = load_manifest(split_dir)
     report.problems += problems
     on_disk = sorted(p.name for p in split_dir.glob(SHARD_GLOB))
+    outside = {name for name in on_disk if not _inside(split_dir, name, report)}
     for leftover in sorted(split_dir.glob(f"*{TMP_SUFFIX}")):
         report.problems.append(Problem(leftover.name, "leftover temporary file of an interrupted write "
                                                       "(removed by 'artdata generate ... --resume')", warning=True))
     if manifest is None:
-        return report, [(split_dir / name, None, content) for name in on_disk]
+        return report, [(split_dir / name, None, content) for name in on_disk if name not in outside]
     config, msg = manifest_config(manifest)
     if msg:
         report.problems.append(Problem(MANIFEST_NAME, msg))
@@ -84,6 +97,8 @@ def _plan_split(split_dir: Path, content: bool) -> tuple[SplitReport, list]:
                                                  "finish it with 'artdata generate ... --resume')"))
     tasks = []
     for r in manifest["shards"]:
+        if r["file"] in outside or (r["file"] not in on_disk and not _inside(split_dir, r["file"], report)):
+            continue
         expect = ShardExpectation(
             n_images=r["n_images"], n_bytes=r["bytes"], sha256=r["sha256"], object_start=r["object_start"],
             object_stop=r["object_stop"], class_name=manifest["class_name"], split=manifest["split"],
