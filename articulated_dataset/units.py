@@ -35,7 +35,8 @@ def normalise(v, *, min_norm: float = 0.0, what: str | None = None, error: type[
     must not change).
     """
     a = np.asarray(v, dtype=np.float64)
-    n = np.linalg.norm(a) if a.ndim == 1 else np.linalg.norm(a, axis=-1, keepdims=True)
+    with np.errstate(over="ignore", invalid="ignore"):  # a length past float64 (1e300 components) is inf, checked below
+        n = np.linalg.norm(a) if a.ndim == 1 else np.linalg.norm(a, axis=-1, keepdims=True)
     if what is not None:
         if np.any((n < min_norm) | (n == 0.0)):
             raise error(f"{what} has zero length")

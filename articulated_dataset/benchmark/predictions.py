@@ -109,7 +109,10 @@ def _check_shape(where: str, name: str, a: np.ndarray, expected: tuple) -> None:
 
 def _parse_layout(where: str, value) -> list[str]:
     if isinstance(value, bytes):
-        value = value.decode()
+        try:
+            value = value.decode()
+        except UnicodeDecodeError:
+            raise DataFormatError(f"{where}: attribute {MIXTURE_LAYOUT_ATTR!r} is not UTF-8 text") from None
     if isinstance(value, str):
         try:
             value = json.loads(value)
@@ -119,7 +122,10 @@ def _parse_layout(where: str, value) -> list[str]:
         value = value.tolist()
     if not isinstance(value, (list, tuple)) or not all(isinstance(v, (str, bytes)) for v in value):
         raise DataFormatError(f"{where}: attribute {MIXTURE_LAYOUT_ATTR!r} must be a list of column names")
-    names = [v.decode() if isinstance(v, bytes) else v for v in value]
+    try:  # an array attribute of fixed-length byte strings: its elements are bytes, any bytes
+        names = [v.decode() if isinstance(v, bytes) else v for v in value]
+    except UnicodeDecodeError:
+        raise DataFormatError(f"{where}: attribute {MIXTURE_LAYOUT_ATTR!r} holds column names that are not UTF-8") from None
     if not names:  # a 0-column mixture has density 1 everywhere: NLL 0 with nothing predicted
         raise DataFormatError(f"{where}: attribute {MIXTURE_LAYOUT_ATTR!r} names no column")
     if len(set(names)) != len(names):

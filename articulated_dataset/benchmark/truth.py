@@ -54,11 +54,37 @@ def load_truth_set(split_dir: str | Path) -> TruthSet:
     dup = arrays["sample_id"][1:] == arrays["sample_id"][:-1]
     if dup.any():
         raise DataFormatError(f"{split_dir}: {int(dup.sum())} duplicated sample ids in the truth")
+    _check_truth_values(split_dir, arrays)
     quat = arrays["axis_pose"][..., 3:]
     with np.errstate(all="ignore"):  # a NaN or zero quaternion (undefined truth) stays NaN
         arrays["axis_pose"][..., 3:] = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
     return TruthSet(class_name=split.class_name, split=split_dir.name, path=split_dir,
                     joint_types=joint_types, complete=split.complete, arrays=arrays)
+
+
+def _check_truth_values(split_dir: Path, arrays: dict) -> None:
+    """Truth labels are NaN where not given (real captures) and otherwise what a predictions file
+    may hold (:func:`.predictions.validate_class`): finite, within +-MAX_ABS_VALUE and with
+    quaternions of non-zero length.  An infinite, absurd or zero-length label is a damaged split
+    (``artdata verify`` reports it): a DataFormatError, never a score of ``inf`` or 10^40 cm."""
+    from .predictions import MAX_ABS_VALUE, MIN_QUATERNION_NORM
+
+    for name, a in arrays.items():
+        if name == "sample_id":
+            continue
+        with np.errstate(invalid="ignore"):
+            bad = np.isinf(a) | (np.abs(a) > MAX_ABS_VALUE)
+        if bad.any():
+            first = tuple(int(i) for i in np.argwhere(bad)[0])
+            raise DataFormatError(f"{split_dir}: truth label {name!r} holds {int(bad.sum())} infinite or absurd values "
+                                  f"(beyond +/-{MAX_ABS_VALUE:g}; first {a[first]:.3g} at {first}); run 'artdata verify' "
+                                  f"on the split")
+    quat = arrays["axis_pose"][..., 3:]
+    with np.errstate(invalid="ignore"):
+        zero = np.linalg.norm(quat, axis=-1) < MIN_QUATERNION_NORM  # NaN (not given) compares False
+    if zero.any():
+        raise DataFormatError(f"{split_dir}: truth label 'axis_pose' holds {int(zero.sum())} zero-length quaternions; "
+                              f"run 'artdata verify' on the split")
 
 
 def available_truth(truth_path: str | Path) -> dict[str, dict[str, Path]]:

@@ -246,15 +246,20 @@ def open_h5(path: str | Path) -> h5py.File:
     return f
 
 
-def check_h5_layout(f: h5py.Group, path: str | Path, _depth: int = 0) -> None:
+def check_h5_layout(f: h5py.Group, path: str | Path, _depth: int = 0, _seen: dict | None = None) -> None:
     """Refuse an HDF5 file whose content lives outside it or loops.
 
     Every link must be a hard link (no soft, external or user-defined links: an external
     link reads another file, a soft link can loop), no dataset may use external raw storage
     (``dset.external``: bytes read from another file) or be virtual (``dset.is_virtual``:
-    mapped from other files), and groups nest at most :data:`MAX_H5_GROUP_DEPTH` deep.
-    Raises :class:`DataFormatError` naming the object; reads no data.
+    mapped from other files), groups nest at most :data:`MAX_H5_GROUP_DEPTH` deep, and no
+    object is reached by two links (files written by artdata link every object once; a few
+    hundred hard links to one group at each level make a 100 KB file whose walk visits 10^9
+    paths: a hang).  Raises :class:`DataFormatError` naming the object; reads no data.
     """
+    seen: dict = {} if _seen is None else _seen  # object address -> the first path that reached it
+    if _seen is None:
+        seen[h5py.h5o.get_info(f.id).addr] = f.name
     for name in f:  # link names: iterating does not follow the links
         link = f.get(name, getlink=True)
         where = f"{path}: {f.name.rstrip('/')}/{name}"
@@ -262,6 +267,10 @@ def check_h5_layout(f: h5py.Group, path: str | Path, _depth: int = 0) -> None:
             kind = {h5py.SoftLink: "a soft link", h5py.ExternalLink: "an external link"}.get(type(link), "a user-defined link")
             raise DataFormatError(f"{where} is {kind}; only datasets stored in the file itself are read (refused)")
         obj = f[name]
+        addr = h5py.h5o.get_info(obj.id).addr
+        if addr in seen:
+            raise DataFormatError(f"{where} is a second link to {seen[addr]} (hard-link aliases are refused)")
+        seen[addr] = f"{f.name.rstrip('/')}/{name}"
         if isinstance(obj, h5py.Dataset):
             if obj.is_virtual:
                 raise DataFormatError(f"{where} is a virtual dataset (data mapped from other files; refused)")
@@ -270,7 +279,7 @@ def check_h5_layout(f: h5py.Group, path: str | Path, _depth: int = 0) -> None:
         elif isinstance(obj, h5py.Group):
             if _depth + 1 >= MAX_H5_GROUP_DEPTH:
                 raise DataFormatError(f"{where}: groups nested deeper than {MAX_H5_GROUP_DEPTH} levels (refused)")
-            check_h5_layout(obj, path, _depth + 1)
+            check_h5_layout(obj, path, _depth + 1, seen)
 
 
 def _row_bytes(ds) -> int:

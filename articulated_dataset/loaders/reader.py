@@ -242,6 +242,15 @@ class ShardReader:
             n = len(sh)  # opens and validates the file
             if n != self.shard_sizes[s]:
                 raise DataFormatError(f"{sh.path}: holds {n} images but its manifest says {self.shard_sizes[s]}")
+            meta = self._split_meta[int(self._shard_split[s])]
+            with reading(sh.path):  # the arrays are allocated from the manifest's sizes: the shard must hold them
+                hw, J = tuple(sh.file["depth"].shape[1:]), sh.file["q"].shape[1]
+            if hw != (meta["H"], meta["W"]):
+                raise DataFormatError(f"{sh.path}: images of {hw[1]}x{hw[0]} px but its manifest says "
+                                      f"{meta['W']}x{meta['H']}; the shard does not belong to this split")
+            if J != meta["J"]:
+                raise DataFormatError(f"{sh.path}: labels of {J} joint(s) but its split's class "
+                                      f"{meta['class_name']!r} has {meta['J']}; the shard does not belong to this split")
             state.checked.add(s)
         return sh
 

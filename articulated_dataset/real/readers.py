@@ -114,7 +114,8 @@ def load_depth(path: str | Path, units: str = "auto") -> np.ndarray:
         return _to_metres(raw, "m" if units == "auto" else units, path)
     if suffix == ".npy":
         try:
-            raw = np.load(path, allow_pickle=False, mmap_mode="r")
+            with np.errstate(over="ignore"):  # a header's shape whose size overflows: numpy's own error below
+                raw = np.load(path, allow_pickle=False, mmap_mode="r")
         except Exception as exc:
             raise UserError(f"{path}: not a readable .npy array ({str(exc).splitlines()[0]})") from None
         if not isinstance(raw, np.ndarray):  # np.load reads a .npz archive whatever its name

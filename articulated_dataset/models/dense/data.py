@@ -134,6 +134,10 @@ def _load_shard(task) -> dict:
     out: dict = dict.fromkeys(_COLUMNS)
     sh = Shard(path)
     try:
+        J = sh.file["q"].shape[1]  # the shard's own shapes are consistent (Shard checks them): its J against the class's
+        if J != n_joints:
+            raise DataFormatError(f"{path}: labels of {J} joint(s) but the class has {n_joints}; "
+                                  f"the shard does not belong to this split")
         oi = sh.read("object_index")
         keep = np.ones(len(oi), bool) if max_objects is None else oi < max_objects
         if objects is not None:

@@ -477,6 +477,7 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     ``calibration_only``: keep the checkpoint's refinement (and so its point estimates and
     modes) and refit only the calibration (:func:`~.predict.fitted_calibration`: for
     checkpoints fitted before the outlier component)."""
+    from ..mdn.checkpoint import data_record
     from ..mdn.data import resolve_split_dir, split_by_object, split_class
     from ...registry import get_class
     from .predict import PREDICT_BATCH, _refined_images, fit_calibration, fit_inference, fitted_calibration, modes_to_arrays
@@ -492,7 +493,7 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     if split_class(split_dir) != ckpt["class_name"]:
         raise UserError(f"{split_dir}: holds class {split_class(split_dir)!r}, the checkpoint {ckpt['class_name']!r}")
     config = DenseTrainConfig.from_dict(ckpt["train_config"])
-    recorded, generated = (ckpt.get("data") or {}).get("generated"), split_generation(split_dir)
+    recorded, generated = data_record(ckpt, checkpoint).get("generated"), split_generation(split_dir)
     if recorded is not None and generated is not None and recorded != generated:
         raise UserError(f"{split_dir}: generated as {generated}, but the checkpoint was trained on a split generated as "
                         f"{recorded}: its validation objects are not there")
@@ -530,7 +531,7 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
         result.update(fit_inference(model, data_, va_idx, list(ckpt["joint_types"]),
                                     mirror_joints=get_class(ckpt["class_name"]).mirror_joints, progress=progress))
     if recorded is None and generated is not None:  # checkpoints from before the record: the split named now
-        result["data"] = {**(ckpt.get("data") or {}), "generated": generated}
+        result["data"] = {**data_record(ckpt, checkpoint), "generated": generated}
     result["refit_of"] = {"file": Path(checkpoint).name, "sha256": sha256_file(Path(checkpoint)),
                           "validation_noise": noise, **({"calibration_only": True} if calibration_only else {})}
     out = Path(out)

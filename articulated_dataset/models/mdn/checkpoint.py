@@ -51,12 +51,15 @@ def restore_training_state(ckpt: dict, model, optimizer, scheduler, scaler=None)
             if not all(isinstance(v, (int, float, bool, tuple, list, str, type(None))) for v in group.values()) or \
                     not all(isinstance(group[k], (int, float)) for k in ("lr", "weight_decay", "eps") if k in group):
                 raise ValueError("a parameter group holds values of the wrong type")
+            _check_group_numbers(group)
         for p, st in optimizer.state.items():
             for k, v in st.items():
                 if torch.is_tensor(v) and v.dim() > 0 and v.shape != params.get(id(p), p).shape:
                     raise ValueError(f"state {k!r} of shape {tuple(v.shape)} for a parameter of shape {tuple(p.shape)}")
                 if torch.is_tensor(v) and v.is_floating_point() and not bool(torch.isfinite(v).all()):
                     raise ValueError(f"state {k!r} holds NaN or infinite values")
+                if k in NON_NEGATIVE_STATE and (not torch.is_tensor(v) or v.is_complex() or bool((v < 0).any())):
+                    raise ValueError(f"state {k!r} holds negative values (a step count or a second moment)")
         what = "'scheduler_state'"
         total = getattr(scheduler, "total_steps", None)
         scheduler.load_state_dict(ckpt["scheduler_state"])
@@ -78,6 +81,37 @@ def restore_training_state(ckpt: dict, model, optimizer, scheduler, scaler=None)
     except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError) as exc:
         raise UserError(f"checkpoint field {what} cannot be restored ({type(exc).__name__}: "
                         f"{str(exc).splitlines()[0][:160] if str(exc) else ''}); it is not resumable") from None
+
+
+#: Optimizer state entries that are counts or second moments: never negative (a negative second
+#: moment makes AdamW's update NaN, a negative step a complex bias correction).
+NON_NEGATIVE_STATE = ("step", "exp_avg_sq", "max_exp_avg_sq")
+#: Parameter-group numbers that are rates or decays: never negative.
+NON_NEGATIVE_GROUP_NUMBERS = ("lr", "initial_lr", "max_lr", "min_lr", "weight_decay")
+
+
+def _check_group_numbers(group: dict) -> None:
+    """A restored parameter group's numbers must be usable: finite, rates and decays >= 0,
+    ``eps`` > 0 and ``betas`` two numbers in [0, 1) (else the first step turns every weight NaN,
+    or fails inside the optimizer with a TypeError)."""
+    import math
+
+    def number(v) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    for k, v in group.items():
+        if k != "params" and number(v) and not math.isfinite(v):
+            raise ValueError(f"parameter group value {k!r} is {v}")
+    for k in NON_NEGATIVE_GROUP_NUMBERS:
+        if number(group.get(k)) and group[k] < 0:
+            raise ValueError(f"parameter group value {k!r} is negative ({group[k]})")
+    if "eps" in group and not group["eps"] > 0:
+        raise ValueError(f"parameter group value 'eps' is {group['eps']}, not > 0")
+    if "betas" in group:
+        betas = group["betas"]
+        if not (isinstance(betas, (tuple, list)) and len(betas) == 2
+                and all(number(b) and 0 <= b < 1 for b in betas)):
+            raise ValueError(f"parameter group value 'betas' is {str(betas)[:40]}, not two numbers in [0, 1)")
 
 
 def read_checkpoint_file(path: str | Path, map_location="cpu"):
@@ -144,11 +178,22 @@ def prepare_training_output(split_dir: Path, class_name: str, out: Path, *, resu
     # moved since still resumes); checkpoints from before the record are not checked
     from .data import split_identity
 
-    recorded, current = (ckpt.get("data") or {}).get("split"), split_identity(split_dir)
+    recorded, current = data_record(ckpt, out).get("split"), split_identity(split_dir)
     if recorded is not None and current is not None and recorded != current:
         raise UserError(f"--resume: {out} was trained on another split ({str(recorded)[:160]}), not {split_dir} "
                         f"({current}); resume on the same split or start a new --out")
     return ckpt
+
+
+def data_record(ckpt: dict, path) -> dict:
+    """A checkpoint's record of its training data (``ckpt["data"]``; ``{}`` where absent or null);
+    anything but a mapping is a one-line UserError naming ``path``."""
+    data = ckpt.get("data")
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise UserError(f"{path}: checkpoint field 'data' is {type(data).__name__}, not a mapping (corrupt checkpoint)")
+    return data
 
 
 def load_checkpoint(path: str | Path, map_location="cpu") -> dict:

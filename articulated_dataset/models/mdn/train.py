@@ -287,6 +287,10 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
         if len(va_idx):
             record.update(evaluate(model, planes_va, scalars_va, y_va, active, stats, names, input_config, dev, 2 * batch, amp))
         record["seconds"] = time.perf_counter() - t0
+        # never replace the last checkpoint with diverged weights (no reader loads them, --resume included)
+        if not all(bool(torch.isfinite(t).all()) for t in model.state_dict().values() if t.is_floating_point()):
+            raise UserError(f"training diverged in epoch {epoch + 1} (non-finite weights); {out} keeps the last "
+                            f"checkpoint; lower --lr")
         history.append(record)
         result = checkpoint(epoch + 1, finished=(epoch + 1 == config.epochs))
         atomic_torch_save(result, out)
