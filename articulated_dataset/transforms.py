@@ -63,10 +63,16 @@ def apply_to_batch(transform: Transform, batch: dict, indices: Sequence[int], *,
     out = []
     for b, index in enumerate(indices):
         sample = {k: v[b] for k, v in batch.items()}
-        out.append(transform(sample, sample_rng(seed, epoch[b] if per_sample else epoch, int(index))))
+        result = transform(sample, sample_rng(seed, epoch[b] if per_sample else epoch, int(index)))
+        if not isinstance(result, dict):  # a transform that edits in place and forgets to return the sample
+            raise TypeError(f"transform {transform!r} returned {type(result).__name__}, not the sample's dict "
+                            f"(a transform returns the sample it was given, changed)")
+        out.append(result)
     if not out:
         return batch
     keys = out[0].keys()
+    if any(s.keys() != keys for s in out):
+        raise ValueError(f"transform {transform!r} returned samples with different fields in one batch")
     return {k: np.stack([s[k] for s in out]) for k in keys}
 
 

@@ -230,3 +230,14 @@ def test_info_on_counts_beyond_a_float_is_one_line(split, edit):
     result = CliRunner().invoke(main, ["info", str(split)])
     lines = result.output.strip().splitlines()
     assert result.exit_code == 2 and len(lines) == 1 and lines[0].startswith("artdata: error: "), result.output
+
+
+@pytest.mark.parametrize("value", ["no", 0, None, [False]])
+def test_a_manifest_complete_flag_that_is_not_a_boolean_is_refused(split, value):
+    """'complete': "no" read as complete (bool("no") is true) in info and every reader."""
+    m = json.loads((split / "manifest.json").read_text())
+    m["complete"] = value
+    (split / "manifest.json").write_text(json.dumps(m))
+    result = CliRunner().invoke(main, ["info", str(split)])
+    lines = result.output.strip().splitlines()
+    assert result.exit_code == 2 and len(lines) == 1 and "field 'complete'" in lines[0], result.output

@@ -89,6 +89,8 @@ def test_reader_items_equal_raw_hdf5(cab, raw):
     assert reader.get_batch([])["depth"].shape == (0,) + raw["depth"].shape[1:]
     with pytest.raises(IndexError):
         reader[n]
+    with pytest.raises(IndexError, match=f"sample index {-n - 1} out of range"):  # the index given, not a shifted one
+        reader[-n - 1]
     with pytest.raises(IndexError):
         reader.get_batch([0, n])
 
@@ -231,6 +233,11 @@ def test_torch_map_style_and_sampler(cab, raw):
     assert item["mask"].shape == raw["mask"].shape[1:] and item["K"].dtype == torch.float32
     assert item["class"] == "cabinet" and int(item["index"]) == 3
     np.testing.assert_array_equal(item["mask"].numpy(), raw["mask"][3])
+    n = len(ds)  # a batch's negative indices count from the end, as one sample's do
+    assert int(ds[-1]["index"]) == n - 1
+    np.testing.assert_array_equal(ds[[0, -1, 3]]["index"].numpy(), [0, n - 1, 3])
+    with pytest.raises(IndexError):
+        ds[[0, -n - 1]]
     # default DataLoader auto-batching goes through __getitems__
     batch = next(iter(torch.utils.data.DataLoader(ds, batch_size=5)))
     np.testing.assert_array_equal(batch["index"].numpy(), np.arange(5))

@@ -153,3 +153,24 @@ def test_apply_to_batch_per_sample_keys():
     assert not np.array_equal(out["depth"][1], again["depth"][1])
     with pytest.raises(ValueError, match="keys"):
         apply_to_batch(t, batch, idx, seed=1, epoch=keys[:2])
+
+
+def test_apply_to_batch_names_a_transform_that_returns_no_sample():
+    """A user's transform that edits the sample in place and returns None (or returns other fields
+    for some samples) is named in the error, not an AttributeError from inside the restacking."""
+    rng = np.random.default_rng(0)
+    samples = [make_sample(rng) for _ in range(2)]
+    batch = {k: np.stack([s[k] for s in samples]) for k in samples[0]}
+
+    def forgets_to_return(sample, rng):
+        sample["depth"] = sample["depth"] * 2
+
+    with pytest.raises(TypeError, match="forgets_to_return.* returned NoneType"):
+        apply_to_batch(forgets_to_return, batch, np.array([0, 1]), seed=0, epoch=0)
+
+    def drops_a_field_once(sample, rng):
+        return {k: v for k, v in sample.items() if not (k == "K" and rng.random() < 0.5)}
+
+    with pytest.raises(ValueError, match="different fields"):
+        apply_to_batch(drops_a_field_once, {k: np.repeat(v[:1], 16, 0) for k, v in batch.items()}, np.arange(16),
+                       seed=0, epoch=0)

@@ -361,6 +361,7 @@ def test_hidden_part_error_names_joints(tmp_path, monkeypatch):
     ("package_path", r"mesh file not found: .*nowhere/x\.obj"),
     ("no_part_geometry", r"joint 'j' of .* moves no geometry"),
     ("bad_name", r"invalid class name"),
+    ("duplicate_joint", r"invalid URDF .*: duplicate joint name 'j'"),  # was "listed twice in --joints", not given
 ])
 def test_bad_inputs_give_one_line_errors(tmp_path, case, pattern):
     kwargs = {}
@@ -376,6 +377,10 @@ def test_bad_inputs_give_one_line_errors(tmp_path, case, pattern):
     elif case == "package_path":
         path = _simple(tmp_path, _joint("j", "prismatic", "root", "part", (-0.2, 0, 0), (-1, 0, 0), (0, 0.2)))
         path.write_text(path.read_text().replace('filename="b.obj"', 'filename="package://nowhere/x.obj"'))
+    elif case == "duplicate_joint":
+        path = _simple(tmp_path, _link("part2", "b.obj") + _joint("j", "prismatic", "root", "part", (-0.2, 0, 0), (-1, 0, 0),
+                                                                  (0, 0.2))
+                       + _joint("j", "prismatic", "root", "part2", (0.2, 0, 0), (1, 0, 0), (0, 0.2)))
     elif case == "no_part_geometry":
         path = _simple(tmp_path, _joint("j", "prismatic", "root", "part", (-0.2, 0, 0), (-1, 0, 0), (0, 0.2)),
                        child_mesh=False)
@@ -482,3 +487,25 @@ def tiny_root_cabinet2(tmp_path):
 
     generate_split(GenerationConfig("cabinet2", split="test", n_objects=1, images_per_object=2), tmp_path / "builtin")
     return tmp_path / "builtin" / "cabinet2" / "test"
+
+
+def test_the_source_digest_covers_a_gltf_meshs_buffer(tmp_path):
+    """A glTF mesh keeps its geometry in the buffer files it names: changing the .bin changes the
+    object, so it must change the digest (the cache key, and the workers' check that every node
+    builds the same object); a mesh of another format keeps the digest it had."""
+    from articulated_dataset.urdf_import.parse import load_structure, source_digest
+
+    _box_obj(tmp_path / "a.obj", [0.4, 0.4, 0.4], [0, 0, 0.2])
+    door = trimesh.creation.box(extents=[0.02, 0.4, 0.4])
+    exported = trimesh.exchange.gltf.export_gltf(trimesh.Scene(door))
+    gltf = json.loads(exported["model.gltf"])
+    (tmp_path / "door.bin").write_bytes(exported[gltf["buffers"][0]["uri"]])
+    gltf["buffers"][0]["uri"] = "door.bin"
+    (tmp_path / "door.gltf").write_text(json.dumps(gltf))
+    path = _write_urdf(tmp_path / "g.urdf", "g", _link("root", "a.obj") + _link("part", "door.gltf")
+                       + _joint("j", "prismatic", "root", "part", (-0.2, 0, 0), (-1, 0, 0), (0, 0.2)))
+    before = source_digest(load_structure(path))
+    data = bytearray((tmp_path / "door.bin").read_bytes())
+    data[0] ^= 1
+    (tmp_path / "door.bin").write_bytes(bytes(data))
+    assert source_digest(load_structure(path)) != before

@@ -205,6 +205,8 @@ def read_manifest(split_dir: str | Path) -> dict:
     manifest = read_json_object(path, "manifest")
     check_version(manifest.get("format_version", "?"), str(path))
     check_manifest_names(manifest, str(path))
+    if not isinstance(manifest.get("complete", True), bool):  # text such as "no" would read as true
+        raise DataFormatError(f"{path}: field 'complete' is {str(manifest['complete'])[:20]!r}, not true or false")
     shard_paths(split_dir, manifest)  # every shard path stays inside the folder (no links leading out)
     return manifest
 

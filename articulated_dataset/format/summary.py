@@ -93,7 +93,7 @@ def _manifest_summary(split_dir, manifest: dict) -> dict:
         "split": str(manifest["split"]),
         "seed": int(manifest["seed"]),
         "format_version": str(manifest["format_version"]),
-        "complete": bool(manifest["complete"]),
+        "complete": manifest["complete"] is True,  # read_manifest checked it is a boolean
         "objects": _count(manifest["n_objects"], "n_objects"),
         "images": _count(manifest["n_images"], "n_images"),
         "shards": len(manifest["shards"]),

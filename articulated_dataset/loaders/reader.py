@@ -310,12 +310,10 @@ class ShardReader:
     def __getitem__(self, i) -> dict:
         """Sample ``i`` (negative counts from the end) as a dict of numpy arrays."""
         if isinstance(i, (int, np.integer)):
-            i = int(i)
-            if i < 0:
-                i += len(self)
-            if not 0 <= i < len(self):
-                raise IndexError(f"sample index {i} out of range for a reader of {len(self)} images")
-            return {k: v[0] for k, v in self.get_batch([i]).items()}
+            j = int(i) + len(self) if int(i) < 0 else int(i)
+            if not 0 <= j < len(self):
+                raise IndexError(f"sample index {int(i)} out of range for a reader of {len(self)} images")
+            return {k: v[0] for k, v in self.get_batch([j]).items()}
         raise TypeError(f"reader indices must be integers, got {type(i).__name__}; use get_batch() for several")
 
     def get_batch(self, indices: Iterable[int], fields: Sequence[str] | None = None, *, alloc=None,

@@ -266,7 +266,10 @@ class DepthDataset(_SharedEpoch, Dataset):
             return {k: v[0] for k, v in self._load(np.asarray([j], dtype=np.int64)).items()}
         if isinstance(i, torch.Tensor):
             i = i.numpy()
-        return self._load(_index_array(i))
+        idx = _index_array(i)
+        n = len(self)
+        inside = (idx >= -n) & (idx < 0)  # negative indices count from the end, as for one sample
+        return self._load(np.where(inside, idx + n, idx))
 
     def __getitems__(self, indices) -> list[dict]:
         """DataLoader auto-batching hook: one batched read, returned as per-sample dicts."""

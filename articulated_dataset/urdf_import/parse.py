@@ -255,6 +255,10 @@ def load_structure(path: Path, mesh_root: Path | None = None, scale: float = 1.0
     links = [link.name for link in robot.links]
     if len(set(links)) != len(links):
         raise UserError(f"invalid URDF {path}: duplicate link names")
+    joint_names = [j.name for j in robot.joints]
+    repeated = sorted({n for n in joint_names if joint_names.count(n) > 1})
+    if repeated:  # (else the default --joints, every movable joint, named one twice)
+        raise UserError(f"invalid URDF {path}: duplicate joint name {str(repeated[0])[:80]!r}")
     parent_joint: dict = {}
     for j in robot.joints:
         for end in (j.parent, j.child):
@@ -292,16 +296,56 @@ def load_structure(path: Path, mesh_root: Path | None = None, scale: float = 1.0
 
 
 def source_digest(parsed: Parsed) -> str:
-    """sha256 over the URDF's bytes and every mesh file it uses (path relative to the URDF)."""
+    """sha256 over the URDF's bytes and every mesh file it uses (path relative to the URDF), and
+    the buffer files a glTF mesh refers to (its geometry lives there: a changed ``.bin`` is a
+    changed object for the cache key and the workers' check)."""
     h = hashlib.sha256()
     h.update(parsed.path.read_bytes())
-    files = sorted({e.mesh_file for els in parsed.elements.values() for e in els if e.mesh_file})
-    for f in files:
+    meshes = sorted({e.mesh_file for els in parsed.elements.values() for e in els if e.mesh_file})
+    for f in meshes + sorted({buffer for f in meshes for buffer in gltf_buffer_files(f)} - set(meshes)):
         h.update(os.path.relpath(f, parsed.path.parent).encode("utf-8"))
         with open(f, "rb") as fh:
             for block in iter(lambda: fh.read(1 << 20), b""):
                 h.update(block)
     return h.hexdigest()
+
+
+#: Largest glTF JSON file read for its buffer names (a mesh's JSON is kilobytes; its data is in the buffers).
+MAX_GLTF_JSON_BYTES = 64 << 20
+
+
+def gltf_buffer_files(mesh_file) -> list:
+    """The regular files that the ``buffers`` of a ``.gltf`` mesh name (relative URIs inside the
+    mesh's folder; ``data:`` URIs are inside the JSON), or [] for another mesh or a JSON that
+    cannot be read (trimesh then reports the file when it loads it)."""
+    import json
+    import stat
+    from urllib.parse import unquote
+
+    from ..format.shards import JSON_TEXT_ERRORS
+
+    path = Path(mesh_file)
+    if path.suffix.lower() != ".gltf" or path.stat().st_size > MAX_GLTF_JSON_BYTES:
+        return []
+    try:
+        doc = json.loads(path.read_bytes())
+    except JSON_TEXT_ERRORS:
+        return []
+    buffers = doc.get("buffers") if isinstance(doc, dict) else None
+    out = []
+    folder = path.parent.resolve()
+    for b in buffers if isinstance(buffers, list) else []:
+        uri = b.get("uri") if isinstance(b, dict) else None
+        if not isinstance(uri, str) or uri.startswith("data:"):
+            continue
+        try:
+            target = (folder / unquote(uri)).resolve()
+            inside = folder in target.parents and stat.S_ISREG(os.stat(target).st_mode)
+        except (OSError, ValueError, RuntimeError):
+            continue
+        if inside:
+            out.append(str(target))
+    return out
 
 
 def _limits(joint) -> tuple[float, float]:
