@@ -184,6 +184,8 @@ def _usage_cases():
                 cases.append(pytest.param([*path, opt, _BAD_VALUES[p.type]], f"'{opt}'", id=f"{name}:{opt}-type"))
             elif p.type.name == "class":
                 cases.append(pytest.param([*path, opt, "sofa"], "sofa", id=f"{name}:{opt}-class"))
+            elif isinstance(p.type, click.Path):  # '' named no path: generate --out '' wrote into the working folder
+                cases.append(pytest.param([*path, opt, ""], f"'{opt}': an empty path", id=f"{name}:{opt}-empty-path"))
             if opt in ("--out", "--n", "--workers", "--class"):
                 # (click gives this error no command: the hint names it from the command line)
                 cases.append(pytest.param([*path, opt], f"'{opt}' requires an argument. (see artdata {name} --help)",
@@ -456,6 +458,9 @@ INGEST_CASES: dict[str, tuple[Callable[[Env], list], str]] = {
            ("frame", lambda e: {"frame": "world"}, "unknown frame"), ("frame-list", lambda e: {"frame": ["camera"]}, "frame"),
            ("class", lambda e: {"class": "drawer"}, "not 'cabinet'"),
            ("object-number", lambda e: {"object": 5}, "'object'"),
+           ("object-newline", lambda e: {"object": "a\nb"}, "printable name"),  # stored in the manifest, printed
+           ("object-escape", lambda e: {"object": "\x1b[2J"}, "printable name"),
+           ("object-long", lambda e: {"object": "x" * 10_000}, "at most 256"),
            ("top-level-list", lambda e: "[1, 2]", "mapping"), ("not-json", lambda e: "{q: [0", "cannot parse"),
            ("not-utf8", lambda e: b'{"q": [0.1], "object": "\xff"}', "UTF-8"),
        ]},

@@ -452,6 +452,10 @@ CASES = {
     "csv under a file": _json_under_file,
     "json in /proc": _json_proc,
     "json a directory": _json_dir,
+    # '' was taken as no report (exit 0, nothing written); two '-' printed both reports on one stream
+    "json empty name": lambda c: (score_args(c, None, "--json", ""), ["'--json'", "empty path"]),
+    "csv blank name": lambda c: (score_args(c, None, "--csv", " "), ["'--csv'", "empty path"]),
+    "json and csv both stdout": lambda c: (score_args(c, None, "--json", "-", "--csv", "-"), ["standard output"]),
     "require complete": _partial_required,
     # usage
     "no predictions": _usage(lambda c: ["score", "--truth", c.truth], ["PREDICTIONS"]),

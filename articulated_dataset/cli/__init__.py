@@ -181,7 +181,23 @@ def _prepared(cmd: click.Command) -> click.Command:
     if cmd.name in MUJOCO_COMMANDS:
         for leaf in _leaves(cmd):
             leaf.callback = _with_mujoco(leaf.callback, cmd.name)
+    for leaf in _leaves(cmd):
+        for param in leaf.params:
+            if isinstance(param.type, click.Path):
+                param.callback = _refusing_empty_paths(param.callback)
     return cmd
+
+
+def _refusing_empty_paths(callback):
+    """A path option's callback that first refuses an empty path: ``--out ''`` named no folder,
+    and ``generate`` wrote into the current one (``score --json ''`` wrote no report, exit 0)."""
+    def checked(ctx, param, value):
+        values = value if isinstance(value, (tuple, list)) else (value,)
+        if any(isinstance(v, str) and not v.strip() for v in values):
+            raise click.BadParameter("an empty path names no file or folder", ctx=ctx, param=param)
+        return value if callback is None else callback(ctx, param, value)
+
+    return checked
 
 
 def _leaves(cmd: click.Command) -> list[click.Command]:

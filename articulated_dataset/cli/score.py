@@ -51,6 +51,8 @@ def score_cmd(predictions, truth_path, split, json_path, csv_path, require_compl
         truth_splits = find_split_dirs(truth_path)
     except UserError:
         truth_splits = []  # score() reports the bad --truth itself
+    if json_path == "-" and csv_path == "-":  # two reports on one stream cannot be told apart
+        raise UserError("--json - and --csv - would both print to standard output; write one of them to a file")
     check_outputs_distinct(list(predictions), [json_path, csv_path], "--json and --csv", input_folders=truth_splits)
     for target in (json_path, csv_path):  # both writable before either is written: no half-written report
         if target and target != "-":

@@ -141,6 +141,10 @@ def axis_frame_from_direction(a: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(a, x), a], axis=1)
 
 
+#: Longest object name a ground-truth file may give (a name groups the captures of one object).
+MAX_OBJECT_NAME_CHARS = 256
+
+
 def load_ground_truth(path: str | Path, n_joints: int, class_name: str | None = None) -> dict:
     """Labels of one capture from a JSON file, converted to the camera frame.
 
@@ -221,6 +225,10 @@ def load_ground_truth(path: str | Path, n_joints: int, class_name: str | None = 
     obj = d.get("object")
     if obj is not None and not (isinstance(obj, str) and obj.strip()):
         raise UserError(f"{path}: 'object' must be a non-empty name (string), got {str(obj)[:80]!r}")
+    if obj is not None and not (len(obj) <= MAX_OBJECT_NAME_CHARS and obj.isprintable()):
+        # the name is stored in the manifest and printed: no newlines or terminal control sequences
+        raise UserError(f"{path}: 'object' must be a printable name of at most {MAX_OBJECT_NAME_CHARS} characters, "
+                        f"got {obj[:40]!r}{'...' if len(obj) > 40 else ''}")
     out["object"] = obj
     if class_name is not None:
         obj_class = get_class(class_name)
