@@ -657,6 +657,27 @@ def test_a_diverging_training_keeps_its_last_checkpoint(tiny_root, tmp_path, mon
     assert out.read_bytes() == before
 
 
+def test_nan_labels_are_refused_before_training(tiny_root, tmp_path):
+    """A split whose labels hold NaN (a real split without full ground truth) stopped at the first
+    step as "non-finite training loss ... lower --lr": the labels are now checked as they are read."""
+    import shutil
+
+    import h5py
+
+    from articulated_dataset.errors import UserError
+
+    split = tmp_path / "drawer" / "train"
+    shutil.copytree(tiny_root / "drawer" / "train", split)
+    with h5py.File(sorted(split.glob("shard-*.h5"))[0], "a") as f:
+        q = f["q"][()]
+        q[1] = np.nan
+        f["q"][...] = q
+    cfg = DenseTrainConfig("drawer", epochs=1, batch_size=16, width=4, val_fraction=0.2, max_objects=3)
+    with pytest.raises(UserError, match=r"1 image\(s\) have NaN or infinite 'q' labels"):
+        train_dense(split, tmp_path / "n.pt", cfg, progress=False)
+    assert not (tmp_path / "n.pt").exists()
+
+
 def test_outputs_that_are_inputs_are_refused(overfit_run, tiny_root, tmp_path):
     """predict and plan never write over what they read: the checkpoint, the predictions, a
     split's manifest or shard (they did, and exited 0)."""

@@ -86,3 +86,23 @@ def test_an_mdn_training_never_writes_diverged_weights(unfinished, tmp_path, mon
     with pytest.raises(UserError, match="keeps the last checkpoint"):
         train(data, out, cfg, progress=False, resume=True)
     assert out.read_bytes() == before
+
+
+def test_an_mdn_training_refuses_nan_labels(unfinished, tmp_path):
+    """NaN labels (a real split without full ground truth) made every loss NaN from the first step,
+    then a message to lower --lr: the labels are checked as they are read."""
+    import shutil
+
+    import h5py
+    import numpy as np
+
+    data, cfg, _ = unfinished
+    split = tmp_path / "cabinet" / "train"
+    shutil.copytree(data, split)
+    with h5py.File(sorted(split.glob("shard-*.h5"))[0], "a") as f:
+        pose = f["axis_pose"][()]
+        pose[0, 0, 0] = np.nan
+        f["axis_pose"][...] = pose
+    with pytest.raises(UserError, match=r"1 image\(s\) have NaN or infinite labels"):
+        train(split, tmp_path / "m.pt", cfg, progress=False)
+    assert not (tmp_path / "m.pt").exists()

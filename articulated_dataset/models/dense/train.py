@@ -264,6 +264,11 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     t_load = time.perf_counter()
     data_ = load_dense_split(split_dir, J, hw, max_objects=config.max_objects, progress=progress)
     t_load = time.perf_counter() - t_load
+    for name in ("origin", "rot6", "q", "part_offset", "geometry"):  # every label the losses read
+        bad = ~np.isfinite(getattr(data_, name)).reshape(len(data_.sample_id), -1).all(1)
+        if bad.any():  # (else the first step's loss is NaN, reported as a learning rate too high)
+            raise UserError(f"{split_dir}: {int(bad.sum())} image(s) have NaN or infinite '{name}' labels (a real split "
+                            f"without full ground truth, or a damaged one: 'artdata verify'); training needs every label")
     train_mask, val_mask = split_by_object(data_.object_index, config.val_fraction, config.seed)
     tr_idx, va_idx = np.nonzero(train_mask)[0], np.nonzero(val_mask)[0]
     val_data, val_idx = (data_, va_idx) if config.noise is None or not len(va_idx) else \

@@ -180,6 +180,10 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
     names = list(layout.names)
     input_config = config.input_config()
     prepared = load_split(split_dir, layout, input_config, max_objects=config.max_objects, progress=progress)
+    bad = ~np.isfinite(prepared.targets).all(1)
+    if bad.any():  # (else the loss is NaN from the first step, reported as a learning rate too high)
+        raise UserError(f"{split_dir}: {int(bad.sum())} image(s) have NaN or infinite labels (a real split without full "
+                        f"ground truth, or a damaged one: 'artdata verify'); training needs every label")
     train_mask, val_mask = split_by_object(prepared.object_index, config.val_fraction, config.seed)
     anchored = anchored_columns(names)
     prepared.targets = shift_anchored(prepared.targets, prepared.anchor.numpy(), anchored, -1.0).astype(np.float32)
