@@ -743,6 +743,17 @@ def test_estimate_api_and_cli(overfit_run, tiny_root, tmp_path):
     assert code == 0, text
     got = json.loads(text)
     assert np.allclose(got["joints"][0]["axis_origin_m"], est.axis_origin_m[0], atol=2e-3)
+    # the borders the object reaches, read from the image's pixels (the one shard's mask, as rendered)
+    with h5py.File(next((tiny_root / "microwave" / "test").glob("shard-*.h5")), "r") as f:
+        seen = f["mask"][5] > 0
+    want = [b for b, edge in zip(("top", "bottom", "left", "right"), (seen[0], seen[-1], seen[:, 0], seen[:, -1]))
+            if edge.any()]
+    assert est.cut_off == want and got["cut_off"] == want
+    first = int(np.nonzero(seen.any(1))[0][0]) + 3  # the image cropped 3 rows into the object
+    K_cut = K.copy()
+    K_cut[1, 2] -= first
+    top_cut = ad.estimate(depth[first:], K_cut, "microwave", model=str(overfit_run[0]))
+    assert "top" in top_cut.cut_off and "reaches the image's top" in top_cut.summary()
     # millimetres given as metres, an empty mask, a scene without a mask, a wrong class
     np.save(tmp_path / "mm.npy", depth * 1000)
     (tmp_path / "mm.camera.json").write_text((tmp_path / "camera.json").read_text())

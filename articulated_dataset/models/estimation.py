@@ -57,6 +57,10 @@ class Estimate:
     #: weight of the mixture's last component, the outlier component (broad, centred on the
     #: estimate: docs/dense.md, "Uncertainty"); 0 where the model has none
     outlier_weight: float = 0.0
+    #: the image borders the object's pixels reach (of "top", "bottom", "left", "right"): there the
+    #: object continues out of view, and what lies beyond (a door's mid-height, where its hinge's
+    #: origin is) is inferred, not measured (docs/dense.md, "Renders that show the whole object")
+    cut_off: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """JSON-ready: lists of floats, one entry per joint."""
@@ -80,6 +84,7 @@ class Estimate:
             "mixture": {"weights": (self.mixture_weights.tolist() if self.mixture_weights is not None else []),
                         "n_components": 0 if self.mixture_weights is None else int(len(self.mixture_weights)),
                         "outlier_weight": float(self.outlier_weight)},
+            "cut_off": list(self.cut_off),
         }
 
     def summary(self) -> str:
@@ -103,6 +108,10 @@ class Estimate:
             if self.outlier_weight > 0:
                 line += f" (modes); outlier component {self.outlier_weight:.4f}"
             lines.append(line)
+        if self.cut_off:
+            lines.append(f"the object reaches the image's {' and '.join(self.cut_off)} border"
+                         f"{'s' if len(self.cut_off) > 1 else ''}: what lies beyond is inferred, not measured "
+                         f"(a view that shows the whole object gives a more accurate estimate)")
         return "\n".join(lines)
 
 
@@ -220,6 +229,7 @@ def _estimate(depth_m, K, class_name: str, mask, model: str, mirror: bool, preci
     if m is not None:
         depth = np.where(m, depth, 0.0)
     obj_mask = (depth > 0).astype(np.uint8)
+    cut_off = image_borders_reached(obj_mask > 0)
     size = (cfg.width_px, cfg.height_px)
     K_dst = CameraConfig(cfg.width_px, cfg.height_px).K
     if mask_fraction_inside(obj_mask > 0, K, K_dst, size) < 1.0:
@@ -253,7 +263,15 @@ def _estimate(depth_m, K, class_name: str, mask, model: str, mirror: bool, preci
         mixture_weights=arrays["mixture_weights"][0], mixture_means=arrays["mixture_means"][0],
         mixture_scales=arrays["mixture_scales"][0], mixture_layout=list(arrays["mixture_layout"]), model=name,
         outlier_weight=float(((ckpt.get("calibration") or {}).get("outlier") or {}).get("weight", 0.0)),
+        cut_off=cut_off,
     )
+
+
+def image_borders_reached(mask: np.ndarray) -> list[str]:
+    """The borders of the image (of ``"top"``, ``"bottom"``, ``"left"``, ``"right"``) that the
+    (H, W) boolean ``mask`` has a pixel on."""
+    edges = {"top": mask[0], "bottom": mask[-1], "left": mask[:, 0], "right": mask[:, -1]}
+    return [name for name, edge in edges.items() if edge.any()]
 
 
 def estimate_file(depth_path: str | Path, class_name: str, *, camera_path: str | Path | None = None,
