@@ -315,9 +315,18 @@ def check_can_create(path: str | Path) -> None:
     could not be written (read-only filesystem, no permission, a parent that is a file, a
     folder at ``path``).  Creates nothing that stays (a probe file in the nearest existing
     parent, removed at once)."""
+    import stat
+
     path = Path(path)
     if path.is_dir():
         raise WriteError(f"cannot write {path}: is a directory", str(path), errno.EISDIR)
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        mode = None
+    if mode is not None and not stat.S_ISREG(mode):  # as atomic_path refuses it, but before the work
+        raise WriteError(f"cannot write {path}: not a regular file (a device, FIFO or socket would be replaced); "
+                         "use '-' for standard output where offered", str(path), errno.EINVAL)
     parent = _existing_ancestor(path.parent)
     if not parent.is_dir():
         raise WriteError(f"cannot write {path}: {parent} is not a directory", str(path), errno.ENOTDIR)

@@ -334,3 +334,31 @@ def test_run_baseline_refuses_before_it_runs(tmp_path):
     res = CliRunner().invoke(main, ["baseline", "mean", "--train", str(tmp_path / "none"), "--test", str(tmp_path / "none"),
                                     "--out", str(out)])
     assert res.exit_code == 2 and "exists; pass --overwrite" in res.output and res.output.count("\n") == 1
+
+
+def _damaged_train(tiny_root, tmp_path, field, value):
+    import h5py
+
+    train = tmp_path / "data" / "cabinet" / "train"
+    shutil.copytree(tiny_root / "cabinet" / "train", train)
+    for shard in train.glob("shard-*.h5"):
+        with h5py.File(shard, "r+") as f:
+            a = f[field][()]
+            a[...] = value
+            f[field][...] = a
+    return train
+
+
+@pytest.mark.parametrize("method", ["mean", "nn"])
+@pytest.mark.parametrize("field, value", [("axis_pose", np.inf), ("axis_pose", 0.0), ("q", np.nan), ("geometry", 3e38)],
+                         ids=["pose-inf", "pose-zero-quaternion", "q-nan", "geometry-huge"])
+def test_damaged_training_labels_are_one_line_naming_the_training_split(tiny_root, tmp_path, method, field, value):
+    """The Mean's rotation mean raised numpy's LinAlgError (a traceback) on an infinite or zero
+    axis quaternion; other damaged labels were refused by the predictions writer naming --out."""
+    train = _damaged_train(tiny_root, tmp_path, field, value)
+    out = tmp_path / "p.h5"
+    res = _invoke([method, "--train", train, "--test", tiny_root / "cabinet" / "test", "--out", out, "-q"])
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1 and lines[0].startswith("artdata: error: "), (res.output, res.exception)
+    assert str(train) in lines[0] and f"'{field}'" in lines[0] and str(out) not in lines[0], lines[0]
+    assert not out.exists()

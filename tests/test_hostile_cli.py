@@ -233,9 +233,16 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
     "plan:class-folder": (lambda e: ["plan", "--data", e.tiny / "cabinet", "--index", 0, "-q"], "splits"),
     "plan:out-in-proc": (lambda e: ["plan", "--data", e.split(), "--index", 0, "-q", "--out", "/proc/artdata-plan.json"],
                          "cannot write"),
+    "plan:out-dev-null": (lambda e: ["plan", "--data", e.split(), "--index", 0, "-q", "--out", "/dev/null"],
+                          "not a regular file"),  # refused before the plan is made and printed, not after
     "plan:out-under-a-file": (lambda e: ["plan", "--data", e.split(), "--index", 0, "-q", "--out",
                                          _write(e.tmp / "f", b"x") + "/plan.json"], "not a directory"),
     "plan:nan-axis-label": (lambda e: ["plan", "--data", _nan_axis_copy(e), "--index", 0, "-q"], "not finite"),
+    # damaged object pose labels: a ValueError from the rebuild (a traceback)
+    **{f"plan:{name}": (lambda e, field=field, value=value: ["plan", "--data", _label_copy(e, field, value), "--index", 0,
+                                                              "-q"], "run 'artdata verify'")
+       for name, field, value in [("nan-object-pose", "object_pose", np.nan), ("far-object-pose", "object_pose", 1e30),
+                                  ("nan-object-yaw", "object_yaw", np.nan), ("negative-object-index", "object_index", -1)]},
     "plan:missing-data": (lambda e: ["plan", "--data", e.tmp / "nope", "--index", 0, "-q"], None),
     # show
     "show:dpi-100000": (lambda e: ["show", e.split(), "--out", "g.png", "--dpi", 100000, "-q"], "figure"),
@@ -378,6 +385,20 @@ def _nan_axis_copy(e: Env) -> Path:
         pose = f["axis_pose"][()]
         pose[0, 0, 0] = np.nan
         f["axis_pose"][...] = pose
+    return dst
+
+
+def _label_copy(e: Env, field: str, value) -> Path:
+    """A copy of the cabinet test split whose label ``field`` is ``value`` in every image."""
+    import h5py
+
+    dst = e.tmp / "damaged" / "cabinet" / "test"
+    shutil.copytree(e.tiny / "cabinet" / "test", dst)
+    for shard in dst.glob("shard-*.h5"):
+        with h5py.File(shard, "r+") as f:
+            a = f[field][()]
+            a[...] = value
+            f[field][...] = a
     return dst
 
 

@@ -175,6 +175,26 @@ def test_a_baseline_or_a_report_never_replaces_a_shard_of_its_inputs(tiny_root, 
         assert fifo.is_fifo()
 
 
+
+@pytest.mark.parametrize("where", ["mean", ".mean-object"])
+def test_icp_never_replaces_the_mean_object_it_finds(tiny_root, split, tmp_path, where):
+    """Without --mean-object, ICP reads <train>/../mean or its cache <train>/../.mean-object/: an
+    --out there replaced the mean object's shard with the predictions (exit 0), and every later
+    ICP run of the class failed on it until the cache was deleted by hand."""
+    train = tmp_path / "data" / "microwave" / "train"
+    shutil.copytree(tiny_root / "microwave" / "train", train)
+    args = ["baseline", "icp", "--train", train, "--test", split, "--limit", 1, "--workers", 1, "-q"]
+    assert _run(args + ["--out", tmp_path / "first.h5"])[0] == 0  # renders the cache
+    cache = train.parent / ".mean-object" / "microwave" / "mean"
+    mean = cache if where == ".mean-object" else train.parent / "mean"
+    if where == "mean":
+        shutil.copytree(cache, mean)
+    shard = next(mean.glob("shard-*.h5"))
+    before = shard.read_bytes()
+    _one_line(*_run(args + ["--out", shard, "--overwrite"]), "inside the input folder")
+    assert shard.read_bytes() == before
+
+
 def test_show_refuses_huge_ranges_and_non_ascii_digits(split, tmp_path):
     for option, value in (("--objects", "0-99999999999999999"), ("--images", "0-99999999"), ("--objects", "\u0661")):
         _one_line(*_run(["show", split, option, value, "--out", tmp_path / "g.png"]), option)

@@ -71,3 +71,26 @@ def test_a_shard_of_hard_link_aliases_is_refused(split, tmp_path):
         _fan_out(f, leaf)
     err = _one_line(["info", copy])
     assert "second link" in err
+
+
+@pytest.mark.parametrize("args", [["info", "{split}"], ["baseline", "mean", "--train", "{split}", "--test", "{split}",
+                                                         "--out", "{tmp}/p.h5", "-q"],
+                                  ["plan", "--data", "{split}", "--index", "0", "-q"]], ids=["info", "baseline", "plan"])
+def test_a_shard_that_is_a_fifo_is_refused_not_waited_on(split, tmp_path, args):
+    """A named pipe in place of a shard: opening it blocked until a writer appeared (every shard
+    reader hung); it is refused like a predictions file that is not a regular file."""
+    import os
+    import subprocess
+    import sys
+
+    copy = tmp_path / "drawer" / "test"
+    shutil.copytree(split, copy)
+    shard = copy / json.loads((copy / "manifest.json").read_text())["shards"][0]["file"]
+    shard.unlink()
+    os.mkfifo(shard)
+    argv = [a.format(split=copy, tmp=tmp_path) for a in args]
+    r = subprocess.run([sys.executable, "-m", "articulated_dataset.cli", *argv], capture_output=True, text=True,
+                       timeout=60, stdin=subprocess.DEVNULL)
+    lines = r.stderr.splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("artdata: error: "), r.stderr
+    assert "not a regular file" in lines[0], lines[0]

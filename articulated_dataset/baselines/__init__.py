@@ -45,7 +45,12 @@ def run_baseline(name: str, train_dir, test_dir, out, *, mean_dir=None, workers:
 
     out = Path(out)
     # a shard or manifest of an input split must never be replaced by the predictions
-    check_outputs_distinct([], [out], input_folders=[d for d in (train_dir, test_dir, mean_dir) if d])
+    folders = [d for d in (train_dir, test_dir, mean_dir) if d]
+    if name == "icp" and not mean_dir:  # ICP reads the mean object next to the training split (or its cache)
+        from .icp import MEAN_CACHE_DIR, default_mean_dir
+
+        folders += [default_mean_dir(train_dir), Path(train_dir).parent / MEAN_CACHE_DIR]
+    check_outputs_distinct([], [out], input_folders=folders)
     if out.exists() and not overwrite:
         raise UserError(f"{out} exists; pass --overwrite to replace it")
     check_can_create(out)  # a read-only or full target is one line now, not after the run

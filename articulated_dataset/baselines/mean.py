@@ -20,7 +20,7 @@ import logging
 
 import numpy as np
 
-from .common import BaselineResult, broadcast_labels, check_compatible, open_split_checked
+from .common import BaselineResult, broadcast_labels, check_compatible, open_split_checked, read_train_labels
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +66,7 @@ def fit(train_dir) -> dict:
     """The class's mean labels over the training split at ``train_dir``."""
     train = open_split_checked(train_dir, "train")
     try:
-        return mean_labels({k: train.read(k) for k in ("axis_pose", "q", "geometry", "part_offset")})
+        return mean_labels(read_train_labels(train))
     finally:
         train.close()
 
@@ -81,7 +81,7 @@ def predict(train_dir, test_dir, *, mean_dir=None, workers: int = 1, progress: b
     test = open_split_checked(test_dir, "test")
     try:
         check_compatible(train, test)
-        means = mean_labels({k: train.read(k) for k in ("axis_pose", "q", "geometry", "part_offset")})
+        means = mean_labels(read_train_labels(train))
         sample_id = test.read("sample_id")
         preds = {"sample_id": sample_id.astype(np.int64), **broadcast_labels(means, len(sample_id))}
         log.info("Mean: %s, %d training images -> %d test images", train.class_name, train.n_images, len(sample_id))

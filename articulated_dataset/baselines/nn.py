@@ -44,7 +44,7 @@ import numpy as np
 
 from ..errors import UserError
 from ..executors import process_map
-from .common import BaselineResult, check_compatible, open_split_checked
+from .common import BaselineResult, check_compatible, open_split_checked, read_train_labels
 
 log = logging.getLogger(__name__)
 
@@ -254,6 +254,7 @@ def predict(train_dir, test_dir, *, mean_dir=None, workers: int = 1, progress: b
     try:
         check_compatible(train, test, same_image_size=True)
         check_block(block_px, train.image_size, train.n_images + test.n_images)
+        train_labels = read_train_labels(train)  # damaged labels: one line before the search, not after
         t0 = time.perf_counter()
         x_train = split_features(train, block_px, normalization, workers, progress)
         x_test = split_features(test, block_px, normalization, workers, progress)
@@ -266,8 +267,8 @@ def predict(train_dir, test_dir, *, mean_dir=None, workers: int = 1, progress: b
                  "re-rankings per query", train.class_name, len(x_test), len(x_train), index.dim, t_feat, t_search,
                  index.n_reranked / max(len(x_test), 1))
         preds = {"sample_id": test.read("sample_id").astype(np.int64)}
-        for name in ("axis_pose", "q", "geometry", "part_offset"):
-            preds[name] = train.read(name)[nearest]
+        for name, labels in train_labels.items():
+            preds[name] = labels[nearest]
         attrs = {"train_split": str(train.path), "n_train_images": len(x_train), "block_px": block_px,
                  "normalization": normalization, "feature_dim": index.dim,
                  "features_s": round(t_feat, 3), "search_s": round(t_search, 3), "exact_reranked_pairs": index.n_reranked}

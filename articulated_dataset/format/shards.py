@@ -23,6 +23,7 @@ import hashlib
 import json
 import os
 import re
+import stat
 from pathlib import Path
 
 import h5py
@@ -233,6 +234,12 @@ def open_h5(path: str | Path) -> h5py.File:
         raise DataFormatError(f"file not found: {path}")
     if path.is_dir():
         raise DataFormatError(f"expected an HDF5 file, got a directory: {path}")
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        mode = None  # unreadable: h5py names the problem below
+    if mode is not None and not stat.S_ISREG(mode):  # opening a FIFO waits for a writer: a hang
+        raise DataFormatError(f"{path}: not a regular file (a device, pipe or socket; refused)")
     try:
         f = h5py.File(path, "r")
     except OSError as exc:

@@ -30,6 +30,8 @@ GRAVITY_ON = True
 #: A rebuilt true object's axis origins must match the stored labels to 1 mm (float32
 #: labels agree to ~1e-6 m; a larger gap means the data came from other templates).
 REBUILD_TOL_M = 1e-3
+#: Farthest stored object position (m) an object is rebuilt at (generated scenes span < 20 m).
+MAX_OBJECT_DISTANCE_M = 100.0
 
 
 class PlannableObject:
@@ -113,7 +115,14 @@ def load_true_object(manifest: dict, labels: dict, camera=None) -> TrueObject:
         raise UserError(f"{config.class_name}/{config.split} was generated with --camera {config.camera.mount}; "
                         "manipulation rebuilds objects upright in the camera frame (generate with --camera fixed)")
     obj_class = config.obj_class
-    sample = stored_sample(config, int(labels["object_index"]), labels["object_pose"], labels["object_yaw"])
+    index = int(labels["object_index"])
+    position = np.asarray(labels["object_pose"], np.float64).reshape(-1)[:3]
+    yaw = float(np.asarray(labels["object_yaw"], np.float64).reshape(-1)[0])
+    if index < 0 or not (np.isfinite(position).all() and math.isfinite(yaw)) \
+            or np.abs(position).max() > MAX_OBJECT_DISTANCE_M:  # (else a ValueError deep in the rebuild: a traceback)
+        raise UserError(f"object {index} of {config.class_name}/{config.split}: its stored object index or pose "
+                        f"(object_index, object_pose, object_yaw) is not valid (a damaged shard? run 'artdata verify')")
+    sample = stored_sample(config, index, labels["object_pose"], labels["object_yaw"])
     pose = sample.pose
     urdf = object_urdf(obj_class, sample, config.table)
     obj = compile_object(obj_class, urdf, pose, camera or config.camera)
