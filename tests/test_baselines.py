@@ -362,3 +362,62 @@ def test_damaged_training_labels_are_one_line_naming_the_training_split(tiny_roo
     assert res.exit_code == 2 and len(lines) == 1 and lines[0].startswith("artdata: error: "), (res.output, res.exception)
     assert str(train) in lines[0] and f"'{field}'" in lines[0] and str(out) not in lines[0], lines[0]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, 3e38], ids=["nan", "inf", "huge"])
+def test_damaged_depth_reads_as_no_return(tiny_root, icp_objects, value):
+    """NaN depth made every distance NaN and NN returned training row -1 (the last image's labels,
+    exit 0); infinite or huge depth overflowed float32 (RuntimeWarnings on stderr) and stopped ICP's
+    KD-tree query with a traceback.  Such pixels are no return, as for the dense model."""
+    import warnings
+
+    _, yawed_dir, model = icp_objects
+    split = open_split_checked(yawed_dir, "test")
+    sh = split.shards[0]
+    depth, mask, K = sh.read("depth", 1), sh.read("mask", 1), sh.K
+    split.close()
+    damaged, zeroed = depth.copy(), depth.copy()
+    rows = slice(0, depth.shape[0] // 2)  # the top half of the image (object pixels included)
+    damaged[rows] = np.where(depth[rows] > 0, np.float32(value), 0)
+    zeroed[rows] = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(nn.depth_features(damaged[None]), nn.depth_features(zeroed[None]))
+        got, _ = model.predict_image(damaged, mask, K)
+    want, _ = model.predict_image(zeroed, mask, K)
+    for k in LABELS:
+        np.testing.assert_array_equal(got[k], want[k])
+    index = nn.ExactNearestNeighbour(nn.depth_features(np.stack([depth, zeroed])))
+    nearest, _ = index.query(nn.depth_features(damaged[None]))
+    assert nearest.tolist() == [1]
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_mean_object_without_points_is_one_line(tiny_root, tmp_path, icp_objects, workers):
+    """A mean-object split whose images hold no usable object pixel (mask all background, or NaN
+    depth): a ValueError traceback from the model (workers 1) or 'a worker process died' (pool)."""
+    import h5py
+
+    model_dir = tmp_path / "mean"
+    shutil.copytree(icp_objects[0], model_dir)
+    for shard in model_dir.glob("shard-*.h5"):
+        with h5py.File(shard, "r+") as f:
+            f["mask"][...] = 0
+    res = _invoke(["icp", "--train", tiny_root / ICP_CLASS / "train", "--test", tiny_root / ICP_CLASS / "test",
+                   "--mean-object", model_dir, "--out", tmp_path / "p.h5", "--limit", 2, "--workers", workers, "-q"])
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1 and lines[0].startswith("artdata: error: "), res.output
+    assert str(model_dir) in lines[0] and "no object pixel" in lines[0], lines[0]
+
+
+def test_icp_workers_past_int64_is_not_a_traceback(tiny_root, tmp_path, icp_objects):
+    """--workers 2**70: the pool is capped at the task count, but the value itself went into the
+    file's attributes, and h5py raised a TypeError (a traceback) after the whole run."""
+    import h5py
+
+    out = tmp_path / "p.h5"
+    res = _invoke(["icp", "--train", tiny_root / ICP_CLASS / "train", "--test", tiny_root / ICP_CLASS / "test",
+                   "--mean-object", icp_objects[0], "--out", out, "--limit", 1, "--workers", 2**70, "-q"])
+    assert res.exit_code == 0, res.output
+    with h5py.File(out, "r") as f:
+        assert int(f.attrs["workers"]) == 1  # the processes that ran: one task

@@ -244,6 +244,8 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
        for name, field, value in [("nan-object-pose", "object_pose", np.nan), ("far-object-pose", "object_pose", 1e30),
                                   ("nan-object-yaw", "object_yaw", np.nan), ("negative-object-index", "object_index", -1)]},
     "plan:missing-data": (lambda e: ["plan", "--data", e.tmp / "nope", "--index", 0, "-q"], None),
+    "plan:seed-negative": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--model", "mdn-small", "--simulate",
+                                      "--closed-loop", "--seed", -5, "-q"], "--seed must be >= 0"),
     # show
     "show:dpi-100000": (lambda e: ["show", e.split(), "--out", "g.png", "--dpi", 100000, "-q"], "figure"),
     "show:dpi-zero": (lambda e: ["show", e.split(), "--out", "g.png", "--dpi", 0, "-q"], "--dpi"),

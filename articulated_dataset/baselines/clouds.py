@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..camera import backproject
+from .common import usable_depth
 
 
 #: A pixel's normal is used only if its 4 neighbours are within this depth of it (m).
@@ -80,7 +81,8 @@ def rotation_angle_rad(rot: np.ndarray) -> np.ndarray:
 
 def organised_cloud(depth_m: np.ndarray, K: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Camera-frame points ``(H, W, 3)`` of the ``valid`` pixels (0 elsewhere), via :func:`backproject`."""
-    valid = np.asarray(valid, bool) & (np.asarray(depth_m) > 0)
+    depth_m = usable_depth(depth_m)
+    valid = np.asarray(valid, bool) & (depth_m > 0)
     grid = np.zeros(depth_m.shape + (3,))
     v, u = np.nonzero(valid)
     grid[v, u] = backproject(depth_m, K, valid)  # same row-major pixel order as np.nonzero
@@ -90,7 +92,8 @@ def organised_cloud(depth_m: np.ndarray, K: np.ndarray, valid: np.ndarray) -> np
 def cloud_with_normals(depth_m: np.ndarray, K: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Points ``(N, 3)`` and unit normals ``(N, 3)`` (towards the camera) of the pixels with a
     reliable normal (see the module docstring), in row-major pixel order."""
-    valid = np.asarray(valid, bool) & (np.asarray(depth_m) > 0)
+    depth_m = usable_depth(depth_m)
+    valid = np.asarray(valid, bool) & (depth_m > 0)
     p = organised_cloud(depth_m, K, valid)
     z = np.asarray(depth_m, np.float64)
     ok = np.zeros_like(valid)

@@ -105,6 +105,19 @@ def read_train_labels(split: SplitInfo, names=PREDICTED_FIELDS) -> dict:
     return out
 
 
+#: Depths (m) beyond this are no sensor's return: read as no return, like NaN, infinite and
+#: negative values (a damaged image; 'artdata verify' reports it).  Keeps float32 features finite.
+MAX_RETURN_DEPTH_M = 1e3
+
+
+def usable_depth(depth_m: np.ndarray) -> np.ndarray:
+    """``depth_m`` with every NaN, infinite, negative or absurd (> :data:`MAX_RETURN_DEPTH_M`) value
+    set to 0 (no return), as the dense model reads such pixels; the same dtype."""
+    d = np.asarray(depth_m)
+    ok = np.isfinite(d) & (d >= 0) & (d <= MAX_RETURN_DEPTH_M)
+    return d if ok.all() else np.where(ok, d, 0).astype(d.dtype)
+
+
 @dataclass
 class BaselineResult:
     """Predictions of one baseline on one class's test split, plus run facts for the file's attrs."""

@@ -148,8 +148,9 @@ def predict(train_dir, test_dir, *, mean_dir=None, workers: int = 1, progress: b
         t0 = time.perf_counter()
         bar = tqdm(total=n_total, unit="img", desc=f"ICP {test.class_name}", disable=not progress, dynamic_ncols=True)
         try:
+            # built here first in any case: a damaged mean object is one line, not a worker that died
+            _init_worker(str(mean.path), yaw_range)
             if workers <= 1 or len(tasks) <= 1:
-                _init_worker(str(mean.path), yaw_range)
                 for task in tasks:
                     off, arrays = _run_task(task)
                     results[off] = arrays
@@ -167,11 +168,13 @@ def predict(train_dir, test_dir, *, mean_dir=None, workers: int = 1, progress: b
         preds = {"sample_id": sample_id}
         for k in ("axis_pose", "q", "geometry", "part_offset"):
             preds[k] = merged[k].astype(np.float32)
+        used = 1 if workers <= 1 or len(tasks) <= 1 else min(workers, len(tasks))  # processes that ran (not --workers:
+        # a number past int64 cannot be an HDF5 attribute)
         log.info("ICP: %s, %d test images in %.1f s (%.1f ms/image, %d workers)", test.class_name, n_total, seconds,
-                 1e3 * seconds / max(n_total, 1), workers)
+                 1e3 * seconds / max(n_total, 1), used)
         attrs = {"mean_object_split": str(mean.path), "n_yaw_hypotheses": N_YAW_HYPOTHESES,
                  "stages": [(st.points, st.iterations, st.keep) for st in STAGES], "trim_fraction": TRIM_FRACTION,
-                 "inlier_distance_m": INLIER_DISTANCE_M, "seconds": round(seconds, 3), "workers": workers}
+                 "inlier_distance_m": INLIER_DISTANCE_M, "seconds": round(seconds, 3), "workers": used}
         extra = {"score": merged["score"], "model_index": merged["model_index"], "seconds": seconds}
         return BaselineResult(METHOD, test.class_name, preds, attrs, extra)
     finally:

@@ -11,7 +11,7 @@ import numpy as np
 from ..camera import backproject
 from ..format import MASK_BACKGROUND
 from ..rotations import matrix_to_quat
-from .common import SplitInfo
+from .common import SplitInfo, usable_depth
 from .clouds import cloud_with_normals, kabsch, rotation_about_axis, rotation_angle_rad, stride_subsample
 
 
@@ -106,11 +106,17 @@ class MeanObjectModel:
         """Build the model from a mean-object split folder (all its images)."""
         from ..benchmark.metrics import quat_axis_z
 
+        from ..errors import UserError
+
         clouds, normals = [], []
         for sh in mean.shards:
             K = sh.K
             for d, mk in zip(sh.read("depth"), sh.read("mask")):
                 p, n = cloud_with_normals(d, K, mk != MASK_BACKGROUND)
+                if len(p) == 0:  # (else a ValueError from __init__: a traceback)
+                    raise UserError(f"mean-object split {mean.path}: image {len(clouds)} has no object pixel with a "
+                                    f"usable depth and normal (a damaged mean object? 'artdata verify'; render it again "
+                                    f"with 'artdata generate --class C --mean')")
                 idx = stride_subsample(np.arange(len(p)), model_points)
                 clouds.append(p[idx])
                 normals.append(n[idx])
@@ -219,8 +225,9 @@ class MeanObjectModel:
         }
 
     def predict_image(self, depth_m: np.ndarray, mask: np.ndarray, K: np.ndarray) -> tuple[dict, IcpFit | None]:
-        """Labels for one depth image; an image without object pixels gets the mean model's first image."""
-        obs = backproject(depth_m, K, mask != MASK_BACKGROUND)
+        """Labels for one depth image; an image without object pixels gets the mean model's first image.
+        NaN, infinite, negative and absurd depths are no return (:func:`~.common.usable_depth`)."""
+        obs = backproject(usable_depth(depth_m), K, mask != MASK_BACKGROUND)
         if len(obs) < MIN_OBSERVATION_POINTS:
             fit = None
             labels = {k: self.labels[k][0].astype(np.float64) for k in ("axis_pose", "q", "geometry", "part_offset")}

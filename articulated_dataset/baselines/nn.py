@@ -44,7 +44,7 @@ import numpy as np
 
 from ..errors import UserError
 from ..executors import process_map
-from .common import BaselineResult, check_compatible, open_split_checked, read_train_labels
+from .common import BaselineResult, check_compatible, open_split_checked, read_train_labels, usable_depth
 
 log = logging.getLogger(__name__)
 
@@ -73,8 +73,9 @@ PAIR_CHUNK = 8192
 # --------------------------------------------------------------------------------------
 
 def normalize_depth(depth_m: np.ndarray, normalization: str = DEFAULT_NORMALIZATION) -> np.ndarray:
-    """Normalised depth images ``(N, H, W)`` float64 (see the module docstring)."""
-    d = np.asarray(depth_m, np.float64)
+    """Normalised depth images ``(N, H, W)`` float64 (see the module docstring); NaN, infinite,
+    negative and absurd depths are no return (:func:`~.common.usable_depth`)."""
+    d = np.asarray(usable_depth(depth_m), np.float64)
     if d.ndim == 2:
         d = d[None]
     if normalization == "metric":

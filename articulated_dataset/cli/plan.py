@@ -57,6 +57,8 @@ def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, no_to
         raise UserError("--closed-loop needs --model (it re-estimates from new images) and --simulate (the scene it looks at)")
     if no_touch and not closed_loop:
         raise UserError("--no-touch applies to --closed-loop (the first grasp's touch)")
+    if seed < 0:  # (numpy's SeedSequence raised a ValueError after the plan was printed: a traceback)
+        raise UserError(f"--seed must be >= 0, got {seed}")
     if out_path:
         from ..models.mdn.data import resolve_split_dir
         from ..safeio import check_can_create, check_outputs_distinct
