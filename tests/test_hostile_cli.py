@@ -233,6 +233,8 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
     "plan:class-folder": (lambda e: ["plan", "--data", e.tiny / "cabinet", "--index", 0, "-q"], "splits"),
     "plan:out-in-proc": (lambda e: ["plan", "--data", e.split(), "--index", 0, "-q", "--out", "/proc/artdata-plan.json"],
                          "cannot write"),
+    "plan:out-stdout": (lambda e: ["plan", "--data", e.split(), "--index", 0, "-q", "--out", "-"],
+                        "give a file name"),  # it wrote a file named '-' where '-' means standard output elsewhere
     "plan:out-dev-null": (lambda e: ["plan", "--data", e.split(), "--index", 0, "-q", "--out", "/dev/null"],
                           "not a regular file"),  # refused before the plan is made and printed, not after
     "plan:out-under-a-file": (lambda e: ["plan", "--data", e.split(), "--index", 0, "-q", "--out",

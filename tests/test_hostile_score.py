@@ -322,7 +322,7 @@ def _truth_missing(c: Case):
 
 
 def _truth_is_file(c: Case):
-    return ["score", c.preds(), "--truth", c.preds()], ["no such directory"]
+    return ["score", c.preds(), "--truth", c.preds()], ["expected a directory", "got a file"]
 
 
 def _truth_empty(c: Case):

@@ -59,6 +59,8 @@ def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, no_to
         raise UserError("--no-touch applies to --closed-loop (the first grasp's touch)")
     if seed < 0:  # (numpy's SeedSequence raised a ValueError after the plan was printed: a traceback)
         raise UserError(f"--seed must be >= 0, got {seed}")
+    if out_path == "-":  # other commands' '-' is standard output, where plan prints its summary
+        raise UserError("--out -: plan writes its record to a file (its summary is printed); give a file name")
     if out_path:
         from ..models.mdn.data import resolve_split_dir
         from ..safeio import check_can_create, check_outputs_distinct

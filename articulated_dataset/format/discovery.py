@@ -23,7 +23,7 @@ def find_split_dirs(path: str | Path, *, marker: str = MANIFEST_NAME, what: str 
     """
     path = Path(path)
     if not path.is_dir():
-        if unlisted_shards and path.exists():
+        if path.exists():  # (a predictions file or a shard given where a split folder is expected)
             raise UserError(f"expected a directory (split, class or output root), got a file: {path}")
         raise UserError(f"no such directory: {path}")
 
