@@ -32,6 +32,11 @@ def _initialise(value):
     _STATE["initialised"] = value
 
 
+def _initialise_any(*args):
+    """An initializer of any signature (ICP's also builds its model in the main process first)."""
+    _STATE["initialised"] = args
+
+
 def _slow_square(x):
     """Later tasks finish first, so unordered results come in another order than the tasks."""
     time.sleep(0.05 * (4 - x % 4))
@@ -137,7 +142,7 @@ def test_icp_workers(monkeypatch, tmp_path):
     monkeypatch.setattr(icp, "ensure_mean_object", lambda train, mean, workers=1: tmp_path / "mean")
     monkeypatch.setattr(icp, "open_split_checked", lambda path, what: _FakeSplit(Path(path), 3))
     monkeypatch.setattr(icp, "check_compatible", lambda a, b: None)
-    monkeypatch.setattr(icp, "_init_worker", _initialise)
+    monkeypatch.setattr(icp, "_init_worker", _initialise_any)
     monkeypatch.setattr(icp, "_run_task", _die)
     with deadline(), pytest.raises(UserError, match="worker process died"):
         icp.predict(tmp_path / "train", tmp_path / "test", workers=2)
