@@ -194,20 +194,26 @@ def remove_created_dirs(created: list[Path]) -> None:
             return
 
 
+def _refuse_special_file(path: Path) -> None:
+    """A :class:`WriteError` where ``path`` exists and is neither a regular file nor a folder (a
+    device, FIFO or socket: writing would replace it)."""
+    import stat
+
+    try:
+        mode = os.stat(path).st_mode  # follows a link: /dev/stdout -> /proc/self/fd/1 -> a pipe
+    except OSError:
+        return
+    if not stat.S_ISREG(mode) and not stat.S_ISDIR(mode):
+        raise WriteError(f"cannot write {path}: not a regular file (a device, FIFO or socket would be replaced); "
+                         "use '-' for standard output where offered", str(path), errno.EINVAL)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary sibling path to write; on success it is fsync'ed and renamed to
     ``path``.  On any failure the temporary file is removed and ``path`` is untouched."""
-    import stat
-
     path = Path(path)
-    try:
-        mode = os.stat(path).st_mode  # follows a link: /dev/stdout -> /proc/self/fd/1 -> a pipe
-    except OSError:
-        mode = None
-    if mode is not None and not stat.S_ISREG(mode) and not stat.S_ISDIR(mode):
-        raise WriteError(f"cannot write {path}: not a regular file (a device, FIFO or socket would be replaced); "
-                         "use '-' for standard output where offered", str(path), errno.EINVAL)
+    _refuse_special_file(path)
     tmp = temporary_sibling(path)
     try:
         yield tmp
@@ -315,18 +321,10 @@ def check_can_create(path: str | Path) -> None:
     could not be written (read-only filesystem, no permission, a parent that is a file, a
     folder at ``path``).  Creates nothing that stays (a probe file in the nearest existing
     parent, removed at once)."""
-    import stat
-
     path = Path(path)
     if path.is_dir():
         raise WriteError(f"cannot write {path}: is a directory", str(path), errno.EISDIR)
-    try:
-        mode = os.stat(path).st_mode
-    except OSError:
-        mode = None
-    if mode is not None and not stat.S_ISREG(mode):  # as atomic_path refuses it, but before the work
-        raise WriteError(f"cannot write {path}: not a regular file (a device, FIFO or socket would be replaced); "
-                         "use '-' for standard output where offered", str(path), errno.EINVAL)
+    _refuse_special_file(path)  # as atomic_path refuses it, but before the work
     parent = _existing_ancestor(path.parent)
     if not parent.is_dir():
         raise WriteError(f"cannot write {path}: {parent} is not a directory", str(path), errno.ENOTDIR)

@@ -195,3 +195,19 @@ def generated_split(root: Path, class_name: str, n_objects: int, seed: int) -> P
                                   "--seed", str(seed), "--out", str(root), "-q"])
     assert r.exit_code == 0, r.output
     return Path(root) / class_name / "test"
+
+
+def split_copy_with(src: Path, dst: Path, field: str, value) -> Path:
+    """A copy at ``dst`` of the split folder ``src`` whose shard dataset ``field`` holds ``value``
+    in every image (a damaged split, as a hand-edited file would be); ``dst``."""
+    import shutil
+
+    import h5py
+
+    shutil.copytree(src, dst)
+    for shard in Path(dst).glob("shard-*.h5"):
+        with h5py.File(shard, "r+") as f:
+            a = f[field][()]
+            a[...] = value
+            f[field][...] = a
+    return Path(dst)

@@ -16,6 +16,7 @@ from articulated_dataset.baselines.common import open_split_checked
 from articulated_dataset.cli import main
 from articulated_dataset.generation import GenerationConfig, generate_split
 from articulated_dataset.registry import get_class
+from helpers_core import split_copy_with
 
 pytest.importorskip("scipy")
 
@@ -337,16 +338,7 @@ def test_run_baseline_refuses_before_it_runs(tmp_path):
 
 
 def _damaged_train(tiny_root, tmp_path, field, value):
-    import h5py
-
-    train = tmp_path / "data" / "cabinet" / "train"
-    shutil.copytree(tiny_root / "cabinet" / "train", train)
-    for shard in train.glob("shard-*.h5"):
-        with h5py.File(shard, "r+") as f:
-            a = f[field][()]
-            a[...] = value
-            f[field][...] = a
-    return train
+    return split_copy_with(tiny_root / "cabinet" / "train", tmp_path / "data" / "cabinet" / "train", field, value)
 
 
 @pytest.mark.parametrize("method", ["mean", "nn"])

@@ -28,6 +28,7 @@ from PIL import Image
 from articulated_dataset.cli import EXIT_ENVIRONMENT_ERROR, EXIT_USER_ERROR, main
 from articulated_dataset.registry import REVOLUTE
 from articulated_dataset.format import open_split
+from helpers_core import split_copy_with
 from helpers_real import write_capture
 
 ERROR_PREFIX = "artdata: error: "
@@ -394,16 +395,7 @@ def _nan_axis_copy(e: Env) -> Path:
 
 def _label_copy(e: Env, field: str, value) -> Path:
     """A copy of the cabinet test split whose label ``field`` is ``value`` in every image."""
-    import h5py
-
-    dst = e.tmp / "damaged" / "cabinet" / "test"
-    shutil.copytree(e.tiny / "cabinet" / "test", dst)
-    for shard in dst.glob("shard-*.h5"):
-        with h5py.File(shard, "r+") as f:
-            a = f[field][()]
-            a[...] = value
-            f[field][...] = a
-    return dst
+    return split_copy_with(e.tiny / "cabinet" / "test", e.tmp / "damaged" / "cabinet" / "test", field, value)
 
 
 def _cloud(e: Env, body: bytes) -> list:

@@ -81,20 +81,18 @@ def check_compatible(reference: SplitInfo, other: SplitInfo, *, same_image_size:
         )
 
 
-
 def read_train_labels(split: SplitInfo, names=PREDICTED_FIELDS) -> dict:
     """The label fields ``names`` of a training split (storage order), every value checked: a NaN,
     infinite or absurd value (beyond the predictions format's bound) or a zero-length axis
     quaternion is a one-line :class:`UserError` naming the split.  (The baselines copy or
     average these labels: the Mean's rotation mean failed with a traceback, and otherwise the
     predictions writer refused the result naming --out, not the damaged input.)"""
-    from ..benchmark.predictions import MAX_ABS_VALUE
+    from ..benchmark.predictions import beyond_bounds
 
     out = {}
     for name in names:
         a = np.asarray(split.read(name))
-        flat = a.reshape(len(a), -1).astype(np.float64)
-        bad = ~(np.isfinite(flat) & (np.abs(flat) <= MAX_ABS_VALUE)).all(axis=1)
+        bad = beyond_bounds(a.reshape(len(a), -1), nan_allowed=False).any(axis=1)
         if name == "axis_pose" and a.ndim == 3:
             bad |= ~(np.linalg.norm(a[..., 3:].astype(np.float64), axis=-1) > 0).all(axis=1)
         if bad.any():

@@ -147,16 +147,18 @@ def predict(train_dir, test_dir, *, mean_dir=None, workers: int = 1, progress: b
         results: dict[int, dict] = {}
         t0 = time.perf_counter()
         bar = tqdm(total=n_total, unit="img", desc=f"ICP {test.class_name}", disable=not progress, dynamic_ncols=True)
+        # worker processes that run (not --workers: a number past int64 cannot be an HDF5 attribute)
+        processes = min(workers, len(tasks)) if workers > 1 and len(tasks) > 1 else 1
         try:
             # built here first in any case: a damaged mean object is one line, not a worker that died
             _init_worker(str(mean.path), yaw_range)
-            if workers <= 1 or len(tasks) <= 1:
+            if processes == 1:
                 for task in tasks:
                     off, arrays = _run_task(task)
                     results[off] = arrays
                     bar.update(len(arrays["q"]))
             else:
-                for off, arrays in process_map(_run_task, tasks, min(workers, len(tasks)), initializer=_init_worker,
+                for off, arrays in process_map(_run_task, tasks, processes, initializer=_init_worker,
                                                initargs=(str(mean.path), yaw_range)):
                     results[off] = arrays
                     bar.update(len(arrays["q"]))
@@ -168,13 +170,11 @@ def predict(train_dir, test_dir, *, mean_dir=None, workers: int = 1, progress: b
         preds = {"sample_id": sample_id}
         for k in ("axis_pose", "q", "geometry", "part_offset"):
             preds[k] = merged[k].astype(np.float32)
-        used = 1 if workers <= 1 or len(tasks) <= 1 else min(workers, len(tasks))  # processes that ran (not --workers:
-        # a number past int64 cannot be an HDF5 attribute)
         log.info("ICP: %s, %d test images in %.1f s (%.1f ms/image, %d workers)", test.class_name, n_total, seconds,
-                 1e3 * seconds / max(n_total, 1), used)
+                 1e3 * seconds / max(n_total, 1), processes)
         attrs = {"mean_object_split": str(mean.path), "n_yaw_hypotheses": N_YAW_HYPOTHESES,
                  "stages": [(st.points, st.iterations, st.keep) for st in STAGES], "trim_fraction": TRIM_FRACTION,
-                 "inlier_distance_m": INLIER_DISTANCE_M, "seconds": round(seconds, 3), "workers": used}
+                 "inlier_distance_m": INLIER_DISTANCE_M, "seconds": round(seconds, 3), "workers": processes}
         extra = {"score": merged["score"], "model_index": merged["model_index"], "seconds": seconds}
         return BaselineResult(METHOD, test.class_name, preds, attrs, extra)
     finally:

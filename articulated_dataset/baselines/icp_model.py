@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import backproject
+from ..errors import UserError
 from ..format import MASK_BACKGROUND
 from ..rotations import matrix_to_quat
 from .common import SplitInfo, usable_depth
@@ -105,8 +106,6 @@ class MeanObjectModel:
                    **kwargs) -> "MeanObjectModel":
         """Build the model from a mean-object split folder (all its images)."""
         from ..benchmark.metrics import quat_axis_z
-
-        from ..errors import UserError
 
         clouds, normals = [], []
         for sh in mean.shards:

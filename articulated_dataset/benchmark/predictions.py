@@ -32,7 +32,6 @@ from __future__ import annotations
 import json
 import logging
 import re
-import stat
 from pathlib import Path
 
 import h5py
@@ -77,6 +76,15 @@ _CLASS_GROUP_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,31}")
 MAX_SAMPLE_ID = np.iinfo(np.int64).max
 #: Fraction of the available memory the datasets of one predictions file may take once read.
 MAX_MEMORY_FRACTION = 0.5
+
+
+def beyond_bounds(a: np.ndarray, *, nan_allowed: bool) -> np.ndarray:
+    """Elementwise: the values of ``a`` that no label or prediction may hold: infinite, beyond
+    +-:data:`MAX_ABS_VALUE`, or NaN unless ``nan_allowed`` (a truth label that is not given)."""
+    a = np.asarray(a, np.float64)
+    with np.errstate(invalid="ignore"):
+        out = np.isinf(a) | (np.abs(a) > MAX_ABS_VALUE)
+    return out if nan_allowed else out | np.isnan(a)
 
 
 def _shape_str(shape) -> str:
@@ -349,13 +357,7 @@ def read_predictions(path: str | Path) -> tuple[dict, dict[str, dict[str, np.nda
     regular files, files whose data would not fit in memory and damaged files.
     """
     path = Path(path)
-    try:
-        mode = path.stat().st_mode
-    except OSError:
-        mode = None  # missing or unreadable: open_h5 names the problem
-    if mode is not None and not stat.S_ISREG(mode) and not stat.S_ISDIR(mode):
-        raise DataFormatError(f"{path}: not a regular file (a device, pipe or socket; refused)")
-    with open_h5(path) as f:
+    with open_h5(path) as f:  # (which refuses a missing file, a folder, a device, pipe or socket)
         attrs = {k: _read_attr(f.attrs, k, str(path)) for k in f.attrs}
         if "format_version" not in attrs:
             raise DataFormatError(f"{path}: not a predictions file (no format_version attribute)")

@@ -67,13 +67,12 @@ def _check_truth_values(split_dir: Path, arrays: dict) -> None:
     may hold (:func:`.predictions.validate_class`): finite, within +-MAX_ABS_VALUE and with
     quaternions of non-zero length.  An infinite, absurd or zero-length label is a damaged split
     (``artdata verify`` reports it): a DataFormatError, never a score of ``inf`` or 10^40 cm."""
-    from .predictions import MAX_ABS_VALUE, MIN_QUATERNION_NORM
+    from .predictions import MAX_ABS_VALUE, MIN_QUATERNION_NORM, beyond_bounds
 
     for name, a in arrays.items():
         if name == "sample_id":
             continue
-        with np.errstate(invalid="ignore"):
-            bad = np.isinf(a) | (np.abs(a) > MAX_ABS_VALUE)
+        bad = beyond_bounds(a, nan_allowed=True)
         if bad.any():
             first = tuple(int(i) for i in np.argwhere(bad)[0])
             raise DataFormatError(f"{split_dir}: truth label {name!r} holds {int(bad.sum())} infinite or absurd values "

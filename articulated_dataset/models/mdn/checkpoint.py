@@ -13,7 +13,7 @@ import numpy as np
 
 from ...errors import UserError
 from ...format import Split
-from .config import TrainConfig, is_int
+from .config import TrainConfig, is_int, is_real_number
 
 
 CHECKPOINT_FORMAT = "artdata-mdn"
@@ -94,14 +94,12 @@ def _check_group_numbers(group: dict) -> None:
     """A restored parameter group's numbers must be usable: finite, rates and decays >= 0,
     ``eps`` > 0 and ``betas`` two numbers in [0, 1) (else the first step turns every weight NaN,
     or fails inside the optimizer with a TypeError)."""
-    import math
-
     def number(v) -> bool:
         return isinstance(v, (int, float)) and not isinstance(v, bool)
 
     for k, v in group.items():
-        if k != "params" and number(v) and not math.isfinite(v):
-            raise ValueError(f"parameter group value {k!r} is {v}")
+        if k != "params" and number(v) and not is_real_number(v):  # (an int past a float too: 10**400)
+            raise ValueError(f"parameter group value {k!r} is {str(v)[:40]}")
     for k in NON_NEGATIVE_GROUP_NUMBERS:
         if number(group.get(k)) and group[k] < 0:
             raise ValueError(f"parameter group value {k!r} is negative ({group[k]})")
@@ -302,7 +300,7 @@ def state_problem(state: dict) -> str | None:
 
     if not all(isinstance(k, str) and isinstance(v, torch.Tensor) and v.layout == torch.strided for k, v in state.items()):
         return "must map parameter names to (dense) tensors"
-    if not all(v.device.type == "cpu" for v in state.values()):  # read with map_location="cpu": a meta tensor stays one
+    if any(v.is_meta for v in state.values()):  # (map_location="cpu" leaves a meta tensor one; a live GPU network's are fine)
         return "holds tensors without values (meta tensors)"
     whole = [k for k, v in state.items() if not v.is_floating_point() and not k.endswith(BATCH_COUNTER_SUFFIX)]
     if whole:

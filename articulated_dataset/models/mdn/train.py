@@ -35,7 +35,7 @@ import numpy as np
 
 from ...errors import UserError, check_memory
 from .checkpoint import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, atomic_torch_save, load_checkpoint,
-                         prepare_training_output, restore_training_state)
+                         prepare_training_output, restore_training_state, state_problem)
 from .config import TrainConfig, check_per_cpu
 from .data import (active_columns, anchored_columns, expand_active, load_split, resolve_split_dir, shift_anchored,
                    split_by_object, split_identity)
@@ -292,7 +292,7 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
             record.update(evaluate(model, planes_va, scalars_va, y_va, active, stats, names, input_config, dev, 2 * batch, amp))
         record["seconds"] = time.perf_counter() - t0
         # never replace the last checkpoint with diverged weights (no reader loads them, --resume included)
-        if not all(bool(torch.isfinite(t).all()) for t in model.state_dict().values() if t.is_floating_point()):
+        if state_problem(model.state_dict()) is not None:  # as the dense trainer checks its weights
             raise UserError(f"training diverged in epoch {epoch + 1} (non-finite weights); {out} keeps the last "
                             f"checkpoint; lower --lr")
         history.append(record)
