@@ -3,6 +3,7 @@ its metadata (dependencies, version, citation, dataset card) says what is true."
 
 import ast
 import re
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -32,9 +33,26 @@ def test_ci_runs_the_readme_test_command():
     assert "artdata generate" in blocks[0] and "scripts/setup.sh" in blocks[0]
 
 
+def source_copy(dest: Path) -> Path:
+    """The checkout's files (tracked, and untracked ones git does not ignore) copied to ``dest``:
+    the package is built there, so a build never leaves a ``build/`` folder in the checkout (one
+    there shadows the ``build`` module for ``python -m build`` run from the checkout)."""
+    listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=ROOT,
+                            capture_output=True, check=True).stdout.decode().split("\0")
+    for rel in filter(None, listed):
+        src = ROOT / rel
+        if src.is_file():
+            (dest / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, dest / rel)
+    return dest
+
+
 def test_wheel_ships_generators_and_templates(tmp_path):
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp_path), str(ROOT)],
-                   check=True, capture_output=True)
+    before = sorted(p.name for p in ROOT.iterdir())
+    src = source_copy(tmp_path / "src")
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp_path), str(src)],
+                   check=True, capture_output=True, cwd=tmp_path)
+    assert sorted(p.name for p in ROOT.iterdir()) == before  # built in the copy: no build/ in the checkout
     wheel = next(tmp_path.glob("articulated_dataset-*.whl"))
     names = set(zipfile.ZipFile(wheel).namelist())
     for c in all_classes():
@@ -70,8 +88,9 @@ def test_every_subpackage_is_packaged():
 def test_sdist_ships_generators_templates_and_weights(tmp_path):
     """The sdist (what `python -m build` builds the wheel from in .ci/run) carries the templates, the
     generators, every tracked weight file and every subpackage."""
-    res = subprocess.run([sys.executable, "-m", "build", "--sdist", "--no-isolation", "--outdir", str(tmp_path), str(ROOT)],
-                         capture_output=True, text=True)
+    src = source_copy(tmp_path / "src")
+    res = subprocess.run([sys.executable, "-m", "build", "--sdist", "--no-isolation", "--outdir", str(tmp_path), str(src)],
+                         capture_output=True, text=True, cwd=tmp_path)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
     import tarfile
 
