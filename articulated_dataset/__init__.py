@@ -22,3 +22,12 @@ def estimate(depth_m, K, class_name, mask=None, model="dense", mirror=True, prec
     from .models.estimation import estimate as _estimate
 
     return _estimate(depth_m, K, class_name, mask=mask, model=model, mirror=mirror, precision=precision)
+
+
+def load_model(name, class_name=None):
+    """A shipped model (``"dense"``, ``"dense-kinect2"``, ``"mdn-small"``, with the class) or a
+    checkpoint file, ready to use: ``.estimate(depth_m, K)`` one depth image, ``.predict(split)``
+    a split.  See :func:`articulated_dataset.models.load.load_model` (imports torch on first use)."""
+    from .models.load import load_model as _load_model
+
+    return _load_model(name, class_name)

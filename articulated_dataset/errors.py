@@ -33,6 +33,9 @@ def check_memory(need_bytes: float, what: str) -> None:
 
 #: How to install scipy, the optional dependency of ICP, the handle close-up and mixture scoring.
 SCIPY_INSTALL = 'pip install scipy (or pip install -e ".[baselines]" from the repository checkout)'
+#: How to install PyTorch's CPU build (a plain 'pip install torch' downloads GBs of CUDA libraries).
+TORCH_INSTALL = ("pip install torch --index-url https://download.pytorch.org/whl/cpu (PyTorch's CPU build; "
+                 "or bash scripts/setup.sh from the repository checkout)")
 
 
 def import_optional(module: str, needed_by: str, install: str = SCIPY_INSTALL, *, user_error: bool = True):

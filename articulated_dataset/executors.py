@@ -280,6 +280,61 @@ CPUS_PER_TASK = 1
 #: split of millions of shards from being submitted at once).
 DEFAULT_TASKS_IN_FLIGHT = 1024
 RAY_INSTALL_HELP = "--executor ray needs Ray: pip install 'articulated_dataset[ray]' (or pip install 'ray>=2.9')"
+#: Seconds to wait for a TCP connection to a Ray cluster's address before ``ray.init`` (which
+#: retries an address where nothing listens without end).
+RAY_CONNECT_TIMEOUT_S = 10.0
+#: HTTP/2's client connection preface and an empty SETTINGS frame (RFC 9113, 3.4 and 6.5): a
+#: gRPC server (Ray's GCS, the Ray Client server) answers with a SETTINGS frame of its own.
+HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n"
+HTTP2_EMPTY_SETTINGS = b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
+#: An HTTP/2 frame header's length, the index of its type byte, and the SETTINGS type.
+HTTP2_FRAME_HEADER_BYTES = 9
+HTTP2_FRAME_TYPE_BYTE = 3
+HTTP2_SETTINGS_FRAME = 0x04
+#: Prefix of a Ray Client address (``ray://HOST:PORT``).
+RAY_CLIENT_SCHEME = "ray://"
+
+
+def _host_port(address: str) -> tuple[str, int] | None:
+    """``(host, port)`` of a Ray address ``[ray://]HOST:PORT`` (IPv6 hosts in brackets); None for
+    ``auto``/``local`` or anything else Ray resolves itself."""
+    rest = address[len(RAY_CLIENT_SCHEME):] if address.startswith(RAY_CLIENT_SCHEME) else address
+    host, sep, port = rest.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        return None
+    return host.strip("[]"), int(port)
+
+
+def check_reachable(address: str | None, timeout_s: float = RAY_CONNECT_TIMEOUT_S) -> None:
+    """Refuse (one line) a Ray address ``[ray://]HOST:PORT`` where no TCP connection opens within
+    ``timeout_s``, or where what answers is not a gRPC server (a Ray head node's GCS and a Ray
+    Client server both are): ``ray.init`` would retry the first forever and wait on the second
+    without end.  The check sends HTTP/2's client preface with an empty SETTINGS frame and
+    expects a frame of type SETTINGS back, as every HTTP/2 server sends first."""
+    import socket
+
+    target = _host_port(address) if address else None
+    if target is None:
+        return
+    try:
+        conn = socket.create_connection(target, timeout=timeout_s)
+    except (OSError, ValueError) as exc:  # refused, unreachable, timed out, unknown host, port out of range
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc) or type(exc).__name__
+        raise UserError(f"cannot connect to the Ray cluster at {address} (waited up to {timeout_s:g} s): {reason}") from None
+    head = b""
+    with conn:
+        try:
+            conn.sendall(HTTP2_PREFACE + HTTP2_EMPTY_SETTINGS)
+            while len(head) < HTTP2_FRAME_HEADER_BYTES:
+                chunk = conn.recv(HTTP2_FRAME_HEADER_BYTES - len(head))
+                if not chunk:
+                    break
+                head += chunk
+        except OSError:  # reset, or no answer within timeout_s: not a gRPC server
+            pass
+    if len(head) < HTTP2_FRAME_HEADER_BYTES or head[HTTP2_FRAME_TYPE_BYTE] != HTTP2_SETTINGS_FRAME:
+        raise UserError(f"{address} answers, but not as a Ray cluster (no gRPC server there); is it the head node's "
+                        f"address and port (ray start --head prints it)?")
 
 
 def _import_ray():
@@ -302,16 +357,19 @@ def _worker_env() -> dict[str, str]:
     return env
 
 
-def _ray_task(fn: Callable, task, driver_version: str):
-    """Body of every Ray task: refuse a node whose package differs from the driver's, then run."""
+def _ray_task(fn: Callable, task, driver_version: str, driver_mujoco: str | None = None):
+    """Body of every Ray task: refuse a node whose package or MuJoCo release differs from the
+    driver's (the manifest records the driver's MuJoCo as the one that rendered the split), then run."""
     from . import __version__
+    from .mujoco_support import installed_mujoco_version
 
-    if __version__ != driver_version:
+    node_mujoco = installed_mujoco_version()
+    if __version__ != driver_version or (driver_mujoco is not None and node_mujoco != driver_mujoco):
         import socket
 
         raise UserError(
-            f"Ray node {socket.gethostname()} has articulated_dataset {__version__}, the driver {driver_version}; "
-            "install the same version on every node"
+            f"Ray node {socket.gethostname()} has articulated_dataset {__version__} and MuJoCo {node_mujoco}, "
+            f"the driver {driver_version} and MuJoCo {driver_mujoco}; install the same versions on every node"
         )
     return fn(task)
 
@@ -376,6 +434,7 @@ class RayExecutor:
         kwargs = {"include_dashboard": False, "log_to_driver": False, "runtime_env": {"env_vars": _worker_env()}}
         if self.address is None and self.workers is not None and not os.environ.get("RAY_ADDRESS"):
             kwargs["num_cpus"] = self.workers
+        check_reachable(self.address or os.environ.get("RAY_ADDRESS"))
         try:
             ray.init(address=self.address, **kwargs)
         except (ConnectionError, RuntimeError, ValueError) as exc:
@@ -385,6 +444,7 @@ class RayExecutor:
 
     def map_unordered(self, fn: Callable, tasks: Iterable, progress=None) -> Iterator:
         from . import __version__
+        from .mujoco_support import installed_mujoco_version
 
         queue = (_absolute_task(t) for t in tasks)
         first = next(queue, None)
@@ -402,7 +462,7 @@ class RayExecutor:
 
         def submit() -> None:
             for task in queue:
-                pending[remote.remote(fn, task, __version__)] = task
+                pending[remote.remote(fn, task, __version__, installed_mujoco_version())] = task
                 if len(pending) >= limit:
                     return
 

@@ -15,8 +15,9 @@ configuration error, scored as ``artdata score`` scores them
   position error is below ``--outlier-cm`` (a wrong hinge side would swamp the means; their
   share is printed).  A door's axis origin is at its mid-height, so a door cut off by the
   image leaves that height to inference;
-* by whether the image shows the whole object (no pixel of the body or of a part, mask code 1 or
-  more, on the image's border rows and columns), and of those, the ones with at least 500 body
+* by whether the image shows the whole object (no pixel of the body or of a part on the image's
+  border rows and columns: :func:`articulated_dataset.format.object_on_border`, the rule of
+  ``artdata generate --framing whole``), and of those, the ones with at least 500 body
   pixels: each group's share and mean errors.  The paper's pose table (Appendix A) puts a
   metre-high cabinet close to a level camera, so most renders cut it off; the paper's text says
   positions were drawn "from the view frustum of the camera".  This table tells how a model does
@@ -47,7 +48,7 @@ def per_image_errors(predictions: Path, truth: Path):
     from articulated_dataset.benchmark.scoring import image_metrics
     from articulated_dataset.benchmark.truth import align, load_truth_set
     from articulated_dataset.errors import UserError
-    from articulated_dataset.format import MASK_BODY, MASK_FIRST_PART, Split
+    from articulated_dataset.format import MASK_FIRST_PART, Split, object_on_border
     from articulated_dataset.rotations import quat_to_matrix
 
     _, by_class = read_predictions(predictions)
@@ -74,9 +75,7 @@ def per_image_errors(predictions: Path, truth: Path):
             facts["top"].append(part[:, :, 0, :].any(-1))
             facts["bottom"].append(part[:, :, -1, :].any(-1))
             facts["seen"].append(part.any((-1, -2)))
-            obj = mask >= MASK_BODY  # (N, H, W): the body's and the parts' pixels
-            on_border = obj[:, 0].any(-1) | obj[:, -1].any(-1) | obj[:, :, 0].any(-1) | obj[:, :, -1].any(-1)
-            facts["whole"].append(~on_border)
+            facts["whole"].append(~object_on_border(mask))
     facts = {k: np.concatenate(v) for k, v in facts.items()}
     order = np.argsort(facts["sample_id"], kind="stable")[idx]  # the truth's order (sorted ids), then idx
     prismatic = np.array([jt == "prismatic" for jt in labels.joint_types])

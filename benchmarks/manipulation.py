@@ -30,6 +30,12 @@ With ``--scores`` (the JSON of ``artdata score --json``) the Table 1 errors of e
 (class, method) are printed beside its success rate.  ``--perturb NAME=POS_CM,ROT_DEG,Q_DEG,Q_CM``
 adds the truth with random errors of those mean sizes (a what-if for a model of that accuracy).
 
+A class generated from a third-party URDF (``artdata generate --urdf``) is rebuilt from the
+URDF given with ``--urdf CLASS=FILE`` (and ``--mesh-root CLASS=DIR`` where it was generated with
+one), used only if its sha256 is the one the split recorded; the path its manifest records is
+not opened outside the split folder, so without ``--urdf`` such a class stops the run with one
+line.  Classes named with ``--urdf`` are run besides the built-in ones found under ``--data``.
+
 Columns: ``success`` (all three below); ``grasped`` (the planned grasp lands within
 GRASP_CAPTURE_M of the true handle bar); ``reached`` (final configuration within 5 deg / 2 cm
 of the target); ``<=limits`` (of the grasped trials: peak force <= MAX_FORCE_N and torque <=
@@ -98,7 +104,8 @@ def perturb(estimate, joint_types, rng: np.random.Generator, errors: tuple[float
 
 def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, list[Path]], perturbations: dict,
               seed: int, progress: bool, models: dict[str, str] | None = None,
-              closed_loop: set[str] | None = None, touch: bool = True) -> list[dict]:
+              closed_loop: set[str] | None = None, touch: bool = True, urdf: Path | None = None,
+              mesh_root: Path | None = None) -> list[dict]:
     """One record per (object, joint, method) trial of one split.
 
     ``models``: method name -> ``--model`` spec (a shipped name, or a checkpoint path in which
@@ -107,7 +114,8 @@ def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, lis
     :func:`~articulated_dataset.manipulation.closed_loop_trial` as method ``NAME-closed-loop``
     (``touch``: closing the part by touch first, its ``close_first``).
     A class without a checkpoint (a missing ``{class}`` file, no shipped weights) has no
-    trials for that method (reported as missing)."""
+    trials for that method (reported as missing).  ``urdf`` / ``mesh_root``: the files a
+    third-party URDF class is rebuilt from (``--urdf``, ``--mesh-root``)."""
     from tqdm import tqdm
 
     from articulated_dataset import manipulation as M
@@ -135,7 +143,8 @@ def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, lis
     records = []
     for r in tqdm(rows, desc=f"{cls}/{manifest['split']}", disable=not progress, dynamic_ncols=True):
         row = M.label_row(labels, r)
-        obj = M.load_true_object(manifest, row)
+        obj = M.load_true_object(manifest, row, split_dir=split_dir, urdf=urdf, mesh_root=mesh_root,
+                                 hint=f"; give its URDF with --urdf {cls}=FILE")
         sid = int(row["sample_id"])
         methods = {TRUTH: obj.truth()}
         for name, errors in perturbations.items():
@@ -522,6 +531,17 @@ def _parse_predictions(items: list[str]) -> dict[str, list[Path]]:
     return out
 
 
+def _parse_class_paths(items: list[str], option: str) -> dict[str, Path]:
+    """``CLASS=PATH`` items (``--urdf``, ``--mesh-root``) -> {class: path}, one per class."""
+    out = {}
+    for item in items:
+        cls, sep, path = item.partition("=")
+        if not sep or not cls or not path or cls in out:
+            sys.exit(f"manipulation.py: error: {option} takes CLASS=PATH once per class, got {item!r}")
+        out[cls] = Path(path)
+    return out
+
+
 def _parse_models(items: list[str], taken) -> dict[str, str]:
     """``NAME`` (a shipped model, its own name) or ``NAME=SPEC`` items -> {name: spec}."""
     out = {}
@@ -576,6 +596,11 @@ def main(argv=None) -> int:
     ap.add_argument("--trajectory-figure", type=Path, default=None,
                     help="also draw estimated (first --model) versus true handle paths of a door and a drawer (PNG; "
                          "the first door class and the drawer, among --classes, with data and a model)")
+    ap.add_argument("--urdf", action="append", default=[], metavar="CLASS=FILE",
+                    help="the URDF a third-party class (artdata generate --urdf) was generated from, to rebuild its "
+                         "objects (repeat; the class is run besides the built-in ones)")
+    ap.add_argument("--mesh-root", action="append", default=[], metavar="CLASS=DIR",
+                    help="with --urdf: the folder its meshes are read from, as given to generate --mesh-root")
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
 
@@ -592,6 +617,10 @@ def main(argv=None) -> int:
 
         torch.set_num_threads(max(1, args.threads))
     perturbations = _parse_perturb(args.perturb, {**predictions, **models})
+    urdfs = _parse_class_paths(args.urdf, "--urdf")
+    mesh_roots = _parse_class_paths(args.mesh_root, "--mesh-root")
+    if not set(mesh_roots) <= set(urdfs):
+        sys.exit("manipulation.py: error: --mesh-root CLASS=DIR needs --urdf CLASS=FILE for the same class")
     try:
         for files in predictions.values():
             for p in files:
@@ -599,7 +628,8 @@ def main(argv=None) -> int:
     except UserError as exc:
         sys.exit(f"manipulation.py: error: {exc}")
     scores = load_scores(args.scores)
-    classes = args.classes or [c for c in class_names() if (args.data / c / args.split / "manifest.json").is_file()]
+    classes = args.classes or [c for c in [*class_names(), *urdfs]
+                               if (args.data / c / args.split / "manifest.json").is_file()]
     records: list[dict] = []
     t0 = time.perf_counter()
     if args.objects > 0:
@@ -608,7 +638,8 @@ def main(argv=None) -> int:
         for cls in classes:
             try:
                 records += run_class(args.data / cls / args.split, args.objects, predictions, perturbations,
-                                     args.seed, not args.quiet, models, loop_names, not args.no_touch)
+                                     args.seed, not args.quiet, models, loop_names, not args.no_touch,
+                                     urdfs.get(cls), mesh_roots.get(cls))
             except UserError as exc:
                 sys.exit(f"manipulation.py: error: {exc}")
         seconds = time.perf_counter() - t0

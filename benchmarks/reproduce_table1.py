@@ -17,11 +17,19 @@ Scales: ``--small`` = 300 training / 50 test objects per class (minutes on 2 cor
 ``--full`` = the paper's 10,000 / 1,000 objects (160,000 / 16,000 images) per class; or
 ``--train-objects N --test-objects M``.
 
+``--framing table4|whole`` is ``artdata generate --framing`` of the training and test splits
+(docs/generation.md, Framing): the default draws poses from Table 4's ranges, ``whole`` only
+poses that keep the whole object in view.  The mean object (the centre of the table's ranges)
+is the same for both.  Each framing needs its own ``--root`` (default ``data-table1``, and
+``data-table1-whole`` for ``whole``): a split of the other framing is refused, not reused.
+
     python benchmarks/reproduce_table1.py --small --root data-table1
     python benchmarks/reproduce_table1.py --full --root /big/disk/table1 --workers 16
     python benchmarks/reproduce_table1.py --small --root data-table1 --train-mdn
     python benchmarks/reproduce_table1.py --train-objects 1000 --test-objects 1000 --test-seed 2026 \
         --methods mean nn --shipped dense mdn-small --root data-table1k
+    python benchmarks/reproduce_table1.py --train-objects 1000 --test-objects 1000 --test-seed 2026 \
+        --methods mean nn --shipped dense mdn-small --framing whole --root data-table1k-whole
 
 The paper's microwave NN row repeats its cabinet NN row digit for digit (probably a
 typesetting slip); it is shown as printed and flagged.
@@ -73,6 +81,8 @@ PAPER_NOTES = {
 }
 #: Objects per class (train, test) of the named scales.
 SCALES = {"small": (300, 50), "full": (10_000, 1_000)}
+#: Data root of each framing when --root is not given.
+DEFAULT_ROOTS = {"table4": Path("data-table1"), "whole": Path("data-table1-whole")}
 BASELINE_METHODS = ("mean", "nn", "icp")
 #: Scorer metric keys of the three Table 1 columns, in order.
 TABLE1_METRICS = ("axis_position_error_cm", "axis_rotation_error_deg", "configuration_error")
@@ -86,7 +96,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     scale.add_argument("--full", action="store_true", help="The paper's 10,000 train / 1,000 test objects per class.")
     p.add_argument("--train-objects", type=int, default=None, help="Override the scale's training objects per class.")
     p.add_argument("--test-objects", type=int, default=None, help="Override the scale's test objects per class.")
-    p.add_argument("--root", type=Path, default=Path("data-table1"), help="Data root (<class>/{train,test,mean}).")
+    p.add_argument("--root", type=Path, default=None,
+                   help="Data root (<class>/{train,test,mean}; default: data-table1, data-table1-whole with --framing whole).")
+    p.add_argument("--framing", choices=sorted(DEFAULT_ROOTS), default="table4",
+                   help="Framing of the train and test splits (artdata generate --framing; default: table4).")
     p.add_argument("--out", type=Path, default=None, help="Folder for table1.md / table1.json (default: ROOT).")
     p.add_argument("--classes", nargs="+", default=None, help="Classes (default: every registered class).")
     p.add_argument("--methods", nargs="+", default=list(BASELINE_METHODS), choices=BASELINE_METHODS,
@@ -108,6 +121,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     args.scale = "full" if args.full else "small"
     args.n_train = args.train_objects or n_train
     args.n_test = args.test_objects or n_test
+    if args.root is None:
+        args.root = DEFAULT_ROOTS[args.framing]
     if args.n_train <= 0 or args.n_test <= 0:
         p.error("object counts must be positive")
     return args
@@ -130,13 +145,15 @@ def _mdn_checkpoints(args, classes) -> dict[str, Path]:
 
 def generate_class(cls: str, args) -> dict:
     """Generate (or reuse) the train/test splits and the mean object; returns seconds per split."""
+    from articulated_dataset.format.manifest import DEFAULT_FRAMING
     from articulated_dataset.generation import GenerationConfig, generate_split
 
     seconds = {}
     test_seed = args.seed if args.test_seed is None else args.test_seed
     for split, n, mean in (("train", args.n_train, False), ("test", args.n_test, False), ("mean", 1, True)):
         config = GenerationConfig(cls, split="train" if mean else split, n_objects=n,
-                                  seed=test_seed if split == "test" else args.seed, mean=mean)
+                                  seed=test_seed if split == "test" else args.seed, mean=mean,
+                                  framing=DEFAULT_FRAMING if mean else args.framing)
         t0 = time.perf_counter()
         generate_split(config, args.root, workers=args.workers, resume=True, progress=not args.quiet)
         seconds[split] = time.perf_counter() - t0
@@ -151,7 +168,7 @@ def run_mdn(cls: str, ckpt: Path | None, args, pred_dir: Path) -> tuple[Path | N
         ckpt = args.root / "mdn" / f"{cls}.pt"
         if not ckpt.is_file():
             ckpt.parent.mkdir(parents=True, exist_ok=True)
-            cmd = ["artdata", "train", "--class", cls, "--data", str(train_dir), "--out", str(ckpt), "--small"]
+            cmd = ["artdata", "train", "--model", "mdn", "--class", cls, "--data", str(train_dir), "--out", str(ckpt), "--small"]
             print("$ " + " ".join(cmd), flush=True)
             subprocess.run(cmd + (["--quiet"] if args.quiet else []), check=True)
     if ckpt is None:
@@ -193,7 +210,8 @@ def _fmt(mean, std) -> str:
 def format_markdown(rows: list[dict], header: dict) -> str:
     lines = [
         f"Scale: {header['n_train']} training / {header['n_test']} test objects per class "
-        f"(x 16 images); seed {header['seed']} (test split: seed {header.get('test_seed', header['seed'])}); "
+        f"(x 16 images), framing {header.get('framing', 'table4')}; seed {header['seed']} "
+        f"(test split: seed {header.get('test_seed', header['seed'])}); "
         f"{header['workers']} workers; total {header['total_s']:.0f} s.",
         "",
         "| class | method | position (cm): ours | paper | ratio | rotation (deg): ours | paper | ratio "
@@ -291,7 +309,7 @@ def main(argv=None) -> int:
             timings[(r.class_name, r.method)] = timings[(r.class_name, "MDN")]
     total = time.perf_counter() - t_start
     rows = build_rows(report, timings)
-    header = {"scale": args.scale, "n_train": args.n_train, "n_test": args.n_test, "seed": args.seed,
+    header = {"scale": args.scale, "n_train": args.n_train, "n_test": args.n_test, "seed": args.seed, "framing": args.framing,
               "test_seed": args.seed if args.test_seed is None else args.test_seed,
               "workers": args.workers, "total_s": total, "root": str(args.root),
               "generation_s": gen_seconds, "cpu_count": os.cpu_count()}

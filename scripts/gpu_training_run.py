@@ -17,7 +17,7 @@ Everything the run leaves is in ``--out``: ``dense-<class>.pt``, ``mdn-history.j
 ``mdn-score.json``, ``run.json`` (timings, epochs) and the workers' logs.
 
     python scripts/gpu_training_run.py --class cabinet --seed 27 --objects 10000 \\
-        --init-from articulated_dataset/weights/dense-cabinet.pt --minutes 9 --out run
+        --init-from articulated_dataset/weights/dense-cabinet.safetensors --minutes 9 --out run
 """
 
 from __future__ import annotations

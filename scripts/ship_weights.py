@@ -9,8 +9,9 @@ Reads ``RUNS/dense-<class>.pt`` (``artdata train --model dense``),
 ``RUNS/mdn-small-<class>.pt`` (``artdata train --small``) and, with ``--dense-kinect2-dir``,
 ``RUNS/dense-kinect2-<class>.pt`` (``artdata train --model dense --noise kinect2``), keeps what inference needs
 (:func:`articulated_dataset.models.strip_for_shipping`: no optimizer, schedule or RNG
-state), writes ``articulated_dataset/weights/<model>-<class>.pt`` and
-``articulated_dataset/weights/models.json`` (file, SHA-256, size, training data and
+state), writes ``articulated_dataset/weights/<model>-<class>.safetensors`` with its ``.json``
+(:mod:`articulated_dataset.models.safetensors_checkpoint`: read without pickle) and
+``articulated_dataset/weights/models.json`` (files, SHA-256s, sizes, training data and
 recipe, history, and the test figures of ``benchmarks/shipped_models.py --json`` when
 ``--results`` is given: ``test`` from the noise-free test split, ``test_kinect2`` from the same
 objects through the Kinect v2 noise model, ``--noise kinect2``).  Only finished trainings are shipped.  ``--update`` keeps the manifest's
@@ -31,6 +32,8 @@ from articulated_dataset.models import MODELS_MANIFEST, SHIPPED, WEIGHTS_DIR, st
 from articulated_dataset.registry import class_names
 from articulated_dataset.format import sha256_file
 from articulated_dataset.models.dense.train import split_generation
+from articulated_dataset.models.mdn.checkpoint import read_checkpoint_file
+from articulated_dataset.models.safetensors_checkpoint import SAFETENSORS_SUFFIX, write_safetensors_checkpoint
 
 MACHINE = "2-core x86_64 CPU VM shared with other jobs, no GPU, PyTorch 2.13.0 CPU"
 #: Per model kind (``SHIPPED``): the training command, ``{file}`` the shipped model's file.
@@ -63,9 +66,15 @@ def _previous_record(init_from: str, shipped: list[dict]) -> dict | None:
         return None
     digest = sha256_file(path)
     for e in shipped:
-        if e["sha256"] == digest:
+        if digest in _digests(e):
             return {"file": e["file"], "sha256": e["sha256"], "training": e["training"]}
     return None
+
+
+def _digests(entry: dict) -> set:
+    """The SHA-256s a shipped model's weights had: its file's and, for a pair converted from a
+    ``.pt`` (scripts/convert_weights_safetensors.py), that file's (the same checkpoint)."""
+    return {entry["sha256"], (entry.get("converted_from") or {}).get("sha256")} - {None}
 
 
 def _unshipped_record(c: str, init_from: str, shipped) -> dict:
@@ -75,7 +84,7 @@ def _unshipped_record(c: str, init_from: str, shipped) -> dict:
     path = Path(init_from)
     if not path.is_file():
         return {"checkpoint": path.name}
-    init = torch.load(path, map_location="cpu", weights_only=True)  # tensors and containers: no code runs
+    init = read_checkpoint_file(path)  # a .pt (weights_only: no code runs) or a safetensors pair
     if init.get("transplant") is not None:  # another class's weights (scripts/transplant_dense.py)
         t = init["transplant"]
         return {"checkpoint": path.name, "transplant": t,
@@ -106,7 +115,7 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
     refit = ckpt.get("refit_of")
     if refit is not None:  # shipped weights whose inference was refitted (scripts/fit_dense_inference.py)
         for e in shipped:
-            if e["sha256"] == refit["sha256"]:
+            if refit["sha256"] in _digests(e):
                 note = _refit_note(ckpt)
                 if refit.get("calibration_only") and e["training"].get("refit"):  # a refit of a refit: both, in order
                     note = f"{e['training']['refit']}; then {note}"
@@ -231,12 +240,11 @@ def main(argv=None) -> int:
                 continue
             init_from = ckpt.get("train_config", {}).get("init_from")
             previous = _previous_record(init_from, shipped) if SHIPPED[name] == "dense" and init_from else None
-            dst = WEIGHTS_DIR / FILES[name].format(c=c)
-            tmp = dst.with_name(dst.name + ".partial")
-            torch.save(strip_for_shipping(ckpt), tmp)
-            tmp.replace(dst)
+            dst, config = write_safetensors_checkpoint(strip_for_shipping(ckpt),
+                                                       (WEIGHTS_DIR / FILES[name].format(c=c)).with_suffix(SAFETENSORS_SUFFIX))
             entry = {"name": name, "class_name": c, "kind": SHIPPED[name], "file": dst.name,
-                     "sha256": sha256_file(dst), "bytes": dst.stat().st_size,
+                     "sha256": sha256_file(dst), "bytes": dst.stat().st_size, "config": config.name,
+                     "config_sha256": sha256_file(config), "config_bytes": config.stat().st_size,
                      "config_unit": "cm" if "prismatic" in str(ckpt.get("joint_types", "")) or c == "drawer" else "deg",
                      "training": _training_record(name, c, ckpt, previous, shipped)}
             entry.update(_tests(results, name, c, entry["sha256"]))
@@ -246,11 +254,12 @@ def main(argv=None) -> int:
         shipped_now = {(e["name"], e["class_name"]) for e in entries}
         kept = [e for e in json.loads(MODELS_MANIFEST.read_text())["models"] if (e["name"], e["class_name"]) not in shipped_now]
         for e in kept:
-            e.update(_tests(results, e["name"], e["class_name"], e["sha256"], require_sha256=True))
+            for digest in _digests(e):  # figures measured on the .pt a pair was converted from hold for the pair
+                e.update(_tests(results, e["name"], e["class_name"], digest, require_sha256=True))
         order = {(n, c): i for i, (c, n) in enumerate((c, n) for c in class_names() for n in FILES)}
         entries = sorted(entries + kept, key=lambda e: order.get((e["name"], e["class_name"]), len(order)))
     MODELS_MANIFEST.write_text(json.dumps({"models": entries}, indent=1) + "\n")
-    total = sum(e["bytes"] for e in entries)
+    total = sum(e["bytes"] + e.get("config_bytes", 0) for e in entries)
     print(f"{MODELS_MANIFEST}: {len(entries)} models, {total / 1e6:.1f} MB of weights")
     return 0
 

@@ -211,3 +211,48 @@ def split_copy_with(src: Path, dst: Path, field: str, value) -> Path:
             a[...] = value
             f[field][...] = a
     return Path(dst)
+
+
+def assert_one_line_error(result, *needles, code: int = 2) -> str:
+    """``result`` (a ``CliRunner`` result) is one line ``artdata: error: ...`` holding every
+    needle, with exit code ``code``; the line."""
+    assert result.exit_code == code, (result.exit_code, result.output, result.exception)
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("artdata: error: "), result.output
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+    return lines[0]
+
+
+def tree_snapshot(root: Path) -> dict:
+    """Every entry under ``root`` (links not followed): file digests, link targets, folders."""
+    import hashlib
+    import os
+
+    out = {}
+    for folder, dirs, files in os.walk(root):
+        for name in dirs + files:
+            p = Path(folder) / name
+            rel = p.relative_to(root).as_posix()
+            if p.is_symlink():
+                out[rel] = ("link", os.readlink(p))
+            elif p.is_dir():
+                out[rel] = ("dir",)
+            else:
+                out[rel] = ("file", hashlib.sha256(p.read_bytes()).hexdigest())
+    return out
+
+
+def flap_split_outside(root: Path, split: str = "train") -> tuple[Path, Path]:
+    """A one-object, one-image split generated from the flap URDF (:func:`write_flap_urdf`) kept
+    outside the split folder, as a user's third-party URDF is: ``(urdf, split folder)``."""
+    from click.testing import CliRunner
+
+    from articulated_dataset.cli import main
+
+    urdf = write_flap_urdf(root / "urdf")
+    result = CliRunner().invoke(main, ["generate", "--urdf", str(urdf), "--n", "1", "--images", "1", "--split", split,
+                                       "--out", str(root / "out"), "-q", "--workers", "1"])
+    assert result.exit_code == 0, result.output
+    (split_dir,) = [p.parent for p in (root / "out").glob(f"*/{split}/manifest.json")]
+    return urdf, split_dir

@@ -791,7 +791,8 @@ def test_estimate_refuses_hostile_inputs(overfit_run, tiny_root, tmp_path):
     camera file's aliases (nested, a few hundred bytes expand to billions of numbers), a camera
     file of megabytes, an EXR header declaring 400 million pixels (its pixels were decoded
     before its size was checked), boolean or complex depth, a transposed or scaled K; a camera
-    file with a byte-order mark is read; a float mask of fractions (0.5 was truncated to "no object pixel")."""
+    file with a byte-order mark is read; a float TIFF mask of fractions (0.5 was truncated to "no object
+    pixel"; masks are PNG files, which hold whole numbers only)."""
     import h5py
 
     import articulated_dataset as ad
@@ -822,7 +823,7 @@ def test_estimate_refuses_hostile_inputs(overfit_run, tiny_root, tmp_path):
                          ([str(tmp_path / "d.npy"), "--camera", str(tmp_path / "big.json")], "bytes"),
                          ([str(tmp_path / "huge.exr")], "not a depth sensor's image"),
                          ([str(tmp_path / "d.npy"), "--camera", str(tmp_path / "plain.yaml"), "--mask",
-                           str(tmp_path / "half.tiff")], "whole numbers")]:
+                           str(tmp_path / "half.tiff")], "must be a PNG file")]:
         code, text = _run(["estimate", *args, *model])
         assert code == 2 and text.count("\n") == 1 and needle in text, text
     for depth_, K_, needle in [(depth > 0, K, "real numbers"), (depth.astype(complex), K, "real numbers"),

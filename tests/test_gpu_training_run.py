@@ -19,7 +19,7 @@ def test_gpu_training_run_script_on_the_cpu(tmp_path):
     repo = Path(__file__).resolve().parents[1]
     out = tmp_path / "run"
     r = subprocess.run([sys.executable, str(repo / "scripts" / "gpu_training_run.py"), "--class", "microwave",
-                        "--seed", "5", "--objects", "3", "--init-from", str(WEIGHTS_DIR / "dense-microwave.pt"),
+                        "--seed", "5", "--objects", "3", "--init-from", str(WEIGHTS_DIR / "dense-microwave.safetensors"),
                         "--minutes", "0.5", "--batch-size", "16", "--val-fraction", "0.34", "--workers", "1",
                         "--device", "cpu", "--no-mdn", "--out", str(out), "--work", str(tmp_path / "work")],
                        capture_output=True, text=True, timeout=300)
@@ -31,4 +31,4 @@ def test_gpu_training_run_script_on_the_cpu(tmp_path):
     ckpt = torch.load(out / "dense-microwave.pt", map_location="cpu", weights_only=True)
     assert ckpt["finished"] and ckpt.get("calibration") is None
     assert ckpt["data"]["generated"] == {"class_name": "microwave", "seed": 5, "n_objects": 3}
-    assert ckpt["train_config"]["init_from"] == str(WEIGHTS_DIR / "dense-microwave.pt")
+    assert ckpt["train_config"]["init_from"] == str(WEIGHTS_DIR / "dense-microwave.safetensors")

@@ -275,7 +275,7 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
     "mean:missing-train": (lambda e: ["baseline", "mean", "--train", e.tmp / "nope", "--test", e.split(), "--out", "p.h5"],
                            "not found"),
     # train
-    **{f"train:{name}": (lambda e, extra=extra: ["train", "--class", "cabinet", "--data", e.split(split="train"),
+    **{f"train:{name}": (lambda e, extra=extra: ["train", "--model", "mdn", "--class", "cabinet", "--data", e.split(split="train"),
                                                  "--out", "m.pt", "-q", *extra], needle)
        for name, extra, needle in [
            ("lr-nan", ["--lr", "nan"], "--lr"), ("lr-inf", ["--lr", "inf"], "--lr"), ("lr-negative", ["--lr", "-1e-3"], "--lr"),
@@ -289,11 +289,11 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
            ("threads-huge", ["--threads", str(10**9)], "--threads"),
            ("device-tpu", ["--device", "tpu"], "--device"), ("components-huge", ["--components", str(10**12)], "--components must be at most"),
        ]},
-    "train:class-mismatch": (lambda e: ["train", "--class", "drawer", "--data", e.split(split="train"), "--out", "m.pt", "-q"],
+    "train:class-mismatch": (lambda e: ["train", "--model", "mdn", "--class", "drawer", "--data", e.split(split="train"), "--out", "m.pt", "-q"],
                              "not 'drawer'"),
-    "train:resume-nothing": (lambda e: ["train", "--class", "cabinet", "--data", e.split(split="train"), "--out", "m.pt",
+    "train:resume-nothing": (lambda e: ["train", "--model", "mdn", "--class", "cabinet", "--data", e.split(split="train"), "--out", "m.pt",
                                         "--resume", "-q"], "--resume"),
-    "train:class-wrong-case": (lambda e: ["train", "--class", "Cabinet", "--data", e.split(split="train"), "--out",
+    "train:class-wrong-case": (lambda e: ["train", "--model", "mdn", "--class", "Cabinet", "--data", e.split(split="train"), "--out",
                                           "m.pt", "-q"], "did you mean 'cabinet'"),
     # predict: options and checkpoints
     "predict:threads-huge": (lambda e: ["predict", "--model", e.inputs.model, "--data", e.split(), "--out", "p.h5",
@@ -350,7 +350,7 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
                       "real captures"),
     "real:icp-mean-object": (lambda e: ["baseline", "icp", "--train", e.split(split="train"), "--test", e.split(),
                                         "--out", "p.h5", "--mean-object", e.inputs.real, "-q"], "real captures"),
-    "real:train": (lambda e: ["train", "--class", "cabinet", "--data", e.inputs.real, "--out", "m.pt", "-q"],
+    "real:train": (lambda e: ["train", "--model", "mdn", "--class", "cabinet", "--data", e.inputs.real, "--out", "m.pt", "-q"],
                    "real captures"),
 }
 

@@ -16,13 +16,14 @@ from click.testing import CliRunner
 from articulated_dataset.cli import EXIT_USER_ERROR, main
 from articulated_dataset.errors import UserError
 from articulated_dataset.models.dense.checkpoint import load_dense_checkpoint
+from articulated_dataset.models.mdn.checkpoint import read_checkpoint_file
 from articulated_dataset.models.shipped import WEIGHTS_DIR
 
 
 # --- Dense checkpoints holding numbers no float holds (a Python int such as 10**400 pickles fine):
 # every one is a one-line error when the file is read, not an OverflowError from inside the checks,
 # the refinement or the predictions file's attributes.
-SHIPPED = WEIGHTS_DIR / "dense-microwave.pt"
+SHIPPED = WEIGHTS_DIR / "dense-microwave.safetensors"
 HUGE = 10**400
 
 
@@ -56,7 +57,7 @@ HUGE_CASES = {
 def crafted(tmp_path):
     def make(change) -> str:
         path = tmp_path / "bad.pt"
-        torch.save(change(dict(torch.load(SHIPPED, weights_only=True))), path)
+        torch.save(change(dict(read_checkpoint_file(SHIPPED))), path)
         return str(path)
     return make
 
@@ -82,7 +83,7 @@ def test_a_number_no_float_holds_is_one_line(crafted, tmp_path, monkeypatch, nam
 # weights_only loading reads them back) is a one-line error, not torch's RuntimeError from the
 # finiteness check (``Tensor.item() cannot be called on meta tensors``).
 def test_meta_weights_are_one_line(tmp_path, tiny_root):
-    ckpt = dict(torch.load(WEIGHTS_DIR / "dense-microwave.pt", weights_only=True))
+    ckpt = dict(read_checkpoint_file(SHIPPED))
     state = dict(ckpt["model_state"])
     state["head.bias"] = torch.zeros(state["head.bias"].shape, device="meta")
     path = tmp_path / "meta.pt"
@@ -103,7 +104,7 @@ def test_meta_weights_are_one_line(tmp_path, tiny_root):
 # refinement's eigendecomposition of NaN votes.
 @pytest.fixture()
 def overflowing(tmp_path) -> str:
-    ckpt = dict(torch.load(WEIGHTS_DIR / "dense-microwave.pt", weights_only=True))
+    ckpt = dict(read_checkpoint_file(SHIPPED))
     state = dict(ckpt["model_state"])
     state["stem.0.weight"] = state["stem.0.weight"].float() * 1e38
     path = tmp_path / "overflow.pt"
@@ -140,7 +141,7 @@ def test_estimate_with_weights_that_compute_nonsense_is_one_line(tmp_path, monke
     """Batch normalisation variances of 0 pass the checkpoint's checks and give finite outputs, but
     axis origins of 1e33 m: estimate checks its arrays as a predictions file is checked (before, it
     printed them, with NaN uncertainties that are not JSON)."""
-    ckpt = dict(torch.load(WEIGHTS_DIR / "dense-microwave.pt", weights_only=True))
+    ckpt = dict(read_checkpoint_file(SHIPPED))
     state = {k: torch.zeros_like(v) if k.endswith("running_var") else v for k, v in ckpt["model_state"].items()}
     torch.save({**ckpt, "model_state": state}, tmp_path / "bn0.pt")
     monkeypatch.chdir(tmp_path)
@@ -171,7 +172,7 @@ ABSURD_CASES = {
 @pytest.mark.parametrize("command", ["estimate", "predict"])
 def test_an_absurd_calibration_is_one_line(tmp_path, tiny_root, monkeypatch, name, command):
     monkeypatch.chdir(tmp_path)
-    ckpt = dict(torch.load(WEIGHTS_DIR / "dense-microwave.pt", weights_only=True))
+    ckpt = dict(read_checkpoint_file(SHIPPED))
     torch.save(ABSURD_CASES[name](ckpt), "bad.pt")
     if command == "estimate":
         depth = np.zeros((108, 192))

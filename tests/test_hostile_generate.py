@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
-import hashlib
 import json
 import os
 import shutil
@@ -23,6 +22,8 @@ from click.testing import CliRunner
 
 from articulated_dataset.cli import main
 from articulated_dataset.format import sha256_file
+from helpers_core import assert_one_line_error
+from helpers_core import tree_snapshot as snapshot
 
 #: A split that renders in a fraction of a second: one 32x18 image per object.
 TINY = ["--class", "drawer", "--images", "1", "--width", "32", "--height", "18", "--workers", "1", "--quiet"]
@@ -33,31 +34,6 @@ INVISIBLE_TABLE = {"pose": {"y_m": [900.0, 1000.0]}}
 
 def generate(*args):
     return CliRunner().invoke(main, ["generate", *map(str, args)])
-
-
-def assert_one_line_error(result, *needles):
-    assert result.exit_code == 2, (result.exit_code, result.output, result.exception)
-    lines = result.output.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("artdata: error: "), result.output
-    for needle in needles:
-        assert needle in lines[0], lines[0]
-    return lines[0]
-
-
-def snapshot(root: Path) -> dict:
-    """Every entry under ``root`` (links not followed): file digests, link targets, folders."""
-    out = {}
-    for folder, dirs, files in os.walk(root):
-        for name in dirs + files:
-            p = Path(folder) / name
-            rel = p.relative_to(root).as_posix()
-            if p.is_symlink():
-                out[rel] = ("link", os.readlink(p))
-            elif p.is_dir():
-                out[rel] = ("dir",)
-            else:
-                out[rel] = ("file", hashlib.sha256(p.read_bytes()).hexdigest())
-    return out
 
 
 @pytest.fixture

@@ -495,7 +495,7 @@ def test_a_failed_write_keeps_the_previous_report(tiny_root, good, tmp_path):
     ok = CliRunner().invoke(main, [str(a) for a in score_args(c, None, "--json", out)])
     assert ok.exit_code == 0, ok.output
     first = out.read_bytes()
-    assert json.loads(first)["metric_version"] == 2
+    assert json.loads(first)["metric_version"] == 3  # the current metric version
     bad = raw_write(c.work / "bad.h5", with_value(good, "q", (0, 0), 1e300))
     result = CliRunner().invoke(main, [str(a) for a in score_args(c, bad, "--json", out)])
     assert result.exit_code == 2 and out.read_bytes() == first

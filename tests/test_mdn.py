@@ -278,7 +278,7 @@ def test_cpu_training_keeps_the_default_layout(tiny_root, tmp_path):
 def test_cli_train_predict_score_round_trip(tiny_root, tmp_path):
     runner = CliRunner()
     model = tmp_path / "cabinet.pt"
-    res = runner.invoke(main, ["train", "--class", "cabinet", "--data", str(tiny_root / "cabinet" / "train"),
+    res = runner.invoke(main, ["train", "--model", "mdn", "--class", "cabinet", "--data", str(tiny_root / "cabinet" / "train"),
                                "--out", str(model), "--small", "--epochs", "2", "--components", "4"])
     assert res.exit_code == 0, res.output
     assert "epoch 2" in res.output and "val_nll" in res.output
@@ -342,10 +342,10 @@ def test_cli_errors_are_one_line(tiny_root, tmp_path):
         assert res.output.startswith("artdata: error:") and res.output.count("\n") == 1, res.output
         return res.output
 
-    assert "not 'drawer'" in run(["train", "--class", "drawer", "--data", train_dir, "--out", str(tmp_path / "m.pt"), "-q"])
-    assert "no such directory" in run(["train", "--class", "cabinet", "--data", str(tmp_path / "nope"),
+    assert "not 'drawer'" in run(["train", "--model", "mdn", "--class", "drawer", "--data", train_dir, "--out", str(tmp_path / "m.pt"), "-q"])
+    assert "no such directory" in run(["train", "--model", "mdn", "--class", "cabinet", "--data", str(tmp_path / "nope"),
                                        "--out", str(tmp_path / "m.pt"), "-q"])
-    assert "--resume" in run(["train", "--class", "cabinet", "--data", train_dir, "--out", str(tmp_path / "none.pt"),
+    assert "--resume" in run(["train", "--model", "mdn", "--class", "cabinet", "--data", train_dir, "--out", str(tmp_path / "none.pt"),
                               "--resume", "-q"])
     bad = tmp_path / "corrupt.pt"
     bad.write_bytes(b"this is not a checkpoint")

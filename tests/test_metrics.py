@@ -356,7 +356,7 @@ def test_coverage_of_samples_from_the_mixture_is_calibrated():
         assert M.interval_coverage(y, w, mu, sigma, mass).mean() == pytest.approx(mass, abs=0.015)
 
 
-def _door_case(pred_quat, pred_q, pred_offset=None):
+def _door_case(pred_quat, pred_q, pred_offset=None, metric_version=M.METRIC_VERSION):
     """One image of a right-hinged door yawed by 20 deg, 0.6 m wide, opened 0.5 rad."""
     true_quat = _yawed(DOOR_RIGHT, 20.0)
     origin = np.array([1.5, 0.2, 0.1])
@@ -365,7 +365,7 @@ def _door_case(pred_quat, pred_q, pred_offset=None):
     pred = {"axis_pose": np.array([[_pose(origin, pred_quat(true_quat))]]), "q": np.array([[pred_q]])}
     if pred_offset is not None:
         pred["part_offset"] = np.array([[pred_offset]])
-    return image_metrics(pred, truth, (REVOLUTE,))[0]
+    return image_metrics(pred, truth, (REVOLUTE,), metric_version=metric_version)[0]
 
 
 def test_image_metrics_reversed_axis_with_negated_q_is_perfect():
@@ -377,12 +377,64 @@ def test_image_metrics_reversed_axis_with_negated_q_is_perfect():
 
 
 def test_image_metrics_mirror_is_not_perfect():
-    out = _door_case(lambda t: rotations.quat_multiply(t, HALF_TURN["y"]), 0.5)
+    out = _door_case(lambda t: rotations.quat_multiply(t, HALF_TURN["y"]), 0.5, metric_version=2)
     assert out["axis_rotation_error_deg"][0] == pytest.approx(180.0)
     assert out["axis_direction_error_deg"][0] == pytest.approx(0.0, abs=1e-9)  # folded: same line
     assert out["axis_line_distance_cm"][0] == pytest.approx(0.0, abs=1e-9)
     assert out["mechanism_side_accuracy"][0] == 0.0 and out["opd_success"][0] == 0.0
     assert out["configuration_error"][0] == pytest.approx(0.0, abs=1e-9)  # q compared as labelled
+
+
+def test_opd_success_of_version_3_is_opds_motion_criterion():
+    """OPD's criterion sees the axis line only: a mirrored door on the true hinge line succeeds in
+    version 3 (the side metric fails it), and failed in version 2, which also required the side."""
+    out = _door_case(lambda t: rotations.quat_multiply(t, HALF_TURN["y"]), 0.5, metric_version=3)
+    assert out["opd_success"][0] == 1.0 and out["mechanism_side_accuracy"][0] == 0.0
+    assert out["accuracy_5deg_5cm"][0] == 1.0 and out["accuracy_10deg_10cm"][0] == 1.0
+    assert "accuracy_5deg_5cm" not in _door_case(lambda t: t, 0.5, metric_version=2)
+
+
+def test_opd_motion_success_thresholds_are_inclusive():
+    diag = 1.0  # m: the origin may be 25 cm from the true axis line
+    assert M.opd_motion_success(10.0, 25.0, diag, True) == 1.0
+    assert M.opd_motion_success(10.0 + 1e-9, 0.0, diag, True) == 0.0
+    assert M.opd_motion_success(0.0, 25.0 + 1e-9, diag, True) == 0.0
+    assert M.opd_motion_success(0.0, 300.0, diag, False) == 1.0  # prismatic: origin not checked
+    assert np.isnan(M.opd_motion_success(np.nan, 0.0, diag, True))
+    assert np.isnan(M.opd_motion_success(0.0, np.nan, diag, True))
+    assert M.opd_motion_success(0.0, np.nan, diag, False) == 1.0
+
+
+def test_axis_accuracy_by_hand():
+    # (direction deg, line cm, revolute?) -> 5/5 and 10/10
+    cases = [((4.9, 4.9, True), (1.0, 1.0)), ((5.0, 5.0, True), (1.0, 1.0)), ((5.1, 1.0, True), (0.0, 1.0)),
+             ((1.0, 7.0, True), (0.0, 1.0)), ((1.0, 10.5, True), (0.0, 0.0)), ((9.0, 80.0, False), (0.0, 1.0)),
+             ((4.0, 80.0, False), (1.0, 1.0))]
+    for (e_dir, d_line, revolute), want in cases:
+        got = tuple(float(M.axis_accuracy(e_dir, d_line, revolute, a, b)) for a, b in M.ACCURACY_THRESHOLDS)
+        assert got == want, (e_dir, d_line, revolute)
+    assert np.isnan(M.axis_accuracy(np.nan, 0.0, True, 5.0, 5.0))
+    assert np.isnan(M.axis_accuracy(1.0, np.nan, True, 5.0, 5.0))
+
+
+def test_position_error_components_by_hand():
+    # true axis along z; the prediction 3 cm up the axis and 4 cm beside it: 3 along, 4 across, 5 in all
+    along, across = M.position_error_components_cm([0.04, 0.0, 1.03], [0.0, 0.0, 1.0], [0.0, 0.0, 2.0])
+    assert along == pytest.approx(3.0) and across == pytest.approx(4.0)
+    assert np.hypot(along, across) == pytest.approx(M.axis_position_error_cm([0.04, 0.0, 1.03], [0.0, 0.0, 1.0]))
+    along, _ = M.position_error_components_cm([0.0, 0.0, 0.97], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0])
+    assert along == pytest.approx(3.0)  # below the origin: the magnitude
+
+
+def test_standard_error_of_mean_over_objects_by_hand():
+    # two images of each of three objects: per-object means 1, 2, 6 -> mean 3, std(ddof=1) sqrt(7), SEM sqrt(7/3)
+    values = np.array([0.0, 2.0, 2.0, 2.0, 5.0, 7.0])
+    objects = np.array([0, 0, 1, 1, 2, 2])
+    assert M.standard_error_of_mean(values, objects) == pytest.approx(np.sqrt(7.0 / 3.0))
+    assert np.isnan(M.standard_error_of_mean(values, np.zeros(6)))  # one object: no spread to measure
+    with_nan = np.array([0.0, 2.0, np.nan, 2.0, 5.0, 7.0])  # NaN left out: object 1's mean stays 2
+    assert M.standard_error_of_mean(with_nan, objects) == pytest.approx(np.sqrt(7.0 / 3.0))
+    assert M.standard_error_of_mean(np.array([1.0, np.inf, 1.0, 2.0]), np.array([0, 0, 1, 1])) == np.inf
 
 
 def test_prismatic_joint_has_no_mechanism_side():

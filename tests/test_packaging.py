@@ -2,6 +2,7 @@
 its metadata (dependencies, version, citation, dataset card) says what is true."""
 
 import ast
+import os
 import re
 import shutil
 import subprocess
@@ -200,6 +201,20 @@ def test_setup_script_options():
         res = subprocess.run(["bash", str(setup), *args], capture_output=True, text=True)
         assert res.returncode == 2 and res.stderr.count("\n") == 1 and res.stderr.startswith("setup: "), args
     res = subprocess.run(["bash", str(setup), "--help"], capture_output=True, text=True)
-    assert res.returncode == 0 and "--venv" in res.stdout
+    assert res.returncode == 0 and all(opt in res.stdout for opt in ("--venv", "--all", "--yes"))
     text = setup.read_text()
     assert "https://download.pytorch.org/whl/cpu" in text and "torch==$TORCH_VERSION" in text
+
+
+def test_setup_script_asks_before_apt_get(tmp_path):
+    """Without a terminal to ask and without --yes, setup.sh names the packages and the command to
+    run, and installs nothing (here no rendering library is found: ldconfig lists none)."""
+    fake = tmp_path / "bin"
+    fake.mkdir()
+    (fake / "ldconfig").write_text("#!/bin/sh\nexit 0\n")
+    (fake / "ldconfig").chmod(0o755)
+    res = subprocess.run(["bash", str(ROOT / "scripts" / "setup.sh")], capture_output=True, text=True,
+                         stdin=subprocess.DEVNULL, env={**os.environ, "PATH": f"{fake}:{os.environ['PATH']}"})
+    assert res.returncode == 1, res.stdout + res.stderr
+    assert "will install" in res.stdout and "libegl1" in res.stdout and "[1/3]" not in res.stdout
+    assert res.stderr.count("\n") == 1 and "--yes" in res.stderr and "apt-get install -y libegl1" in res.stderr

@@ -113,6 +113,11 @@ def test_shift_and_rotation_give_the_known_errors(tiny_root, tmp_path):
     assert "Microwave - Shifted" in table and "3.00 +/- 0.00" in table and "5.00 +/- 0.00" in table
 
 
+def rep_titles(tmp_path) -> dict:
+    titles = {k: v["title"] for k, v in json.loads((tmp_path / "r.json").read_text())["metrics"].items()}
+    return {k: titles[k] for k in ("axis_position_error_cm", "opd_success")}
+
+
 def test_cli_table_json_csv(tiny_root, tmp_path):
     write_predictions(tmp_path / "p.h5", "Oracle", perfect(tiny_root, ["toaster"]))
     result = run("score", tmp_path / "p.h5", "--truth", tiny_root, "--json", tmp_path / "r.json", "--csv", tmp_path / "r.csv")
@@ -122,18 +127,23 @@ def test_cli_table_json_csv(tiny_root, tmp_path):
     assert "Axis position (cm)" in lines[2] and "Frame heading (deg)" in lines[2]
     assert max(len(line) for line in lines) <= 100 and any("Frame heading: the paper's axis rotation" in x for x in lines)
     wide = run("score", tmp_path / "p.h5", "--truth", tiny_root, "--wide").output.splitlines()
-    assert "Axis Position Error (cm)" in wide[2] and "Axis Rotation Error (degrees)" in wide[2]
-    assert any(line.startswith("Standard metrics") and "OPD success" in line and "Direction (deg)" in line for line in wide)
+    assert "Axis position (cm)" in wide[2] and "Frame heading (deg)" in wide[2]  # one name per metric
+    assert any(line.startswith("Standard metrics") and "OPD succ." in line and "Axis dir. (deg)" in line
+               and "Cov. 90%" not in line for line in wide)
+    assert rep_titles(tmp_path) == {"axis_position_error_cm": "Axis position (cm)", "opd_success": "OPD succ."}
     assert lines[3].startswith("Toaster - Oracle") and "0.00 +/- 0.00 deg" in lines[3] and "48/48" in lines[3]
     rep = json.loads((tmp_path / "r.json").read_text())
     row = rep["rows"][0]
     assert row["n_scored"] == row["n_truth"] == 48 and row["metrics"]["configuration_error"]["units"] == "deg"
     assert rep["truth_sets"]["toaster"]["split"] == "test"
-    assert rep["metric_version"] == M.METRIC_VERSION == 2
+    assert rep["metric_version"] == M.METRIC_VERSION == 3
     assert f"Metric version {M.METRIC_VERSION}" in lines[-1]
     rows = list(csv.DictReader(io.StringIO((tmp_path / "r.csv").read_text())))
     assert rows[0]["class"] == "toaster" and float(rows[0]["axis_position_error_cm_mean"]) == 0.0
-    assert rows[0]["metric_version"] == "2"
+    assert rows[0]["metric_version"] == "3"
+    assert row["n_objects"] == int(rows[0]["n_objects"]) == 3 and rows[0]["axis_position_error_cm_sem"] == "0"
+    assert row["metrics"]["accuracy_5deg_5cm"]["mean"] == 1.0 and row["metrics"]["opd_success"]["sem"] == 0.0
+    assert any(x.startswith("SEM") for x in lines) and any(x.startswith("Fewer than 100 objects") for x in lines)
     assert rows[0]["nll_mean"] == ""  # no mixture given
     out = run("score", tmp_path / "p.h5", "--truth", tiny_root, "--json", "-")
     assert json.loads(out.output)["rows"][0]["method"] == "Oracle"
@@ -382,10 +392,12 @@ def test_mirrored_cabinet_is_not_perfect(tiny_root, tmp_path):
     pose[..., 3:] = M.quat_multiply(pose[..., 3:], np.array([0.0, 0.0, 1.0, 0.0]))
     pred["cabinet"]["axis_pose"] = pose
     write_predictions(tmp_path / "m.h5", "Mirror", pred)
-    r = score(tmp_path / "m.h5", tiny_root).rows[0]
+    r = score(tmp_path / "m.h5", tiny_root, metric_version=2).rows[0]
     assert r.metrics["axis_rotation_error_deg"][0] == pytest.approx(180.0, abs=1e-3)
     assert r.metrics["axis_direction_error_deg"][0] == pytest.approx(0.0, abs=1e-3)  # folded: the same line
     assert r.metrics["opd_success"][0] == 0.0 and r.metrics["mechanism_side_accuracy"][0] == 0.0
+    v3 = score(tmp_path / "m.h5", tiny_root).rows[0]  # OPD's criterion sees the hinge line only
+    assert v3.metrics["opd_success"][0] == 1.0 and v3.metrics["mechanism_side_accuracy"][0] == 0.0
     assert r.metrics["chirality_accuracy"][0] == 1.0  # the geometry prediction was left true
     # the same joint written with the other axis sign (axis reversed, x kept, q negated): perfect
     pred = perfect(tiny_root, ["cabinet"])
@@ -453,3 +465,17 @@ def test_truth_reader_refuses_shards_outside_the_split(tiny_root, tmp_path, monk
         monkeypatch.setattr(split_module, "shard_paths", lambda d, m, p=path: [p])
         with pytest.raises(DataFormatError, match="outside the split folder"):
             truth.load_truth_set(split)
+
+
+def test_metric_version_2_reproduces_version_2_reports(tiny_root, tmp_path):
+    """--metric-version 2 gives version 2's columns and numbers; version 3 adds its metrics and SEMs."""
+    write_predictions(tmp_path / "p.h5", "Oracle", perfect(tiny_root, ["toaster"]))
+    v2 = run("score", tmp_path / "p.h5", "--truth", tiny_root, "--metric-version", "2", "--csv", "-")
+    assert v2.exit_code == 0, v2.output
+    head = v2.output.splitlines()[0].split(",")
+    assert "n_objects" not in head and not any(c.endswith("_sem") or c.startswith("accuracy_") for c in head)
+    assert v2.output.splitlines()[1].split(",")[head.index("metric_version")] == "2"
+    v3 = run("score", tmp_path / "p.h5", "--truth", tiny_root, "--csv", "-").output.splitlines()[0].split(",")
+    assert {"accuracy_5deg_5cm_mean", "axis_position_along_cm_sem", "n_objects"} <= set(v3)
+    bad = run("score", tmp_path / "p.h5", "--truth", tiny_root, "--metric-version", "1")
+    assert bad.exit_code == 2 and "--metric-version" in bad.output

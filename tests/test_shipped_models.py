@@ -17,6 +17,7 @@ from articulated_dataset.cli import main  # noqa: E402
 from articulated_dataset.errors import UserError  # noqa: E402
 from articulated_dataset.registry import class_names  # noqa: E402
 from articulated_dataset.format import sha256_file  # noqa: E402
+from articulated_dataset.models.mdn.checkpoint import read_checkpoint_file  # noqa: E402
 
 SHIPPED = M.shipped_models()
 pytestmark = pytest.mark.skipif(not SHIPPED, reason="this checkout ships no weights")
@@ -46,13 +47,15 @@ DENSE_MAX_CONFIG = {"cabinet": 28.0, "drawer": 10.0, "microwave": 5.0, "toaster"
 def test_every_shipped_file_matches_its_checksum_and_the_budget():
     total = 0
     for m in SHIPPED:
-        path = M.WEIGHTS_DIR / m["file"]
-        assert path.is_file(), path
+        path, config = M.WEIGHTS_DIR / m["file"], M.WEIGHTS_DIR / m["config"]
+        assert path.suffix == ".safetensors" and config == path.with_suffix(".json"), path
         assert sha256_file(path) == m["sha256"] and path.stat().st_size == m["bytes"]
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        assert sha256_file(config) == m["config_sha256"] and config.stat().st_size == m["config_bytes"]
+        ckpt = read_checkpoint_file(path)  # the pair, without pickle
         assert ckpt["class_name"] == m["class_name"]
         assert "optimizer_state" not in ckpt and "training" in m and m["training"]["seed"] == 0
-        total += m["bytes"]
+        total += m["bytes"] + m["config_bytes"]
+    assert not list(M.WEIGHTS_DIR.glob("*.pt"))  # no pickle files ship
     assert total <= MAX_TOTAL_BYTES
 
 
@@ -61,12 +64,15 @@ def test_a_tampered_weight_file_is_refused(tmp_path, monkeypatch):
     monkeypatch.setattr(M, "WEIGHTS_DIR", tmp_path / "weights")
     monkeypatch.setattr(M, "MODELS_MANIFEST", tmp_path / "weights" / "models.json")
     entry = SHIPPED[0]
-    f = tmp_path / "weights" / entry["file"]
-    data = bytearray(f.read_bytes())
-    data[-100] ^= 0xFF
-    f.write_bytes(bytes(data))
-    with pytest.raises(UserError, match="checksum"):
-        M.resolve_model(entry["name"], entry["class_name"])
+    for key in ("file", "config"):  # the weights, then (the weights restored) the configuration beside them
+        f = tmp_path / "weights" / entry[key]
+        original = f.read_bytes()
+        data = bytearray(original)
+        data[-100] ^= 0xFF
+        f.write_bytes(bytes(data))
+        with pytest.raises(UserError, match="checksum"):
+            M.resolve_model(entry["name"], entry["class_name"])
+        f.write_bytes(original)
     with pytest.raises(UserError, match="no shipped"):
         M.resolve_model("dense", "no-such-class")
 
@@ -145,7 +151,7 @@ def test_every_shipped_dense_model_carries_its_refinement():
     dense = [m for m in SHIPPED if m["kind"] == "dense"]
     assert dense
     for m in dense:
-        ckpt = torch.load(M.WEIGHTS_DIR / m["file"], map_location="cpu", weights_only=True)
+        ckpt = read_checkpoint_file(M.WEIGHTS_DIR / m["file"])
         ref = Refinement.from_dict(ckpt["refinement"])
         assert ref.version == REFINEMENT_VERSION and ckpt["calibration"] is not None
         assert m["training"]["refinement"] == ckpt["refinement"]  # models.json says what the file does
@@ -160,7 +166,7 @@ def test_every_shipped_dense_model_carries_an_outlier_component():
     from articulated_dataset.targets import TargetLayout
 
     for m in (m for m in SHIPPED if m["kind"] == "dense"):
-        ckpt = torch.load(M.WEIGHTS_DIR / m["file"], map_location="cpu", weights_only=True)
+        ckpt = read_checkpoint_file(M.WEIGHTS_DIR / m["file"])
         outlier = ckpt["calibration"].get("outlier")
         assert outlier is not None, m["file"]
         lo, hi = OUTLIER_WEIGHT_BOUNDS
@@ -178,12 +184,13 @@ def test_shipped_mdn_small_predicts_and_models_lists_everything(tiny_root, tmp_p
     for m in SHIPPED:
         assert m["class_name"] in res.output
     lines = res.output.splitlines()
-    noisy = [m for m in SHIPPED if "test_kinect2" in m]
-    if noisy:  # a second table, after a blank line, of the figures with the sensor noise
-        second = lines[lines.index("") + 1:]
-        for m in noisy:
-            row = next(ln for ln in second if ln.split()[:2] == [m["name"], m["class_name"]])
-            assert f"{m['test_kinect2']['pos_cm']:.2f}" in row
+    assert max(len(line) for line in lines) <= 100
+    assert lines[0].split()[:6] == ["model", "class", "training", "data", "test", "data"]  # one table
+    for m in SHIPPED:  # one row per model and test data, the figures on it
+        for key, test_data in (("test", "clean"), ("test_kinect2", "kinect2 noise")):
+            if key in m:
+                row = next(ln for ln in lines if ln.split()[:2] == [m["name"], m["class_name"]] and test_data in ln)
+                assert f"{m[key]['pos_cm']:.2f}" in row
     cls = next((m["class_name"] for m in SHIPPED if m["name"] == "mdn-small"), None)
     if cls is None:
         pytest.skip("no shipped mdn-small model")

@@ -218,6 +218,10 @@ def ensure_mean_object(train_dir, mean_dir=None, *, workers: int = 1) -> Path:
     sibling = default_mean_dir(train_dir)
     if (sibling / MANIFEST_NAME).is_file() and read_manifest(sibling).get("class_name") == class_name:
         return sibling
+    from ..format.manifest import check_stored_object_files
+
+    check_stored_object_files(config.to_dict(), train_dir, "the ICP baseline's mean object",
+                              " (render it with 'artdata generate --urdf FILE --mean' and pass --mean-object)")
     cfg = replace(GenerationConfig.from_dict(config.to_dict()), mean=True, n_objects=1, noise="none")
     cache_root = Path(train_dir).parent / MEAN_CACHE_DIR
     target = split_dir_for(cache_root, cfg)

@@ -23,10 +23,13 @@ from ..rotations import quat_multiply, quat_to_matrix
 from ..units import CM_PER_M, DEG_PER_RAD, normalise
 
 #: Version of the metric definitions, reported with every score (JSON ``metric_version``, CSV,
-#: table).  2: axis rotation error by headings (v1: twist of ``R_pred R_true^T``, which scored a
-#: mirrored door 0), mechanism side accuracy, OPD success requires the mechanism side, chirality
-#: accuracy excludes undefined truth, infinite NLL counted (issue 19).
-METRIC_VERSION = 2
+#: table); docs/scoring.md lists what each version changed.  ``artdata score --metric-version``
+#: picks one of :data:`METRIC_VERSIONS`.
+METRIC_VERSION = 3
+#: Versions the scorer still computes (numbers of one version are comparable only with the same one).
+METRIC_VERSIONS = (2, 3)
+#: Accuracy thresholds of category-level articulation work: (direction deg, axis line distance cm).
+ACCURACY_THRESHOLDS = ((5.0, 5.0), (10.0, 10.0))
 #: OPD-style success thresholds (Jiang et al., "OPD", 2022): axis direction within 10 degrees ...
 OPD_MAX_DIRECTION_ERROR_DEG = 10.0
 #: ... and the predicted origin within 0.25 object diagonals of the true axis line.
@@ -236,7 +239,9 @@ def mechanism_side_correct(side_pred: np.ndarray, side_true: np.ndarray) -> np.n
 
 def opd_success(direction_error_deg: np.ndarray, origin_error_cm: np.ndarray, diagonal_m: np.ndarray,
                 check_origin: np.ndarray, side_correct: np.ndarray | None = None) -> np.ndarray:
-    """OPD-style success (float 0/1): direction error < 10 deg AND origin error < 0.25 diagonals AND right side.
+    """Metric version 2's OPD-style success (float 0/1): direction error < 10 deg AND origin error < 0.25 diagonals AND right side.
+
+    Version 3 scores OPD's own criterion, :func:`opd_motion_success` (thresholds inclusive, no side).
 
     ``success = [e_dir < 10] * ([e_origin < 0.25 * 100 * diag] or not check_origin) * [side != 0]``,
     with the origin error in cm and the diagonal in m.  As in OPD, the origin is checked only
@@ -255,6 +260,83 @@ def opd_success(direction_error_deg: np.ndarray, origin_error_cm: np.ndarray, di
     undefined = undefined | (np.asarray(check_origin, bool)
                              & np.isnan(np.asarray(origin_error_cm, np.float64) + np.asarray(diagonal_m, np.float64)))
     return np.where(undefined, np.nan, success)
+
+
+def opd_motion_success(direction_error_deg: np.ndarray, origin_to_line_cm: np.ndarray, diagonal_m: np.ndarray,
+                       check_origin: np.ndarray) -> np.ndarray:
+    """OPD's motion criterion (float 0/1; metric version 3's ``opd_success``).
+
+    ``success = [e_dir <= 10] * ([d_origin <= 0.25 * 100 * diag] or not check_origin)``: the
+    folded axis direction error ``e_dir`` (deg) within :data:`OPD_MAX_DIRECTION_ERROR_DEG`, and,
+    where ``check_origin`` is true (revolute joints; a prismatic axis has no position), the
+    distance ``d_origin`` (cm) of the predicted origin from the true axis line within
+    :data:`OPD_MAX_ORIGIN_ERROR_DIAGONALS` of the diagonal ``diag`` (m) of the object's box.
+    The hinge side is not part of it (reported as the mechanism side accuracy).  NaN where the
+    direction error is NaN or, where the origin is checked, the distance or the diagonal is.
+    """
+    e_dir = np.asarray(direction_error_deg, np.float64)
+    d_origin = np.asarray(origin_to_line_cm, np.float64)
+    diag = np.asarray(diagonal_m, np.float64)
+    check = np.asarray(check_origin, bool)
+    ok_origin = d_origin <= OPD_MAX_ORIGIN_ERROR_DIAGONALS * CM_PER_M * diag
+    success = ((e_dir <= OPD_MAX_DIRECTION_ERROR_DEG) & (ok_origin | ~check)).astype(np.float64)
+    undefined = np.isnan(e_dir) | (check & np.isnan(d_origin + diag))
+    return np.where(undefined, np.nan, success)
+
+
+def axis_accuracy(direction_error_deg: np.ndarray, line_distance_cm: np.ndarray, check_line: np.ndarray,
+                  max_direction_deg: float, max_distance_cm: float) -> np.ndarray:
+    """Accuracy at a threshold (float 0/1): ``[e_dir <= a] * ([d_line <= b] or not check_line)``.
+
+    ``e_dir`` is the folded axis direction error (deg), ``d_line`` the distance between the
+    predicted and true axis lines (cm), ``a``/``b`` the thresholds (the "5 deg / 5 cm" and
+    "10 deg / 10 cm" of category-level articulation papers).  The line distance is checked only
+    where ``check_line`` is true (revolute joints): a prismatic joint is judged by its direction.
+    NaN where an input that is checked is NaN.
+    """
+    e_dir = np.asarray(direction_error_deg, np.float64)
+    d_line = np.asarray(line_distance_cm, np.float64)
+    check = np.asarray(check_line, bool)
+    success = ((e_dir <= max_direction_deg) & ((d_line <= max_distance_cm) | ~check)).astype(np.float64)
+    undefined = np.isnan(e_dir) | (check & np.isnan(d_line))
+    return np.where(undefined, np.nan, success)
+
+
+def position_error_components_cm(origin_pred_m: np.ndarray, origin_true_m: np.ndarray,
+                                 direction_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The axis position error split along and across the true axis (cm), ``(along, across)``.
+
+    With ``e = o_pred - o_true`` and the unit true direction ``d``: ``along = 100 |e . d|`` and
+    ``across = 100 ||e x d||``, so ``along^2 + across^2`` is the squared axis position error.
+    Along a hinge is where an image that cuts the object off leaves the origin unmeasured;
+    across it is the error a robot's grasp on the moving part feels.
+    """
+    e = np.asarray(origin_pred_m, np.float64) - np.asarray(origin_true_m, np.float64)
+    d = normalise(direction_true)
+    along = CM_PER_M * np.abs(np.einsum("...i,...i->...", e, d))
+    c = np.cross(e, d)
+    return along, CM_PER_M * np.sqrt(np.einsum("...i,...i->...", c, c))
+
+
+def standard_error_of_mean(values: np.ndarray, groups: np.ndarray) -> float:
+    """Standard error of the mean of ``values`` over independent ``groups`` (objects).
+
+    The images of one object share its shape and pose, so they are not independent draws: the
+    values are first averaged per group, ``m_g = mean_{i in g} v_i``, and
+    ``SEM = std(m_g, ddof=1) / sqrt(G)`` over the ``G`` groups.  NaN values are left out; NaN
+    where fewer than two groups have a value, infinite where a value is infinite.
+    """
+    v = np.asarray(values, np.float64)
+    g = np.asarray(groups)
+    keep = ~np.isnan(v)
+    v, g = v[keep], g[keep]
+    if not np.isfinite(v).all():
+        return float("inf")
+    labels, inverse = np.unique(g, return_inverse=True)
+    if len(labels) < 2:
+        return float("nan")
+    means = np.bincount(inverse, weights=v) / np.bincount(inverse)
+    return float(np.std(means, ddof=1) / np.sqrt(len(labels)))
 
 
 # --------------------------------------------------------------------------------------

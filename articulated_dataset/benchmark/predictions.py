@@ -21,7 +21,7 @@ reported by the scorer).  Column d of the mixture datasets is named by
 
 :func:`write_predictions` validates and writes a file; :func:`read_predictions` validates a
 file (shapes, dtypes, finite values within +-:data:`MAX_ABS_VALUE`, unit quaternions, unique
-ids, mixture parameters, names, layout and size) and
+ids, sizes >= 0 and a chirality in [0, 1], mixture parameters, names, layout and size) and
 raises :class:`~articulated_dataset.errors.DataFormatError` with one line naming the
 dataset for anything wrong.  Non-unit quaternions are normalised with a logged warning;
 zero-length ones are rejected.
@@ -54,6 +54,12 @@ MIXTURE_LAYOUT_ATTR = "mixture_layout"
 POSE_WIDTH = 7
 #: Columns of geometry: depth, width, height (m), chirality.
 GEOMETRY_WIDTH = 4
+#: Columns of geometry that are sizes (depth, width, height in m): never negative.
+GEOMETRY_SIZE_COLUMNS = ("depth", "width", "height")
+#: Column of geometry that holds the chirality: a probability of "hinge on the right" or a 0/1
+#: label, so within CHIRALITY_RANGE.
+CHIRALITY_COLUMN = 3
+CHIRALITY_RANGE = (0.0, 1.0)
 #: Quaternions shorter than this cannot be normalised (no rotation is defined): rejected.
 MIN_QUATERNION_NORM = 1e-6
 #: |norm - 1| above this is reported (a float32 unit quaternion is within ~1e-7 of 1).
@@ -105,6 +111,24 @@ def _check_float(where: str, name: str, a: np.ndarray) -> np.ndarray:
         raise DataFormatError(f"{where}/{name}: {int(huge.sum())} values beyond +/-{MAX_ABS_VALUE:g} (label units: m, rad; "
                               f"first {a[tuple(first)]:.3g} at index {tuple(int(i) for i in first)})")
     return a
+
+
+def _check_geometry(where: str, g: np.ndarray) -> np.ndarray:
+    """``g`` (N, 4) if its sizes are >= 0 and its chirality lies in :data:`CHIRALITY_RANGE`; else a
+    :class:`DataFormatError` naming the first offending value (magnitudes are checked before)."""
+    for c, name in enumerate(GEOMETRY_SIZE_COLUMNS):
+        bad = np.flatnonzero(g[:, c] < 0)
+        if bad.size:
+            raise DataFormatError(f"{where}/geometry: {name} below 0 in {bad.size} row(s) (a size is >= 0; first "
+                                  f"{g[bad[0], c]:.3g} m at row {int(bad[0])})")
+    lo, hi = CHIRALITY_RANGE
+    chirality = g[:, CHIRALITY_COLUMN]
+    bad = np.flatnonzero((chirality < lo) | (chirality > hi))
+    if bad.size:
+        raise DataFormatError(f"{where}/geometry: chirality outside [{lo:g}, {hi:g}] in {bad.size} row(s) (a "
+                              f"probability of the hinge on the right, or a 0/1 label; first {chirality[bad[0]]:.3g} "
+                              f"at row {int(bad[0])})")
+    return g
 
 
 def _check_shape(where: str, name: str, a: np.ndarray, expected: tuple) -> None:
@@ -200,7 +224,7 @@ def validate_class(where: str, arrays: dict, *, normalise: bool = True) -> dict:
     if "geometry" in arrays:
         g = np.asarray(arrays["geometry"])
         _check_shape(where, "geometry", g, (N, GEOMETRY_WIDTH))
-        out["geometry"] = _check_float(where, "geometry", g)
+        out["geometry"] = _check_geometry(where, _check_float(where, "geometry", g))
     if "part_offset" in arrays:
         p = np.asarray(arrays["part_offset"])
         _check_shape(where, "part_offset", p, (N, J, 3))

@@ -25,7 +25,7 @@ from ..errors import DataFormatError, UserError
 from ..format.schema import PRISMATIC
 from . import metrics as M
 from .predictions import MIXTURE_LAYOUT_ATTR, read_predictions
-from .report import Report, ScoreRow, aggregate
+from .report import Report, ScoreRow, aggregate, standard_errors
 from .truth import TruthSet, align, available_truth, select_truth
 
 log = logging.getLogger(__name__)
@@ -66,7 +66,13 @@ def target_matrix(layout: list[str], truth: dict, where: str = "", class_name: s
 # Per-image metrics
 # --------------------------------------------------------------------------------------
 
-def image_metrics(pred: dict, truth: dict, joint_types, where: str = "") -> tuple[dict, dict]:
+def accuracy_metric_name(max_direction_deg: float, max_distance_cm: float) -> str:
+    """``accuracy_5deg_5cm`` for the thresholds (5, 5): the report's key of an accuracy metric."""
+    return f"accuracy_{max_direction_deg:g}deg_{max_distance_cm:g}cm"
+
+
+def image_metrics(pred: dict, truth: dict, joint_types, where: str = "",
+                  metric_version: int = M.METRIC_VERSION) -> tuple[dict, dict]:
     """Per-image metrics of aligned predictions and truth (row i = same image in both).
 
     ``pred``/``truth`` hold ``axis_pose (N, J, 7)`` (unit quaternions), ``q (N, J)`` and
@@ -81,7 +87,14 @@ def image_metrics(pred: dict, truth: dict, joint_types, where: str = "") -> tupl
     A predicted joint that is the true joint written with the other axis sign
     (:func:`metrics.canonical_axis_sign`) is re-expressed first; the rotation and
     configuration errors are computed on it.
+
+    ``metric_version`` (:data:`metrics.METRIC_VERSIONS`): 3 adds the position error along and
+    across the true axis, the accuracies at :data:`metrics.ACCURACY_THRESHOLDS` (per joint,
+    averaged over joints) and scores ``opd_success`` by OPD's criterion
+    (:func:`metrics.opd_motion_success`); 2 gives version 2's metrics exactly.
     """
+    if metric_version not in M.METRIC_VERSIONS:
+        raise UserError(f"metric version {metric_version} is not one of {', '.join(map(str, M.METRIC_VERSIONS))}")
     prismatic = np.array([t == PRISMATIC for t in joint_types], bool)
     revolute = ~prismatic
     pp, tp = pred["axis_pose"], truth["axis_pose"]
@@ -107,8 +120,17 @@ def image_metrics(pred: dict, truth: dict, joint_types, where: str = "") -> tupl
         out["mechanism_side_accuracy"] = side[:, revolute].mean(axis=1)
     origin_to_line = M.point_to_line_distance_cm(o_p, o_t, d_t)
     diag = M.object_diagonal_m(truth["geometry"])[:, None]
-    out["opd_success"] = M.opd_success(per_joint["axis_direction_error_deg"], origin_to_line, diag, revolute,
-                                       side).mean(axis=1)
+    e_dir = per_joint["axis_direction_error_deg"]
+    if metric_version == 2:
+        out["opd_success"] = M.opd_success(e_dir, origin_to_line, diag, revolute, side).mean(axis=1)
+    else:
+        out["opd_success"] = M.opd_motion_success(e_dir, origin_to_line, diag, revolute).mean(axis=1)
+        along, across = M.position_error_components_cm(o_p, o_t, d_t)
+        out["axis_position_along_cm"], out["axis_position_across_cm"] = along.mean(axis=1), across.mean(axis=1)
+        line_all = M.line_distance_cm(o_p, d_p, o_t, d_t)
+        for max_deg, max_cm in M.ACCURACY_THRESHOLDS:
+            out[accuracy_metric_name(max_deg, max_cm)] = M.axis_accuracy(e_dir, line_all, revolute, max_deg,
+                                                                         max_cm).mean(axis=1)
     if "geometry" in pred:
         g_err = M.geometry_error_cm(pred["geometry"], truth["geometry"])
         out["geometry_depth_error_cm"], out["geometry_width_error_cm"], out["geometry_height_error_cm"] = g_err.T
@@ -124,7 +146,8 @@ def image_metrics(pred: dict, truth: dict, joint_types, where: str = "") -> tupl
     return out, per_joint
 
 
-def score_class(pred: dict, truth: TruthSet, method: str, predictions_path: str) -> ScoreRow:
+def score_class(pred: dict, truth: TruthSet, method: str, predictions_path: str,
+                metric_version: int = M.METRIC_VERSION) -> ScoreRow:
     """Score one class of one predictions file against its truth split."""
     where = f"{predictions_path}:/{truth.class_name}"
     idx = align(pred["sample_id"], truth.arrays["sample_id"], where, str(truth.path))
@@ -133,12 +156,14 @@ def score_class(pred: dict, truth: TruthSet, method: str, predictions_path: str)
         raise DataFormatError(f"{where}/axis_pose: {J_pred} joints predicted, the truth ({truth.path}) has {J_true}")
     t = {k: v[idx] for k, v in truth.arrays.items()}
     with np.errstate(all="ignore"):  # NaN truth and zero mixture densities are handled as values
-        per_image, per_joint = image_metrics(pred, t, truth.joint_types, where)
+        per_image, per_joint = image_metrics(pred, t, truth.joint_types, where, metric_version)
         metrics, joints, defined, infinite = aggregate(per_image, per_joint)
+        sem = standard_errors(per_image, t["object_index"]) if metric_version >= 3 else {}
     return ScoreRow(class_name=truth.class_name, method=method, split=truth.split, truth_path=str(truth.path),
                     predictions_path=str(predictions_path), n_scored=len(idx), n_truth=truth.n_images,
                     joint_types=truth.joint_types, metrics=metrics, per_joint=joints, n_defined=defined,
-                    n_infinite=infinite)
+                    n_infinite=infinite, sem=sem, n_objects=len(np.unique(t["object_index"])),
+                    metric_version=metric_version)
 
 
 def _class_order(name: str) -> tuple:
@@ -148,13 +173,17 @@ def _class_order(name: str) -> tuple:
     return (names.index(name), "") if name in names else (len(names), name)
 
 
-def score(predictions, truth_path: str | Path, split: str | None = None) -> Report:
+def score(predictions, truth_path: str | Path, split: str | None = None,
+          metric_version: int = M.METRIC_VERSION) -> Report:
     """Score one predictions file (or a list of them) against the truth under ``truth_path``.
 
     ``truth_path`` is a split folder or a folder with ``<class>/<split>/`` below it; ``split``
-    picks the split when a class has several (default :data:`.truth.DEFAULT_SPLIT`).  Returns a
-    :class:`Report` with one row per (class, method).  Bad input raises :class:`UserError`.
+    picks the split when a class has several (default :data:`.truth.DEFAULT_SPLIT`);
+    ``metric_version`` one of :data:`.metrics.METRIC_VERSIONS`.  Returns a :class:`Report` with
+    one row per (class, method).  Bad input raises :class:`UserError`.
     """
+    if metric_version not in M.METRIC_VERSIONS:
+        raise UserError(f"metric version {metric_version} is not one of {', '.join(map(str, M.METRIC_VERSIONS))}")
     paths = [predictions] if isinstance(predictions, (str, Path)) else list(predictions)
     if not paths:
         raise UserError("no predictions file given")
@@ -175,7 +204,7 @@ def score(predictions, truth_path: str | Path, split: str | None = None) -> Repo
             if key in seen:
                 raise UserError(f"{path}: class {cls!r} of method {method!r} is also in {seen[key]}")
             seen[key] = path
-            row = score_class(pred, truth[cls], method, path)
+            row = score_class(pred, truth[cls], method, path, metric_version)
             if not row.complete:
                 msg = (f"{cls} - {method}: partial coverage, {row.n_scored} of {row.n_truth} truth images "
                        f"predicted ({100.0 * row.n_scored / row.n_truth:.1f}%)")
@@ -193,4 +222,5 @@ def score(predictions, truth_path: str | Path, split: str | None = None) -> Repo
     order = {c: i for i, c in enumerate(classes)}
     rows.sort(key=lambda r: order[r.class_name])  # stable: file order within a class
     unscored = sorted(set(available_truth(truth_path)) - set(classes), key=_class_order)
-    return Report(truth_root=str(truth_path), split=split, rows=rows, notes=notes, unscored_classes=unscored)
+    return Report(truth_root=str(truth_path), split=split, rows=rows, notes=notes, unscored_classes=unscored,
+                  metric_version=metric_version)

@@ -15,7 +15,10 @@ from ..format import Split, splits_by_class
 #: Truth split chosen when a class has several and no ``split`` is given.
 DEFAULT_SPLIT = "test"
 #: Label fields the scorer reads from the truth shards.
-TRUTH_FIELDS = ("sample_id", "axis_pose", "q", "geometry", "part_offset")
+#: Label fields the scorer reads; ``object_index`` groups images for the standard errors.
+TRUTH_FIELDS = ("sample_id", "axis_pose", "q", "geometry", "part_offset", "object_index")
+#: Integer identifiers among them (kept as int64, never checked as label values).
+ID_FIELDS = ("sample_id", "object_index")
 
 
 # --------------------------------------------------------------------------------------
@@ -48,7 +51,8 @@ def load_truth_set(split_dir: str | Path) -> TruthSet:
     arrays = split.read_fields(TRUTH_FIELDS)
     ids = arrays["sample_id"].astype(np.int64)
     order = np.argsort(ids, kind="stable")
-    arrays = {k: np.asarray(v[order], np.float64) if k != "sample_id" else ids[order] for k, v in arrays.items()}
+    arrays = {k: np.asarray(v[order], np.float64) if k not in ID_FIELDS else np.asarray(v[order], np.int64)
+              for k, v in arrays.items()}
     if arrays["axis_pose"].shape[1] != len(joint_types):
         raise DataFormatError(f"{split_dir}: {arrays['axis_pose'].shape[1]} joints in axis_pose but {len(joint_types)} joint types")
     dup = arrays["sample_id"][1:] == arrays["sample_id"][:-1]
@@ -70,7 +74,7 @@ def _check_truth_values(split_dir: Path, arrays: dict) -> None:
     from .predictions import MAX_ABS_VALUE, MIN_QUATERNION_NORM, beyond_bounds
 
     for name, a in arrays.items():
-        if name == "sample_id":
+        if name in ID_FIELDS:
             continue
         bad = beyond_bounds(a, nan_allowed=True)
         if bad.any():

@@ -13,7 +13,9 @@ output...) and every click usage error (unknown option, bad value, missing optio
 argument, bad choice) are printed as one line ``artdata: error: ...`` and exit with code 2;
 anything else is a bug and keeps its traceback.  A machine that cannot render offscreen (no
 EGL/OSMesa) gets one line and exit code 3 from the commands that render; the others
-(``score``, ``info``, ``verify``, ...) work without a GL library.  A full disk (or standard
+(``score``, ``info``, ``verify``, ...) work without a GL library.  A MuJoCo release outside the
+supported range (:mod:`articulated_dataset.mujoco_support`) gets one line naming the range and exit
+code 3 from the commands of :data:`MUJOCO_COMMANDS`.  A full disk (or standard
 output on one) is also one line and exit code 3.
 """
 
@@ -30,6 +32,7 @@ import click
 
 from .. import __version__
 from ..errors import RenderError, UserError
+from ..mujoco_support import installed_mujoco_version, unsupported_mujoco
 
 EXIT_USER_ERROR = 2
 #: The machine lacks something a command needs (EGL/OSMesa libraries for rendering, disk space).
@@ -40,7 +43,8 @@ FULL_OUTPUT_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 #: Every subcommand and the module of this package that defines it
 #: (tests/test_import_light.py checks it against the modules' ``COMMANDS``).
 COMMAND_MODULES = {
-    "baseline": "baseline", "estimate": "estimate", "export": "export", "generate": "generate",
+    "baseline": "baseline", "card": "card", "estimate": "estimate", "export": "export", "export-model": "export_model",
+    "generate": "generate",
     "import-exr": "export", "info": "info", "ingest": "ingest", "models": "models", "plan": "plan",
     "predict": "predict", "score": "score", "show": "show", "train": "train", "verify": "verify",
 }
@@ -175,9 +179,9 @@ def _import_mujoco() -> None:
 
 
 def _prepared(cmd: click.Command) -> click.Command:
-    """``cmd`` with MuJoCo imported before it runs (commands of :data:`MUJOCO_COMMANDS`), and
-    stopping with the one-line exit-3 message when MuJoCo cannot render (commands of
-    :data:`RENDERING_COMMANDS`); checked when it runs, so ``--help`` stays light."""
+    """``cmd`` with MuJoCo imported before it runs (commands of :data:`MUJOCO_COMMANDS`), stopping
+    with a one-line exit-3 message when that MuJoCo release is not supported, or when MuJoCo cannot
+    render (commands of :data:`RENDERING_COMMANDS`); checked when it runs, so ``--help`` stays light."""
     if cmd.name in MUJOCO_COMMANDS:
         for leaf in _leaves(cmd):
             leaf.callback = _with_mujoco(leaf.callback, cmd.name)
@@ -210,6 +214,10 @@ def _with_mujoco(function, name: str):
     @functools.wraps(function)
     def checked(*args, **kwargs):
         _import_mujoco()
+        unsupported = unsupported_mujoco(installed_mujoco_version())  # its scenes would not build
+        if unsupported is not None:
+            click.echo(f"artdata: error: {unsupported}", err=True)
+            click.get_current_context().exit(EXIT_ENVIRONMENT_ERROR)
         if name in RENDERING_COMMANDS and MUJOCO_GL_PROBLEM is not None:
             click.echo(f"artdata: error: {MUJOCO_GL_PROBLEM}", err=True)
             click.get_current_context().exit(EXIT_ENVIRONMENT_ERROR)

@@ -31,7 +31,8 @@ def estimate_cmd(depth, class_name, camera_path, mask_path, depth_units, model, 
     """Estimate the articulation (axis origin and direction, q, size, uncertainty) of the object in DEPTH.
 
     DEPTH is a 16-bit PNG in millimetres, an EXR or a .npy in metres.  Results are in the
-    camera frame (x forward, y left, z up) in metres and radians.
+    camera frame (x forward, y left, z up) in metres; the summary prints a door's opening q in
+    degrees, --json gives it in radians (a drawer's in metres in both).
     """
     from ..models.estimation import estimate_file
 

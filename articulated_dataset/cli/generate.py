@@ -12,7 +12,8 @@ import click
 from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, INTRINSICS_PRESETS, KINECT_V2_VFOV_DEG, camera_from_options
 from ..errors import UserError
 from ..executors import EXECUTORS, get_executor
-from ..format.manifest import DEFAULT_IMAGES_PER_OBJECT, DEFAULT_OBJECTS_PER_SHARD, DEFAULT_SEED, MAX_OCCLUDERS, SCENE_NAMES
+from ..format.manifest import (DEFAULT_FRAMING, DEFAULT_IMAGES_PER_OBJECT, DEFAULT_OBJECTS_PER_SHARD, DEFAULT_SEED, FRAMINGS,
+                               MAX_OCCLUDERS, SCENE_NAMES)
 from ..generation import generate_split
 from ..generation.request import DEFAULT_N_OBJECTS, UrdfOptions, config_from_options
 from ..generation.viewpoint import CAMERA_MOUNTS
@@ -78,6 +79,10 @@ _ADDRESS = re.compile(r"^(auto|(ray://)?[^\s:/]+:\d+)$")
               help="Sampling table: paper (the paper's independent ranges; default), realistic (joint size distributions "
                    "from standard dimensions, docs/generation.md) or a JSON/TOML file overriding part of it; "
                    "repeat to combine a name with files (applied in order).")
+@click.option("--framing", type=click.Choice(list(FRAMINGS)), default=DEFAULT_FRAMING, show_default=True,
+              help="table4: poses drawn from the sampling table's ranges (the paper's Table 4; tall objects may be cut "
+                   "off); whole: the paper's 'view frustum' sentence, only poses that keep the whole object in every "
+                   "image, the depth range extended for large objects (docs/generation.md, Framing).")
 @click.option("--workers", type=int, default=None,
               help="Worker processes (default: all cores); with --executor ray: most shard tasks in flight (default: 1024).")
 @click.option("--executor", type=click.Choice(list(EXECUTORS)), default="local", show_default=True,
@@ -100,7 +105,7 @@ _ADDRESS = re.compile(r"^(auto|(ray://)?[^\s:/]+:\d+)$")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missing_meshes, urdf_scale, urdf_mesh_root,
                  n_objects, split, out_root, seed, images_per_object, objects_per_shard, width, height, resolution, vfov,
-                 intrinsics, camera_mount, tables, workers, executor, address, scene, occluders, rgb, noise, resume, overwrite,
+                 intrinsics, camera_mount, tables, framing, workers, executor, address, scene, occluders, rgb, noise, resume, overwrite,
                  mean_object, quiet):
     """Generate labelled depth images of one object class (or one URDF object) into HDF5 shards."""
     camera = camera_from_options(width, height, resolution, vfov, intrinsics, camera_mount)
@@ -108,7 +113,7 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
     config = config_from_options(
         class_name, urdf, camera, tables, n_objects=n_objects, mean=mean_object, echo=None if quiet else click.echo,
         split=split, seed=seed, images_per_object=images_per_object, objects_per_shard=objects_per_shard, noise=noise,
-        scene=scene, occluders=occluders, rgb=rgb,
+        scene=scene, occluders=occluders, rgb=rgb, framing=framing,
     )
     if workers is not None and workers <= 0:
         raise UserError(f"--workers must be positive, got {workers}")

@@ -56,7 +56,8 @@ def _parse_size(text: str | None) -> tuple[int, int] | None:
 @click.option("--like", "like_path", type=click.Path(), default=None,
               help="Take the training camera (size, field of view) from this generated split instead.")
 @click.option("--append", is_flag=True, help="Add the captures to an existing real split.")
-@click.option("--overwrite", is_flag=True, help="Replace an existing real split.")
+@click.option("--overwrite", is_flag=True,
+              help="Replace an existing real split (one 'artdata ingest' wrote; any other split is refused).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 def ingest_cmd(captures, class_name, out_root, split, mask_path, labels_path, intrinsics_path, fx, fy, cx, cy, source_size,
                cloud_frame, depth_units, fit, resample, crop_margin, keep_background, width, height, vfov, like_path,

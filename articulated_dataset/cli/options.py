@@ -52,12 +52,12 @@ def prepare_torch(threads: int | None) -> int:
     to reuse freed memory (:func:`~articulated_dataset.executors.configure_allocator`)."""
     from ..executors import configure_allocator, configure_openmp_wait
 
+    from ..errors import TORCH_INSTALL, import_optional
+
     configure_openmp_wait(threads if threads is not None and threads > 0 else None)
     configure_allocator()
-    try:
-        import torch  # noqa: F401
-    except ImportError:
-        raise UserError("PyTorch is not installed; install it with: pip install torch==2.13.0") from None
+    ctx = click.get_current_context(silent=True)
+    import_optional("torch", f"artdata {ctx.info_name}" if ctx is not None else "this command", TORCH_INSTALL)
     from ..models.mdn.train import configure_threads
 
     if threads is not None and threads <= 0:

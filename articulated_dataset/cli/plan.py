@@ -10,6 +10,32 @@ from ..errors import UserError
 from ..units import format_q
 
 
+#: What ends the refusal to rebuild a third-party URDF object from recorded paths outside its
+#: split folder (:func:`~articulated_dataset.generation.objects.stored_object_config`).
+URDF_HINT = "; name the object's URDF with --urdf FILE (and --mesh-root DIR if it was generated with one)"
+
+
+def object_file_options(what: str):
+    """``--urdf FILE`` and ``--mesh-root DIR``: the files a third-party URDF object is rebuilt
+    from (``what``: the rebuild, for the help), used only when their sha256 is the one the split
+    recorded."""
+    def decorate(f):
+        f = click.option("--mesh-root", "mesh_root", type=click.Path(file_okay=False), default=None,
+                         help="With --urdf: the folder its meshes are read from, as given to 'generate --mesh-root'  "
+                              "[default: the URDF's folder].")(f)
+        return click.option("--urdf", "urdf", type=click.Path(dir_okay=False), default=None,
+                            help=f"A split generated with 'generate --urdf': the object's URDF, from which {what} "
+                                 "rebuilds it (its recorded path is not opened outside the split folder); used only "
+                                 "if it and its meshes are the files the split was generated from (sha256).")(f)
+    return decorate
+
+
+def check_object_file_options(urdf, mesh_root) -> None:
+    """--mesh-root belongs to a --urdf."""
+    if mesh_root is not None and urdf is None:
+        raise UserError("--mesh-root is the folder of a --urdf's meshes: give --urdf FILE too")
+
+
 def _fmt_vec(v, digits: int = 4) -> str:
     return "(" + ", ".join(f"{x:.{digits}f}" for x in v) + ")"
 
@@ -38,14 +64,16 @@ def _fmt_vec(v, digits: int = 4) -> str:
 @click.option("--step", default=None, help="Waypoint spacing with units (default 1deg / 1cm).")
 @click.option("--simulate", is_flag=True, help="Execute the waypoints on the true object in MuJoCo and report the outcome.")
 @click.option("--out", "out_path", type=click.Path(dir_okay=False), default=None, help="Write the plan (and outcome) as JSON.")
+@object_file_options("plan")
 @click.option("--quiet", "-q", is_flag=True, help="Do not list the waypoints.")
 def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, no_touch, seed, threads, target, step,
-             simulate, out_path, quiet):
+             simulate, out_path, urdf, mesh_root, quiet):
     """Plan end-effector waypoints that open joint JOINT of image INDEX's object.
 
     The handle's grasp pose is estimated from the (true or predicted) axis pose, part offset
     and configuration; the waypoints carry it along the arc (revolute) or line (prismatic) to
-    the target.  See docs/manipulation.md.
+    the target.  A split generated with --urdf is rebuilt from the URDF named with --urdf (its
+    recorded path is opened only inside the split folder).  See docs/manipulation.md.
     """
     from ..manipulation.image_plan import plan_image, simulate_image_plan, write_plan_record
 
@@ -70,6 +98,7 @@ def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, no_to
         check_can_create(out_path)  # before any work: a read-only or missing place is one line now
     if model is not None and threads is not None and threads <= 0:
         raise UserError(f"--threads must be positive, got {threads}")
+    check_object_file_options(urdf, mesh_root)
 
     def prepare_model():
         from .options import prepare_torch
@@ -77,7 +106,8 @@ def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, no_to
         prepare_torch(threads)
 
     image = plan_image(data_dir, index, joint=joint, predictions_path=predictions_path, model=model,
-                       closed_loop=closed_loop, simulate=simulate, target=target, step=step, prepare_model=prepare_model)
+                       closed_loop=closed_loop, simulate=simulate, target=target, step=step,
+                       prepare_model=prepare_model, urdf=urdf, mesh_root=mesh_root, hint=URDF_HINT)
     obj, manifest, labels, plan, joint_type = image.obj, image.manifest, image.labels, image.plan, image.joint_type
     fq = lambda v: format_q(v, joint_type, 2)  # noqa: E731
     click.echo(f"{obj.class_name}/{manifest['split']} image {index} (object {int(labels['object_index'])}, "

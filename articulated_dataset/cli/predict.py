@@ -41,13 +41,15 @@ from .options import no_mirror_option, precision_option, prepare_torch
 def predict_cmd(model_path, data, out, as_class, estimate, snap_to_cloud, object_mask, no_mirror, precision, method, batch_size,
                 device, threads, workers, overwrite, quiet):
     """Predict axis poses, configurations, geometry and the full mixture for every image of a split."""
+    from ..safeio import check_can_create, check_name_length, check_outputs_distinct
+
     out = Path(out)
+    check_name_length(out)
     if out.exists() and not overwrite:
         raise UserError(f"{out} exists; pass --overwrite to replace it")
     if out.is_dir():
         raise UserError(f"--out {out} is a directory; give a file name such as predictions.h5")
     from ..models.mdn.data import resolve_split_dir
-    from ..safeio import check_can_create, check_outputs_distinct
 
     # the checkpoint and the split read are never written over (beside the split, as data/p.h5, is fine)
     check_outputs_distinct([model_path], [out], input_folders=[resolve_split_dir(data)])

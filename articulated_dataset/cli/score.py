@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from ..benchmark.metrics import METRIC_VERSION, METRIC_VERSIONS
 from ..errors import UserError
 
 
@@ -34,14 +35,18 @@ def _write(path: str, text: str) -> None:
               help="Write one CSV line per (class, method) to this file ('-' prints it instead of the table).")
 @click.option("--require-complete", is_flag=True,
               help="Exit with code 2 if some truth images of a predicted class have no prediction.")
-@click.option("--wide", is_flag=True, help="One line per row with every metric and the full metric titles "
-                                           "(default: at most 100 columns, short names and a legend).")
-def score_cmd(predictions, truth_path, split, json_path, csv_path, require_complete, wide):
+@click.option("--wide", is_flag=True, help="One line per row with every metric (default: at most 100 columns, "
+                                           "the standard metrics in blocks).")
+@click.option("--metric-version", type=click.Choice([str(v) for v in METRIC_VERSIONS]), default=str(METRIC_VERSION),
+              show_default=True, help="Metric definitions to compute (docs/scoring.md, Versions); 2 reproduces "
+                                      "version-2 numbers.")
+def score_cmd(predictions, truth_path, split, json_path, csv_path, require_complete, wide, metric_version):
     """Score PREDICTIONS (one or more predictions.h5 files) against the truth.
 
     Prints the paper's Table 1 layout (axis position error in cm, axis rotation error in
-    degrees, configuration error in degrees or cm, as mean +/- std over images, and the number
-    of images scored) followed by the standard metrics.  See docs/scoring.md.
+    degrees, configuration error in degrees or cm, as mean +/- standard deviation over images,
+    and the number of images scored), the standard error of each mean over objects, then the
+    standard metrics.  See docs/scoring.md.
     """
     from ..benchmark.scoring import score
     from ..format import find_split_dirs
@@ -57,7 +62,7 @@ def score_cmd(predictions, truth_path, split, json_path, csv_path, require_compl
     for target in (json_path, csv_path):  # both writable before either is written: no half-written report
         if target and target != "-":
             check_can_create(target)
-    report = score(list(predictions), truth_path, split=split)
+    report = score(list(predictions), truth_path, split=split, metric_version=int(metric_version))
     if require_complete:
         partial = [f"{r.class_name} - {r.method} ({r.n_scored}/{r.n_truth})" for r in report.rows if not r.complete]
         if partial:

@@ -7,7 +7,12 @@ from pathlib import Path
 import click
 
 from ..errors import UserError
+from .plan import URDF_HINT, check_object_file_options, object_file_options
 
+
+#: What ends the refusal of --rgb to rebuild a third-party URDF object from recorded paths
+#: outside its split folder.
+RGB_URDF_HINT = f"{URDF_HINT}, or generate the split with --rgb to store its colour images"
 
 #: the most indices one range of --objects/--images may expand to (a typo like 0-99999999999 must
 #: not allocate gigabytes before the bounds check).
@@ -59,14 +64,18 @@ def parse_index_list(text: str | None, what: str) -> list[int] | None:
 @click.option("--predictions", "predictions", type=click.Path(dir_okay=False), default=None,
               help="predictions.h5 (artdata predict / baseline): draw its axes dashed beside the true ones.")
 @click.option("--dpi", type=int, default=100, show_default=True)
+@object_file_options("--rgb")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing on success.")
-def show_cmd(path, out, per_sample_dir, n_samples, objects, images, cols, rgb, no_outline, predictions, dpi, quiet):
+def show_cmd(path, out, per_sample_dir, n_samples, objects, images, cols, rgb, no_outline, predictions, dpi, urdf,
+             mesh_root, quiet):
     """Draw labelled samples of the data at PATH (split, class folder or output root).
 
     Depth is colour-mapped per image (near bright, far dark; grey = no return); each joint's
     axis is drawn in its own colour (line with arrow = +q, dot = axis origin; for drawers the
     arrow spans the full travel and a ring marks the front's current position), and q is
-    printed in degrees (revolute) or centimetres (prismatic).
+    printed in degrees (revolute) or centimetres (prismatic).  --rgb rebuilds a split generated
+    with --urdf from the URDF named with --urdf (its recorded path is opened only inside the split
+    folder), unless the split stores colour images.
     """
     from ..format import find_split_dirs
     from ..viz.gallery import make_gallery
@@ -74,6 +83,9 @@ def show_cmd(path, out, per_sample_dir, n_samples, objects, images, cols, rgb, n
 
     from ..safeio import check_can_create, check_outputs_distinct
 
+    check_object_file_options(urdf, mesh_root)
+    if urdf is not None and not rgb:
+        raise UserError("--urdf names the URDF --rgb rebuilds a third-party object's scene from: add --rgb")
     split_dirs = find_split_dirs(path)
     # the predictions drawn are never written over (an --out of the same name replaced them with the gallery)
     check_outputs_distinct([predictions], [out])
@@ -85,7 +97,8 @@ def show_cmd(path, out, per_sample_dir, n_samples, objects, images, cols, rgb, n
         cols = DEFAULT_COLUMNS_RGB if rgb else DEFAULT_COLUMNS
     panels = make_gallery(split_dirs, out=out, per_sample_dir=per_sample_dir, n=n_samples,
                           objects=parse_index_list(objects, "objects"), images=parse_index_list(images, "images"),
-                          rgb=rgb, cols=cols, dpi=dpi, outline=not no_outline, predictions=predictions)
+                          rgb=rgb, cols=cols, dpi=dpi, outline=not no_outline, predictions=predictions,
+                          urdf=urdf, mesh_root=mesh_root, rebuild_hint=RGB_URDF_HINT)
     if not quiet:
         n_drawn = len({(p.split, p.object_index, p.image_index) for p in panels})
         written = [str(out)] if out else []

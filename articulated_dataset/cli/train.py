@@ -11,9 +11,9 @@ from .options import ClassChoice, prepare_torch
 
 
 @click.command("train")
-@click.option("--model", "model_kind", type=click.Choice(["mdn", "dense"]), default="mdn", show_default=True,
-              help="mdn: the paper's ResNet-18 mixture density network; dense: the per-pixel voting network "
-                   "(docs/model.md).")
+@click.option("--model", "model_kind", type=click.Choice(["dense", "mdn"]), default="dense", show_default=True,
+              help="dense: the per-pixel voting network of the shipped models (docs/dense.md); mdn: the paper's "
+                   "ResNet-18 mixture density network (docs/model.md).")
 @click.option("--class", "class_name", type=ClassChoice(), required=True, help="Object class (one network per class).")
 @click.option("--data", type=click.Path(), required=True, help="The class's TRAINING split folder, e.g. data/cabinet/train.")
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="Checkpoint file (written after every epoch).")

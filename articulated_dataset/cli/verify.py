@@ -30,6 +30,7 @@ def verify_cmd(ctx, path, quick, workers, as_json, quiet):
     """
     from tqdm import tqdm
 
+    from ..format.manifest import printable
     from ..verify import count_shards, find_splits, verify_splits
 
     if workers is None:
@@ -47,12 +48,12 @@ def verify_cmd(ctx, path, quick, workers, as_json, quiet):
         for r in reports:
             if r.ok and not quiet:
                 extra = "" if r.content_checked else " (quick: arrays not read)"
-                click.echo(f"{r.split_dir}: OK, {r.n_shards} shards, {r.n_images} images{extra}")
+                click.echo(printable(f"{r.split_dir}: OK, {r.n_shards} shards, {r.n_images} images{extra}"))
             elif not r.ok:
-                click.echo(f"{r.split_dir}: {len(r.errors)} problem(s)")
+                click.echo(printable(f"{r.split_dir}: {len(r.errors)} problem(s)"))
             for prob in r.problems:
                 if not prob.warning or not quiet:
-                    click.echo(f"  {prob}")
+                    click.echo(printable(f"  {prob}"))  # names from the data: control characters escaped
         n_images = sum(r.n_images for r in reports)
         if bad:
             click.echo(f"verify: problems in {len(bad)} of {len(reports)} split(s)")

@@ -11,7 +11,7 @@ import tempfile
 from pathlib import Path
 
 from ..errors import UserError
-from ..safeio import ensure_dir, remove_created_dirs, translated
+from ..safeio import check_name_length, ensure_dir, remove_created_dirs, temporary_name, translated
 from ..format import FIELDS, FIELDS_BY_NAME, K_DATASET, LABEL_FIELDS, R_DATASET, TMP_SUFFIX, Split, reading
 from ..format.schema import RGB_FIELDS_BY_NAME
 from .files import (DEPTH_CHANNEL, DEPTH_SUFFIX, EXPORT_FORMAT, EXPORT_FORMAT_VERSION, INDEX_NAME, LABEL_SUFFIX,
@@ -21,6 +21,7 @@ from .files import (DEPTH_CHANNEL, DEPTH_SUFFIX, EXPORT_FORMAT, EXPORT_FORMAT_VE
 def _check_target(path: Path, overwrite: bool, what: str, marker: str) -> None:
     """Refuse an output folder before any work: not a folder, a symbolic link, not empty
     without ``overwrite``, or (with ``overwrite``) not a folder this tool wrote (no ``marker``)."""
+    check_name_length(path)
     if path.is_symlink():
         raise UserError(f"{what} {path} is a symbolic link; name the real folder")
     if path.exists() and not path.is_dir():
@@ -48,7 +49,7 @@ def staged_dir(final: Path, overwrite: bool, what: str, marker: str):
             _check_target(final, overwrite, what, marker)  # unchanged meanwhile
             old = None
             if final.is_dir() and any(final.iterdir()):
-                old = final.with_name(f".{final.name}.old{TMP_SUFFIX}")
+                old = final.with_name(temporary_name(f"{final.name}.old"))  # a new name: nothing planted there
                 os.rename(final, old)
             os.replace(tmp, final)  # onto a missing or empty folder
             done = True

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataFormatError
+from ..errors import DataFormatError, check_memory
 from ..format import (FIELDS_BY_NAME, LABEL_FIELDS, MANIFEST_NAME, check_manifest_names, check_shard_file,
                       find_split_dirs, read_json_object, resolve_inside, resolve_shape)
 from ..format.manifest import write_manifest
@@ -19,6 +19,10 @@ from .files import (DEPTH_SUFFIX, EXPORT_FORMAT, EXPORT_FORMAT_VERSION, INDEX_NA
                     RGB_SUFFIX, STEM_RE, read_depth_exr, read_mask_png)
 
 log = logging.getLogger(__name__)
+
+#: Largest image import-exr reads (pixels; 4096 x 4096, a depth image of 64 MiB): an export
+#: index declares its image size, and each image is decoded at that size.
+MAX_IMPORT_PIXELS = 4096 * 4096
 
 
 def find_exports(path: str | Path) -> list[Path]:
@@ -109,6 +113,9 @@ def _shard_spec(s: dict, records_by_file: dict, where: Path) -> tuple:
     elif not all(isinstance(attrs.get(k), int) and not isinstance(attrs.get(k), bool) and attrs[k] >= low
                  for k, low in (("n_joints", 0), ("image_height", 1), ("image_width", 1))):
         problem = "attributes n_joints, image_height, image_width must be whole numbers (sizes >= 1)"
+    elif attrs["image_height"] * attrs["image_width"] > MAX_IMPORT_PIXELS:
+        problem = (f"images of {attrs['image_width']}x{attrs['image_height']} px are larger than import-exr reads "
+                   f"(at most {MAX_IMPORT_PIXELS:,} pixels)")
     elif not stems:
         problem = "no images"
     elif rec is None or rec.get("n_images") != len(stems):
@@ -159,6 +166,8 @@ def import_split(export_dir: str | Path, split_dir: str | Path, *, overwrite: bo
     shards = []
     for file, attrs, K, R, stems, rec in specs:
         J, H, W = attrs["n_joints"], attrs["image_height"], attrs["image_width"]
+        bytes_per_pixel = np.dtype(np.float32).itemsize + 1 + (3 if with_rgb else 0)  # depth, mask, colour
+        check_memory(len(stems) * H * W * bytes_per_pixel, f"{where}: importing {file} ({len(stems)} images)")
         depth = mask = rgb = None
         labels = []
         for i, stem in enumerate(stems):

@@ -44,6 +44,7 @@ from .schema import (
     ROOT_ATTRS,
     Field,
     check_version,
+    object_on_border,
     resolve_shape,
     validate_arrays,
     visible_pixels,
@@ -74,7 +75,8 @@ __all__ = [
     "MANIFEST_NAME", "MASK_BACKGROUND", "MASK_BODY", "MASK_FIRST_PART", "MAX_CLASS_NAME_CHARS", "MAX_SEED",
     "PRISMATIC", "R_DATASET", "REVOLUTE", "ROOT_ATTRS", "SHARD_PATTERN", "TMP_SUFFIX", "Field", "Shard", "Split",
     "SplitConfig", "attr_value", "check_class_name", "check_h5_layout", "check_manifest_names", "check_shard_file",
-    "check_version", "find_split_dirs", "find_splits", "is_class_name", "one_split_dir", "open_h5", "open_split",
+    "check_version", "find_split_dirs", "find_splits", "is_class_name", "object_on_border", "one_split_dir", "open_h5",
+    "open_split",
     "read_json_object", "read_manifest", "reading", "resolve_inside", "resolve_shape", "sha256_file", "shard_name",
     "shard_paths", "split_config", "splits_by_class", "validate_arrays", "visible_pixels", "write_manifest", "write_shard",
 ]

@@ -40,6 +40,12 @@ MAX_SEED = 2**63 - 1
 SCENE_NAMES = ("none", "kitchen", "room")
 #: Most occluders per image (``--occluders``; articulated_dataset.generation.occluders).
 MAX_OCCLUDERS = 8
+#: Where an object may stand in the image (``--framing``; articulated_dataset.generation.framing):
+#: table4 = the sampling table's ranges (the paper's Table 4), whole = the whole object in view.
+FRAMINGS = ("table4", "whole")
+DEFAULT_FRAMING = "table4"
+#: Smallest image side (px) of ``--framing whole``: an interior inside the border rows and columns.
+MIN_FRAMED_SIDE_PX = 3
 
 
 @dataclass(frozen=True)
@@ -69,6 +75,7 @@ class SplitConfig:
     scene: str = "none"  # scene context around the object (SCENE_NAMES)
     occluders: int = 0  # occluding shapes between the camera and the object, per image
     rgb: bool = False  # also store colour images (articulated_dataset.generation.appearance)
+    framing: str = DEFAULT_FRAMING  # where an object may stand in the image (FRAMINGS)
 
     def __post_init__(self) -> None:
         self._validate()
@@ -96,6 +103,7 @@ class SplitConfig:
             raise UserError(f"--occluders must be an integer in [0, {MAX_OCCLUDERS}], got {str(self.occluders)[:40]}")
         if not isinstance(self.rgb, bool):
             raise UserError(f"rgb must be true or false, got {str(self.rgb)[:40]}")
+        self._validate_framing()
         if self.has_context:
             option = "--scene" if self.scene != "none" else "--occluders"
             if self.mean:
@@ -104,6 +112,25 @@ class SplitConfig:
                 raise UserError(f"{option} needs the fixed camera (--camera fixed); the head camera is not supported with it yet")
             if self.third_party is not None and self.scene != "none":
                 raise UserError("--scene places the built-in classes (docs/generation.md); a --urdf object takes --occluders only")
+
+    def _validate_framing(self) -> None:
+        """``--framing whole`` draws each object's pose for the fixed camera's empty view."""
+        if self.framing not in FRAMINGS:
+            raise UserError(f"unknown framing {str(self.framing)[:40]!r}; choose from: {', '.join(FRAMINGS)}")
+        if self.framing == DEFAULT_FRAMING:
+            return
+        if self.mean:
+            raise UserError("--mean renders the class's mean object at the centre of the table's ranges; "
+                            "drop --framing whole")
+        if self.camera.mount != "fixed":
+            raise UserError("--framing whole keeps the whole object in the fixed camera's view (--camera fixed); "
+                            "the head camera aims at the object itself")
+        if self.has_context:
+            raise UserError("--framing whole keeps the object alone in view; drop --scene and --occluders")
+        if min(self.camera.width_px, self.camera.height_px) < MIN_FRAMED_SIDE_PX:
+            side = MIN_FRAMED_SIDE_PX
+            raise UserError(f"--framing whole needs an image of at least {side} x {side} px "
+                            "(pixels inside the border rows and columns)")
 
     @property
     def has_context(self) -> bool:
@@ -130,7 +157,8 @@ class SplitConfig:
         d["camera"] = self.camera.to_dict()  # options beyond the paper's camera only when set
         d["table"] = self.table.to_dict()
         d["format_version"] = self.format_version
-        for key, default in (("scene", "none"), ("occluders", 0), ("rgb", False)):  # a default split's manifest is as it was
+        for key, default in (("scene", "none"), ("occluders", 0), ("rgb", False),
+                             ("framing", DEFAULT_FRAMING)):  # a default split's manifest is as it was
             if d[key] == default:
                 del d[key]
         return d
@@ -173,6 +201,69 @@ def is_utf8(text: str) -> bool:
     except UnicodeEncodeError:
         return False
     return True
+
+
+#: Keys of a third-party definition (the ``third_party`` entry of a generation config) that name
+#: files by absolute path: the URDF, and the folder its meshes are read from where one was given.
+THIRD_PARTY_PATH_KEYS = ("urdf", "mesh_root")
+
+
+def third_party_definition(config, split_dir: str | Path | None) -> dict | None:
+    """The third-party URDF definition (``generate --urdf``) of a manifest's ``config`` dict,
+    None for a built-in class; one that is not an object is a :class:`DataFormatError`."""
+    definition = config.get("third_party") if isinstance(config, dict) else None
+    if definition is not None and not isinstance(definition, dict):
+        raise DataFormatError(f"{split_dir}: corrupt third-party URDF definition (the 'third_party' entry of the "
+                              "generation config is not an object)")
+    return definition
+
+
+def check_stored_object_files(config, split_dir: str | Path | None, what: str, hint: str = "") -> None:
+    """Refuse (one line) to rebuild a stored third-party object from files outside its split folder.
+
+    A split generated with ``--urdf`` records its URDF (and ``--mesh-root``) by absolute path in the
+    manifest's ``config`` (``config``: that dict).  Rebuilding the object (``what``: ``show --rgb``,
+    ``plan``, the ICP baseline's mean object) would open those files, and whether they are the
+    ones the split was generated from shows only once they are read (their sha256).  A path read
+    from data is opened only inside the folder the user named, so one outside ``split_dir`` (the
+    usual case: the URDF stays where it was imported from) is refused before anything is opened;
+    ``split_dir`` None (no folder named) refuses every third-party object.  ``hint`` ends the
+    message.  Built-in classes rebuild from the package's own templates: nothing to check.
+    The caller may instead name the files to rebuild from itself
+    (:func:`~articulated_dataset.generation.objects.stored_object_config`)."""
+    definition = third_party_definition(config, split_dir)
+    if definition is None:
+        return
+    base = None if split_dir is None else Path(split_dir).resolve()
+    for key in THIRD_PARTY_PATH_KEYS:
+        value = definition.get(key)
+        if value is None and key != "urdf":
+            continue
+        inside = base is not None and isinstance(value, str) and "\0" not in value and Path(value).is_absolute()
+        if inside:
+            try:
+                real = Path(value).resolve()
+            except (OSError, RuntimeError):  # a symbolic-link loop
+                inside = False
+            else:
+                inside = real != base and real.is_relative_to(base)
+        if not inside:
+            raise UserError(f"{split_dir or 'the split'}: a third-party URDF object (generate --urdf) whose {key} "
+                            f"{str(value)[:120]!r} lies outside the split folder; {what} would rebuild "
+                            f"it from those files, and paths read from data are opened only inside the folder "
+                            f"given{hint}")
+
+
+def printable(text) -> str:
+    """``text`` with every character that is not printable (newline, carriage return, tab,
+    escape and the other control characters, lone surrogates) written as its Python escape
+    (``\\n``, ``\\x1b``...).  Names read from data (split, joint and size-class names, folder
+    names) pass through it before they reach a terminal: a crafted name can neither start a new
+    line nor send the terminal a control sequence."""
+    text = str(text)
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
 
 
 def check_manifest_names(manifest: dict, where: str) -> dict:

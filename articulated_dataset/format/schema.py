@@ -107,6 +107,16 @@ MASK_OCCLUDER = 254
 CONTEXT_MASK_CODES = (MASK_OCCLUDER, MASK_SCENE)
 
 
+def object_on_border(mask: np.ndarray) -> np.ndarray:
+    """Per image of a mask stack (N, H, W) (or one (H, W) mask: a 0-d result), whether a pixel of
+    the object (its body or a moving part: codes 1 to 253, not :data:`CONTEXT_MASK_CODES`) lies on
+    the image's border rows or columns.  An image where it is False shows the whole object
+    (``generate --framing whole``; ``benchmarks/error_sources.py``)."""
+    mask = np.asarray(mask)
+    obj = (mask >= MASK_BODY) & ~np.isin(mask, CONTEXT_MASK_CODES)
+    return obj[..., 0, :].any(-1) | obj[..., -1, :].any(-1) | obj[..., :, 0].any(-1) | obj[..., :, -1].any(-1)
+
+
 def visible_pixels(mask: np.ndarray, n_joints: int) -> np.ndarray:
     """Pixel counts (1 + J,) of the body and of each moving part in a mask (the
     ``visible_pixels`` field)."""

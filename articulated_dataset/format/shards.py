@@ -31,8 +31,8 @@ import numpy as np
 
 from ..errors import DataFormatError
 from ..safeio import TMP_SUFFIX  # noqa: F401  (re-exported: one definition)
-from .schema import (FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, OPTIONAL_FIELDS, R_DATASET, RGB_FIELDS,
-                     check_version, validate_arrays)
+from .schema import (FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, OPTIONAL_FIELDS, OPTIONAL_FIELDS_BY_NAME,
+                     R_DATASET, RGB_FIELDS, RGB_FIELDS_BY_NAME, check_version, validate_arrays)
 
 SHARD_PATTERN = "shard-{:05d}.h5"
 #: Longest class name: the shards' ``class`` field is S32 (32 ASCII bytes).
@@ -157,7 +157,12 @@ class Shard:
         J = attr_value(f.attrs.get("n_joints", 0))
         if not (isinstance(J, int) and not isinstance(J, bool) and J >= 0):
             raise DataFormatError(f"{where}: attribute 'n_joints' is {str(J)[:40]!r}, not a whole number >= 0")
-        validate_arrays({k: f[k] for k in FIELDS_BY_NAME if k in f}, N=N, J=J, H=H, W=W, where=where)
+        stored = {k: f[k] for k in (*FIELDS_BY_NAME, *OPTIONAL_FIELDS_BY_NAME, *RGB_FIELDS_BY_NAME) if k in f}
+        for k, obj in stored.items():
+            if not isinstance(obj, h5py.Dataset):
+                raise DataFormatError(f"{where}: {k!r} is not a dataset (a group or a named type)")
+        # Optional fields too: a 4-channel or float ``rgb`` would be read as uint8 (H, W, 3).
+        validate_arrays(stored, N=N, J=J, H=H, W=W, where=where)
         for name in (K_DATASET, R_DATASET):  # the camera's 3x3 matrices, read by every reader of the images
             ds = f.get(name)
             if not isinstance(ds, h5py.Dataset):
@@ -190,6 +195,8 @@ class Shard:
         is refused before reading (a hostile shard can declare any size: unwritten chunks
         read as zeros)."""
         f = self.file
+        if not isinstance(f.get(name), h5py.Dataset):  # an optional field (rgb) its manifest promises
+            raise DataFormatError(f"{self.path}: missing dataset {name!r}")
         with reading(self.path, name):
             ds = f[name]
             _check_fits_memory(self.path, name, _selection_rows(index, ds.shape) * _row_bytes(ds))

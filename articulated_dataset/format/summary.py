@@ -2,7 +2,7 @@
 
 :func:`summarize_split` reads one split folder through :class:`~articulated_dataset.format.Split`
 and returns a JSON-ready dict: the manifest's counts and settings (sampling table, scene,
-occluders, camera) and min/mean/max of the main labels per named column (with units).
+occluders, camera, framing) and min/mean/max of the main labels per named column (with units).
 """
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import DataFormatError
-from .manifest import MANIFEST_NAME
+from ..mujoco_support import recorded_mujoco_version
+from .manifest import DEFAULT_FRAMING, MANIFEST_NAME
 from .shards import json_list
 from .split import Split
 
@@ -93,6 +94,7 @@ def _manifest_summary(split_dir, manifest: dict) -> dict:
         "split": str(manifest["split"]),
         "seed": int(manifest["seed"]),
         "format_version": str(manifest["format_version"]),
+        "mujoco_version": recorded_mujoco_version(manifest, str(split_dir / MANIFEST_NAME)),  # None: not recorded (real captures)
         "complete": manifest["complete"] is True,  # read_manifest checked it is a boolean
         "objects": _count(manifest["n_objects"], "n_objects"),
         "images": _count(manifest["n_images"], "n_images"),
@@ -119,9 +121,11 @@ def _table_summary(config: dict) -> dict:
 
 
 def _context_summary(config: dict) -> dict:
-    """Scene, occluders and camera of the split (the manifest records them only when used;
-    the paper's setting is scene none, 0 occluders, the fixed camera with its own intrinsics)."""
+    """Scene, occluders, camera and framing of the split (the manifest records them only when
+    used; the paper's setting is scene none, 0 occluders, the fixed camera with its own
+    intrinsics, framing table4)."""
     camera = config["camera"]
     intrinsics = camera.get("intrinsics")
     return {"scene": str(config.get("scene", "none")), "occluders": int(config.get("occluders", 0)),
+            "framing": str(config.get("framing", DEFAULT_FRAMING)),
             "camera_mount": str(camera.get("mount", "fixed")), "intrinsics": None if intrinsics is None else str(intrinsics)}

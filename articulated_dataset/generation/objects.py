@@ -18,10 +18,13 @@ pose while a stage rejects it; writing (stage 6) is per shard.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import mujoco
 import numpy as np
 
+from ..errors import DataFormatError, UserError
+from ..format.manifest import check_stored_object_files, third_party_definition
 from .appearance import Appearance
 from .compiled import CompiledObject
 from .config import GenerationConfig, appearance_rng, camera_rng, noise_rng
@@ -58,6 +61,51 @@ def stored_sample(config: GenerationConfig, object_index: int, object_pose, obje
     sample = object_sample(config, object_index)
     p = np.asarray(object_pose, dtype=np.float64)
     return replace(sample, pose={"x_m": float(p[0]), "y_m": float(p[1]), "z_m": float(p[2]), "yaw_rad": float(object_yaw)})
+
+
+def stored_object_config(config: dict, split_dir, what: str, hint: str = "", *, urdf=None,
+                         mesh_root=None) -> GenerationConfig:
+    """The :class:`GenerationConfig` a stored object is rebuilt from (by :func:`stored_sample`,
+    :func:`object_sample` and the compiler), made of a manifest's ``config`` dict.
+
+    A third-party URDF object (``generate --urdf``) is rebuilt from files.  Without ``urdf``, the
+    paths its definition records must lie inside ``split_dir``, else a one-line refusal naming
+    ``what`` and ending with ``hint``
+    (:func:`~articulated_dataset.format.manifest.check_stored_object_files`).  With ``urdf`` (and
+    ``mesh_root``, the folder its meshes are read from; default the URDF's folder), the object is
+    rebuilt from these files, which the caller named, instead of the recorded paths; they are used
+    only if their sha256 (URDF and meshes) is the one the split recorded, else one line.  A
+    built-in class needs no files (``urdf`` given for one is refused)."""
+    from ..urdf_import.build import SourceMismatchError  # (imported when a rebuild needs it)
+
+    if urdf is None:
+        if mesh_root is not None:
+            raise UserError(f"a mesh folder ({mesh_root}) is used with the URDF it belongs to; name the URDF too")
+        check_stored_object_files(config, split_dir, what, hint)
+    else:
+        definition = third_party_definition(config, split_dir)
+        if definition is None:
+            raise UserError(f"{split_dir or 'the split'} holds a built-in class, rebuilt from the package's own "
+                            f"templates; the URDF {urdf} is not used (only a split generated from a URDF needs it)")
+        named = {k: v for k, v in definition.items() if k != "mesh_root"}
+        named["urdf"] = str(Path(urdf).expanduser().resolve())
+        if mesh_root is not None:
+            folder = Path(mesh_root).expanduser().resolve()
+            if not folder.is_dir():
+                raise UserError(f"the mesh folder {mesh_root} is not a folder")
+            named["mesh_root"] = str(folder)
+        config = {**config, "third_party": named}
+    try:
+        generation = GenerationConfig.from_dict(config)
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise DataFormatError(f"{split_dir or 'the split'}: manifest config cannot be read back "
+                              f"({type(exc).__name__}: {exc}); {what} needs it") from None
+    if urdf is not None:
+        try:
+            generation.obj_class  # builds the class: reads the named files and compares their sha256
+        except SourceMismatchError:
+            raise UserError(f"{urdf} is not the URDF this split was generated from (sha256 differs)") from None
+    return generation
 
 
 @dataclass(frozen=True)

@@ -20,14 +20,16 @@ import numpy as np
 
 from ..camera import R_CAMERA_TO_OPTICAL
 from ..errors import UserError
+from ..format.manifest import DEFAULT_FRAMING
 from ..format.records import shard_attrs as format_shard_attrs
-from ..format.schema import FIELDS, OPTIONAL_FIELDS, RGB_FIELDS
+from ..format.schema import FIELDS, OPTIONAL_FIELDS, RGB_FIELDS, object_on_border
 from ..format.shards import shard_name, write_shard
 from ..registry import JOINT_TYPES
 from .appearance import appearance_record, with_appearance_assets
 from .compiled import compile_object
 from .config import GenerationConfig
 from .context_labels import VISIBLE_FRACTION_RANGE
+from .framing import MAX_FRAMING_DRAWS, Framing, extent_points, framing_record
 from .objects import Streams, apply_sensor, arrange, object_arrays, object_sample, render_images
 from .occluders import occluders_record
 from .render import DepthRenderer, process_renderer
@@ -48,8 +50,12 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
 
     Redraws the pose (from the object's own generator, after its other draws: the state the
     sample keeps) while a moving part covers fewer than ``config.min_part_pixels`` in some
-    view.  Returns ``(arrays, sample, attempts)`` where ``arrays`` holds every schema field
-    for the object's images and ``sample`` is the one rendered.  ``out`` may hold
+    view.  With ``config.framing`` ``whole`` every pose is drawn from that stream
+    (:class:`~articulated_dataset.generation.framing.Framing`: the table's ranges, depth
+    extended for the object's size, kept only with the whole object in view) and a render
+    with an object pixel on the image's border is redrawn too.  Returns ``(arrays, sample,
+    attempts)`` where ``arrays`` holds every schema field for the object's images, ``sample``
+    is the one rendered and ``attempts`` counts the pose draws.  ``out`` may hold
     preallocated ``depth`` (n, H, W) float32 and ``mask`` (n, H, W) uint8 arrays (views into
     a shard's buffers) to render into.
     """
@@ -60,6 +66,11 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
         out = image_buffers(config, n)
     streams = Streams.of(config, sample.object_index)
     poses = None  # the object's pose-redraw stream, made on the first rejection
+    framing, draws = None, 0
+    if config.framing == "whole":  # the first pose too comes from the framed ranges
+        framing = Framing.of(extent_points(obj_class, urdf, sample.q, config.camera), config.table, config.camera)
+        poses = sample.pose_generator()
+        sample, draws = _framed_pose(sample, framing, poses, draws)
     for attempt in range(1, MAX_POSE_ATTEMPTS + 1):
         placed = arrange(sample, config, streams)
         if placed is not None:  # else no scene layout fits this pose
@@ -67,22 +78,39 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
             add = with_appearance_assets(placed.add_context, obj_class.n_joints) if config.rgb else placed.add_context
             obj = compile_object(obj_class, urdf, placed.pose, config.camera, add)
             views = render_images(obj, sample, config, renderer, streams, out, check_visibility=check_visibility)
-            if views is not None:
+            if views is not None and (framing is None or not object_on_border(views.mask).any()):
                 break
         if poses is None:
             poses = sample.pose_generator()
-        sample = replace(sample, pose=sample_pose(poses, config.table))
+        if framing is None:
+            sample = replace(sample, pose=sample_pose(poses, config.table))
+        else:
+            sample, draws = _framed_pose(sample, framing, poses, draws)
     else:
         raise UserError(
             f"{obj_class.name} object {sample.object_index}: no pose in the table shows every moving part "
-            f"with >= {config.min_part_pixels} px after {MAX_POSE_ATTEMPTS} attempts; check the table"
+            f"with >= {config.min_part_pixels} px"
+            + (" and the whole object in view" if framing is not None else "")
+            + f" after {MAX_POSE_ATTEMPTS} attempts; check the table"
             + (" or choose the joints that open with --joints (a hidden part cannot be labelled)"
                if config.third_party is not None else "")
             + (f" (and >= {VISIBLE_FRACTION_RANGE[0]:g} of its pixels unhidden by the scene and occluders; "
                "try fewer --occluders)" if config.has_context else "")
         )
     apply_sensor(views.depth, config, sample.object_index)
-    return object_arrays(sample, config, views), sample, attempt
+    return object_arrays(sample, config, views), sample, attempt if framing is None else draws
+
+
+def _framed_pose(sample: ObjectSample, framing: Framing, poses, draws: int) -> tuple[ObjectSample, int]:
+    """``sample`` at the next pose of the stream ``poses`` that keeps it whole in view, and
+    ``draws`` plus the poses drawn for it; one line when none does."""
+    pose, k = framing.draw(poses)
+    if pose is None:
+        lo, hi = framing.table.pose["x_m"]
+        raise UserError(f"{sample.class_name} object {sample.object_index}: no pose of the table's ranges "
+                        f"(depth {lo:g}-{hi:.2f} m) keeps the whole object in view after {MAX_FRAMING_DRAWS} draws; "
+                        "check the table or use --framing table4")
+    return replace(sample, pose=pose), draws + k
 
 
 def shard_attrs(config: GenerationConfig, objects: range) -> dict:
@@ -102,6 +130,8 @@ def shard_attrs(config: GenerationConfig, objects: range) -> dict:
         attrs["occluders"] = occluders_record(config.occluders)
     if config.rgb:
         attrs["appearance"] = appearance_record()
+    if config.framing != DEFAULT_FRAMING:
+        attrs["framing"] = framing_record(config.framing)
     return attrs
 
 

@@ -214,10 +214,12 @@ class DepthRenderer:
 _PROCESS_RENDERERS: dict[tuple[int, CameraConfig], DepthRenderer] = {}
 
 
-@atexit.register
 def _close_process_renderers() -> None:
     """Free GL contexts before interpreter shutdown (OSMesa's destructor fails once modules
-    are torn down, printing an ignored exception)."""
+    are torn down, printing an ignored exception).  :func:`process_renderer` registers it to run
+    at exit after each context is created, so it runs before the exit hooks the GL library
+    registered meanwhile (MuJoCo 3.x's EGL module terminates its display in one, after which
+    destroying a context fails with an EGLError that Python prints as ignored)."""
     for key in [k for k in _PROCESS_RENDERERS if k[0] == os.getpid()]:
         _PROCESS_RENDERERS.pop(key).close()
 
@@ -231,4 +233,6 @@ def process_renderer(camera: CameraConfig) -> DepthRenderer:
     r = _PROCESS_RENDERERS.get(key)
     if r is None:
         r = _PROCESS_RENDERERS[key] = DepthRenderer(camera)
+        atexit.unregister(_close_process_renderers)  # exit hooks run last registered first
+        atexit.register(_close_process_renderers)
     return r

@@ -90,7 +90,7 @@ def config_from_options(class_name: str | None, urdf: UrdfOptions, camera: Camer
     """The :class:`GenerationConfig` of ``artdata generate``'s options: the class
     (:func:`object_class_from_options`), its table (``--table`` values), the number of objects
     (:func:`object_count`) and the other ``settings`` (``split``, ``seed``, ``images_per_object``,
-    ``objects_per_shard``, ``noise``, ``scene``, ``occluders``, ``rgb``) as
+    ``objects_per_shard``, ``noise``, ``scene``, ``occluders``, ``rgb``, ``framing``) as
     :class:`GenerationConfig` takes them."""
     obj_class, third_party = object_class_from_options(class_name, urdf, camera, echo=echo)
     table = table_from_options(obj_class, tables)

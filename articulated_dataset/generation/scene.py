@@ -11,6 +11,7 @@ import numpy as np
 
 from ..camera import CameraConfig
 from ..errors import UserError
+from ..mujoco_support import check_supported_mujoco
 
 #: Name prefix of every element of the attached object (bodies, joints, geoms).
 OBJECT_PREFIX = "object/"
@@ -29,8 +30,10 @@ def build_model(urdf_xml: str, pose: dict, camera: CameraConfig, base_link: str 
 
     ``pose`` has ``x_m``, ``y_m``, ``z_m`` (base centre, camera frame) and ``yaw_rad``.
     ``add_context(spec)``, if given, adds scene and occluder bodies before compiling
-    (:mod:`articulated_dataset.scenes`, :mod:`articulated_dataset.occluders`).
+    (:mod:`articulated_dataset.scenes`, :mod:`articulated_dataset.occluders`).  A MuJoCo release
+    outside the supported range is a :class:`~articulated_dataset.errors.RenderError` (one line).
     """
+    check_supported_mujoco()
     try:
         child = mujoco.MjSpec.from_string(urdf_xml)
     except Exception as exc:  # MuJoCo raises ValueError with the parser's message

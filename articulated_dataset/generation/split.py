@@ -12,6 +12,7 @@ complete), the memory and disk checks, and what a failed run keeps.
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import re
@@ -20,24 +21,31 @@ from pathlib import Path
 
 from ..errors import DataFormatError, UserError
 from ..format.records import split_manifest
-from ..safeio import (FULL_HINT, TMP_SUFFIX, WriteError, available_memory_bytes, check_free_space, ensure_dir, format_bytes,
-                      fsync_dir, remove_created_dirs, translated)
+from ..safeio import (FULL_HINT, WriteError, available_memory_bytes, check_free_space, check_name_length, check_writable_dir,
+                      ensure_dir, format_bytes, fsync_dir, remove_created_dirs, temporary_target, translated)
 from ..format.manifest import write_manifest
+from ..mujoco_support import different_mujoco, manifest_entry
 from .config import GenerationConfig, split_dir_for
 from .pipeline import run_shard, shard_attrs
 
 log = logging.getLogger(__name__)
 
 
-# Files of a split folder that this package writes (the manifest, shards and their
-# temporary siblings).  Nothing else in a split folder is ever deleted or replaced.
-_OWN_FILE = re.compile(r"(manifest\.json|shard-([0-9]{5,})\.h5)(\.partial)?")
+#: Files of a split folder that this package writes (the manifest and shards; their temporary
+#: siblings are recognised by :func:`_is_own_temporary`).  Nothing else in a split folder is
+#: ever deleted or replaced.
+_DATA_FILE = re.compile(r"manifest\.json|shard-[0-9]{5,}\.h5")
 _SHARD_FILE = re.compile(r"shard-([0-9]{5,})\.h5")
 #: Siblings of ``OUT/<class>/<split>`` (hidden): the lock held while a run writes the split,
 #: the new split an ``--overwrite`` builds, and the old one while the two are swapped.
 LOCK_SUFFIX = ".lock"
 STAGING_SUFFIX = ".new"
 RETIRED_SUFFIX = ".old"
+#: Opening the lock file: created if missing, never through a symbolic link (a dangling link
+#: would otherwise create a file wherever it points).
+LOCK_OPEN_FLAGS = os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+#: Permissions of a new lock file (before the umask).
+LOCK_FILE_MODE = 0o644
 #: Memory one image takes in a shard's buffers while it is generated (float32 depth + uint8
 #: mask), and the renderer's own buffers (RGB, depth, GL colour/depth/stencil), per pixel.
 SHARD_BUFFER_BYTES_PER_PIXEL = 5
@@ -58,12 +66,24 @@ def _sibling(split_dir: Path, suffix: str) -> Path:
     return split_dir.parent / f".{split_dir.name}{suffix}"
 
 
+def _is_own_temporary(name: str) -> bool:
+    """Whether ``name`` is a temporary file's name of a manifest or shard
+    (``.shard-00000.h5.<hex>.partial``; ``shard-00000.h5.partial`` from earlier versions)."""
+    target = temporary_target(name)
+    return target is not None and _DATA_FILE.fullmatch(target) is not None
+
+
 def _own_entries(folder: Path) -> tuple[list[Path], list[Path]]:
     """``(ours, foreign)`` entries of ``folder``: regular files named as we name them, and
-    everything else (other files, folders, symbolic links)."""
+    everything else (other files, folders, symbolic links).  A symbolic link named as one of
+    our temporary files (planted there: ours are never links) counts as ours, a leftover to
+    remove: removing it deletes the link itself, never what it points to."""
     ours, foreign = [], []
     for p in sorted(folder.iterdir()):
-        own = _OWN_FILE.fullmatch(p.name) is not None and p.is_file() and not p.is_symlink()
+        if p.is_symlink():
+            own = _is_own_temporary(p.name)
+        else:
+            own = (_DATA_FILE.fullmatch(p.name) is not None or _is_own_temporary(p.name)) and p.is_file()
         (ours if own else foreign).append(p)
     return ours, foreign
 
@@ -101,8 +121,14 @@ class SplitLock:
             log.warning("no file locking on this platform: do not run two generate commands on %s", self.split_dir)
             return
         while True:
-            with translated(self.path, "create lock file"):
-                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+            try:
+                with translated(self.path, "create lock file"):
+                    fd = os.open(self.path, LOCK_OPEN_FLAGS, LOCK_FILE_MODE)
+            except WriteError as exc:
+                if exc.errno == errno.ELOOP:  # O_NOFOLLOW: a link there, dangling or not
+                    raise UserError(f"{self.path} is a symbolic link; the lock file is never opened through a link "
+                                    "(remove it)") from None
+                raise
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -110,7 +136,7 @@ class SplitLock:
                 raise UserError(f"another artdata generate is writing {self.split_dir} (it holds {self.path}); "
                                 "wait for it to finish or stop it") from None
             try:
-                st, held = os.stat(self.path), os.fstat(fd)
+                st, held = os.lstat(self.path), os.fstat(fd)
                 same = (st.st_dev, st.st_ino) == (held.st_dev, held.st_ino)
             except FileNotFoundError:
                 same = False
@@ -156,12 +182,20 @@ def _remove_interrupted_siblings(split_dir: Path) -> None:
         _remove_own_folder(_sibling(split_dir, suffix))
 
 
+def _refuse_links(split_dir: Path) -> None:
+    """Refuse a symbolic link at ``OUT/<class>``, the split folder or its staging and retired
+    siblings: the split, its lock and an ``--overwrite``'s removals would land wherever the
+    link points, outside what the user named (``OUT``)."""
+    for p in (split_dir.parent, split_dir, _sibling(split_dir, STAGING_SUFFIX), _sibling(split_dir, RETIRED_SUFFIX)):
+        if p.is_symlink():
+            raise UserError(f"{p} is a symbolic link; generate writes only into real folders, never through a link "
+                            "inside --out (remove the link, or give its target as --out)")
+
+
 def _begin(split_dir: Path, config: GenerationConfig, *, resume: bool, overwrite: bool) -> _Run:
     """Lock the split and decide what to do.  A refusal changes nothing on disk (and removes
     the folders and lock it created to find out)."""
-    if split_dir.is_symlink():
-        raise UserError(f"{split_dir} is a symbolic link; generate writes only into real folders "
-                        "(give the link's target as --out, or remove the link)")
+    _refuse_links(split_dir)
     if split_dir.exists() and not split_dir.is_dir():
         raise UserError(f"{split_dir} exists and is not a folder")
     created = ensure_dir(split_dir.parent)
@@ -170,8 +204,8 @@ def _begin(split_dir: Path, config: GenerationConfig, *, resume: bool, overwrite
         lock.acquire()
         _restore_interrupted_swap(split_dir)  # a restore, never a deletion
         ours, foreign = _own_entries(split_dir) if split_dir.is_dir() else ([], [])
-        data = [p for p in ours if not p.name.endswith(TMP_SUFFIX)]
-        stale = [p for p in ours if p.name.endswith(TMP_SUFFIX)]  # a killed run's; no run holds the lock
+        data = [p for p in ours if not _is_own_temporary(p.name)]
+        stale = [p for p in ours if _is_own_temporary(p.name)]  # a killed run's (or a planted link); no run holds the lock
         names = ", ".join(p.name for p in foreign[:3]) + (", ..." if len(foreign) > 3 else "")
         records: dict[int, dict] = {}
         target = split_dir
@@ -188,10 +222,13 @@ def _begin(split_dir: Path, config: GenerationConfig, *, resume: bool, overwrite
             target = _sibling(split_dir, STAGING_SUFFIX)
         else:
             records = _resume_records(split_dir, config)
-        # Proceeding: now (and only now) remove what killed runs left.
+        if split_dir.is_dir():  # e.g. a --resume into a read-only folder: one line now, before any work
+            check_writable_dir(split_dir)
+        # Proceeding: now (and only now) remove what killed runs left (a link: the link itself).
         _remove_interrupted_siblings(split_dir)
         for p in stale:
-            p.unlink()
+            with translated(p, "remove"):
+                p.unlink()
         created += ensure_dir(target)
     except BaseException:
         lock.release()
@@ -218,6 +255,9 @@ def _resume_records(split_dir: Path, config: GenerationConfig) -> dict[int, dict
                                   "use --overwrite") from None
         if old_config != config:
             raise UserError(f"{split_dir} was generated with different settings; {different}")
+        other_mujoco = different_mujoco(old, str(manifest_path))  # its depth bytes could differ
+        if other_mujoco is not None:
+            raise UserError(f"{split_dir} was {other_mujoco}; --resume needs the same MuJoCo (or use --overwrite)")
         for m, rec in listed:
             if m is None or int(m.group(1)) >= config.n_shards:
                 raise DataFormatError(f"{manifest_path}: corrupt manifest (shard file {str(rec['file'])[:80]!r}); "
@@ -281,14 +321,21 @@ def _finish_overwrite(run: _Run) -> None:
     _remove_own_folder(retired)
 
 
+def _remove_own_temporaries(folder: Path) -> None:
+    """Remove the temporary files of manifests and shards in ``folder`` (lock held: no run
+    writes them any more; a worker killed and retried by Ray leaves one; a link: the link
+    itself)."""
+    for p in folder.iterdir():
+        if _is_own_temporary(p.name):
+            p.unlink(missing_ok=True)
+
+
 def _abandon(run: _Run) -> None:
     """After a failure: drop what cannot be continued, keep what ``--resume`` can."""
     if run.target != run.split_dir:  # an --overwrite: the old split stays as it was
         _remove_own_folder(run.target)
     elif run.target.is_dir():
-        for p in run.target.iterdir():
-            if p.name.endswith(TMP_SUFFIX) and _OWN_FILE.fullmatch(p.name):
-                p.unlink(missing_ok=True)
+        _remove_own_temporaries(run.target)
 
 
 def check_resources(config: GenerationConfig, split_dir: Path, *, workers: int, remote: bool = False,
@@ -343,6 +390,7 @@ def generate_split(
     if executor is None:
         executor = local_executor(workers)
     split_dir = split_dir_for(out_root, config)
+    check_name_length(_sibling(split_dir, LOCK_SUFFIX))  # the longest name a run writes beside the split
     remote = getattr(executor, "remote", False)  # Ray: shards are built in other machines' memory
     check_resources(config, split_dir, workers=workers, remote=remote)
     run = _begin(split_dir, config, resume=resume, overwrite=overwrite)
@@ -358,10 +406,11 @@ def generate_split(
         try:
             for i, rec in executor.map_unordered(run_shard, todo, progress=bar.update):
                 records[i] = rec
-                write_manifest(run.target, split_manifest(config, [records[i] for i in sorted(records)]))
+                write_manifest(run.target, split_manifest(config, [records[i] for i in sorted(records)], **manifest_entry()))
         finally:
             bar.close()
-        write_manifest(run.target, split_manifest(config, [records[i] for i in sorted(records)]))
+        write_manifest(run.target, split_manifest(config, [records[i] for i in sorted(records)], **manifest_entry()))
+        _remove_own_temporaries(run.target)
         if run.target != split_dir:
             _finish_overwrite(run)
     except BaseException as exc:
@@ -369,8 +418,9 @@ def generate_split(
         run.lock.release()
         remove_created_dirs(run.created)  # only folders still empty: a run that wrote nothing leaves nothing
         if isinstance(exc, WriteError) and run.target == split_dir and records:
+            when = "once there is space" if exc.disk_full else "once the folder can be written"
             raise WriteError(f"{str(exc).removesuffix(FULL_HINT)}; the {len(records)} complete shard(s) are kept: "
-                             "run the same command with --resume once there is space", exc.path, exc.errno) from None
+                             f"run the same command with --resume {when}", exc.path, exc.errno) from None
         raise
     run.lock.release()
     return split_dir

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..errors import UserError
 from .epoch import check_seed
-from .reader import ShardReader
+from .reader import ShardReader, index_array
 
 
 #: Key of the global sample index that the loaders add to every batch.
@@ -49,7 +49,7 @@ class BatchProcessor:
                 norm.check_layout(target)
 
     def __call__(self, batch: dict, indices: np.ndarray, epoch) -> dict:
-        indices = np.asarray(indices, dtype=np.int64)
+        indices = index_array(indices)
         if self.transform is not None:
             from ..transforms import apply_to_batch
 
@@ -66,5 +66,5 @@ class BatchProcessor:
 
 def load_batch(reader: ShardReader, processor: BatchProcessor, indices, epoch, alloc=None) -> dict:
     """Read and process one batch: the single code path of every loader."""
-    indices = np.asarray(indices, dtype=np.int64)
+    indices = index_array(indices)
     return processor(reader.get_batch(indices, alloc=alloc, dtypes=processor.dtypes), indices, epoch)

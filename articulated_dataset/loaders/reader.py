@@ -20,9 +20,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Sequence
 
+import h5py
 import numpy as np
 
-from ..errors import DataFormatError, UserError, import_optional
+from ..errors import TORCH_INSTALL, DataFormatError, UserError, import_optional  # noqa: F401 - TORCH_INSTALL re-exported
 from ..format import (FIELDS, IMAGE_FIELDS, K_DATASET, Shard, Split, find_splits, open_h5, reading, resolve_shape,
                       shard_paths)
 from ..format.schema import FIELDS_BY_NAME as _STORED_FIELDS_BY_NAME, RGB_FIELDS
@@ -48,8 +49,6 @@ STRING_FIELDS = tuple(f.name for f in FIELDS if f.dtype.startswith("S"))
 #: Default selection without string fields (what the JAX loader returns by default).
 NUMERIC_FIELDS = tuple(n for n in DEFAULT_FIELDS if n not in STRING_FIELDS)
 #: How to install the optional dependencies (the package is installed from its checkout).
-TORCH_INSTALL = ("pip install torch --index-url https://download.pytorch.org/whl/cpu (PyTorch's CPU build; "
-                 "or bash scripts/setup.sh from the repository checkout)")
 JAX_INSTALL = 'pip install -e ".[jax]" from the repository checkout (jax, jaxlib, grain)'
 
 
@@ -268,7 +267,11 @@ class ShardReader:
         state = self._local()
         ds = state.datasets.get((s, name))
         if ds is None:
-            ds = state.datasets[(s, name)] = self._shard(s).file[name]
+            sh = self._shard(s)
+            ds = sh.file.get(name)
+            if not isinstance(ds, h5py.Dataset):  # an optional field (rgb) its manifest promises
+                raise DataFormatError(f"{sh.path}: missing dataset {name!r}")
+            state.datasets[(s, name)] = ds
         return ds
 
     def _K(self, s: int) -> np.ndarray:  # noqa: N802
@@ -295,12 +298,7 @@ class ShardReader:
     # ----------------------------------------------------------------------------------
     # reading
     def _check_indices(self, indices) -> np.ndarray:
-        idx = np.asarray(indices)
-        if idx.ndim != 1:
-            idx = idx.reshape(-1)
-        if idx.size and idx.dtype.kind not in "iu":
-            raise TypeError(f"sample indices must be integers, got dtype {idx.dtype}")
-        idx = idx.astype(np.int64, copy=False)
+        idx = index_array(indices).reshape(-1)
         n = len(self)
         if idx.size and (idx.min() < 0 or idx.max() >= n):
             bad = idx[(idx < 0) | (idx >= n)][0]
@@ -379,6 +377,23 @@ class ShardReader:
         for s in range(len(self.shard_paths)):
             labels = self._labels(s)
             yield int(self.offsets[s]), {k: labels[k] for k in names}
+
+
+#: Largest sample index a loader accepts (indices are int64 inside; a larger unsigned value would
+#: wrap to a negative one, which counts from the end).
+MAX_INDEX = np.iinfo(np.int64).max
+
+
+def index_array(indices) -> np.ndarray:
+    """``indices`` as an int64 array, refusing what is not integers (1.5, "1", a slice:
+    ``TypeError``) and unsigned values beyond int64 (2**64 - 1 would wrap to -1, the last sample:
+    ``IndexError``) instead of turning them into another sample."""
+    a = np.asarray(indices)
+    if a.size and a.dtype.kind not in "iu":
+        raise TypeError(f"sample indices must be integers, got {type(indices).__name__} of dtype {a.dtype}")
+    if a.size and a.dtype.kind == "u" and a.max() > MAX_INDEX:
+        raise IndexError(f"sample index {int(a.max())} out of range (larger than {MAX_INDEX})")
+    return a.astype(np.int64, copy=False)
 
 
 def _read_runs(ds, out: np.ndarray, runs: list[tuple[int, int, int]]) -> None:

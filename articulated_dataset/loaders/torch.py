@@ -37,7 +37,7 @@ import numpy as np
 from ..errors import UserError
 from .batch import BatchProcessor, load_batch
 from .epoch import DEFAULT_BLOCK_SIZE, SAMPLE_ORDER_STREAM, check_batch_size, n_batches, part_bounds, plan_epoch
-from .reader import ShardReader, TORCH_INSTALL, require
+from .reader import ShardReader, TORCH_INSTALL, index_array, require
 
 torch = require("torch", "articulated_dataset.loaders.torch", TORCH_INSTALL)
 from torch.utils.data import DataLoader, Dataset, IterableDataset, Sampler, get_worker_info  # noqa: E402
@@ -266,23 +266,14 @@ class DepthDataset(_SharedEpoch, Dataset):
             return {k: v[0] for k, v in self._load(np.asarray([j], dtype=np.int64)).items()}
         if isinstance(i, torch.Tensor):
             i = i.numpy()
-        idx = _index_array(i)
+        idx = index_array(i)
         n = len(self)
         inside = (idx >= -n) & (idx < 0)  # negative indices count from the end, as for one sample
         return self._load(np.where(inside, idx + n, idx))
 
     def __getitems__(self, indices) -> list[dict]:
         """DataLoader auto-batching hook: one batched read, returned as per-sample dicts."""
-        return _split_batch(self._load(_index_array(indices)), len(indices))
-
-
-def _index_array(indices) -> np.ndarray:
-    """``indices`` as int64, refusing what is not integers (1.5, "1", a slice) instead of
-    truncating it to another sample."""
-    a = np.asarray(indices)
-    if a.size and a.dtype.kind not in "iu":
-        raise TypeError(f"sample indices must be integers, got {type(indices).__name__} of dtype {a.dtype}")
-    return a.astype(np.int64)
+        return _split_batch(self._load(index_array(indices)), len(indices))
 
 
 class EpochBatchSampler(Sampler):

@@ -94,18 +94,25 @@ class ImagePlan:
 
 def plan_image(data_dir, index: int, *, joint: int = 0, predictions_path=None, model: str | None = None,
                closed_loop: bool = False, simulate: bool = False, target: str | None = None, step: str | None = None,
-               prepare_model: Callable[[], object] | None = None) -> ImagePlan:
+               prepare_model: Callable[[], object] | None = None, urdf=None, mesh_root=None,
+               hint: str = "") -> ImagePlan:
     """Plan the opening of joint ``joint`` of image ``index`` (storage order) of the split at
     ``data_dir``.  ``target`` and ``step`` are quantities with units (``60deg``, ``0.2m``; default
     :func:`default_target` clipped to the joint's range and 1 deg / 1 cm).  The kinematics come
     from ``model`` (run on the stored depth image; ``prepare_model`` is called before it is
-    loaded), else ``predictions_path``, else the truth labels.  Mistakes are a :class:`UserError`."""
+    loaded), else ``predictions_path``, else the truth labels.  ``urdf`` / ``mesh_root``: the files a
+    third-party URDF object is rebuilt from, and ``hint``: what ends the refusal without them
+    (:func:`load_true_object`).  Mistakes are a :class:`UserError`."""
     manifest, labels = split_row_labels(data_dir, index)
     real = "real" in manifest
     if real and simulate:
         raise UserError(f"{data_dir}: image {index} is a real capture; there is no object model to simulate "
                         f"(--simulate needs a generated split)")
-    obj = CapturedObject(manifest["class_name"], labels) if real else load_true_object(manifest, labels)
+    if real and urdf is not None:
+        raise UserError(f"{data_dir}: image {index} is a real capture; there is no object model to rebuild from "
+                        f"the URDF {urdf}")
+    obj = (CapturedObject(manifest["class_name"], labels) if real else
+           load_true_object(manifest, labels, split_dir=data_dir, urdf=urdf, mesh_root=mesh_root, hint=hint))
     if not 0 <= joint < obj.n_joints:
         raise UserError(f"--joint {joint} out of range: {obj.class_name} has {obj.n_joints} joint(s) (0..{obj.n_joints - 1})")
     joint_type = obj.joint_types[joint]

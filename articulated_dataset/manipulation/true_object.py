@@ -97,7 +97,8 @@ def split_row_labels(split_dir: str | Path, index: int) -> tuple[dict, dict]:
     return manifest, label_row(labels, index)
 
 
-def load_true_object(manifest: dict, labels: dict, camera=None) -> TrueObject:
+def load_true_object(manifest: dict, labels: dict, camera=None, split_dir: str | Path | None = None, *,
+                     urdf: str | Path | None = None, mesh_root: str | Path | None = None, hint: str = "") -> TrueObject:
     """Rebuild the true object of an image in MuJoCo.
 
     Geometry and chirality come from the split's generation config
@@ -105,12 +106,17 @@ def load_true_object(manifest: dict, labels: dict, camera=None) -> TrueObject:
     the pipeline redraws a pose whose view hides a part); the object is compiled as the
     pipeline compiles it (:func:`~articulated_dataset.generation.compile_object`).  The
     rebuilt model's axis labels are checked against the stored ones.  ``camera`` overrides
-    the image size (for figures); the physics is the same.
+    the image size (for figures); the physics is the same.  ``split_dir``: the split folder the
+    manifest belongs to; a third-party object is rebuilt only from files inside it (else one line
+    ending with ``hint``), or from ``urdf`` (and ``mesh_root``), files the caller names, when their
+    sha256 is the one the split recorded
+    (:func:`~articulated_dataset.generation.objects.stored_object_config`).
     """
-    from ..generation import GenerationConfig, compile_object, stored_sample
+    from ..generation import compile_object, stored_sample
+    from ..generation.objects import stored_object_config
     from ..generation.templating import object_urdf
 
-    config = GenerationConfig.from_dict(manifest["config"])
+    config = stored_object_config(manifest.get("config"), split_dir, "plan", hint, urdf=urdf, mesh_root=mesh_root)
     if config.camera.mount != "fixed":
         raise UserError(f"{config.class_name}/{config.split} was generated with --camera {config.camera.mount}; "
                         "manipulation rebuilds objects upright in the camera frame (generate with --camera fixed)")

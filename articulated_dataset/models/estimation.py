@@ -167,14 +167,38 @@ def check_depth(depth_m: np.ndarray, mask: np.ndarray | None, where: str = "dept
                         f"pass a segmentation mask of the object")
 
 
+def valid_depth_images(depth_m: np.ndarray) -> np.ndarray:
+    """(N,) bool: which images of ``depth_m`` (N, H, W) have a valid depth pixel (finite and > 0),
+    the least :func:`check_depth` asks of one image."""
+    d = np.asarray(depth_m)
+    with np.errstate(invalid="ignore"):
+        return (np.isfinite(d) & (d > 0)).reshape(len(d), -1).any(axis=1)
+
+
+def check_split_has_depth(split_dir, n_valid: int, n_images: int) -> None:
+    """One line where none of a split's ``n_images`` selected images has a valid depth pixel (every
+    one empty, zero or NaN): a model would train on, or predict from, nothing."""
+    if n_images and not n_valid:
+        raise UserError(f"{split_dir}: none of its {n_images} images has a valid depth pixel (every depth is "
+                        f"empty, zero or NaN); there is nothing to train on or predict from")
+
+
+def _detached(value):
+    """A torch tensor as a numpy array: detached from autograd (a tensor that requires grad refuses
+    ``numpy()``) and copied off its device; anything else unchanged.  torch is not imported for it."""
+    if type(value).__module__.split(".")[0] == "torch" and callable(getattr(value, "detach", None)):
+        return value.detach().cpu().numpy()
+    return value
+
+
 def _real_array(value, what: str, kinds: str = "fiu") -> np.ndarray:
     """``value`` as a numpy array of real numbers (floating point or integer); booleans, complex
     numbers, strings, objects and ragged lists are a :class:`UserError` (never converted: a
     boolean image read as 1 m, a complex one without its imaginary part, would be a wrong answer).
     ``kinds``: the numpy dtype kinds accepted (``"bfiu"`` for a mask, which may be boolean)."""
     try:
-        a = np.asarray(value)
-    except (TypeError, ValueError) as exc:
+        a = np.asarray(_detached(value))
+    except (TypeError, ValueError, RuntimeError) as exc:
         raise UserError(f"{what} must be an array of numbers ({str(exc).splitlines()[0][:80]})") from None
     if a.dtype.kind not in kinds:
         raise UserError(f"{what} must be an array of {'booleans or ' if 'b' in kinds else ''}real numbers, "
@@ -204,8 +228,7 @@ def _estimate(depth_m, K, class_name: str, mask, model: str, mirror: bool, preci
     """:func:`estimate`, its depth named ``where`` in error messages (a file's path), with
     ``before_model`` run once the inputs are checked and before the model is loaded."""
     from ..camera import CameraConfig
-    from .dense.mirror import with_mirror
-    from .dense.predict import check_precision, modes_to_arrays, refined_batch
+    from ..errors import TORCH_INSTALL, import_optional
     from ..registry import get_class
     from ..real.intrinsics import check_intrinsics, pinhole_matrix
     from ..real.resample import crop_intrinsics, mask_fraction_inside, resample_depth
@@ -219,10 +242,14 @@ def _estimate(depth_m, K, class_name: str, mask, model: str, mirror: bool, preci
     check_depth(depth, m, where)
     K = pinhole_matrix(_real_array(K, "intrinsics"), "intrinsics")
     check_intrinsics(K, (depth.shape[1], depth.shape[0]), "intrinsics")
-    check_precision(precision)
     if before_model is not None:
         before_model()
-    import torch  # once the inputs are checked: a wrong file fails before torch's import
+    # once the inputs are checked: a wrong file fails before torch's import; no torch is one line
+    torch = import_optional("torch", "the dense model (estimate)", TORCH_INSTALL)
+    from .dense.mirror import with_mirror
+    from .dense.predict import check_precision, modes_to_arrays, refined_batch
+
+    check_precision(precision)
 
     ckpt, net, name = _load(model, obj_class.name, precision)
     cfg = net.config
@@ -248,10 +275,12 @@ def _estimate(depth_m, K, class_name: str, mask, model: str, mirror: bool, preci
     from ..errors import DataFormatError
     from ..rotations import quat_to_matrix
 
-    try:  # as a predictions file is checked before it is written: finite, within bounds, unit quaternions
+    try:  # as a predictions file is checked before it is written: finite, within bounds, unit quaternions,
+        # sizes >= 0, a chirality in [0, 1]
         validate_class(name, {k: v for k, v in arrays.items() if k in ALL_DATASETS or k == MIXTURE_LAYOUT_ATTR})
-    except DataFormatError as exc:  # a checkpoint whose weights pass its checks but compute nonsense
-        raise UserError(f"the model's estimate is not usable ({exc}); is its checkpoint damaged?") from None
+    except DataFormatError as exc:  # weights that pass the checkpoint's checks but compute nonsense
+        raise UserError(f"the model's estimate is not usable ({exc}); is its checkpoint damaged, or trained "
+                        f"too briefly?") from None
 
     pose = arrays["axis_pose"][0]
     best = int(arrays["mixture_weights"][0].argmax())

@@ -5,12 +5,15 @@ class for each shipped model (``dense``: the per-pixel voting network; ``dense-k
 network continued on renders half of which pass through the Kinect v2 depth-noise model, for
 real sensors' depth (docs/real_data.md); ``mdn-small``: the
 paper's mixture density network at the ``--small`` preset) and ``models.json`` describing
-them: file, SHA-256, size, training data (command, seed, objects), epochs/steps, wall time,
-machine and test figures.  Files are checked against their SHA-256 before loading and loaded
-with ``torch.load(weights_only=True)`` (no code runs from a checkpoint).
+them: files, SHA-256s, sizes, training data (command, seed, objects), epochs/steps, wall time,
+machine and test figures.  Each checkpoint is a pair, ``NAME.safetensors`` (the weights) and
+``NAME.json`` (its configuration, calibration and refinement), read without pickle
+(:mod:`.safetensors_checkpoint`); both files are checked against their SHA-256 before loading.
 
-``--model`` accepts a shipped model's name or a checkpoint path written by ``artdata train``
-(either kind; the kind is read from the file).
+``--model`` accepts a shipped model's name or a checkpoint path: a ``.pt`` file written by
+``artdata train`` (read with ``torch.load(weights_only=True)``: no code runs from it) or a
+``.safetensors`` file with its ``.json`` beside it (``artdata export-model --format
+safetensors``); either kind, the kind read from the file.
 """
 
 from __future__ import annotations
@@ -61,8 +64,22 @@ _RESOLVED: dict = {}
 
 
 def _file_key(path: Path):
-    st = path.stat()
-    return (str(path.resolve()), st.st_mtime_ns, st.st_size)
+    """A checkpoint's state: its path, modification time and size, and those of a safetensors
+    file's configuration beside it (where there is one)."""
+    from .safetensors_checkpoint import config_path, is_safetensors_path
+
+    files = [path, config_path(path)] if is_safetensors_path(path) else [path]
+    return tuple((str(p.resolve()), p.stat().st_mtime_ns, p.stat().st_size) if p.is_file() else (str(p), None, None)
+                 for p in files)
+
+
+def shipped_files(entry: dict) -> list[tuple[Path, str]]:
+    """The files of a ``models.json`` entry with their SHA-256: the weights (``file``) and, for a
+    safetensors pair, its configuration (``config``)."""
+    files = [(WEIGHTS_DIR / entry["file"], entry["sha256"])]
+    if "config" in entry:
+        files.append((WEIGHTS_DIR / entry["config"], entry["config_sha256"]))
+    return files
 
 
 def resolve_model(spec: str, class_name: str | None) -> ModelRef:
@@ -101,12 +118,12 @@ def _resolve(spec: str, class_name: str | None) -> ModelRef:
             third_party = "" if class_name in class_names() else "; a third-party object of one of them: pass --as-class CLASS"
             raise UserError(f"no shipped {spec!r} model for class {class_name!r}"
                             + (f" (shipped: {', '.join(have)}{third_party})" if have else " (this installation ships no weights)"))
-        path = WEIGHTS_DIR / entry["file"]
-        if not path.is_file():
-            raise UserError(f"shipped model file missing: {path} (reinstall the package)")
-        if _sha256(path) != entry["sha256"]:
-            raise UserError(f"shipped model file {path} does not match its checksum (reinstall the package)")
-        return ModelRef(SHIPPED[spec], path, spec, class_name)
+        for path, digest in shipped_files(entry):
+            if not path.is_file():
+                raise UserError(f"shipped model file missing: {path} (reinstall the package)")
+            if _sha256(path) != digest:
+                raise UserError(f"shipped model file {path} does not match its checksum (reinstall the package)")
+        return ModelRef(SHIPPED[spec], WEIGHTS_DIR / entry["file"], spec, class_name)
     path = Path(spec)
     if not path.is_file():
         raise UserError(f"--model {spec!r}: neither a shipped model ({', '.join(SHIPPED)}) nor a checkpoint file")
@@ -125,12 +142,32 @@ def _resolve(spec: str, class_name: str | None) -> ModelRef:
     return ModelRef(kind, path, name, file_class)
 
 
+#: The parts of a training checkpoint that only continuing its training reads.
+TRAINING_STATE_KEYS = ("optimizer_state", "scheduler_state", "scaler_state", "rng_state")
+
+
+def without_training_state(ckpt: dict) -> dict:
+    """A checkpoint without its :data:`TRAINING_STATE_KEYS` (what inference needs)."""
+    return {k: v for k, v in ckpt.items() if k not in TRAINING_STATE_KEYS}
+
+
 def strip_for_shipping(ckpt: dict) -> dict:
-    """A checkpoint without optimizer, schedule and RNG state (what inference needs), its
-    floating-point weights stored as float16 (half the size; loading casts them back to
+    """A checkpoint without optimizer, schedule and RNG state (:func:`without_training_state`),
+    its floating-point weights stored as float16 (half the size; loading casts them back to
     float32: ``load_state_dict`` copies into the float32 parameters)."""
-    drop = {"optimizer_state", "scheduler_state", "scaler_state", "rng_state"}
-    out = {k: v for k, v in ckpt.items() if k not in drop}
+    out = without_training_state(ckpt)
     out["model_state"] = {k: (v.half() if v.is_floating_point() else v) for k, v in ckpt["model_state"].items()}
     out["weights_dtype"] = "float16"
     return out
+
+
+def load_model_checkpoint(ref: ModelRef) -> dict:
+    """The checkpoint of a resolved model, read and checked by its kind's loader (the dense
+    model's or the MDN's); any problem is a one-line :class:`UserError`."""
+    if ref.kind == "dense":
+        from .dense.checkpoint import load_dense_checkpoint
+
+        return load_dense_checkpoint(ref.path)
+    from .mdn.checkpoint import load_checkpoint
+
+    return load_checkpoint(ref.path)

@@ -16,9 +16,12 @@ from ..errors import UserError
 #: fx = 1e308 px) are a mistake, not a lens.
 MIN_PLAUSIBLE_FOV_DEG = 1.0
 MAX_PLAUSIBLE_FOV_DEG = 170.0
-#: Largest source frame accepted (pixels): ten times a 12-megapixel frame; larger is not a
-#: depth sensor's image (and would exhaust memory when rasterised).
-MAX_SOURCE_PIXELS = 120_000_000
+#: Largest source frame accepted (pixels): 4096 x 4096, three times the largest depth
+#: sensors' frames (structured-light cameras such as Zivid 2+: 2448 x 2048, 5 Mpx).  Larger is
+#: not a depth sensor's image; the limit is checked from a file's header before its pixels are
+#: decoded (a 230 KB PNG can declare 120 Mpx), and keeps reading and resampling one frame
+#: under 1 GB of memory.
+MAX_SOURCE_PIXELS = 4096 * 4096
 #: Deepest nesting of a file's lists of numbers (labels nest 2 deep; numpy allows 32 dimensions; the
 #: check recurses once per level, so 600 levels were a RecursionError).
 MAX_NUMBER_NESTING = 32

@@ -4,7 +4,6 @@ with the intrinsics (nearest point per pixel)."""
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +22,9 @@ MAX_PLAUSIBLE_DEPTH_M = 20.0
 #: 0.1-0.3 m): a capture whose median depth is below this is in other units than assumed.
 MIN_PLAUSIBLE_DEPTH_M = 0.1
 DEPTH_UNITS = ("auto", "m", "mm")
+#: Longest PLY header read (bytes): a header is a few lines of element and property
+#: declarations and comments; a file without ``end_header`` within this many bytes is not a PLY.
+MAX_PLY_HEADER_BYTES = 1 << 20
 
 
 def _check_units(units: str) -> None:
@@ -55,20 +57,25 @@ def units_name(units: str) -> str:
     return "millimetres" if units == "mm" else "metres"
 
 
-def _read_image(path: Path, what: str) -> tuple[np.ndarray, str]:
-    """Pixels and PIL mode of an image file; an unreadable file is a one-line UserError."""
-    from PIL import Image
+#: PIL modes of a single-channel 16-bit PNG (a depth image in millimetres).
+DEPTH_PNG_MODES = ("I;16", "I;16B", "I;16L", "I")
 
-    try:
-        with warnings.catch_warnings():  # PIL warns above 89 million pixels; the size is checked below (120 million)
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            with Image.open(path) as im:
-                check_source_size(im.size, str(path))
-                return np.array(im), im.mode
-    except UserError:
-        raise
-    except Exception as exc:
-        raise UserError(f"{path}: not a readable {what} ({str(exc).splitlines()[0]})") from None
+
+def _read_image(path: Path, what: str, modes: tuple[str, ...] | None = None) -> tuple[np.ndarray, str]:
+    """Pixels and PIL mode of a PNG file (PNG content and a ``.png`` name, see
+    :func:`~articulated_dataset.exr.files.read_png`) of at most
+    :data:`~articulated_dataset.real.intrinsics.MAX_SOURCE_PIXELS` and, if given, of one of
+    ``modes``, both checked from the header before any pixel is decoded; anything else is a
+    one-line UserError."""
+    from ..exr.files import read_png
+
+    def check(path: Path, size: tuple[int, int], mode: str) -> None:
+        check_source_size(size, str(path))
+        if modes is not None and mode not in modes:
+            raise UserError(f"{path}: depth PNG must be single-channel 16-bit (millimetres), got mode {mode}; "
+                            f"units of 8-bit or colour PNGs are unknown")
+
+    return read_png(path, what, check)
 
 
 def load_depth(path: str | Path, units: str = "auto") -> np.ndarray:
@@ -83,35 +90,10 @@ def load_depth(path: str | Path, units: str = "auto") -> np.ndarray:
         raise UserError(f"depth file not found: {path}")
     suffix = path.suffix.lower()
     if suffix == ".png":
-        raw, mode = _read_image(path, "PNG")
-        if mode not in ("I;16", "I;16B", "I;16L", "I") or raw.ndim != 2:
-            raise UserError(f"{path}: depth PNG must be single-channel 16-bit (millimetres), got mode {mode}; "
-                            f"units of 8-bit or colour PNGs are unknown")
+        raw, _ = _read_image(path, "depth", DEPTH_PNG_MODES)
         return _to_metres(raw, "mm" if units == "auto" else units, path)
     if suffix == ".exr":
-        import OpenEXR
-
-        from ..exr.files import c_output_silenced, exr_size
-
-        try:
-            size = exr_size(path)
-        except Exception as exc:
-            raise UserError(f"{path}: not a readable EXR file ({str(exc).splitlines()[0]})") from None
-        check_source_size(size, str(path))  # before any pixel is decoded (a 300 KB file can declare 10^9)
-        try:
-            with c_output_silenced(), OpenEXR.File(str(path)) as f:
-                channels = {c: np.asarray(v.pixels) for c, v in f.channels().items()}
-        except Exception as exc:
-            raise UserError(f"{path}: not a readable EXR file ({str(exc).splitlines()[0]})") from None
-        name = next((c for c in ("Z", "depth", "Y", "R") if c in channels), None)
-        if name is None and len(channels) == 1:
-            name = next(iter(channels))
-        if name is None:
-            raise UserError(f"{path}: no depth channel (expected Z, depth, Y or R; found {', '.join(sorted(channels))})")
-        raw = channels[name]
-        if raw.ndim != 2:
-            raise UserError(f"{path}: channel {name!r} has shape {raw.shape}, expected a single-channel image")
-        return _to_metres(raw, "m" if units == "auto" else units, path)
+        return _to_metres(_read_exr_depth(path), "m" if units == "auto" else units, path)
     if suffix == ".npy":
         try:
             with np.errstate(over="ignore"):  # a header's shape whose size overflows: numpy's own error below
@@ -133,6 +115,40 @@ def load_depth(path: str | Path, units: str = "auto") -> np.ndarray:
     raise UserError(f"{path}: unsupported depth file type {suffix!r} (expected {', '.join(DEPTH_SUFFIXES)})")
 
 
+def _read_exr_depth(path: Path) -> np.ndarray:
+    """The depth channel of an EXR file as an image of its display window (the image the
+    intrinsics describe), float64: the stored pixels (the data window) in their place, NaN (no
+    return) where the file stores none; both windows' sizes are checked from the header first."""
+    import OpenEXR
+
+    from ..exr.files import c_output_silenced, exr_windows, in_display_window, window_size
+
+    def unreadable(exc: Exception) -> UserError:
+        return UserError(f"{path}: not a readable EXR file ({(str(exc).splitlines() or [type(exc).__name__])[0]})")
+
+    try:
+        data, display = exr_windows(path)
+    except Exception as exc:  # OpenEXR's errors on a damaged file have no common type
+        raise unreadable(exc) from None
+    for window in (data, display):  # before any pixel is decoded (a 300 KB file can declare 10^9)
+        check_source_size(window_size(window), str(path))
+    try:
+        with c_output_silenced(), OpenEXR.File(str(path)) as f:
+            channels = {c: np.asarray(v.pixels) for c, v in f.channels().items()}
+    except Exception as exc:
+        raise unreadable(exc) from None
+    name = next((c for c in ("Z", "depth", "Y", "R") if c in channels), None)
+    if name is None and len(channels) == 1:
+        name = next(iter(channels))
+    if name is None:
+        raise UserError(f"{path}: no depth channel (expected Z, depth, Y or R; found {', '.join(sorted(channels))})")
+    raw = channels[name]
+    if raw.ndim != 2 or raw.dtype.kind not in "fiu":
+        raise UserError(f"{path}: channel {name!r} has shape {raw.shape} and type {raw.dtype}, expected a "
+                        f"single-channel numeric image")
+    return in_display_window(raw, data, display)
+
+
 def load_mask(path: str | Path, shape: tuple[int, int], n_joints: int) -> np.ndarray:
     """A segmentation mask as dataset labels (uint8: 0 background, 1 body, 2 + j part j).
 
@@ -142,7 +158,7 @@ def load_mask(path: str | Path, shape: tuple[int, int], n_joints: int) -> np.nda
     path = Path(path)
     if not path.is_file():
         raise UserError(f"mask file not found: {path}")
-    raw, mode = _read_image(path, "image")
+    raw, mode = _read_image(path, "mask")
     if raw.ndim != 2:
         raise UserError(f"{path}: mask must be a single-channel image, got mode {mode}")
     if raw.shape != tuple(shape):
@@ -197,15 +213,20 @@ def _read_pcd(path: Path) -> np.ndarray:
     if kind == "ascii":
         try:
             rows = [r for r in data[offset:].decode("ascii").splitlines() if r.strip()]
-            if not rows:
-                return np.empty((0, 3))
+        except UnicodeDecodeError as exc:
+            raise UserError(f"{path}: malformed PCD data ({str(exc).splitlines()[0][:120]})") from None
+        if not rows:  # refused by the caller: no finite points
+            return np.empty((0, 3))
+        if len(rows) != n:  # (a header declaring more points than the file holds was read as the rows there are)
+            raise UserError(f"{path}: PCD data holds {len(rows):,} points, its header declares {n:,}")
+        try:
             table = np.loadtxt(rows, ndmin=2)
-        except (ValueError, UnicodeDecodeError) as exc:
+        except ValueError as exc:
             raise UserError(f"{path}: malformed PCD data ({str(exc).splitlines()[0][:120]})") from None
         if table.shape[1] != sum(counts):
             raise UserError(f"{path}: PCD rows have {table.shape[1]} values, the header describes {sum(counts)}")
         cols = np.cumsum([0] + counts)
-        return np.stack([table[:, cols[fields.index(a)]] for a in "xyz"], axis=1)[:n].reshape(-1, 3)
+        return np.stack([table[:, cols[fields.index(a)]] for a in "xyz"], axis=1)
     if kind == "binary":
         dtype = np.dtype([(f"f{i}", f"<{codes[t]}{s}", (c,)) for i, (t, s, c) in enumerate(zip(types, sizes, counts))])
         if len(data) - offset < n * dtype.itemsize:
@@ -213,6 +234,35 @@ def _read_pcd(path: Path) -> np.ndarray:
         rec = np.frombuffer(data, dtype=dtype, count=n, offset=offset)
         return np.stack([rec[f"f{fields.index(a)}"][:, 0] for a in "xyz"], axis=1).astype(np.float64)
     raise UserError(f"{path}: PCD DATA {kind!r} is not supported (save it as ascii or binary)")
+
+
+def _check_ply_rows(path: Path) -> None:
+    """An ASCII PLY's data must hold the rows its header declares (trimesh reads the rows there
+    are: a header declaring 2e9 vertices over one line was read as a one-point cloud), counted
+    before anything is parsed; a binary PLY's length is checked against its header by trimesh."""
+    with open(path, "rb") as f:
+        head = f.read(MAX_PLY_HEADER_BYTES)
+        end = head.find(b"end_header")
+        lines = [ln.split() for ln in head[:end].decode("ascii", "replace").lower().split("\n")]
+        if end < 0 or "ply" not in " ".join(lines[0]):
+            raise UserError(f"{path}: not a PLY file (no 'ply' ... 'end_header' header in its first "
+                            f"{MAX_PLY_HEADER_BYTES:,} bytes)")
+        if len(lines) < 2 or "ascii" not in " ".join(lines[1]):  # trimesh's test of the format line
+            return
+        declared = 0
+        for ln in lines[2:]:
+            if ln and "element" in ln[0]:  # (as trimesh reads a header line)
+                if len(ln) != 3 or not ln[2].isdigit():
+                    raise UserError(f"{path}: malformed PLY header line {' '.join(ln)[:80]!r} "
+                                    f"(expected 'element NAME COUNT')")
+                declared += int(ln[2])
+        f.seek(head.index(b"\n", end) + 1 if b"\n" in head[end:] else len(head))
+        rows, last = 0, b"\n"
+        for block in iter(lambda: f.read(1 << 20), b""):
+            rows, last = rows + block.count(b"\n"), block[-1:]
+        rows += last != b"\n"  # a last row without a newline
+    if declared > rows:
+        raise UserError(f"{path}: the PLY header declares {declared:,} rows of data, its data has {rows:,} lines")
 
 
 def load_cloud(path: str | Path) -> np.ndarray:
@@ -224,8 +274,11 @@ def load_cloud(path: str | Path) -> np.ndarray:
     if suffix == ".ply":
         import trimesh
 
+        _check_ply_rows(path)
         try:
-            geom = trimesh.load(str(path), process=False)
+            # skip_materials: a colour texture the file names (``comment TextureFile``) is not
+            # needed and never opened (it could name any file: a FIFO, one elsewhere, a non-image).
+            geom = trimesh.load(str(path), file_type="ply", process=False, skip_materials=True)
         except Exception as exc:
             raise UserError(f"{path}: not a readable PLY file ({str(exc).splitlines()[0]})") from None
         points = np.asarray(getattr(geom, "vertices", np.empty((0, 3))), np.float64)

@@ -71,7 +71,7 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
     split (same camera; capture names must be new; captures naming a known object keep its
     index); ``overwrite`` replaces it.  Returns the split folder.
     """
-    from ..safeio import ensure_dir, remove_created_dirs
+    from ..safeio import check_name_length, ensure_dir, remove_created_dirs, temporary_name, translated
     from ..format.manifest import MANIFEST_NAME, read_manifest, write_manifest
     from ..format.shards import shard_name, write_shard
 
@@ -85,6 +85,7 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
     options = options or IngestOptions()
     camera = camera or options.camera
     split_dir = Path(out_root) / class_name / split
+    check_name_length(split_dir)
     if split_dir.is_symlink() or (split_dir.exists() and not split_dir.is_dir()):
         raise UserError(f"{split_dir} is a symbolic link or a file; give --out a folder where the split can be written")
     ours = [p for p in split_dir.iterdir() if _is_ours(p)] if split_dir.is_dir() else []
@@ -97,8 +98,10 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
     objects: list[str] = []
     names: list[str] = []
     if existing:
-        if overwrite:
-            pass  # replaced below, once the new split is complete
+        if overwrite:  # replaced below, once the new split is complete; only a split ingest wrote
+            if not _holds_real_split(split_dir, class_name):
+                raise UserError(f"{split_dir} does not hold ingested real data of class {class_name} (a generated or "
+                                f"imported split); --overwrite replaces only a real split: choose another --split")
         elif append:
             old = read_manifest(split_dir)
             if old.get("class_name") != class_name or "real" not in old:
@@ -202,8 +205,13 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
     # anything else builds the split in a hidden sibling folder and swaps it in when complete,
     # so a failure (disk full, a bad capture) leaves the previous split as it was.
     in_place = bool(append and existing)
-    work_dir = split_dir if in_place else split_dir.parent / f".{split}.ingest-{os.getpid()}"
-    created = ensure_dir(work_dir)
+    created = ensure_dir(split_dir.parent)
+    work_dir = split_dir
+    if not in_place:  # a new folder under an unpredictable name: never an existing one, never a link
+        work_dir = split_dir.parent / temporary_name(f"{split}.ingest")
+        with translated(work_dir, "create folder"):
+            work_dir.mkdir()
+        created.append(work_dir)
     try:
         write_all(work_dir)
     except BaseException:
@@ -218,18 +226,34 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
     return split_dir
 
 
+def _holds_real_split(split_dir: Path, class_name: str) -> bool:
+    """Whether ``split_dir``'s manifest is a real split of ``class_name`` as
+    :func:`write_real_split` writes it (an unreadable or missing manifest is not)."""
+    from ..format.manifest import read_manifest
+
+    try:
+        manifest = read_manifest(split_dir)
+    except UserError:
+        return False
+    return (isinstance(manifest, dict) and manifest.get("class_name") == class_name
+            and isinstance(manifest.get("real"), dict))
+
+
 def _is_ours(p: Path) -> bool:
     """A file ``artdata ingest`` writes in a split folder (manifest, shards, their partial files)."""
-    from ..format import MANIFEST_NAME, TMP_SUFFIX
+    from ..format import MANIFEST_NAME
+    from ..safeio import temporary_target
 
-    name = p.name[: -len(TMP_SUFFIX)] if p.name.endswith(TMP_SUFFIX) else p.name
+    name = temporary_target(p.name) or p.name
     return p.is_file() and not p.is_symlink() and (name == MANIFEST_NAME or re.fullmatch(r"shard-[0-9]{5,}\.h5", name) is not None)
 
 
 def _swap_in(new_dir: Path, split_dir: Path) -> None:
     """Rename the complete ``new_dir`` to ``split_dir``; an old split there is moved aside
     first and its files removed afterwards (only files :func:`_is_ours`)."""
-    old_dir = split_dir.parent / f".{split_dir.name}.old-{os.getpid()}"
+    from ..safeio import temporary_name
+
+    old_dir = split_dir.parent / temporary_name(f"{split_dir.name}.old")  # unpredictable: no link waits there
     if split_dir.is_dir():
         os.rename(split_dir, old_dir)
     os.rename(new_dir, split_dir)

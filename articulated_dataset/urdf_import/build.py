@@ -37,6 +37,10 @@ _DEFINITION_KEYS = {"urdf", "class_name", "joints", "skip_missing_meshes", "came
 _OPTIONAL_DEFINITION_KEYS = {"scale", "mesh_root"}
 
 
+class SourceMismatchError(UserError):
+    """The URDF or its meshes are not the files a definition records (their sha256 differs)."""
+
+
 @dataclass(frozen=True)
 class UrdfObject:
     """A third-party object ready for generation.
@@ -93,7 +97,7 @@ def _build_class(definition: dict) -> tuple[ObjectClass, tuple[str, ...]]:
             notes.append(f"skipped missing mesh {f} (link {link!r})")
     digest = source_digest(parsed)
     if definition["sha256"] != digest:
-        raise UserError(
+        raise SourceMismatchError(
             f"{path} or its meshes differ from the files the generation was started with "
             "(changed since, or a different copy on this node)"
         )

@@ -10,6 +10,7 @@ import logging
 import math
 import os
 import re
+import struct
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -41,6 +42,16 @@ MAX_PRISMATIC_LIMIT_M = 10.0
 #: the file's units): beyond any object in metres or millimetres.  Larger values are
 #: placeholders and break the numerics (SVDs that never converge, MuJoCo inertia failures).
 MAX_FILE_LENGTH = 1e6
+#: Mesh formats read, by the file's suffix (trimesh parses a file by its suffix): text or plain
+#: binary geometry whose size in memory follows the file's.  trimesh reads more: archives
+#: (``.zip``, ``.3mf``, ``.zae``: 1.6 MB inflated to 3.3 GB), COLLADA ``.dae`` (parsed with
+#: huge-tree XML, a zip archive whatever the name, textures opened with every PIL decoder),
+#: 2-D drawings; convert such a mesh to one of these first.
+MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb", ".gltf")
+#: Largest mesh file read (bytes), and largest file a glTF mesh names as its buffer: an ASCII
+#: STL of MuJoCo's 200,000 triangles per link takes about 50 MB; the geometry of a larger file
+#: could not be rendered anyway.
+MAX_MESH_FILE_BYTES = 64 << 20
 #: yourdfpy validation messages not treated as errors: a <limit>'s effort and velocity do
 #: not matter for kinematics (PartNet-Mobility omits them), and URDF defaults a missing
 #: lower / upper to 0.
@@ -286,6 +297,7 @@ def load_structure(path: Path, mesh_root: Path | None = None, scale: float = 1.0
                 if not os.path.isfile(mesh_file):
                     missing.append((link.name, mesh_file))
                     continue
+                check_mesh_file(mesh_file, f"link {link.name!r} of {path}")
             if scale != 1.0:
                 out.append(_Element(_scaled_origin(origin, scale), _scaled_geometry(item.geometry, scale), mesh_file,
                                     source, scale))
@@ -310,28 +322,75 @@ def source_digest(parsed: Parsed) -> str:
     return h.hexdigest()
 
 
-#: Largest glTF JSON file read for its buffer names (a mesh's JSON is kilobytes; its data is in the buffers).
-MAX_GLTF_JSON_BYTES = 64 << 20
+def check_mesh_file(mesh_file, where: str | None = None) -> None:
+    """A mesh file must have one of the :data:`MESH_SUFFIXES` and at most
+    :data:`MAX_MESH_FILE_BYTES`, checked before it is read (``where``: the link that uses it)."""
+    path = Path(mesh_file)
+    name = f"mesh file {path}" + (f" ({where})" if where else "")
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise UserError(f"{name}: {path.suffix or 'no suffix'!r} is not a mesh format read here "
+                        f"(use {', '.join(MESH_SUFFIXES)})")
+    size = path.stat().st_size
+    if size > MAX_MESH_FILE_BYTES:
+        raise UserError(f"{name} has {size:,} bytes, over the {MAX_MESH_FILE_BYTES:,} read for a mesh; simplify it")
 
 
-def gltf_buffer_files(mesh_file) -> list:
-    """The regular files that the ``buffers`` of a ``.gltf`` mesh name (relative URIs inside the
-    mesh's folder; ``data:`` URIs are inside the JSON), or [] for another mesh or a JSON that
-    cannot be read (trimesh then reports the file when it loads it)."""
+#: The glTF binary container: its 12-byte header (magic, version, length) and the header of
+#: its first chunk (length, type), which holds the JSON document.
+GLB_HEADER = struct.Struct("<4sII")
+GLB_CHUNK_HEADER = struct.Struct("<I4s")
+
+
+def gltf_document(mesh_file) -> dict | None:
+    """The JSON document of a ``.gltf`` mesh, or of a ``.glb`` mesh's JSON chunk; None for another
+    mesh or a document that cannot be read (trimesh then reports the file when it loads it)."""
     import json
-    import stat
-    from urllib.parse import unquote
 
     from ..format.shards import JSON_TEXT_ERRORS
 
     path = Path(mesh_file)
-    if path.suffix.lower() != ".gltf" or path.stat().st_size > MAX_GLTF_JSON_BYTES:
-        return []
+    suffix = path.suffix.lower()
+    if suffix not in (".gltf", ".glb") or path.stat().st_size > MAX_MESH_FILE_BYTES:
+        return None
+    data = path.read_bytes()
+    if suffix == ".glb":
+        if len(data) < GLB_HEADER.size + GLB_CHUNK_HEADER.size or data[:4] != b"glTF":
+            return None
+        length, kind = GLB_CHUNK_HEADER.unpack_from(data, GLB_HEADER.size)
+        start = GLB_HEADER.size + GLB_CHUNK_HEADER.size
+        if kind != b"JSON":
+            return None
+        data = data[start : start + length]
     try:
-        doc = json.loads(path.read_bytes())
+        doc = json.loads(data)
     except JSON_TEXT_ERRORS:
-        return []
-    buffers = doc.get("buffers") if isinstance(doc, dict) else None
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+def check_gltf_accessors(mesh_file) -> None:
+    """Every accessor of a glTF mesh must read its data from a buffer: one without a
+    ``bufferView`` (compressed data an extension decodes, or zeros of its declared count) makes
+    trimesh allocate whatever count the file declares (a few bytes of JSON for gigabytes)."""
+    doc = gltf_document(mesh_file)
+    accessors = doc.get("accessors") if doc is not None else None
+    for i, a in enumerate(accessors if isinstance(accessors, list) else []):
+        if not isinstance(a, dict) or not isinstance(a.get("bufferView"), int):
+            raise UserError(f"cannot read mesh file {mesh_file}: its accessor {i} has no bufferView (compressed or "
+                            f"placeholder data is not read; export the glTF without compression)")
+
+
+def gltf_buffer_files(mesh_file) -> list:
+    """The regular files that the ``buffers`` of a ``.gltf`` or ``.glb`` mesh name (relative URIs
+    inside the mesh's folder; ``data:`` URIs are inside the JSON, a ``.glb``'s own buffer inside
+    the file), or [] for another mesh or a JSON that cannot be read (trimesh then reports the
+    file when it loads it)."""
+    import stat
+    from urllib.parse import unquote
+
+    path = Path(mesh_file)
+    doc = gltf_document(path)
+    buffers = doc.get("buffers") if doc is not None else None
     out = []
     folder = path.parent.resolve()
     for b in buffers if isinstance(buffers, list) else []:

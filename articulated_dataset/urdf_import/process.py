@@ -13,7 +13,8 @@ import numpy as np
 
 from ..errors import UserError
 from ..classes import REVOLUTE
-from .parse import JointPlan, MAX_FILE_LENGTH, Parsed, one_line, unit_axis
+from .parse import (JointPlan, MAX_FILE_LENGTH, MAX_MESH_FILE_BYTES, Parsed, check_gltf_accessors, check_mesh_file,
+                    one_line, unit_axis)
 from .ranges import CACHE_ENV, MOVABLE_TYPES, cache_root, joint_motion, sanitize_class_name
 
 
@@ -33,10 +34,17 @@ FLAT_MESH_THICKNESS_M = 1e-4
 MUJOCO_MAX_STL_FACES = 200_000
 
 
+#: Most placed copies of geometry one mesh file may hold (nodes of a glTF scene that place a
+#: mesh): each becomes a mesh object when the scene is flattened, so a file of tiny nodes
+#: would be millions of them.  A link is one rigid part; a few hundred pieces is a lot.
+MAX_MESH_INSTANCES = 10_000
+
+
 def _regular_file_resolver(path: str):
     """trimesh's resolver for the files a mesh refers to (a glTF's buffers), reading only
-    regular files: its own reads any path inside the mesh's folder, so a FIFO named as a
-    buffer blocked the import forever (and /dev-like files are no mesh data either)."""
+    regular files of at most :data:`~.parse.MAX_MESH_FILE_BYTES`: its own reads any path inside
+    the mesh's folder, so a FIFO named as a buffer blocked the import forever (and /dev-like
+    files are no mesh data either)."""
     import stat
 
     from trimesh.resolvers import FilePathResolver
@@ -46,11 +54,14 @@ def _regular_file_resolver(path: str):
             for candidate in (name.strip(), name.strip().lstrip("/"), os.path.split(name)[-1]):
                 try:
                     target = self.absolute(candidate)
-                    mode = os.stat(target).st_mode
+                    st = os.stat(target)
                 except (ValueError, OSError):
                     continue
-                if not stat.S_ISREG(mode):
+                if not stat.S_ISREG(st.st_mode):
                     raise ValueError(f"{name[:80]!r} referred to by the mesh is not a regular file")
+                if st.st_size > MAX_MESH_FILE_BYTES:
+                    raise ValueError(f"{name[:80]!r} referred to by the mesh has {st.st_size:,} bytes, over "
+                                     f"{MAX_MESH_FILE_BYTES:,}")
                 break
             return super().get(name)
 
@@ -58,13 +69,32 @@ def _regular_file_resolver(path: str):
 
 
 def _load_mesh(path: str):
+    """The mesh file ``path`` (a suffix of :data:`~.parse.MESH_SUFFIXES`, at most
+    :data:`~.parse.MAX_MESH_FILE_BYTES`) as one trimesh, its scene's placed copies merged; the
+    count of placed triangles is checked before they are built."""
     import trimesh
 
+    check_mesh_file(path)
+    check_gltf_accessors(path)
     try:
         # trimesh reads the files a mesh refers to (materials, buffers) only inside the
         # mesh's folder, and only regular files; materials are skipped anyway.
-        mesh = trimesh.load_mesh(path, process=False, skip_materials=True, resolver=_regular_file_resolver(path))
+        scene = trimesh.load_scene(path, file_type=Path(path).suffix.lower().lstrip("."), process=False,
+                                   skip_materials=True, resolver=_regular_file_resolver(path))
     except Exception as exc:  # unreadable or unsupported file: the user's
+        raise UserError(f"cannot read mesh file {path}: {one_line(exc)}") from None
+    placed = {name: len(nodes) for name, nodes in scene.graph.geometry_nodes.items()}  # copies of each geometry
+    if sum(placed.values()) > MAX_MESH_INSTANCES:
+        raise UserError(f"mesh file {path} places {sum(placed.values()):,} pieces of geometry, over "
+                        f"{MAX_MESH_INSTANCES:,}; merge them")
+    n_faces = sum(len(getattr(scene.geometry.get(name), "faces", ())) * n for name, n in placed.items())
+    if 2 * n_faces > MUJOCO_MAX_STL_FACES:  # double-sided: the link's mesh would be refused below
+        raise UserError(f"mesh file {path} has {n_faces:,} triangles, {2 * n_faces:,} once double-sided, over "
+                        f"MuJoCo's {MUJOCO_MAX_STL_FACES:,} per mesh; simplify it to under "
+                        f"{MUJOCO_MAX_STL_FACES // 2:,} triangles (e.g. trimesh's simplify_quadric_decimation)")
+    try:
+        mesh = scene.to_mesh()
+    except Exception as exc:
         raise UserError(f"cannot read mesh file {path}: {one_line(exc)}") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise UserError(f"mesh file {path} holds no triangles")

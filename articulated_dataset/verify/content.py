@@ -9,10 +9,11 @@ import math
 import numpy as np
 
 from ..errors import UserError
-from ..format import MASK_BACKGROUND, MASK_FIRST_PART
+from ..format import MASK_BACKGROUND, MASK_FIRST_PART, object_on_border
 from ..format.shards import json_list
 from ..rotations import quat_to_matrix
 from ..generation.context_labels import context_mask_codes
+from ..generation.framing import shard_framing
 from ..generation.viewpoint import is_head_mount
 
 #: Allowed | |v| - 1 | of stored unit vectors and quaternions.  They are computed in
@@ -81,6 +82,10 @@ def check_content(a: dict, attrs: dict, table, *, J: int, ipo: int, start: int, 
         bad = _per_image((m > top) & ~np.isin(m, context_mask_codes(attrs)))  # 254/255: occluders/scene (format 1.1)
         if bad.any():
             p.append(f"mask: values above {top} (1 + J) in {_where(bad)}")
+        if shard_framing(attrs) == "whole":
+            bad = object_on_border(m)
+            if bad.any():
+                p.append(f"mask: an object pixel on the image's border (framing whole) in {_where(bad)}")
         if "visible_pixels" in a:
             n, n_values = m.shape[0], max(int(m.max(initial=0)) + 1, MASK_FIRST_PART + J)
             # one bincount over (image, value) pairs: counts[i, v] = pixels of value v in image i
@@ -261,8 +266,11 @@ def _check_limits(f64: dict, table, J: int, attrs: dict, p: list) -> None:
         _check_head_limits(f64["object_pose"], table, p)
         return
     if "object_pose" in f64:
+        whole = shard_framing(attrs) == "whole"
         for axis, key in enumerate(("x_m", "y_m", "z_m")):
             lo, hi = table.pose[key]
+            if whole and key == "x_m":  # --framing whole extends the depth range by each object's size
+                hi = math.inf
             v = f64["object_pose"][:, axis]
             bad = (v < lo - LIMIT_TOL) | (v > hi + LIMIT_TOL)
             if bad.any():

@@ -11,6 +11,7 @@ from pathlib import Path
 from ..errors import DataFormatError, UserError
 from ..format import MANIFEST_NAME, check_version, shard_name
 from ..format.shards import JSON_TEXT_ERRORS
+from ..mujoco_support import different_mujoco
 from .shard import one_line
 
 #: Manifest keys the generator writes and the checks below read.
@@ -86,6 +87,20 @@ def manifest_config(manifest: dict):
         return None, f"invalid generation config ({exc})"
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         return None, f"corrupt generation config ({type(exc).__name__}: {one_line(exc)})"
+
+
+def check_mujoco_version(manifest: dict) -> list[Problem]:
+    """A note (a warning, not a failure) where the split was rendered with another MuJoCo release
+    than the installed one: regenerating it here need not give the same bytes.  A recorded
+    version that is no version string is a problem."""
+    try:
+        other = different_mujoco(manifest, MANIFEST_NAME)
+    except DataFormatError as exc:
+        return [Problem(MANIFEST_NAME, str(exc).split(": ", 1)[-1])]
+    if other is None:
+        return []
+    return [Problem(MANIFEST_NAME, f"{other}: a split regenerated here may differ in its bytes "
+                                   "(docs/generation.md, Reproducibility)", warning=True)]
 
 
 def check_manifest_counts(manifest: dict, config) -> list[Problem]:

@@ -17,6 +17,7 @@ from ..errors import DataFormatError, UserError
 from ..format import (FIELDS, K_DATASET, R_DATASET, ROOT_ATTRS, check_h5_layout, check_version, resolve_shape, sha256_file)
 from ..generation.context_labels import occlusion_problems
 from ..format.shards import JSON_TEXT_ERRORS, json_list
+from ..generation.framing import shard_framing
 from .content import check_content, rgb_problems
 
 #: Relative tolerance when comparing the stored intrinsics with the camera config's K.
@@ -39,6 +40,7 @@ class ShardExpectation:
     real: bool | None = None  # the manifest says the split holds ingested real captures
     capture_names: list | None = None  # real: the manifest's captures of this shard, in order
     rgb: bool | None = None  # the manifest's config says the split stores colour images (--rgb)
+    framing: str | None = None  # the manifest's config's framing (--framing)
 
 
 @dataclass
@@ -190,6 +192,8 @@ def _check_open_shard(f: h5py.File, expect: ShardExpectation, res: ShardResult, 
     if expect.rgb is not None and ("appearance" in attrs) != expect.rgb:
         p.append("the manifest's config has rgb = true but the shard has no attribute appearance" if expect.rgb
                  else "the shard has the attribute appearance (--rgb) but the manifest's config has no rgb = true")
+    if expect.framing is not None and shard_framing(attrs) != expect.framing:
+        p.append(f"attribute framing says {shard_framing(attrs)[:40]!r}, the manifest's config {expect.framing[:40]!r}")
     if "sample_id" in arrays:
         res.sample_ids = arrays["sample_id"]
 

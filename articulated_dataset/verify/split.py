@@ -11,7 +11,8 @@ import numpy as np
 from ..errors import DataFormatError
 from ..format import MANIFEST_NAME, TMP_SUFFIX, find_split_dirs, resolve_inside
 from ..format.discovery import SHARD_GLOB
-from .manifest import Problem, check_manifest_counts, check_real_manifest, load_manifest, manifest_config
+from .manifest import (Problem, check_manifest_counts, check_mujoco_version, check_real_manifest, load_manifest,
+                       manifest_config)
 from .shard import ShardExpectation, check_shard
 
 #: Largest number of problems listed per shard before the rest are summarised.
@@ -90,6 +91,7 @@ def _plan_split(split_dir: Path, content: bool) -> tuple[SplitReport, list]:
         report.problems += problems
     else:
         report.problems += check_manifest_counts(manifest, config)
+        report.problems += check_mujoco_version(manifest)
     listed = [r["file"] for r in manifest["shards"]]
     for name in on_disk:
         if name not in listed:
@@ -103,7 +105,8 @@ def _plan_split(split_dir: Path, content: bool) -> tuple[SplitReport, list]:
             n_images=r["n_images"], n_bytes=r["bytes"], sha256=r["sha256"], object_start=r["object_start"],
             object_stop=r["object_stop"], class_name=manifest["class_name"], split=manifest["split"],
             seed=manifest["seed"], camera=config.camera if config is not None else None, real=real,
-            capture_names=captures_of.get(r["file"]), rgb=config.rgb if config is not None else None)
+            capture_names=captures_of.get(r["file"]), rgb=config.rgb if config is not None else None,
+            framing=config.framing if config is not None else None)
         tasks.append((split_dir / r["file"], expect, content))
     return report, tasks
 

@@ -16,6 +16,9 @@ from .style import BODY_RGBA, PART_TINT_WHITE, joint_colour
 
 log = logging.getLogger(__name__)
 
+#: What a refused ``--rgb`` rebuild of a third-party object suggests instead.
+RGB_REBUILD_HINT = " (generate with --rgb to store its colour images)"
+
 
 @dataclass
 class SplitView:
@@ -125,7 +128,9 @@ def select_samples(n_objects: int, images_per_object: int, n: int, objects=None,
     return sorted(out)
 
 
-def preview_rgb(manifest: dict, object_index: int, image_indices, stored_depth: dict | None = None) -> dict[int, np.ndarray]:
+def preview_rgb(manifest: dict, object_index: int, image_indices, stored_depth: dict | None = None,
+                split_dir: str | Path | None = None, *, urdf=None, mesh_root=None,
+                hint: str = RGB_REBUILD_HINT) -> dict[int, np.ndarray]:
     """Shaded colour renders (H, W, 3) uint8 of one object's images, from its rebuilt scene.
 
     The object is re-sampled from the manifest's config (``object_sample``), rendered with
@@ -133,20 +138,22 @@ def preview_rgb(manifest: dict, object_index: int, image_indices, stored_depth: 
     then recompiled with geom colours by part and rendered with ``render_rgb``.  If
     ``stored_depth`` ({image_index: depth}) is given, a mismatch with the re-rendered
     depth is logged as a warning (the stored data came from another package version).
+    ``split_dir``: the split folder the manifest belongs to; a third-party object is rebuilt only
+    from files inside it (else one line ending with ``hint``), or from ``urdf`` (and ``mesh_root``),
+    files the caller names, when their sha256 is the one the split recorded
+    (:func:`~articulated_dataset.generation.objects.stored_object_config`).
     """
     import mujoco
 
-    from ..generation import GenerationConfig, compile_object, object_sample, render_object
+    from ..generation import compile_object, object_sample, render_object
+    from ..generation.objects import stored_object_config
     from ..generation.render import process_renderer
     from ..generation.scene import ORIGIN_POSE, ObjectPlacer, set_configuration
     from ..generation.templating import object_urdf
     from ..generation.viewpoint import object_in_camera
     from matplotlib.colors import to_rgba
 
-    try:
-        config = GenerationConfig.from_dict(manifest["config"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise DataFormatError(f"manifest config cannot be read back ({exc}); --rgb needs it") from None
+    config = stored_object_config(manifest.get("config"), split_dir, "--rgb", hint, urdf=urdf, mesh_root=mesh_root)
     renderer = process_renderer(config.camera)
     sample0 = object_sample(config, object_index)
     arrays, sample, _ = render_object(sample0, config, renderer, check_visibility=not config.mean)

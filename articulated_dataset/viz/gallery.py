@@ -3,12 +3,14 @@ output and figure size, and :func:`make_gallery`, which draws the panels of one 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import UserError
-from .data import SplitView, preview_rgb, select_samples
+from ..format.manifest import check_stored_object_files, third_party_definition
+from .data import RGB_REBUILD_HINT, SplitView, preview_rgb, select_samples
 from .drawing import Panel, TextFitter, draw_sample, fig_text, header_lines, legend_lines, split_header
 from .style import (CAPTION_GAP_IN, CAPTION_LINE_IN, DEFAULT_COLUMNS, DEFAULT_DPI, DEFAULT_N_SAMPLES, FOOTER_IN,
                     GAP_IN, HEADER_IN, HEADER_LINE_IN, LEGEND_LINE_IN, LEGEND_PT, MIN_DPI, PANEL_WIDTH_IN, TITLE_IN)
@@ -85,11 +87,11 @@ def check_figure_size(w_in: float, h_in: float, dpi: int, path: Path) -> None:
 
 def _save(fig, path: Path, dpi: int) -> None:
     """Write the figure atomically (a failure leaves no partial file and ``path`` as it was)."""
-    from ..safeio import atomic_path, ensure_dir
+    from ..safeio import atomic_file, ensure_dir
 
     ensure_dir(path.parent)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format=path.suffix.lower().lstrip("."), dpi=dpi, facecolor="white")
+    with atomic_file(path) as f:
+        fig.savefig(f, format=path.suffix.lower().lstrip("."), dpi=dpi, facecolor="white")
 
 
 def _panel_record(fig, ax, kind, file, view, s, dpi) -> Panel:
@@ -117,7 +119,8 @@ def check_output_format(path: str | Path) -> Path:
 
 def make_gallery(split_dirs, *, out: str | Path | None = None, per_sample_dir: str | Path | None = None,
                  n: int = DEFAULT_N_SAMPLES, objects=None, images=None, rgb: bool = False, cols: int = DEFAULT_COLUMNS,
-                 dpi: int = DEFAULT_DPI, outline: bool = True, progress=None, predictions=None) -> list[Panel]:
+                 dpi: int = DEFAULT_DPI, outline: bool = True, progress=None, predictions=None, urdf=None,
+                 mesh_root=None, rebuild_hint: str = RGB_REBUILD_HINT) -> list[Panel]:
     """Draw ``n`` samples of each split into one gallery (``out``) and/or one PNG per sample
     (``per_sample_dir``).  Returns the panels drawn (with their positions in the files).
 
@@ -126,6 +129,12 @@ def make_gallery(split_dirs, *, out: str | Path | None = None, per_sample_dir: s
 
     ``objects`` / ``images``: candidate object and image indices (default: all).
     ``progress(k)`` is called after each sample.
+
+    ``rgb`` rebuilds the scene of a split that stores no colour images.  A third-party URDF
+    object is rebuilt only from files inside its split folder (else one line ending with
+    ``rebuild_hint``), or from ``urdf`` (and ``mesh_root``), the files of the object the caller
+    names, used for every third-party split drawn when their sha256 is the one it recorded
+    (:func:`~articulated_dataset.generation.objects.stored_object_config`).
     """
     if out is None and per_sample_dir is None:
         raise UserError("nothing to write: give --out FILE and/or --per-sample DIR")
@@ -141,7 +150,8 @@ def make_gallery(split_dirs, *, out: str | Path | None = None, per_sample_dir: s
     views = [SplitView.open(d) for d in split_dirs]
     try:
         return _make_gallery(views, out, Path(per_sample_dir) if per_sample_dir else None, n, objects, images, rgb,
-                             cols, dpi, outline, progress, pred_by_class)
+                             cols, dpi, outline, progress, pred_by_class,
+                             ObjectFiles(urdf, mesh_root, rebuild_hint))
     finally:
         for v in views:
             v.close()
@@ -162,9 +172,25 @@ def _read_predicted_axes(path) -> dict:
             for c, a in per_class.items()}
 
 
+@dataclass(frozen=True)
+class ObjectFiles:
+    """What rebuilds a third-party object's scene for ``--rgb``: the URDF and mesh folder the
+    caller named (None: the recorded paths, inside the split folder only) and the refusal's hint."""
+
+    urdf: object = None
+    mesh_root: object = None
+    hint: str = RGB_REBUILD_HINT
+
+    def of(self, view: SplitView) -> dict:
+        """``preview_rgb``'s keyword arguments for ``view`` (the named files for a third-party split)."""
+        third_party = third_party_definition(view.manifest.get("config"), view.split_dir) is not None
+        return {"hint": self.hint, **({"urdf": self.urdf, "mesh_root": self.mesh_root} if third_party else {})}
+
+
 def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi, outline, progress,
-                  pred_by_class=None) -> list[Panel]:
+                  pred_by_class=None, files: ObjectFiles = ObjectFiles()) -> list[Panel]:
     picks = []
+    named_used = False
     for v in views:
         for o in objects or []:
             if not 0 <= o < v.n_objects:
@@ -172,6 +198,15 @@ def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi
         if rgb and "real" in v.manifest:
             raise UserError(f"--rgb rebuilds a generated object's scene; {v.name} holds real captures (no scene to "
                             "rebuild): leave out --rgb")
+        if rgb and not stored_colour(v):  # before any image is drawn: the files the object is rebuilt from
+            named = files.of(v)
+            if named.get("urdf") is None:
+                check_stored_object_files(v.manifest.get("config"), v.split_dir, "--rgb", files.hint)
+            else:  # the named files' sha256 against the recorded one
+                from ..generation.objects import stored_object_config
+
+                stored_object_config(v.manifest.get("config"), v.split_dir, "--rgb", **named)
+                named_used = True
         for i in images or []:
             if not 0 <= i < v.images_per_object:
                 raise UserError(f"image {i} is not in {v.name} (objects have images 0..{v.images_per_object - 1})")
@@ -179,6 +214,10 @@ def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi
         if not picks[-1]:
             raise UserError(f"{v.name} has no image {', '.join(map(str, images or []))} of object(s) "
                             f"{', '.join(map(str, objects or []))}")
+    if files.urdf is not None and not named_used:
+        raise UserError(f"the URDF {files.urdf} is not used: no split drawn rebuilds a third-party URDF object's "
+                        "scene (only a colour preview of a split generated from a URDF, without stored colour "
+                        "images, does)")
     samples, rgbs = [], []
     for v, pairs in zip(views, picks):
         ss = [v.sample(o, i) for o, i in pairs]
@@ -207,7 +246,8 @@ def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi
             stored = {(int(s["object_index"]), int(s["image_index"])): s["depth"] for s in ss}
             rendered = {}
             for o, idx in by_obj.items():
-                for i, im in preview_rgb(v.manifest, o, idx, {i: stored[(o, i)] for i in idx}).items():
+                for i, im in preview_rgb(v.manifest, o, idx, {i: stored[(o, i)] for i in idx}, v.split_dir,
+                                         **files.of(v)).items():
                     rendered[(o, i)] = im
             rgbs.append([rendered[p] for p in pairs])
         else:

@@ -23,7 +23,9 @@ MAX_CHECKPOINT_COUNT = 2**31 - 1
 
 
 def load_dense_checkpoint(path: str | Path) -> dict:
-    """Load and check a dense checkpoint (``weights_only``); any problem is one UserError line."""
+    """Load and check a dense checkpoint: a ``.pt`` file (``torch.load(weights_only=True)``) or a
+    ``NAME.safetensors`` file with its ``NAME.json`` (no pickle); any problem is one UserError line
+    (:func:`~..mdn.checkpoint.read_checkpoint_file`)."""
     from ..mdn.checkpoint import read_checkpoint_file
 
     path = Path(path)

@@ -108,6 +108,9 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
     bar.close()
     if not parts:
         raise UserError(f"{split_dir}: no images selected")
+    from ..estimation import check_split_has_depth
+
+    check_split_has_depth(split_dir, sum(p["n_valid"] for p in parts), sum(p["n_read"] for p in parts))
     cat = {k: None if parts[0][k] is None else np.concatenate([p[k] for p in parts]) for k in _COLUMNS}
     origin = rot6 = None
     if with_labels:
@@ -128,6 +131,7 @@ def _load_shard(task) -> dict:
     import torch
 
     from ...format.shards import Shard
+    from ..estimation import valid_depth_images
     from .features import output_labels, resize_depth, scale_intrinsics
 
     path, s_idx, n_joints, hw, max_objects, with_labels, object_mask, objects = task
@@ -157,6 +161,7 @@ def _load_shard(task) -> dict:
 
                 m = sh.read("mask", rows)[sel - sel[0]]
                 depth = np.where((m >= MASK_BODY) & (m <= MASK_BODY + n_joints), depth, 0)
+            out["n_valid"] = out.get("n_valid", 0) + int(valid_depth_images(depth).sum())
             src_hw = depth.shape[1:]
             if tuple(src_hw) != tuple(hw):
                 depth = resize_depth(torch.from_numpy(np.asarray(depth, np.float32)), hw).numpy()

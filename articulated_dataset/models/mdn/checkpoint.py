@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import pickle
 import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -25,13 +26,12 @@ UNREADABLE_DETAIL_CHARS = 200
 def atomic_torch_save(obj: dict, path: Path) -> None:
     import torch
 
-    from ...safeio import atomic_path
+    from ...safeio import atomic_file
 
     # through safeio: an unwritable place (a folder, /proc, a full disk) is one line and the
-    # .partial file is removed; torch.save of a path raises RuntimeError, of a file object OSError
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            torch.save(obj, f)
+    # temporary file is removed; torch.save of a path raises RuntimeError, of a file object OSError
+    with atomic_file(path) as f:
+        torch.save(obj, f)
 
 
 def restore_training_state(ckpt: dict, model, optimizer, scheduler, scaler=None) -> list[dict]:
@@ -112,15 +112,69 @@ def _check_group_numbers(group: dict) -> None:
             raise ValueError(f"parameter group value 'betas' is {str(betas)[:40]}, not two numbers in [0, 1)")
 
 
+#: Largest total of the uncompressed sizes a checkpoint's zip records may declare (bytes): over ten
+#: times a full-preset MDN's training checkpoint (12 M weights and their two AdamW moments, ~150 MB).
+MAX_CHECKPOINT_BYTES = 2 << 30
+#: Largest ratio of that total to the file's size.  ``torch.save`` stores its records uncompressed
+#: (ratio 1); a file re-packed with deflate shrinks float weights a little.  ``torch.load`` allocates
+#: each record's declared size before reading it: a 1 MB file of deflated zeros would cost 1 GB.
+MAX_CHECKPOINT_EXPANSION = 4.0
+#: Deflate's largest possible ratio (RFC 1951: a 258-byte match costs at least 2 bits, ~1032:1);
+#: a record declaring more than this times its compressed size lies about its size.
+MAX_DEFLATE_RATIO = 1032
+#: Compression methods of the zip records torch's reader decodes (stored, deflated).
+READABLE_ZIP_METHODS = (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED)
+
+
+def check_checkpoint_records(path: Path) -> None:
+    """Refuse (one line) a zip checkpoint whose records would make ``torch.load`` allocate more than
+    the file can hold: a record's declared sizes that its compression method cannot give (stored
+    but larger than its data, deflated past :data:`MAX_DEFLATE_RATIO`, a method torch does not
+    read), or a declared total past :data:`MAX_CHECKPOINT_EXPANSION` times the file's size or
+    :data:`MAX_CHECKPOINT_BYTES`.  Reads the zip directory only; a file that is not a zip is left to
+    ``torch.load`` (the legacy format, or an unreadable file)."""
+    from ...safeio import format_bytes
+
+    size = path.stat().st_size
+    try:
+        with zipfile.ZipFile(path) as z:
+            records = z.infolist()
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError):
+        return
+    total = 0
+    for r in records:
+        name = r.filename[:80]
+        if r.compress_type not in READABLE_ZIP_METHODS:
+            raise UserError(f"{path}: not a readable model checkpoint (record {name!r} uses zip compression method "
+                            f"{r.compress_type}; torch writes records stored or deflated)")
+        stored = r.compress_type == zipfile.ZIP_STORED
+        if (stored and r.file_size != r.compress_size) or \
+                (not stored and r.file_size > MAX_DEFLATE_RATIO * max(r.compress_size, 1)):
+            raise UserError(f"{path}: not a readable model checkpoint (record {name!r} declares {r.file_size} bytes "
+                            f"from {r.compress_size} {'stored' if stored else 'deflated'} bytes; its sizes are false)")
+        total += r.file_size
+    if total > MAX_CHECKPOINT_EXPANSION * size or total > MAX_CHECKPOINT_BYTES:
+        raise UserError(f"{path}: not a readable model checkpoint (its records declare {format_bytes(total)} from a "
+                        f"{format_bytes(size)} file; refused: at most {MAX_CHECKPOINT_EXPANSION:g} times the file's "
+                        f"size and {format_bytes(MAX_CHECKPOINT_BYTES)})")
+
+
 def read_checkpoint_file(path: str | Path, map_location="cpu"):
     """``torch.load(path, weights_only=True)`` (tensors and plain containers only: nothing in the
-    file is executed); a missing or unreadable file is a one-line UserError.  The contents are
-    the caller's to check (:func:`load_checkpoint`, the dense model's loader)."""
+    file is executed) once its zip records' sizes are checked (:func:`check_checkpoint_records`);
+    a missing or unreadable file is a one-line UserError.  The contents are the caller's to check
+    (:func:`load_checkpoint`, the dense model's loader).  A ``NAME.safetensors`` file is read with
+    its ``NAME.json``, without pickle (:mod:`~articulated_dataset.models.safetensors_checkpoint`)."""
     import torch
 
+    from ..safetensors_checkpoint import is_safetensors_path, read_safetensors_checkpoint
+
+    if is_safetensors_path(path):
+        return read_safetensors_checkpoint(path, map_location)
     path = Path(path)
     if not path.is_file():
         raise UserError(f"checkpoint not found: {path}")
+    check_checkpoint_records(path)
     try:
         with warnings.catch_warnings():  # torch's warnings on a foreign file (e.g. a bare pickle's protocol):
             warnings.simplefilter("ignore")  # the one error line below says what is wrong
@@ -152,6 +206,14 @@ def prepare_training_output(split_dir: Path, class_name: str, out: Path, *, resu
     (not ingested real captures), ``out`` is a file, and ``--resume`` finds a checkpoint trained
     with the same ``config`` (``load(out)`` reads it; its ``train_config`` is compared through
     ``type(config).from_dict``).  Returns that checkpoint, or None for a new run."""
+    from ...safeio import check_name_length
+    from ..safetensors_checkpoint import is_safetensors_path
+
+    check_name_length(out)
+    if is_safetensors_path(out):  # read back as a safetensors pair, a torch.save file under that name loads nowhere
+        raise UserError(f"--out {out}: training writes a torch checkpoint (e.g. {example_name}); convert it when it "
+                        f"is done with 'artdata export-model --model {Path(out).with_suffix('.pt').name} "
+                        f"--format safetensors --out {Path(out).name}'")
     split = Split(split_dir)
     if split.class_name != class_name:
         raise UserError(f"{split_dir}: holds class {split.class_name!r}, not {class_name!r} (--class)")

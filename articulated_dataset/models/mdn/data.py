@@ -109,6 +109,9 @@ def load_split(split_dir: Path, layout, input_config, *, max_objects: int | None
     bar.close()
     if not parts:
         raise UserError(f"{split_dir}: no images selected")
+    from ..estimation import check_split_has_depth
+
+    check_split_has_depth(split_dir, sum(p["n_valid"] for p in parts), sum(p["n_read"] for p in parts))
 
     def cat(key):
         return np.concatenate([p[key] for p in parts])
@@ -127,6 +130,7 @@ def _load_shard(task) -> dict:
     import torch
 
     from ...format.shards import Shard
+    from ..estimation import valid_depth_images
     from .preprocess import preprocess_depth
 
     path, s_idx, layout, input_config, max_objects, with_targets = task
@@ -143,6 +147,7 @@ def _load_shard(task) -> dict:
         for start in range(0, len(idx), LOAD_CHUNK):
             sel = idx[start : start + LOAD_CHUNK]
             depth = sh.read("depth", slice(int(sel[0]), int(sel[-1]) + 1))[sel - sel[0]]
+            out["n_valid"] = out.get("n_valid", 0) + int(valid_depth_images(depth).sum())
             p, s, a = preprocess_depth(depth, input_config, K)
             planes.append(p)
             scalars.append(s)

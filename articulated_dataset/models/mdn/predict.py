@@ -43,6 +43,7 @@ def predict_split(model_path: str | Path, data: str | Path, *, estimate: str = "
     """
     import torch
 
+    from ...benchmark.predictions import CHIRALITY_COLUMN, CHIRALITY_RANGE
     from ...targets import NormStats, TargetLayout
     from .loss import point_estimate
     from .preprocess import InputConfig, assemble_inputs
@@ -102,11 +103,14 @@ def predict_split(model_path: str | Path, data: str | Path, *, estimate: str = "
     sigma_lab = sigma_n.astype(np.float64) * std
     est_lab = shift_anchored(stats.denormalize(est_n), anchor, anchored, 1.0)
     decoded = layout.decode(est_lab)
+    geometry = np.asarray(decoded["geometry"], np.float64)
+    # a regression of a 0/1 label: the point estimate is a probability, as the dense model's
+    geometry[:, CHIRALITY_COLUMN] = np.clip(geometry[:, CHIRALITY_COLUMN], *CHIRALITY_RANGE)
     arrays = {
         "sample_id": prepared.sample_id,
         "axis_pose": np.asarray(decoded["axis_pose"], np.float64),
         "q": np.asarray(decoded["q"], np.float64),
-        "geometry": np.asarray(decoded["geometry"], np.float64),
+        "geometry": geometry,
         "part_offset": np.asarray(decoded["part_offset"], np.float64),
         "mixture_weights": w, "mixture_means": mu_lab, "mixture_scales": sigma_lab, "mixture_layout": names,
     }
