@@ -168,13 +168,13 @@ def run_mdn(cls: str, ckpt: Path | None, args, pred_dir: Path) -> tuple[Path | N
         ckpt = args.root / "mdn" / f"{cls}.pt"
         if not ckpt.is_file():
             ckpt.parent.mkdir(parents=True, exist_ok=True)
-            cmd = ["artdata", "train", "--model", "mdn", "--class", cls, "--data", str(train_dir), "--out", str(ckpt), "--small"]
+            cmd = ["artdata", "train", "--model", "mdn", "--class", cls, str(train_dir), "--out", str(ckpt), "--small"]
             print("$ " + " ".join(cmd), flush=True)
             subprocess.run(cmd + (["--quiet"] if args.quiet else []), check=True)
     if ckpt is None:
         return None, 0.0
     out = pred_dir / f"{cls}-mdn.h5"
-    cmd = ["artdata", "predict", "--model", str(ckpt), "--data", str(test_dir), "--out", str(out), "--overwrite"]
+    cmd = ["artdata", "predict", "--model", str(ckpt), str(test_dir), "--out", str(out), "--overwrite"]
     print("$ " + " ".join(cmd), flush=True)
     subprocess.run(cmd + (["--quiet"] if args.quiet else []), check=True)
     return out, time.perf_counter() - t0
@@ -289,7 +289,7 @@ def main(argv=None) -> int:
             for name in args.shipped:
                 out = pred_dir / f"{cls}-shipped-{name}.h5"
                 t0 = time.perf_counter()
-                cmd = ["artdata", "predict", "--model", name, "--data", str(test_dir), "--out", str(out), "--overwrite",
+                cmd = ["artdata", "predict", "--model", name, str(test_dir), "--out", str(out), "--overwrite",
                        "--method", name if name == "dense" else "MDN-small (shipped)"]
                 print("$ " + " ".join(cmd), flush=True)
                 subprocess.run(cmd + (["--quiet"] if args.quiet else []), check=True)

@@ -137,7 +137,7 @@ def predict_and_score(model: str, data_dir: Path, truth_dir: Path, preds: Path, 
     """Predict ``data_dir`` with ``model`` (unless ``preds`` exists) and score it against ``truth_dir``."""
     if overwrite or not preds.exists():
         preds.parent.mkdir(parents=True, exist_ok=True)
-        artdata("predict", "--model", model, "--data", str(data_dir), "--out", str(preds), "--threads", str(threads),
+        artdata("predict", "--model", model, str(data_dir), "--out", str(preds), "--threads", str(threads),
                 "--device", "cpu", "--overwrite", "-q")
     table = preds.with_suffix(".csv")
     artdata("score", str(preds), "--truth", str(truth_dir), "--csv", str(table))

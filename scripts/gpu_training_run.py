@@ -242,7 +242,7 @@ def main() -> None:
         rcs["mdn"] = procs["mdn"].wait()
         if rcs["mdn"] == 0:
             t = time.time()
-            artdata("predict", "--model", str(work / "mdn.pt"), "--data", str(work / "data" / a.class_name / "test"),
+            artdata("predict", "--model", str(work / "mdn.pt"), str(work / "data" / a.class_name / "test"),
                     "--out", str(work / "mdn-test-predictions.h5"), "--device", a.device, "-q", log_file=out / "mdn.log")
             artdata("score", str(work / "mdn-test-predictions.h5"), "--truth", str(work / "data" / a.class_name / "test"),
                     "--json", str(out / "mdn-score.json"), log_file=out / "mdn.log")

@@ -301,6 +301,7 @@ def test_icp_image_without_object_pixels_gets_the_mean_model_labels(icp_objects)
     np.testing.assert_array_equal(labels["axis_pose"], model.labels["axis_pose"][0])
 
 
+@pytest.mark.slow
 def test_worker_processes_give_the_serial_results(tiny_root, icp_objects, monkeypatch):
     """NN features and ICP predictions through the process pool (executors.process_map) equal
     the serial ones, in the same order."""

@@ -233,6 +233,7 @@ def test_tiny_training_run_overfits(overfit_run, tiny_root):
     assert ckpt["finished"] and ckpt["history"][-1]["train_loss"] < 0.2 * ckpt["history"][0]["train_loss"]
 
 
+@pytest.mark.slow
 def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
     torch.set_num_threads(1)
     cfg = DenseTrainConfig("drawer", epochs=2, batch_size=16, width=4, val_fraction=0.2, max_objects=3)
@@ -315,6 +316,7 @@ def test_noise_augmentation_corrupts_its_share_of_a_batch_the_same_way_on_every_
     assert any(not torch.equal(v, plain["model_state"][k]) for k, v in whole["model_state"].items())
 
 
+@pytest.mark.slow
 def test_noise_training_validates_and_fits_on_one_noisy_draw_of_the_validation_images(tiny_root, tmp_path):
     """With ``--noise`` every validation image passes through the noise model, drawn per sample
     (not per position: a refit, which reads only the validation objects, draws the same), its
@@ -364,6 +366,7 @@ def test_noise_training_validates_and_fits_on_one_noisy_draw_of_the_validation_i
     assert recorded != pytest.approx(round(on_clean["pos_cm"], 4), abs=1e-4)
 
 
+@pytest.mark.slow
 def test_a_two_step_run_trains_records_its_data_and_machine_and_fits_later(tiny_root, tmp_path):
     """Two steps in all (OneCycleLR's warm-up would be empty: it used to fail); ``fit=False`` leaves
     the inference fit out, and refit_inference then gives what training's own fit gives."""
@@ -393,7 +396,7 @@ def test_a_two_step_run_trains_records_its_data_and_machine_and_fits_later(tiny_
 def test_cli_train_predict_score_show(tiny_root, tmp_path, overfit_run):
     ckpt_path = overfit_run[0]
     preds = tmp_path / "p.h5"
-    code, out = _run(["predict", "--model", str(ckpt_path), "--data", str(tiny_root / "microwave" / "test"),
+    code, out = _run(["predict", "--model", str(ckpt_path), str(tiny_root / "microwave" / "test"),
                       "--out", str(preds), "-q"])
     assert code == 0, out
     code, out = _run(["score", str(preds), "--truth", str(tiny_root / "microwave" / "test"), "--json", str(tmp_path / "s.json")])
@@ -405,13 +408,13 @@ def test_cli_train_predict_score_show(tiny_root, tmp_path, overfit_run):
                       "--out", str(tmp_path / "g.png"), "-q"])
     assert code == 0 and (tmp_path / "g.png").stat().st_size > 1000, out
     # wrong class: one line, exit 2
-    code, out = _run(["predict", "--model", str(ckpt_path), "--data", str(tiny_root / "drawer" / "test"), "--out", str(tmp_path / "q.h5")])
+    code, out = _run(["predict", "--model", str(ckpt_path), str(tiny_root / "drawer" / "test"), "--out", str(tmp_path / "q.h5")])
     assert code == 2 and out.count("\n") == 1 and "'microwave' model" in out
 
 
 def test_cli_train_dense_and_its_errors(tiny_root, tmp_path):
     out = tmp_path / "d.pt"
-    code, text = _run(["train", "--model", "dense", "--class", "toaster", "--data", str(tiny_root / "toaster" / "train"),
+    code, text = _run(["train", "--model", "dense", "--class", "toaster", str(tiny_root / "toaster" / "train"),
                        "--out", str(out), "--epochs", "1", "--batch-size", "32", "--width", "4", "--max-objects", "2", "-q"])
     assert code == 0, text
     ckpt = load_dense_checkpoint(out)
@@ -424,7 +427,7 @@ def test_cli_train_dense_and_its_errors(tiny_root, tmp_path):
                           (["--seed", "99999999999999999999"], "--seed"), (["--width", "257"], "--width"),
                           (["--init-from", str(out)], "--init-from"),  # a toaster model: another configuration
                           (["--out", str(out / "x.pt")], "")]:  # a parent that is a file: before the training
-        args = ["train", "--model", "dense", "--class", "toaster", "--data", str(tiny_root / "toaster" / "train"),
+        args = ["train", "--model", "dense", "--class", "toaster", str(tiny_root / "toaster" / "train"),
                 "--out", str(tmp_path / "e.pt")]
         if extra[0] == "--class":
             args[args.index("--class") + 1] = "drawer"
@@ -443,7 +446,7 @@ def test_bad_checkpoint_files_are_one_line(tmp_path, tiny_root, content):
     """(A bare pickle also drew torch's warning about its protocol: three more lines.)"""
     bad = tmp_path / "bad.pt"
     bad.write_bytes(content)
-    code, text = _run(["predict", "--model", str(bad), "--data", str(tiny_root / "drawer" / "test"), "--out", str(tmp_path / "p.h5")])
+    code, text = _run(["predict", "--model", str(bad), str(tiny_root / "drawer" / "test"), "--out", str(tmp_path / "p.h5")])
     assert code == 2 and text.count("\n") == 1 and text.startswith("artdata: error:"), text
 
 
@@ -457,7 +460,7 @@ def test_checkpoints_with_bad_fields_are_one_line(overfit_run, tmp_path, tiny_ro
         ckpt[field] = value
     bad = tmp_path / "bad.pt"
     torch.save(ckpt, bad)
-    code, text = _run(["predict", "--model", str(bad), "--data", str(tiny_root / "microwave" / "test"), "--out", str(tmp_path / "p.h5")])
+    code, text = _run(["predict", "--model", str(bad), str(tiny_root / "microwave" / "test"), "--out", str(tmp_path / "p.h5")])
     assert code == 2 and text.count("\n") == 1 and text.startswith("artdata: error:"), text
 
 
@@ -520,7 +523,7 @@ def test_checkpoints_with_bad_contents_are_one_line(overfit_run, tmp_path, tiny_
     torch.save(changed, bad)
     # the split of the class the file claims (a relabelled file must fail on its own, not on the data's class)
     split = str(tiny_root / (changed["class_name"] if changed["class_name"] in class_names() else "microwave") / "test")
-    code, text = _run(["predict", "--model", str(bad), "--data", split, "--out", str(tmp_path / "p.h5")])
+    code, text = _run(["predict", "--model", str(bad), split, "--out", str(tmp_path / "p.h5")])
     assert code == 2 and text.count("\n") == 1 and text.startswith("artdata: error:") and words in text, text
     assert not (tmp_path / "p.h5").exists()
 
@@ -553,10 +556,10 @@ def test_a_malformed_calibration_is_one_line(overfit_run, tmp_path, tiny_root, n
     good = tmp_path / "good.pt"
     torch.save({**ckpt, "calibration": calibration}, good)
     split = str(tiny_root / "microwave" / "test")
-    assert _run(["predict", "--model", str(good), "--data", split, "--out", str(tmp_path / "g.h5"), "-q"])[0] == 0
+    assert _run(["predict", "--model", str(good), split, "--out", str(tmp_path / "g.h5"), "-q"])[0] == 0
     bad = tmp_path / "bad.pt"
     torch.save({**ckpt, "calibration": change(calibration)}, bad)
-    code, text = _run(["predict", "--model", str(bad), "--data", split, "--out", str(tmp_path / "p.h5")])
+    code, text = _run(["predict", "--model", str(bad), split, "--out", str(tmp_path / "p.h5")])
     assert code == 2 and text.count("\n") == 1 and "'calibration' is malformed" in text, text
 
 
@@ -594,7 +597,7 @@ def test_a_malformed_refinement_is_one_line(overfit_run, tmp_path, tiny_root, na
     split = str(tiny_root / "microwave" / "test")
     bad = tmp_path / "bad.pt"
     torch.save({**ckpt, "refinement": change(dict(refinement))}, bad)
-    code, text = _run(["predict", "--model", str(bad), "--data", split, "--out", str(tmp_path / "p.h5")])
+    code, text = _run(["predict", "--model", str(bad), split, "--out", str(tmp_path / "p.h5")])
     assert code == 2 and text.count("\n") == 1 and "'refinement' is malformed" in text, text
 
 
@@ -628,7 +631,7 @@ def test_a_malformed_training_state_is_not_resumed(tiny_root, tmp_path, name, ch
     ckpt = torch.load(out, weights_only=True)
     torch.save(change(ckpt), out)
     before = out.read_bytes()
-    code, text = _run(["train", "--model", "dense", "--class", "drawer", "--data", str(tiny_root / "drawer" / "train"),
+    code, text = _run(["train", "--model", "dense", "--class", "drawer", str(tiny_root / "drawer" / "train"),
                        "--out", str(out), "--resume", "--epochs", "2", "--batch-size", "16", "--width", "4",
                        "--val-fraction", "0.2", "--max-objects", "3", "-q"])
     assert code == 2 and text.count("\n") == 1 and str(out) in text, text
@@ -688,18 +691,18 @@ def test_outputs_that_are_inputs_are_refused(overfit_run, tiny_root, tmp_path):
     model = tmp_path / "m.pt"
     shutil.copy(overfit_run[0], model)
     preds = tmp_path / "p.h5"
-    assert _run(["predict", "--model", str(model), "--data", str(split), "--out", str(preds), "-q"])[0] == 0
+    assert _run(["predict", "--model", str(model), str(split), "--out", str(preds), "-q"])[0] == 0
     kept = {p: p.read_bytes() for p in (model, preds, split / "manifest.json")}
-    for args in (["predict", "--model", str(model), "--data", str(split), "--out", str(model), "--overwrite"],
-                 ["predict", "--model", str(model), "--data", str(split), "--out", str(split / "manifest.json"), "--overwrite"],
-                 ["plan", "--data", str(split), "--index", "0", "-q", "--model", str(model), "--out", str(model)],
-                 ["plan", "--data", str(split), "--index", "0", "-q", "--predictions", str(preds), "--out", str(preds)],
-                 ["plan", "--data", str(split), "--index", "0", "-q", "--out", str(split / "manifest.json")]):
+    for args in (["predict", "--model", str(model), str(split), "--out", str(model), "--overwrite"],
+                 ["predict", "--model", str(model), str(split), "--out", str(split / "manifest.json"), "--overwrite"],
+                 ["plan", str(split), "--index", "0", "-q", "--model", str(model), "--out", str(model)],
+                 ["plan", str(split), "--index", "0", "-q", "--predictions", str(preds), "--out", str(preds)],
+                 ["plan", str(split), "--index", "0", "-q", "--out", str(split / "manifest.json")]):
         code, text = _run(args)
         assert code == 2 and text.count("\n") == 1 and ("also an input" in text or "inside the input folder" in text), text
     assert all(p.read_bytes() == b for p, b in kept.items())
     # beside the split (the folder above it) is fine
-    assert _run(["predict", "--model", str(model), "--data", str(tmp_path / "data"), "--out",
+    assert _run(["predict", "--model", str(model), str(tmp_path / "data"), "--out",
                  str(tmp_path / "data" / "q.h5"), "-q"])[0] == 0
 
 
@@ -838,9 +841,9 @@ def test_estimate_refuses_hostile_inputs(overfit_run, tiny_root, tmp_path):
 def test_predict_with_the_dense_model_refuses_mdn_options(overfit_run, tiny_root, tmp_path):
     split = str(tiny_root / "microwave" / "test")
     for extra, needle in [(["--device", "cuda"], "--device"), (["--estimate", "mode"], "--estimate")]:
-        code, text = _run(["predict", "--model", str(overfit_run[0]), "--data", split, "--out", str(tmp_path / "p.h5"), *extra])
+        code, text = _run(["predict", "--model", str(overfit_run[0]), split, "--out", str(tmp_path / "p.h5"), *extra])
         assert code == 2 and text.count("\n") == 1 and needle in text, text
-    code, text = _run(["predict", "--model", str(overfit_run[0]), "--data", split, "--out", str(tmp_path / "p.h5"),
+    code, text = _run(["predict", "--model", str(overfit_run[0]), split, "--out", str(tmp_path / "p.h5"),
                        "--device", "cpu", "-q"])
     assert code == 0, text
 
@@ -858,6 +861,7 @@ def test_init_from_continues_a_finished_training(overfit_run, tiny_root, tmp_pat
         train_dense(tiny_root / "drawer" / "train", tmp_path / "d.pt", wrong, progress=False)
 
 
+@pytest.mark.slow
 def test_a_split_read_in_two_processes_is_the_same_arrays(tiny_root):
     """load_dense_split(workers=2) reads the shards in processes: the arrays, their order and the
     object selection are those of the one-process read."""

@@ -129,6 +129,7 @@ def cabinet_split(tmp_path_factory):
     return generated_split(tmp_path_factory.mktemp("workers"), "cabinet", 3, 8)
 
 
+@pytest.mark.slow
 def test_worker_processes_give_the_same_predictions(cabinet_split, monkeypatch):
     """The shipped cabinet model (refinement with the mirror image and the handles) over three
     tasks in two spawned processes: the same images in the same order, the same numbers."""
@@ -164,13 +165,14 @@ def _cli(*args):
     return CliRunner().invoke(main, list(args))
 
 
+@pytest.mark.slow
 def test_predict_workers_on_the_command_line(cabinet_split, tmp_path):
     from articulated_dataset.benchmark.predictions import read_predictions
 
     outs = {}
     for w in ("1", "2"):
         out = tmp_path / f"w{w}.h5"
-        r = _cli("predict", "--model", "dense", "--data", str(cabinet_split), "--out", str(out), "--workers", w,
+        r = _cli("predict", "--model", "dense", str(cabinet_split), "--out", str(out), "--workers", w,
                  "--batch-size", "16", "-q")
         assert r.exit_code == 0, r.output
         outs[w] = read_predictions(out)[1]["cabinet"]
@@ -186,7 +188,7 @@ def test_predict_workers_on_the_command_line(cabinet_split, tmp_path):
     ("mdn-small", "2", "artdata: error: --workers applies to the dense model (the MDN uses torch's threads)"),
 ])
 def test_predict_workers_errors(cabinet_split, tmp_path, model, workers, message):
-    r = _cli("predict", "--model", model, "--data", str(cabinet_split), "--out", str(tmp_path / "p.h5"),
+    r = _cli("predict", "--model", model, str(cabinet_split), "--out", str(tmp_path / "p.h5"),
              "--workers", workers, "-q")
     assert r.exit_code == 2 and r.output.strip() == message
 
@@ -318,15 +320,15 @@ def test_predict_and_estimate_precision_on_the_command_line(cabinet_split, tmp_p
     from articulated_dataset.benchmark.predictions import read_predictions
 
     out = tmp_path / "bf16.h5"
-    r = _cli("predict", "--model", "dense", "--data", str(cabinet_split), "--out", str(out), "--precision", "bfloat16",
+    r = _cli("predict", "--model", "dense", str(cabinet_split), "--out", str(out), "--precision", "bfloat16",
              "--workers", "1", "-q")
     assert r.exit_code == 0, r.output
     attrs, per_class = read_predictions(out)
     assert attrs["precision"] == "bfloat16" and per_class["cabinet"]["axis_pose"].shape[0] == 48
-    r = _cli("predict", "--model", "dense", "--data", str(cabinet_split), "--out", str(tmp_path / "x.h5"),
+    r = _cli("predict", "--model", "dense", str(cabinet_split), "--out", str(tmp_path / "x.h5"),
              "--precision", "float16", "-q")
     assert r.exit_code == 2 and "float16" in r.output
-    r = _cli("predict", "--model", "mdn-small", "--data", str(cabinet_split), "--out", str(tmp_path / "m.h5"),
+    r = _cli("predict", "--model", "mdn-small", str(cabinet_split), "--out", str(tmp_path / "m.h5"),
              "--precision", "bfloat16", "-q")
     assert r.exit_code == 2
     assert r.output.strip() == "artdata: error: --precision applies to the dense model (the MDN uses bfloat16 on a GPU by itself)"

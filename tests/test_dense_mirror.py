@@ -253,7 +253,7 @@ def test_predict_no_mirror_skips_the_mirror_image(cabinet_split, tmp_path):
     outs = {}
     for name, extra in (("with", []), ("without", ["--no-mirror"])):
         out = tmp_path / f"{name}.h5"
-        r = _cli("predict", "--model", "dense", "--data", str(cabinet_split), "--out", str(out), "--threads", "1", "-q",
+        r = _cli("predict", "--model", "dense", str(cabinet_split), "--out", str(out), "--threads", "1", "-q",
                  *extra)
         assert r.exit_code == 0, r.output
         attrs, arrays = read_predictions(out)
@@ -271,7 +271,7 @@ def test_predict_no_mirror_skips_the_mirror_image(cabinet_split, tmp_path):
 
 
 def test_no_mirror_is_for_the_dense_model(cabinet_split, tmp_path):
-    r = _cli("predict", "--model", "mdn-small", "--data", str(cabinet_split), "--out", str(tmp_path / "p.h5"),
+    r = _cli("predict", "--model", "mdn-small", str(cabinet_split), "--out", str(tmp_path / "p.h5"),
              "--no-mirror", "-q")
     assert r.exit_code == 2 and r.output.strip() == "artdata: error: --no-mirror applies to the dense model"
 

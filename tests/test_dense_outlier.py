@@ -101,6 +101,7 @@ def test_an_image_set_without_a_defined_target_is_an_error():
         fit_outlier_component(arrays, np.full_like(y, np.nan))
 
 
+@pytest.mark.slow
 def test_a_calibration_only_refit_keeps_the_estimates_and_adds_the_component(tiny_root, tmp_path):
     """``scripts/fit_dense_inference.py --calibration-only``: the refinement and so every point
     estimate and mode stay; the calibration gains the outlier component; the split the refit

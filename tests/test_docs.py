@@ -125,6 +125,7 @@ def has_shipped_weights() -> bool:
 PAGES_WITH_BLOCKS = [p for p in PAGES if page_blocks(p)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("page", PAGES_WITH_BLOCKS, ids=[str(p.relative_to(ROOT)) for p in PAGES_WITH_BLOCKS])
 def test_page_code_blocks_run(page, docs_workdir, tmp_path):
     blocks = page_blocks(page)

@@ -22,7 +22,7 @@ def predicted(tmp_path_factory):
     root = tmp_path_factory.mktemp("errsrc")
     split = generated_split(root, "cabinet2", 2, 9)
     out = root / "p.h5"
-    r = CliRunner().invoke(main, ["predict", "--model", "dense", "--data", str(split), "--out", str(out), "--no-mirror",
+    r = CliRunner().invoke(main, ["predict", "--model", "dense", str(split), "--out", str(out), "--no-mirror",
                                   "--threads", "1", "-q"])
     assert r.exit_code == 0, r.output
     return out, split

@@ -173,6 +173,6 @@ def microwave_split(tmp_path_factory):
 def test_training_refuses_a_safetensors_name(microwave_split, tmp_path, kind):
     """``train`` writes ``torch.save`` files: one named ``.safetensors`` would be read as a pair and load nowhere."""
     split = microwave_split
-    res = _run("train", "--model", kind, "--class", "microwave", "--data", split, "--out", tmp_path / "m.safetensors")
+    res = _run("train", "--model", kind, "--class", "microwave", split, "--out", tmp_path / "m.safetensors")
     assert_one_line_error(res, "training writes a torch checkpoint", "export-model --model m.pt --format safetensors")
     assert not (tmp_path / "m.safetensors").exists()

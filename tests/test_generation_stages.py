@@ -37,6 +37,7 @@ def _calls(name: str) -> list[str]:
     return found
 
 
+@pytest.mark.slow
 def test_objects_are_compiled_in_one_place():
     """Everyone who rebuilds an object (pipeline, viz, urdf_import, manipulation) calls
     compile_object; only it builds the scene and indexes the model."""

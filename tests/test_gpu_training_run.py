@@ -12,6 +12,7 @@ torch = pytest.importorskip("torch")
 from articulated_dataset.models import WEIGHTS_DIR  # noqa: E402
 
 
+@pytest.mark.slow
 def test_gpu_training_run_script_on_the_cpu(tmp_path):
     """scripts/gpu_training_run.py (what a GPU lease runs) as a CPU smoke test: it generates the
     split, sizes the dense model's epochs to its deadline, trains from the shipped weights and

@@ -69,10 +69,11 @@ def test_the_facts_against_rendered_pixels(bench, tmp_path):
     assert (f["strip_lo_m"][strip] >= -0.005).all() and (f["strip_hi_m"][strip] <= 2 * f["half_m"][strip] + 0.005).all()
 
 
+@pytest.mark.slow
 def test_the_script_as_a_user_runs_it(bench, tmp_path, capsys):
     split = generated_split(tmp_path, "cabinet", 2, seed=6)
     out = tmp_path / "p.h5"
-    r = CliRunner().invoke(main, ["predict", "--model", "dense", "--data", str(split), "--out", str(out), "--no-mirror",
+    r = CliRunner().invoke(main, ["predict", "--model", "dense", str(split), "--out", str(out), "--no-mirror",
                                   "--threads", "1", "-q"])
     assert r.exit_code == 0, r.output
     assert bench.main(["--truth", str(split), "--predictions", str(out)]) == 0

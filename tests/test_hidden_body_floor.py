@@ -106,7 +106,7 @@ def test_hidden_and_visible_bodies(bench, split):
 
 def test_the_script_as_a_user_runs_it(bench, split, tmp_path, capsys):
     out = tmp_path / "p.h5"
-    r = CliRunner().invoke(main, ["predict", "--model", "dense", "--data", str(split), "--out", str(out), "--no-mirror",
+    r = CliRunner().invoke(main, ["predict", "--model", "dense", str(split), "--out", str(out), "--no-mirror",
                                   "--threads", "1", "-q"])
     assert r.exit_code == 0, r.output
     assert bench.main(["--truth", str(split), "--predictions", str(out), "--max-body-px", "0", "--step-deg", "2",

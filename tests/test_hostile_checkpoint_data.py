@@ -24,7 +24,7 @@ def data(tmp_path_factory):
 
 
 def _train(data, out, model, *extra):
-    return CliRunner().invoke(main, ["train", "--model", "mdn", "--class", "cabinet", "--data", str(data), "--out", str(out),
+    return CliRunner().invoke(main, ["train", "--model", "mdn", "--class", "cabinet", str(data), "--out", str(out),
                                      "--val-fraction", "0", "-q", *MODELS[model], *extra])
 
 

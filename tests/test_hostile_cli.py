@@ -221,33 +221,33 @@ def _save_png(values):
 
 CASES: dict[str, tuple[Callable[[Env], list], str]] = {
     # plan
-    "plan:step-1e-12": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--step", "1e-12deg", "-q"], "waypoints"),
-    "plan:step-zero": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--step", "0deg", "-q"], "--step"),
-    "plan:step-negative": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--step", "-1deg", "-q"], "--step must be positive"),
-    "plan:step-wrong-unit": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--step", "1cm", "-q"], "prismatic"),
-    "plan:target-overflow": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--target", "1e999deg", "-q"], "too large"),
-    "plan:target-text": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--target", "wide", "-q"], "cannot parse"),
-    "plan:index-negative": (lambda e: ["plan", "--data", e.split(), "--index", -1, "-q"], "--index"),
-    "plan:index-huge": (lambda e: ["plan", "--data", e.split(), "--index", 10**12, "-q"], "out of range"),
-    "plan:joint-huge": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--joint", 7, "-q"], "--joint 7"),
-    "plan:joint-negative": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--joint", -1, "-q"], "--joint -1"),
-    "plan:class-folder": (lambda e: ["plan", "--data", e.tiny / "cabinet", "--index", 0, "-q"], "splits"),
-    "plan:out-in-proc": (lambda e: ["plan", "--data", e.split(), "--index", 0, "-q", "--out", "/proc/artdata-plan.json"],
+    "plan:step-1e-12": (lambda e: ["plan", e.split(), "--index", 0, "--step", "1e-12deg", "-q"], "waypoints"),
+    "plan:step-zero": (lambda e: ["plan", e.split(), "--index", 0, "--step", "0deg", "-q"], "--step"),
+    "plan:step-negative": (lambda e: ["plan", e.split(), "--index", 0, "--step", "-1deg", "-q"], "--step must be positive"),
+    "plan:step-wrong-unit": (lambda e: ["plan", e.split(), "--index", 0, "--step", "1cm", "-q"], "prismatic"),
+    "plan:target-overflow": (lambda e: ["plan", e.split(), "--index", 0, "--target", "1e999deg", "-q"], "too large"),
+    "plan:target-text": (lambda e: ["plan", e.split(), "--index", 0, "--target", "wide", "-q"], "cannot parse"),
+    "plan:index-negative": (lambda e: ["plan", e.split(), "--index", -1, "-q"], "--index"),
+    "plan:index-huge": (lambda e: ["plan", e.split(), "--index", 10**12, "-q"], "out of range"),
+    "plan:joint-huge": (lambda e: ["plan", e.split(), "--index", 0, "--joint", 7, "-q"], "--joint 7"),
+    "plan:joint-negative": (lambda e: ["plan", e.split(), "--index", 0, "--joint", -1, "-q"], "--joint -1"),
+    "plan:class-folder": (lambda e: ["plan", e.tiny / "cabinet", "--index", 0, "-q"], "splits"),
+    "plan:out-in-proc": (lambda e: ["plan", e.split(), "--index", 0, "-q", "--out", "/proc/artdata-plan.json"],
                          "cannot write"),
-    "plan:out-stdout": (lambda e: ["plan", "--data", e.split(), "--index", 0, "-q", "--out", "-"],
+    "plan:out-stdout": (lambda e: ["plan", e.split(), "--index", 0, "-q", "--out", "-"],
                         "give a file name"),  # it wrote a file named '-' where '-' means standard output elsewhere
-    "plan:out-dev-null": (lambda e: ["plan", "--data", e.split(), "--index", 0, "-q", "--out", "/dev/null"],
+    "plan:out-dev-null": (lambda e: ["plan", e.split(), "--index", 0, "-q", "--out", "/dev/null"],
                           "not a regular file"),  # refused before the plan is made and printed, not after
-    "plan:out-under-a-file": (lambda e: ["plan", "--data", e.split(), "--index", 0, "-q", "--out",
+    "plan:out-under-a-file": (lambda e: ["plan", e.split(), "--index", 0, "-q", "--out",
                                          _write(e.tmp / "f", b"x") + "/plan.json"], "not a directory"),
-    "plan:nan-axis-label": (lambda e: ["plan", "--data", _nan_axis_copy(e), "--index", 0, "-q"], "not finite"),
+    "plan:nan-axis-label": (lambda e: ["plan", _nan_axis_copy(e), "--index", 0, "-q"], "not finite"),
     # damaged object pose labels: a ValueError from the rebuild (a traceback)
-    **{f"plan:{name}": (lambda e, field=field, value=value: ["plan", "--data", _label_copy(e, field, value), "--index", 0,
+    **{f"plan:{name}": (lambda e, field=field, value=value: ["plan", _label_copy(e, field, value), "--index", 0,
                                                               "-q"], "run 'artdata verify'")
        for name, field, value in [("nan-object-pose", "object_pose", np.nan), ("far-object-pose", "object_pose", 1e30),
                                   ("nan-object-yaw", "object_yaw", np.nan), ("negative-object-index", "object_index", -1)]},
-    "plan:missing-data": (lambda e: ["plan", "--data", e.tmp / "nope", "--index", 0, "-q"], None),
-    "plan:seed-negative": (lambda e: ["plan", "--data", e.split(), "--index", 0, "--model", "mdn-small", "--simulate",
+    "plan:missing-data": (lambda e: ["plan", e.tmp / "nope", "--index", 0, "-q"], None),
+    "plan:seed-negative": (lambda e: ["plan", e.split(), "--index", 0, "--model", "mdn-small", "--simulate",
                                       "--closed-loop", "--seed", -5, "-q"], "--seed must be >= 0"),
     # show
     "show:dpi-100000": (lambda e: ["show", e.split(), "--out", "g.png", "--dpi", 100000, "-q"], "figure"),
@@ -275,7 +275,7 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
     "mean:missing-train": (lambda e: ["baseline", "mean", "--train", e.tmp / "nope", "--test", e.split(), "--out", "p.h5"],
                            "not found"),
     # train
-    **{f"train:{name}": (lambda e, extra=extra: ["train", "--model", "mdn", "--class", "cabinet", "--data", e.split(split="train"),
+    **{f"train:{name}": (lambda e, extra=extra: ["train", "--model", "mdn", "--class", "cabinet", e.split(split="train"),
                                                  "--out", "m.pt", "-q", *extra], needle)
        for name, extra, needle in [
            ("lr-nan", ["--lr", "nan"], "--lr"), ("lr-inf", ["--lr", "inf"], "--lr"), ("lr-negative", ["--lr", "-1e-3"], "--lr"),
@@ -289,18 +289,18 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
            ("threads-huge", ["--threads", str(10**9)], "--threads"),
            ("device-tpu", ["--device", "tpu"], "--device"), ("components-huge", ["--components", str(10**12)], "--components must be at most"),
        ]},
-    "train:class-mismatch": (lambda e: ["train", "--model", "mdn", "--class", "drawer", "--data", e.split(split="train"), "--out", "m.pt", "-q"],
+    "train:class-mismatch": (lambda e: ["train", "--model", "mdn", "--class", "drawer", e.split(split="train"), "--out", "m.pt", "-q"],
                              "not 'drawer'"),
-    "train:resume-nothing": (lambda e: ["train", "--model", "mdn", "--class", "cabinet", "--data", e.split(split="train"), "--out", "m.pt",
+    "train:resume-nothing": (lambda e: ["train", "--model", "mdn", "--class", "cabinet", e.split(split="train"), "--out", "m.pt",
                                         "--resume", "-q"], "--resume"),
-    "train:class-wrong-case": (lambda e: ["train", "--model", "mdn", "--class", "Cabinet", "--data", e.split(split="train"), "--out",
+    "train:class-wrong-case": (lambda e: ["train", "--model", "mdn", "--class", "Cabinet", e.split(split="train"), "--out",
                                           "m.pt", "-q"], "did you mean 'cabinet'"),
     # predict: options and checkpoints
-    "predict:threads-huge": (lambda e: ["predict", "--model", e.inputs.model, "--data", e.split(), "--out", "p.h5",
+    "predict:threads-huge": (lambda e: ["predict", "--model", e.inputs.model, e.split(), "--out", "p.h5",
                                         "--threads", 10**9, "-q"], "--threads"),
-    "predict:other-class": (lambda e: ["predict", "--model", e.inputs.model, "--data", e.split("drawer"), "--out", "p.h5",
+    "predict:other-class": (lambda e: ["predict", "--model", e.inputs.model, e.split("drawer"), "--out", "p.h5",
                                        "-q"], "'cabinet'"),
-    **{f"checkpoint:{name}": (lambda e, change=change: ["predict", "--model", e.checkpoint(change), "--data", e.split(),
+    **{f"checkpoint:{name}": (lambda e, change=change: ["predict", "--model", e.checkpoint(change), e.split(),
                                                         "--out", "p.h5", "-q"], needle)
        for name, change, needle in [
            ("not-a-dict", lambda c: [1, 2, 3], None),
@@ -327,30 +327,30 @@ CASES: dict[str, tuple[Callable[[Env], list], str]] = {
            ("active-columns", lambda c: _set(c, "active_columns", [10**6]), "active_columns"),
            ("epoch-negative", lambda c: _set(c, "epoch", -1), "epoch"),
        ]},
-    "checkpoint:not-torch": (lambda e: ["predict", "--model", _write(e.tmp / "x.pt", b"not a checkpoint"), "--data",
+    "checkpoint:not-torch": (lambda e: ["predict", "--model", _write(e.tmp / "x.pt", b"not a checkpoint"),
                                         e.split(), "--out", "p.h5", "-q"], "not a readable model checkpoint"),
-    "checkpoint:empty": (lambda e: ["predict", "--model", _write(e.tmp / "x.pt", b""), "--data", e.split(), "--out", "p.h5",
+    "checkpoint:empty": (lambda e: ["predict", "--model", _write(e.tmp / "x.pt", b""), e.split(), "--out", "p.h5",
                                     "-q"], "not a readable model checkpoint"),
     "checkpoint:truncated": (lambda e: ["predict", "--model", _write(e.tmp / "x.pt", e.inputs.model.read_bytes()[:5000]),
-                                        "--data", e.split(), "--out", "p.h5", "-q"], "not a readable model checkpoint"),
-    "checkpoint:pickled-object": (lambda e: ["predict", "--model", _pickled(e.tmp / "x.pt"), "--data", e.split(),
+                                        e.split(), "--out", "p.h5", "-q"], "not a readable model checkpoint"),
+    "checkpoint:pickled-object": (lambda e: ["predict", "--model", _pickled(e.tmp / "x.pt"), e.split(),
                                              "--out", "p.h5", "-q"], "not a readable model checkpoint"),
-    "checkpoint:missing": (lambda e: ["predict", "--model", e.tmp / "none.pt", "--data", e.split(), "--out", "p.h5", "-q"],
+    "checkpoint:missing": (lambda e: ["predict", "--model", e.tmp / "none.pt", e.split(), "--out", "p.h5", "-q"],
                            "none.pt"),
     # verify
     "verify:workers-zero": (lambda e: ["verify", e.split(), "--workers", 0], "--workers"),
     "verify:workers-negative": (lambda e: ["verify", e.split(), "--workers", -4], "--workers"),
     "verify:missing": (lambda e: ["verify", e.tmp / "nope"], "no such directory"),
     # real splits where they cannot be used
-    "real:plan-simulate": (lambda e: ["plan", "--data", e.inputs.real, "--index", 0, "--simulate", "-q"], "real capture"),
-    "real:plan-no-labels": (lambda e: ["plan", "--data", e.inputs.real, "--index", 1, "-q"], "lack axis_pose, q"),
+    "real:plan-simulate": (lambda e: ["plan", e.inputs.real, "--index", 0, "--simulate", "-q"], "real capture"),
+    "real:plan-no-labels": (lambda e: ["plan", e.inputs.real, "--index", 1, "-q"], "lack axis_pose, q"),
     "real:mean-train": (lambda e: ["baseline", "mean", "--train", e.inputs.real, "--test", e.split(), "--out", "p.h5"],
                         "real captures"),
     "real:nn-train": (lambda e: ["baseline", "nn", "--train", e.inputs.real, "--test", e.split(), "--out", "p.h5", "-q"],
                       "real captures"),
     "real:icp-mean-object": (lambda e: ["baseline", "icp", "--train", e.split(split="train"), "--test", e.split(),
                                         "--out", "p.h5", "--mean-object", e.inputs.real, "-q"], "real captures"),
-    "real:train": (lambda e: ["train", "--model", "mdn", "--class", "cabinet", "--data", e.inputs.real, "--out", "m.pt", "-q"],
+    "real:train": (lambda e: ["train", "--model", "mdn", "--class", "cabinet", e.inputs.real, "--out", "m.pt", "-q"],
                    "real captures"),
 }
 
@@ -551,7 +551,7 @@ def test_real_split_plans_from_its_labels(env):
     geometry, exactly as manipulation.grasp_pose_from_estimate does with part_offset None."""
     from articulated_dataset import manipulation as M
 
-    res = CliRunner().invoke(main, ["plan", "--data", str(env.inputs.real), "--index", "0", "-q", "--out", "plan.json"])
+    res = CliRunner().invoke(main, ["plan", str(env.inputs.real), "--index", "0", "-q", "--out", "plan.json"])
     assert res.exit_code == 0, res.output
     plan = json.loads((env.tmp / "plan.json").read_text())
     label = env.inputs.label

@@ -703,6 +703,7 @@ def urdf_world(world, monkeypatch):
     return world
 
 
+@pytest.mark.slow
 def test_the_test_object_generates(urdf_world):
     """Control: the unmodified object generates, so each refusal below is caused by its change."""
     result = _generate_urdf(urdf_world, _urdf())
@@ -995,7 +996,7 @@ def test_rebuild_reads_the_definition_safely(urdf_split, tmp_path, how, key, val
     if how == "show-rgb":
         result = run("show", split, "--rgb", "--n", 1, "--out", world.root / "out.png", "-q")
     else:
-        result = run("plan", "--data", split, "--index", 0, "--simulate", "-q")
+        result = run("plan", split, "--index", 0, "--simulate", "-q")
     assert_refused(result)
     world.assert_untouched()
     assert not (urdf_split["folder"] / PWNED).exists()

@@ -90,7 +90,7 @@ def test_meta_weights_are_one_line(tmp_path, tiny_root):
     torch.save({**ckpt, "model_state": state}, path)
     with pytest.raises(UserError, match="meta tensors"):
         load_dense_checkpoint(path)
-    result = CliRunner().invoke(main, ["predict", "--model", str(path), "--data", str(tiny_root / "microwave" / "test"),
+    result = CliRunner().invoke(main, ["predict", "--model", str(path), str(tiny_root / "microwave" / "test"),
                                        "--out", str(tmp_path / "p.h5"), "-q"])
     assert result.exit_code == EXIT_USER_ERROR, result.output
     lines = result.stderr.splitlines()
@@ -120,7 +120,7 @@ def _one_line(result, needle):
 
 @pytest.mark.parametrize("workers", ["1", "2"])
 def test_predict_with_overflowing_weights_is_one_line(overflowing, tiny_root, tmp_path, workers):
-    result = CliRunner().invoke(main, ["predict", "--model", overflowing, "--data", str(tiny_root / "microwave" / "test"),
+    result = CliRunner().invoke(main, ["predict", "--model", overflowing, str(tiny_root / "microwave" / "test"),
                                        "--out", str(tmp_path / "p.h5"), "--workers", workers, "--threads", "2", "-q"])
     _one_line(result, "NaN or infinite outputs")
     assert not (tmp_path / "p.h5").exists()
@@ -181,7 +181,7 @@ def test_an_absurd_calibration_is_one_line(tmp_path, tiny_root, monkeypatch, nam
         (tmp_path / "camera.json").write_text('{"fx": 105.3, "fy": 105.3, "cx": 95.5, "cy": 53.5}')
         args = ["estimate", "d.npy", "--class", "microwave", "--model", "bad.pt", "--json"]
     else:
-        args = ["predict", "--model", "bad.pt", "--data", str(tiny_root / "microwave" / "test"), "--out", "p.h5", "-q"]
+        args = ["predict", "--model", "bad.pt", str(tiny_root / "microwave" / "test"), "--out", "p.h5", "-q"]
     result = CliRunner().invoke(main, args)
     assert result.exit_code == EXIT_USER_ERROR, result.output
     lines = result.stderr.splitlines()
@@ -204,7 +204,7 @@ def test_odd_generation_records_do_not_stop_predict(tiny_root, tmp_path, monkeyp
     manifest = json.loads((split / "manifest.json").read_text())
     change(manifest)
     (split / "manifest.json").write_text(json.dumps(manifest))
-    result = CliRunner().invoke(main, ["predict", "--model", "dense", "--data", str(split), "--out", "p.h5", "-q"])
+    result = CliRunner().invoke(main, ["predict", "--model", "dense", str(split), "--out", "p.h5", "-q"])
     if result.exit_code == 2:  # a reader that refuses the manifest must do so in one line
         lines = result.stderr.splitlines()
         assert len(lines) == 1 and lines[0].startswith("artdata: error: "), result.stderr
@@ -221,7 +221,7 @@ def test_an_unwritable_out_is_one_line(tiny_root, tmp_path, monkeypatch, out):
         pytest.skip("needs /proc (Linux)")
     monkeypatch.chdir(tmp_path)
     (tmp_path / "f").write_text("a file, not a folder")
-    result = CliRunner().invoke(main, ["predict", "--model", "dense", "--data", str(tiny_root / "microwave" / "test"),
+    result = CliRunner().invoke(main, ["predict", "--model", "dense", str(tiny_root / "microwave" / "test"),
                                        "--out", out, "-q"])
     assert result.exit_code == EXIT_USER_ERROR, (result.output, result.exception)
     lines = result.stderr.splitlines()
@@ -234,7 +234,7 @@ def test_an_unwritable_out_is_one_line(tiny_root, tmp_path, monkeypatch, out):
 def test_show_refuses_to_write_over_its_predictions(tiny_root, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     split = str(tiny_root / "microwave" / "test")
-    assert CliRunner().invoke(main, ["predict", "--model", "dense", "--data", split, "--out", "p.h5", "-q"]).exit_code == 0
+    assert CliRunner().invoke(main, ["predict", "--model", "dense", split, "--out", "p.h5", "-q"]).exit_code == 0
     shutil.copy("p.h5", "p.png")  # a predictions file of any name
     kept = (tmp_path / "p.png").read_bytes()
     result = CliRunner().invoke(main, ["show", split, "--predictions", "p.png", "--out", "p.png", "--n", "2", "-q"])
@@ -286,7 +286,7 @@ def test_a_malformed_shard_camera_or_shape_is_one_line(tiny_root, tmp_path, monk
     for shard in sorted(split.glob("shard-*.h5")):
         with h5py.File(shard, "r+") as f:
             edit(f)
-    args = {"predict": ["predict", "--model", "dense", "--data", str(split), "--out", "p.h5", "-q"],
+    args = {"predict": ["predict", "--model", "dense", str(split), "--out", "p.h5", "-q"],
             "show": ["show", str(split), "--out", "g.png", "-q"],
             "info": ["info", str(split)]}[command]
     result = CliRunner().invoke(main, args)

@@ -205,7 +205,7 @@ def test_training_refuses_absurd_epochs_and_a_resume_on_another_split(tiny_root,
     from articulated_dataset.models.dense.train import DenseTrainConfig, train_dense
 
     for model in ("dense", "mdn"):
-        _one_line(*_run(["train", "--model", model, "--class", "drawer", "--data", tiny_root / "drawer" / "train",
+        _one_line(*_run(["train", "--model", model, "--class", "drawer", tiny_root / "drawer" / "train",
                          "--out", tmp_path / f"{model}.pt", "--epochs", str(10 ** 20)]), "--epochs")
     cfg = DenseTrainConfig("drawer", epochs=2, batch_size=16, width=4, val_fraction=0.2, max_objects=3)
     out = tmp_path / "d.pt"

@@ -75,7 +75,7 @@ def test_a_shard_of_hard_link_aliases_is_refused(split, tmp_path):
 
 @pytest.mark.parametrize("args", [["info", "{split}"], ["baseline", "mean", "--train", "{split}", "--test", "{split}",
                                                          "--out", "{tmp}/p.h5", "-q"],
-                                  ["plan", "--data", "{split}", "--index", "0", "-q"]], ids=["info", "baseline", "plan"])
+                                  ["plan", "{split}", "--index", "0", "-q"]], ids=["info", "baseline", "plan"])
 def test_a_shard_that_is_a_fifo_is_refused_not_waited_on(split, tmp_path, args):
     """A named pipe in place of a shard: opening it blocked until a writer appeared (every shard
     reader hung); it is refused like a predictions file that is not a regular file."""

@@ -77,7 +77,7 @@ def test_dense_training_on_a_shard_of_another_class_is_one_line(split, tmp_path)
     with h5py.File(copy / "shard-00000.h5", "a") as f:
         _two_joints(f)
     out = tmp_path / "d.pt"
-    result = CliRunner().invoke(main, ["train", "--model", "dense", "--class", "cabinet", "--data", str(copy),
+    result = CliRunner().invoke(main, ["train", "--model", "dense", "--class", "cabinet", str(copy),
                                        "--out", str(out), "--epochs", "1", "--width", "4", "--val-fraction", "0", "-q"])
     err = [line for line in result.stderr.strip().splitlines() if "no validation objects" not in line]
     assert result.exit_code == 2 and len(err) == 1 and err[0].startswith("artdata: error:"), (err, result.exception)

@@ -77,7 +77,7 @@ def test_without_gl_a_mujoco_command_still_runs_without_rendering(tmp_path):
 
     env = {**os.environ, "MUJOCO_GL": "no-such-backend"}
     code = "from articulated_dataset.cli import main; main()"
-    res = subprocess.run([sys.executable, "-c", code, "plan", "--data", str(tmp_path / "missing"), "--index", "0"],
+    res = subprocess.run([sys.executable, "-c", code, "plan", str(tmp_path / "missing"), "--index", "0"],
                          env=env, capture_output=True, text=True)
     assert res.returncode == cli.EXIT_USER_ERROR, res.stderr
     assert res.stderr.count("\n") == 1 and res.stderr.startswith("artdata: error:") and "MuJoCo" not in res.stderr

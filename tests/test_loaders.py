@@ -251,6 +251,7 @@ def test_torch_map_style_and_sampler(cab, raw):
     np.testing.assert_array_equal(np.sort(runs[0]), np.arange(len(raw["depth"])))
 
 
+@pytest.mark.slow
 def test_torch_single_sample_iterable_and_spawn(cab, raw):
     torch = pytest.importorskip("torch")
     from articulated_dataset.loaders.torch import ShardIterableDataset
@@ -366,6 +367,7 @@ def test_three_ranks_get_equal_steps_by_default(tmp_path):
 # --------------------------------------------------------------------------------------
 # JAX
 
+@pytest.mark.slow
 def test_jax_loader_matches_torch_and_raw(cab, raw):
     pytest.importorskip("torch")
     pytest.importorskip("grain")
@@ -400,6 +402,7 @@ def test_jax_loader_matches_torch_and_raw(cab, raw):
     assert not np.array_equal(first["index"], pairs[0][0]["index"])  # epoch 1 is shuffled differently
 
 
+@pytest.mark.slow
 def test_jax_processes_cover_split_and_grain_workers(cab, raw):
     pytest.importorskip("grain")
     from articulated_dataset.loaders.jax import JaxLoader
@@ -492,6 +495,7 @@ def test_loader_advances_the_epoch_without_set_epoch(cab):
         assert not np.array_equal(passes[0], passes[1])
 
 
+@pytest.mark.slow
 def test_grain_workers_keep_little_shared_memory(cab):
     """grain workers prepare only a few batches ahead, and close() leaves none of their shared-memory
     blocks behind (grain's default read-ahead held ~1000 batch blocks, left in /dev/shm at close)."""

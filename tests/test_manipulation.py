@@ -289,7 +289,7 @@ def _oracle_predictions(root, cls, path, shift_m=0.0):
 
 def test_cli_plan_simulate_truth_writes_json(tiny_root, tmp_path):
     out = tmp_path / "plan.json"
-    r = CliRunner().invoke(main, ["plan", "--data", str(tiny_root / "cabinet2" / "test"), "--index", "0",
+    r = CliRunner().invoke(main, ["plan", str(tiny_root / "cabinet2" / "test"), "--index", "0",
                                   "--joint", "1", "--target", "45deg", "--simulate", "--out", str(out)])
     assert r.exit_code == 0, r.output
     assert "SUCCESS" in r.output
@@ -305,10 +305,10 @@ def test_cli_plan_from_predictions(tiny_root, tmp_path):
     _oracle_predictions(tiny_root, "microwave", good)
     _oracle_predictions(tiny_root, "microwave", bad, shift_m=0.10)
     data = str(tiny_root / "microwave" / "test")
-    r = CliRunner().invoke(main, ["plan", "--data", data, "--index", "2", "--predictions", str(good), "--simulate", "-q"])
+    r = CliRunner().invoke(main, ["plan", data, "--index", "2", "--predictions", str(good), "--simulate", "-q"])
     assert r.exit_code == 0, r.output
     assert "kinematics: oracle" in r.output and "SUCCESS" in r.output
-    r = CliRunner().invoke(main, ["plan", "--data", data, "--index", "2", "--predictions", str(bad), "--simulate", "-q"])
+    r = CliRunner().invoke(main, ["plan", data, "--index", "2", "--predictions", str(bad), "--simulate", "-q"])
     assert r.exit_code == 0, r.output
     assert "FAILURE" in r.output and "force" in r.output
 
@@ -322,18 +322,18 @@ def test_cli_plan_from_predictions(tiny_root, tmp_path):
     (["--index", "0", "--predictions", "missing.h5"], "not found"),
 ])
 def test_cli_plan_bad_inputs(tiny_root, args, message):
-    r = CliRunner().invoke(main, ["plan", "--data", str(tiny_root / "cabinet" / "test"), *args])
+    r = CliRunner().invoke(main, ["plan", str(tiny_root / "cabinet" / "test"), *args])
     assert r.exit_code == 2, r.output
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("artdata: error:") and message in lines[0], r.output
 
 
 def test_cli_plan_bad_data_and_unpredicted_sample(tiny_root, tmp_path):
-    r = CliRunner().invoke(main, ["plan", "--data", str(tiny_root), "--index", "0"])
+    r = CliRunner().invoke(main, ["plan", str(tiny_root), "--index", "0"])
     assert r.exit_code == 2 and "pass one split folder" in r.output
     preds = tmp_path / "p.h5"
     _oracle_predictions(tiny_root, "drawer", preds)
-    r = CliRunner().invoke(main, ["plan", "--data", str(tiny_root / "cabinet" / "test"), "--index", "0",
+    r = CliRunner().invoke(main, ["plan", str(tiny_root / "cabinet" / "test"), "--index", "0",
                                   "--predictions", str(preds)])
     assert r.exit_code == 2 and "no predictions for class 'cabinet'" in r.output
 
@@ -380,7 +380,7 @@ def test_cli_plan_model_estimates_from_the_stored_image(tiny_root, dense_ckpt, t
 
     data = tiny_root / "microwave" / "test"
     out = tmp_path / "plan.json"
-    r = CliRunner().invoke(main, ["plan", "--data", str(data), "--index", "3", "--model", str(dense_ckpt),
+    r = CliRunner().invoke(main, ["plan", str(data), "--index", "3", "--model", str(dense_ckpt),
                                   "--threads", "1", "--simulate", "-q", "--out", str(out)])
     assert r.exit_code == 0, r.output
     assert "kinematics: dense" in r.output and ("SUCCESS" in r.output or "FAILURE" in r.output)
@@ -396,16 +396,16 @@ def test_cli_plan_model_estimates_from_the_stored_image(tiny_root, dense_ckpt, t
                           (["--closed-loop", "--simulate"], "--closed-loop needs --model"),
                           (["--model", str(dense_ckpt), "--closed-loop"], "--closed-loop needs --model"),
                           (["--model", "dense-but-not-shipped"], "neither a shipped model")):
-        r = CliRunner().invoke(main, ["plan", "--data", str(data), "--index", "0", *args])
+        r = CliRunner().invoke(main, ["plan", str(data), "--index", "0", *args])
         assert r.exit_code == 2 and r.output.count("\n") == 1 and message in r.output, r.output
-    r = CliRunner().invoke(main, ["plan", "--data", str(tiny_root / "drawer" / "test"), "--index", "0",
+    r = CliRunner().invoke(main, ["plan", str(tiny_root / "drawer" / "test"), "--index", "0",
                                   "--model", str(dense_ckpt)])
     assert r.exit_code == 2 and "a 'microwave' model, but the data is 'drawer'" in r.output, r.output
 
 
 def test_cli_plan_closed_loop_counts_images(tiny_root, dense_ckpt, tmp_path):
     out = tmp_path / "loop.json"
-    r = CliRunner().invoke(main, ["plan", "--data", str(tiny_root / "microwave" / "test"), "--index", "0",
+    r = CliRunner().invoke(main, ["plan", str(tiny_root / "microwave" / "test"), "--index", "0",
                                   "--model", str(dense_ckpt), "--threads", "1", "--simulate", "--closed-loop", "-q",
                                   "--out", str(out)])
     assert r.exit_code == 0, r.output
@@ -532,15 +532,16 @@ def test_cli_plan_real_split_from_estimate(tiny_root, dense_ckpt, tmp_path):
     r = CliRunner().invoke(main, ["ingest", "-q", "--class", "microwave", "--out", str(tmp_path / "out"), str(cap)])
     assert r.exit_code == 0, r.output
     real = str(tmp_path / "out" / "microwave" / "real")
-    r = CliRunner().invoke(main, ["plan", "--data", real, "--index", "0", "--model", str(dense_ckpt), "--threads", "1",
+    r = CliRunner().invoke(main, ["plan", real, "--index", "0", "--model", str(dense_ckpt), "--threads", "1",
                                   "--out", str(tmp_path / "p.json")])
     assert r.exit_code == 0, r.output  # no labels at all: the estimate is all the plan needs
     rec = json.loads((tmp_path / "p.json").read_text())
     assert rec["source"] == "dense" and len(rec["waypoints"]) >= 2 and rec["q_true"] is None
-    r = CliRunner().invoke(main, ["plan", "--data", real, "--index", "0", "--model", str(dense_ckpt), "--simulate"])
+    r = CliRunner().invoke(main, ["plan", real, "--index", "0", "--model", str(dense_ckpt), "--simulate"])
     assert r.exit_code == 2 and r.output.count("\n") == 1 and "real capture" in r.output
 
 
+@pytest.mark.slow
 def test_benchmark_script_models_and_closed_loop(tiny_root, dense_ckpt, tmp_path):
     bench = load_script(BENCHMARK, "manipulation_benchmark")
     out = tmp_path / "m.json"
@@ -575,7 +576,7 @@ def test_cli_plan_with_an_mdn_checkpoint_matches_predict(tiny_root, tmp_path):
     test = tiny_root / "drawer" / "test"
     _, arrays = predict_split(model, test, progress=False)
     out = tmp_path / "p.json"
-    r = CliRunner().invoke(main, ["plan", "--data", str(test), "--index", "5", "--model", str(model), "--threads", "1",
+    r = CliRunner().invoke(main, ["plan", str(test), "--index", "5", "--model", str(model), "--threads", "1",
                                   "-q", "--out", str(out)])
     assert r.exit_code == 0, r.output
     rec = json.loads(out.read_text())

@@ -112,6 +112,7 @@ def test_heads_shapes_and_scale_floor():
     assert torch.all(scales >= 0.01)
 
 
+@pytest.mark.slow
 def test_model_overfits_a_handful_of_samples():
     # 8 inputs the pooled features can tell apart (per-sample constant planes) with random
     # targets: the likelihood of the targets must rise far above that of a unit Gaussian and
@@ -255,6 +256,7 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
         train(data, tmp_path / "full.pt", cfg, progress=False)
 
 
+@pytest.mark.slow
 def test_cpu_training_keeps_the_default_layout(tiny_root, tmp_path):
     """On the CPU the MDN trains in the default memory layout: in channels-last, oneDNN's
     backward pass of the tiny network corrupted the heap with one thread on AVX2 kernels (glibc
@@ -278,12 +280,12 @@ def test_cpu_training_keeps_the_default_layout(tiny_root, tmp_path):
 def test_cli_train_predict_score_round_trip(tiny_root, tmp_path):
     runner = CliRunner()
     model = tmp_path / "cabinet.pt"
-    res = runner.invoke(main, ["train", "--model", "mdn", "--class", "cabinet", "--data", str(tiny_root / "cabinet" / "train"),
+    res = runner.invoke(main, ["train", "--model", "mdn", "--class", "cabinet", str(tiny_root / "cabinet" / "train"),
                                "--out", str(model), "--small", "--epochs", "2", "--components", "4"])
     assert res.exit_code == 0, res.output
     assert "epoch 2" in res.output and "val_nll" in res.output
     preds = tmp_path / "pred.h5"
-    res = runner.invoke(main, ["predict", "--model", str(model), "--data", str(tiny_root / "cabinet" / "test"),
+    res = runner.invoke(main, ["predict", "--model", str(model), str(tiny_root / "cabinet" / "test"),
                                "--out", str(preds), "-q"])
     assert res.exit_code == 0, res.output
     from articulated_dataset.benchmark.predictions import read_predictions
@@ -302,7 +304,7 @@ def test_cli_train_predict_score_round_trip(tiny_root, tmp_path):
     assert res.exit_code == 0, res.output
     assert "Cabinet - MDN-small" in res.output and "NLL" in res.output
     # an existing output is not replaced silently
-    res = runner.invoke(main, ["predict", "--model", str(model), "--data", str(tiny_root / "cabinet" / "test"),
+    res = runner.invoke(main, ["predict", "--model", str(model), str(tiny_root / "cabinet" / "test"),
                                "--out", str(preds), "-q"])
     assert res.exit_code == 2 and "--overwrite" in res.output
 
@@ -342,20 +344,20 @@ def test_cli_errors_are_one_line(tiny_root, tmp_path):
         assert res.output.startswith("artdata: error:") and res.output.count("\n") == 1, res.output
         return res.output
 
-    assert "not 'drawer'" in run(["train", "--model", "mdn", "--class", "drawer", "--data", train_dir, "--out", str(tmp_path / "m.pt"), "-q"])
-    assert "no such directory" in run(["train", "--model", "mdn", "--class", "cabinet", "--data", str(tmp_path / "nope"),
+    assert "not 'drawer'" in run(["train", "--model", "mdn", "--class", "drawer", train_dir, "--out", str(tmp_path / "m.pt"), "-q"])
+    assert "no such directory" in run(["train", "--model", "mdn", "--class", "cabinet", str(tmp_path / "nope"),
                                        "--out", str(tmp_path / "m.pt"), "-q"])
-    assert "--resume" in run(["train", "--model", "mdn", "--class", "cabinet", "--data", train_dir, "--out", str(tmp_path / "none.pt"),
+    assert "--resume" in run(["train", "--model", "mdn", "--class", "cabinet", train_dir, "--out", str(tmp_path / "none.pt"),
                               "--resume", "-q"])
     bad = tmp_path / "corrupt.pt"
     bad.write_bytes(b"this is not a checkpoint")
-    assert "not a readable model checkpoint" in run(["predict", "--model", str(bad), "--data", train_dir,
+    assert "not a readable model checkpoint" in run(["predict", "--model", str(bad), train_dir,
                                                      "--out", str(tmp_path / "p.h5"), "-q"])
     model = tmp_path / "cab.pt"
     train(train_dir, model, TrainConfig(class_name="cabinet", epochs=1, **TINY), progress=False)
-    assert "'cabinet'" in run(["predict", "--model", str(model), "--data", str(tiny_root / "drawer" / "test"),
+    assert "'cabinet'" in run(["predict", "--model", str(model), str(tiny_root / "drawer" / "test"),
                                           "--out", str(tmp_path / "p.h5"), "-q"])
-    assert "missing.pt" in run(["predict", "--model", str(tmp_path / "missing.pt"), "--data", train_dir,
+    assert "missing.pt" in run(["predict", "--model", str(tmp_path / "missing.pt"), train_dir,
                                           "--out", str(tmp_path / "p.h5"), "-q"])
 
 
@@ -370,6 +372,7 @@ def test_predict_split_refuses_bad_batch_sizes_and_estimates(tiny_root, tmp_path
             predict_split(model, tiny_root / "cabinet" / "test", progress=False, **kwargs)
 
 
+@pytest.mark.slow
 def test_a_split_read_in_two_processes_is_the_same_inputs(tiny_root):
     """load_split(workers=2): the same planes, scalars, anchors, targets and order as one process."""
     import torch

@@ -63,6 +63,7 @@ def test_a_users_setting_is_kept(var, value):
     assert [k for k, v in r["env"].items() if v is not None] == [var]
 
 
+@pytest.mark.slow
 def test_too_late_once_torch_is_imported():
     pytest.importorskip("torch")
     r = _child("import json, torch; from articulated_dataset.executors import configure_openmp_wait as c; "
@@ -70,6 +71,7 @@ def test_too_late_once_torch_is_imported():
     assert r == {}
 
 
+@pytest.mark.slow
 def test_commands_choose_before_torch_starts():
     """prepare_torch (train, predict, estimate, plan) sets a policy, then torch is imported."""
     pytest.importorskip("torch")

@@ -57,8 +57,8 @@ def test_estimate_api_without_torch_is_a_user_error(no_torch, depth_file):
 
 
 @pytest.mark.parametrize("command", [
-    ["predict", "--model", "dense", "--data", "{split}", "--out", "{tmp}/p.h5"],
-    ["train", "--class", "drawer", "--data", "{split}", "--out", "{tmp}/c.pt"],
+    ["predict", "--model", "dense", "{split}", "--out", "{tmp}/p.h5"],
+    ["train", "--class", "drawer", "{split}", "--out", "{tmp}/c.pt"],
 ])
 def test_model_commands_without_torch_are_one_line(no_torch, tiny_root, tmp_path, command):
     args = [a.format(split=tiny_root / "drawer" / "train", tmp=tmp_path) for a in command]

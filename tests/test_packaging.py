@@ -12,6 +12,7 @@ import zipfile
 from importlib.metadata import PackageNotFoundError, distribution, packages_distributions, version
 from pathlib import Path
 
+import pytest
 import yaml
 
 import articulated_dataset
@@ -48,6 +49,7 @@ def source_copy(dest: Path) -> Path:
     return dest
 
 
+@pytest.mark.slow
 def test_wheel_ships_generators_and_templates(tmp_path):
     before = sorted(p.name for p in ROOT.iterdir())
     src = source_copy(tmp_path / "src")
@@ -86,6 +88,7 @@ def test_every_subpackage_is_packaged():
     assert found - listed == set(), f"subpackages missing from [tool.setuptools] packages: {sorted(found - listed)}"
 
 
+@pytest.mark.slow
 def test_sdist_ships_generators_templates_and_weights(tmp_path):
     """The sdist (what `python -m build` builds the wheel from in .ci/run) carries the templates, the
     generators, every tracked weight file and every subpackage."""
@@ -147,6 +150,7 @@ def _imported_distributions() -> dict[str, set[str]]:
     return {m: {_norm(d) for d in dists[m]} for m in mods}
 
 
+@pytest.mark.slow
 def test_dependencies_are_what_the_package_imports():
     core = _requirement_names(PYPROJECT["project"]["dependencies"])
     extras = {k: _requirement_names(v) for k, v in PYPROJECT["project"]["optional-dependencies"].items()}

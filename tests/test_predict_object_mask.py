@@ -25,7 +25,7 @@ def room_and_plain(tmp_path_factory):
 
 def _predict(root, name, tmp_path, *extra):
     out = tmp_path / f"{name}{len(extra)}.h5"
-    r = CliRunner().invoke(main, ["predict", "--model", "dense", "--data", str(root / name / "microwave" / "test"),
+    r = CliRunner().invoke(main, ["predict", "--model", "dense", str(root / name / "microwave" / "test"),
                                   "--out", str(out), "--threads", "1", "-q", *extra])
     assert r.exit_code == 0, r.output
     return read_predictions(out)[1]["microwave"]
@@ -45,6 +45,6 @@ def test_object_mask_sees_exactly_the_isolated_object(room_and_plain, tmp_path, 
 
 
 def test_object_mask_is_for_the_dense_model(room_and_plain, tmp_path):
-    r = CliRunner().invoke(main, ["predict", "--model", "mdn-small", "--data", str(room_and_plain / "room" / "microwave" / "test"),
+    r = CliRunner().invoke(main, ["predict", "--model", "mdn-small", str(room_and_plain / "room" / "microwave" / "test"),
                                   "--out", str(tmp_path / "p.h5"), "--object-mask", "-q"])
     assert r.exit_code == 2 and r.output.strip() == "artdata: error: --object-mask applies to the dense model"

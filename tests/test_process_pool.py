@@ -66,6 +66,7 @@ def deadline(seconds: float = DEADLINE_S):
         signal.signal(signal.SIGALRM, previous)
 
 
+@pytest.mark.slow
 def test_ordered_and_unordered_results():
     with deadline():
         ordered = list(process_map(_slow_square, range(8), 2, ordered=True))

@@ -57,6 +57,7 @@ def ray_local(tmp_path_factory):
     ray.shutdown()
 
 
+@pytest.mark.slow
 def test_cli_ray_executor_gives_the_local_bytes(ray_local, tmp_path):
     _, reference = ray_local
     r = CliRunner().invoke(main, ["generate", *ARGS, "--out", str(tmp_path / "local"), "--workers", "1"])
@@ -125,6 +126,7 @@ def _box_urdf(folder: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_urdf_object_on_ray_and_changed_files_are_refused(ray_local, tmp_path, monkeypatch):
     monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))  # forwarded to the Ray workers
     path = _box_urdf(tmp_path / "box")

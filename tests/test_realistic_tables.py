@@ -230,6 +230,7 @@ def test_realistic_splits_verify_record_the_table_and_verify_checks_the_sizes(re
     assert any("no size class of the table explains" in str(p) and "first: image 16" in str(p) for p in report.problems)
 
 
+@pytest.mark.slow
 def test_realistic_bytes_are_seeded_and_independent_of_workers(tmp_path):
     def run(out, *extra):
         r = CliRunner().invoke(main, ["generate", "--class", "cabinet2", "--table", "realistic", "--n", "3", "--images", "2",
@@ -290,6 +291,7 @@ def test_docs_show_every_realistic_table():
         assert f"**{c.name}**\n\n{markdown_table(c.realistic_table)}\n" in text, c.name
 
 
+@pytest.mark.slow
 def test_datasheet_figures_are_the_tables_own():
     """DATASHEET.md's size percentiles and correlations are reproduced by 10,000 draws."""
     from pathlib import Path

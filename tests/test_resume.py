@@ -82,6 +82,7 @@ def _kill_and_resume(tmp_path, reference, k_shards, extra_delay_s, workers):
     return len(killed_with)
 
 
+@pytest.mark.slow
 def test_kill_at_random_points_then_resume(tmp_path, reference):
     rng = np.random.default_rng(KILL_SEED)
     ks = rng.integers(0, N_SHARDS, size=N_TRIALS)
@@ -118,6 +119,7 @@ def test_existing_output_needs_resume_or_overwrite(tmp_path):
     assert changed.exit_code == 2 and "different settings" in changed.output
 
 
+@pytest.mark.slow
 def test_killing_only_the_parent_ends_its_workers_and_resume_is_identical(tmp_path, reference):
     """SIGKILL of the generate process alone (not its group): its workers end with it
     instead of writing on and hanging, and --resume still gives the reference bytes."""

@@ -193,7 +193,7 @@ def _baseline(split, predictions, out):
 
 
 def _plan(split, predictions, out):
-    return ["plan", "--data", split, "--index", 0, "--out", out]
+    return ["plan", split, "--index", 0, "--out", out]
 
 
 def _show(split, predictions, out):
@@ -201,7 +201,7 @@ def _show(split, predictions, out):
 
 
 def _train(split, predictions, out):
-    return ["train", "--model", "mdn", "--small", "--class", "drawer", "--data", split, "--out", out,
+    return ["train", "--model", "mdn", "--small", "--class", "drawer", split, "--out", out,
             "--epochs", 1, "--batch-size", 4]
 
 
@@ -353,7 +353,7 @@ LONG_OUTPUTS = {
     "import-exr": lambda s, p, c, e, out: ["import-exr", e, "--out", out, "--quiet"],
     "ingest": lambda s, p, c, e, out: ["ingest", c, "--class", "drawer", "--out", out, "--quiet"],
     "baseline": lambda s, p, c, e, out: _baseline(s, p, out),
-    "predict": lambda s, p, c, e, out: ["predict", "--model", "mdn-small", "--data", s, "--out", out, "--quiet"],
+    "predict": lambda s, p, c, e, out: ["predict", "--model", "mdn-small", s, "--out", out, "--quiet"],
     "train": lambda s, p, c, e, out: _train(s, p, out),
     "plan": lambda s, p, c, e, out: _plan(s, p, out),
     "show": lambda s, p, c, e, out: _show(s, p, f"{out}.png"),

@@ -134,6 +134,7 @@ def test_splits_verify_and_tampered_occlusion_labels_fail(context_root, tmp_path
     assert "mask: values above" in " ".join(str(p) for p in verify_split(bad2).problems)
 
 
+@pytest.mark.slow
 def test_same_objects_same_bytes_any_workers_and_shards(tmp_path):
     """The scene and occluder streams are the object's own: bytes independent of the shard
     layout and the worker count; the objects (geometry, q, x, y, yaw) are the default's."""
@@ -247,6 +248,7 @@ def test_config_refuses_hostile_values():
             GenerationConfig("drawer", n_objects=1, **kw)
 
 
+@pytest.mark.slow
 def test_show_draws_scene_and_occluder_pixels_in_their_own_colours(context_root, tmp_path):
     mask = np.array([[0, 1, 2, MASK_SCENE, MASK_OCCLUDER]], np.uint8)
     depth = np.array([[0.0, 1.0, 1.0, 2.0, 0.5]], np.float32)
@@ -314,6 +316,7 @@ def test_the_most_occluders_and_a_third_party_urdf(tmp_path):
 
 @pytest.mark.parametrize("option", [["--scene", "room"], ["--scene", "kitchen"], ["--occluders", "1"]],
                          ids=lambda o: "".join(o).lstrip("-"))
+@pytest.mark.slow
 def test_cli_each_option_same_bytes_with_one_or_two_workers(tmp_path, option):
     runs = []
     for workers in ("1", "2"):

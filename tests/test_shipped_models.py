@@ -91,7 +91,7 @@ def _scores(model: str, split, tmp_path) -> dict:
     runner = CliRunner()
     tmp_path.mkdir(parents=True, exist_ok=True)
     out = tmp_path / f"{model}.h5"
-    res = runner.invoke(main, ["predict", "--model", model, "--data", str(split), "--out", str(out), "-q"],
+    res = runner.invoke(main, ["predict", "--model", model, str(split), "--out", str(out), "-q"],
                         catch_exceptions=False)
     assert res.exit_code == 0, res.output
     res = runner.invoke(main, ["score", str(out), "--truth", str(split), "--json", str(tmp_path / f"{model}.json")],
@@ -127,6 +127,7 @@ def noisy_root(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_dense_kinect2_reads_noisy_depth_better_than_dense(noisy_root, tmp_path):
     """On fresh noisy renders of every class, ``dense-kinect2`` stays within a loose bound
     (about 2x its figures on 1,000 noisy test objects, docs/real_data.md) and, over the six
@@ -194,6 +195,6 @@ def test_shipped_mdn_small_predicts_and_models_lists_everything(tiny_root, tmp_p
     cls = next((m["class_name"] for m in SHIPPED if m["name"] == "mdn-small"), None)
     if cls is None:
         pytest.skip("no shipped mdn-small model")
-    res = runner.invoke(main, ["predict", "--model", "mdn-small", "--data", str(tiny_root / cls / "test"),
+    res = runner.invoke(main, ["predict", "--model", "mdn-small", str(tiny_root / cls / "test"),
                                "--out", str(tmp_path / "m.h5"), "-q"], catch_exceptions=False)
     assert res.exit_code == 0, res.output

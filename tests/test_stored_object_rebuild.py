@@ -33,7 +33,7 @@ def _rebuild(how: str, split: Path, out: Path, *extra: str):
     if how == "show-rgb":
         args = ["show", str(split), "--rgb", "--n", "1", "--out", str(out)]
     else:
-        args = ["plan", "--data", str(split), "--index", "0", "--out", str(out)]
+        args = ["plan", str(split), "--index", "0", "--out", str(out)]
     return CliRunner().invoke(main, [*args, "-q", *extra])
 
 

@@ -208,7 +208,7 @@ def flap_split(tmp_path_factory) -> dict:
 def _rebuild(how: str, split: Path, tmp_path: Path):
     if how == "show-rgb":
         return CliRunner().invoke(main, ["show", str(split), "--rgb", "--n", "1", "--out", str(tmp_path / "g.png"), "-q"])
-    return CliRunner().invoke(main, ["plan", "--data", str(split), "--index", "0", "-q"])
+    return CliRunner().invoke(main, ["plan", str(split), "--index", "0", "-q"])
 
 
 @pytest.mark.parametrize("how", ["show-rgb", "plan"])
@@ -248,11 +248,11 @@ def test_a_split_without_valid_depth_is_one_line(drawer_train, tmp_path, command
     if command.startswith("train"):
         kind = command.split("-")[1]
         extra = ["--small", "--components", "3"] if kind == "mdn" else ["--width", "4"]
-        args = ["train", "--model", kind, "--class", "drawer", "--data", str(split), "--out", str(out),
+        args = ["train", "--model", kind, "--class", "drawer", str(split), "--out", str(out),
                 "--epochs", "1", "--batch-size", "4", "-q", *extra]
     else:
         model = "dense" if command.endswith("dense") else "mdn-small"
-        args = ["predict", "--model", model, "--data", str(split), "--out", str(tmp_path / "p.h5"), "-q"]
+        args = ["predict", "--model", model, str(split), "--out", str(tmp_path / "p.h5"), "-q"]
     result = CliRunner().invoke(main, args)
     assert_one_line_error(result, "valid depth pixel")
     assert not out.exists() and not (tmp_path / "p.h5").exists()

@@ -75,7 +75,7 @@ def test_a_deflated_record_bomb_is_refused_before_torch_load(tmp_path, drawer_im
         checkpoint.read_checkpoint_file(path)
     assert str(path) in str(info.value)
     _, _, split = drawer_image
-    result = CliRunner().invoke(main, ["predict", "--model", str(path), "--data", str(split), "--out",
+    result = CliRunner().invoke(main, ["predict", "--model", str(path), str(split), "--out",
                                        str(tmp_path / "p.h5"), "-q"])
     assert_one_line_error(result, "records declare")
 

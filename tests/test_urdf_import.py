@@ -254,6 +254,7 @@ def test_scale_scales_the_whole_scene_about_the_camera(objects, tmp_path):
     np.testing.assert_allclose(b.read("depth")[both], SCALE * a.read("depth")[both], rtol=0.01)
 
 
+@pytest.mark.slow
 def test_cli_with_spawned_workers_matches_serial_and_resumes(objects, tmp_path):
     obj = import_urdf(objects["chest"], class_name="chest-cli")
     cfg = GenerationConfig("chest-cli", n_objects=2, images_per_object=4, objects_per_shard=1, third_party=obj.definition)
@@ -339,6 +340,7 @@ def test_continuous_joint_uses_the_revolute_default_range(tmp_path):
     assert obj.obj_class.table.q == ((0.0, math.pi / 2),)
 
 
+@pytest.mark.slow
 def test_hidden_part_error_names_joints(tmp_path, monkeypatch):
     """A part no pose shows (here: inside the body) cannot be labelled: the error says to
     choose the joints that open."""
@@ -436,6 +438,7 @@ def test_flat_meshes_are_thickened_and_all_faces_doubled():
     np.testing.assert_array_equal(ds.faces[len(box.faces):], box.faces[:, ::-1])
 
 
+@pytest.mark.slow
 def test_a_third_party_object_predicted_as_a_built_in_class(objects, tmp_path):
     """predict --as-class: the shipped cabinet models (dense and the paper's MDN) predict a
     third-party cabinet (a door on a box, a URDF of its own), written under the split's class so
@@ -457,18 +460,18 @@ def test_a_third_party_object_predicted_as_a_built_in_class(objects, tmp_path):
     out = tmp_path / "p.h5"
     for extra, needle in [([], "--as-class"), (["--as-class", "drawer"], "joints ['revolute']"),
                           (["--as-class", "nope"], "unknown object class")]:
-        code, text = run("predict", "--model", "dense", "--data", str(split), "--out", str(out), *extra)
+        code, text = run("predict", "--model", "dense", str(split), "--out", str(out), *extra)
         assert code == 2 and text.count("\n") == 1 and needle in text, text
-    code, text = run("predict", "--model", "dense", "--data", str(tiny_root_cabinet2(tmp_path)), "--out", str(out),
+    code, text = run("predict", "--model", "dense", str(tiny_root_cabinet2(tmp_path)), "--out", str(out),
                      "--as-class", "cabinet")
     assert code == 2 and text.count("\n") == 1 and "built-in class 'cabinet2'" in text, text
     from articulated_dataset.models import resolve_model
 
     microwave = str(resolve_model("dense", "microwave").path)  # a checkpoint file of another class
-    code, text = run("predict", "--model", microwave, "--data", str(split), "--out", str(out), "--as-class", "cabinet")
+    code, text = run("predict", "--model", microwave, str(split), "--out", str(out), "--as-class", "cabinet")
     assert code == 2 and text.count("\n") == 1 and "is a 'microwave' model" in text, text
     for model in ("dense", "mdn-small"):
-        code, text = run("predict", "--model", model, "--data", str(split), "--out", str(out), "--as-class", "cabinet",
+        code, text = run("predict", "--model", model, str(split), "--out", str(out), "--as-class", "cabinet",
                          "--overwrite", "-q")
         assert code == 0, text
         attrs, per_class = read_predictions(out)

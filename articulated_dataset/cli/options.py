@@ -63,3 +63,32 @@ def prepare_torch(threads: int | None) -> int:
     if threads is not None and threads <= 0:
         raise UserError(f"--threads must be positive, got {threads}")
     return configure_threads(threads)
+
+
+#: The version from which the deprecated ``--data`` option is gone (it works until then, with a warning).
+DATA_OPTION_REMOVED_IN = "0.3"
+
+
+def split_folder(f):
+    """The split folder a command reads, as its positional ``DIR`` argument (the one way every
+    command names its main split; its docstring says what DIR is), with the older ``--data DIR``
+    still accepted, with a warning, until :data:`DATA_OPTION_REMOVED_IN`.  The command receives
+    ``data_dir`` and ``data_option`` and calls :func:`resolve_split_folder`."""
+    f = click.option("--data", "data_option", type=click.Path(), default=None, metavar="DIR",
+                     help=f"Deprecated (removed in {DATA_OPTION_REMOVED_IN}): give DIR as the argument.")(f)
+    return click.argument("data_dir", required=False, type=click.Path(), metavar="DIR")(f)
+
+
+def resolve_split_folder(data_dir: str | None, data_option: str | None) -> str:
+    """The split folder given as ``DIR`` or, deprecated, as ``--data DIR`` (a warning on standard
+    error); both, or neither, is one line."""
+    command = f"artdata {click.get_current_context().info_name}"
+    if data_dir is not None and data_option is not None:
+        raise UserError(f"the split folder is given twice ({data_dir} and --data {data_option}); give it once, as DIR")
+    if data_option is not None:
+        click.echo(f"artdata: warning: --data is deprecated and is removed in {DATA_OPTION_REMOVED_IN}; "
+                   f"give the split folder as the argument: {command} {data_option} ...", err=True)
+        return data_option
+    if data_dir is None:
+        raise UserError(f"missing the split folder DIR (see {command} --help)")
+    return data_dir

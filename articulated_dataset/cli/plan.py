@@ -8,6 +8,7 @@ import click
 
 from ..errors import UserError
 from ..units import format_q
+from .options import resolve_split_folder, split_folder
 
 
 #: What ends the refusal to rebuild a third-party URDF object from recorded paths outside its
@@ -41,8 +42,7 @@ def _fmt_vec(v, digits: int = 4) -> str:
 
 
 @click.command("plan")
-@click.option("--data", "data_dir", type=click.Path(), required=True,
-              help="A generated split folder (<root>/<class>/<split>) holding the object.")
+@split_folder
 @click.option("--index", type=int, required=True, help="Image index in the split (0-based, storage order).")
 @click.option("--joint", type=int, default=0, show_default=True, help="Joint to actuate (label order).")
 @click.option("--predictions", "predictions_path", type=click.Path(), default=None,
@@ -66,9 +66,10 @@ def _fmt_vec(v, digits: int = 4) -> str:
 @click.option("--out", "out_path", type=click.Path(dir_okay=False), default=None, help="Write the plan (and outcome) as JSON.")
 @object_file_options("plan")
 @click.option("--quiet", "-q", is_flag=True, help="Do not list the waypoints.")
-def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, no_touch, seed, threads, target, step,
+def plan_cmd(data_dir, data_option, index, joint, predictions_path, model, closed_loop, no_touch, seed, threads, target, step,
              simulate, out_path, urdf, mesh_root, quiet):
-    """Plan end-effector waypoints that open joint JOINT of image INDEX's object.
+    """Plan end-effector waypoints that open joint JOINT of image INDEX's object in DIR (a
+    generated split folder, <root>/<class>/<split>).
 
     The handle's grasp pose is estimated from the (true or predicted) axis pose, part offset
     and configuration; the waypoints carry it along the arc (revolute) or line (prismatic) to
@@ -77,6 +78,7 @@ def plan_cmd(data_dir, index, joint, predictions_path, model, closed_loop, no_to
     """
     from ..manipulation.image_plan import plan_image, simulate_image_plan, write_plan_record
 
+    data_dir = resolve_split_folder(data_dir, data_option)
     if index < 0:
         raise UserError(f"--index must be >= 0, got {index}")
     if model is not None and predictions_path is not None:

@@ -8,13 +8,13 @@ from pathlib import Path
 import click
 
 from ..errors import UserError
-from .options import no_mirror_option, precision_option, prepare_torch
+from .options import no_mirror_option, precision_option, prepare_torch, resolve_split_folder, split_folder
 
 
 @click.command("predict")
 @click.option("--model", "model_path", required=True,
               help="A shipped model (dense, dense-kinect2, mdn-small; see 'artdata models') or a checkpoint file from 'artdata train'.")
-@click.option("--data", type=click.Path(), required=True, help="Split folder to predict, e.g. data/cabinet/test.")
+@split_folder
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="predictions.h5 to write (for 'artdata score').")
 @click.option("--as-class", default=None,
               help="Read a third-party split (generate --urdf) as this built-in class: its joints must be the "
@@ -38,10 +38,13 @@ from .options import no_mirror_option, precision_option, prepare_torch
                    "(default: one per thread for splits of 4,096 images or more, else 1: this process).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or summary.")
-def predict_cmd(model_path, data, out, as_class, estimate, snap_to_cloud, object_mask, no_mirror, precision, method, batch_size,
+def predict_cmd(model_path, data_dir, data_option, out, as_class, estimate, snap_to_cloud, object_mask, no_mirror, precision, method, batch_size,
                 device, threads, workers, overwrite, quiet):
-    """Predict axis poses, configurations, geometry and the full mixture for every image of a split."""
+    """Predict axis poses, configurations, geometry and the full mixture for every image of the split
+    in DIR (a split folder, e.g. data/cabinet/test)."""
     from ..safeio import check_can_create, check_name_length, check_outputs_distinct
+
+    data = resolve_split_folder(data_dir, data_option)
 
     out = Path(out)
     check_name_length(out)

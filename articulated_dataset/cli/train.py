@@ -7,7 +7,7 @@ import time
 
 import click
 
-from .options import ClassChoice, prepare_torch
+from .options import ClassChoice, prepare_torch, resolve_split_folder, split_folder
 
 
 @click.command("train")
@@ -15,7 +15,7 @@ from .options import ClassChoice, prepare_torch
               help="dense: the per-pixel voting network of the shipped models (docs/dense.md); mdn: the paper's "
                    "ResNet-18 mixture density network (docs/model.md).")
 @click.option("--class", "class_name", type=ClassChoice(), required=True, help="Object class (one network per class).")
-@click.option("--data", type=click.Path(), required=True, help="The class's TRAINING split folder, e.g. data/cabinet/train.")
+@split_folder
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="Checkpoint file (written after every epoch).")
 @click.option("--small", is_flag=True, help="mdn: reduced network at 96x54 input: minutes per class on a 2-core CPU.")
 @click.option("--epochs", type=int, default=None, help="Epochs (default: mdn 30, or 8 with --small; dense 2).")
@@ -39,9 +39,11 @@ from .options import ClassChoice, prepare_torch
 @click.option("--threads", type=int, default=None, help="CPU threads for torch (default: all cores of this process).")
 @click.option("--resume", is_flag=True, help="Continue the interrupted training stored in --out (same options).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or per-epoch lines.")
-def train_cmd(model_kind, class_name, data, out, small, epochs, batch_size, lr, components, width, init_from,
+def train_cmd(model_kind, class_name, data_dir, data_option, out, small, epochs, batch_size, lr, components, width, init_from,
               origin_weight, noise, noise_fraction, val_fraction, max_objects, seed, device, threads, resume, quiet):
-    """Train one class's estimator on its training split (checkpoints after every epoch; --resume continues)."""
+    """Train one class's estimator on the training split in DIR (a split folder, e.g. data/cabinet/train;
+    checkpoints after every epoch; --resume continues)."""
+    data = resolve_split_folder(data_dir, data_option)
     prepare_torch(threads)
     from ..models.train import TrainingInterrupted, train_model
 

@@ -303,6 +303,10 @@ def image_borders_reached(mask: np.ndarray) -> list[str]:
     return [name for name, edge in edges.items() if edge.any()]
 
 
+#: Suffixes of a split's shards (HDF5): a file that is one is not a depth image.
+SHARD_SUFFIXES = (".h5", ".hdf5")
+
+
 def estimate_file(depth_path: str | Path, class_name: str, *, camera_path: str | Path | None = None,
                   mask_path: str | Path | None = None, depth_units: str = "auto", model: str = "dense",
                   mirror: bool = True, precision: str = "float32",
@@ -317,11 +321,20 @@ def estimate_file(depth_path: str | Path, class_name: str, *, camera_path: str |
     from ..real.readers import load_depth, load_mask
     from ..registry import get_class
 
+    from ..exr.files import DEPTH_SUFFIX, LABEL_SUFFIX
+
     depth_path = Path(depth_path)
     if not depth_path.is_file():
         raise UserError(f"depth file not found: {depth_path}")
+    if depth_path.suffix.lower() in SHARD_SUFFIXES:
+        raise UserError(f"{depth_path} is a shard of a split, not one depth image: predict a whole split with "
+                        f"'artdata predict --model {model} DIR', or export its images with 'artdata export DIR "
+                        f"--format exr OUT'")
     if camera_path is None:
         camera = capture_files(depth_path).camera
+        exported = depth_path.with_name(depth_path.name[: -len(DEPTH_SUFFIX)] + LABEL_SUFFIX)
+        if camera is None and depth_path.name.endswith(DEPTH_SUFFIX) and exported.is_file():
+            camera = exported  # an 'artdata export' image: its label file holds the intrinsics K
         if camera is None:
             raise UserError(f"{depth_path}: intrinsics missing; pass --camera FILE (fx, fy, cx, cy) or put "
                             f"camera.json next to it")
