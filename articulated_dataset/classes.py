@@ -52,6 +52,11 @@ class ObjectClass:
     order: listing order (the paper's order for the built-ins); ties broken by name.
     realistic_table: the joint size distribution of ``--table realistic`` (same pose, q
         and chirality as ``table``), or None where the class has none (third-party classes).
+    varied_table: the table of ``--table varied`` (sizes, wider openings and the structure
+        variables of :mod:`articulated_dataset.generators.varied`), or None where the class
+        has none.
+    varied_template: the Xacro template a sample with structure variables is built from
+        (its arguments' defaults build the paper's structure); None without a varied table.
     mirror_joints: where the class's mirror image (the scene reflected left-right) is again an
         object of the class, the joint order of that image: its joint ``k`` is this object's
         joint ``mirror_joints[k]`` (the cabinet hinged on either side: ``(0,)``; the two-door
@@ -70,6 +75,8 @@ class ObjectClass:
     description: str = ""
     order: int = 100
     realistic_table: SamplingTable | None = None
+    varied_table: SamplingTable | None = None
+    varied_template: str | None = None
     mirror_joints: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
@@ -79,12 +86,26 @@ class ObjectClass:
                 raise ValueError(f"mirror_joints must pair the joints up (a permutation of 0..{len(self.joints) - 1} that "
                                  f"is its own inverse), got {self.mirror_joints!r}")
             object.__setattr__(self, "mirror_joints", perm)
+        if (self.varied_table is None) != (self.varied_template is None):
+            raise ValueError("a varied table and a varied template go together")
+        if self.varied_table is not None and not self.varied_table.structure:
+            raise ValueError("a varied table holds structure variables")
+        if self.table.structure or (self.realistic_table is not None and self.realistic_table.structure):
+            raise ValueError("structure variables belong to the varied table only")
 
     def named_table(self, name: str) -> SamplingTable:
         """The table ``artdata generate --table NAME`` picks: ``paper`` (the class's default
-        table) or ``realistic``; anything else is a one-line :class:`UserError`."""
+        table), ``realistic`` or ``varied``; anything else is a one-line :class:`UserError`."""
         if name == "paper":
             return self.table
+        if name == "varied":
+            if self.varied_table is None:
+                from .registry import all_classes  # (only to name the alternatives in the error)
+
+                having = ", ".join(c.name for c in all_classes() if c.varied_table is not None)
+                raise UserError(f"class {self.name!r} has no varied table (classes with one: {having or 'none'}); "
+                                f"give --table paper, realistic or a table file")
+            return self.varied_table
         if name == "realistic":
             if self.realistic_table is None:
                 raise UserError(f"class {self.name!r} has no realistic table (the built-in classes have one); "
@@ -101,11 +122,35 @@ class ObjectClass:
     def joint_types(self) -> tuple[str, ...]:
         return tuple(j.type for j in self.joints)
 
-    def template_path(self) -> Path:
-        """The template file: ``template`` itself if absolute, else a file of ``urdf_templates/``."""
-        if Path(self.template).is_absolute():
-            return Path(self.template)
-        path = resources.files("articulated_dataset.urdf_templates").joinpath(self.template)
+    def check_structure(self, table: SamplingTable) -> None:
+        """UserError unless ``table``'s structure variables are the varied table's (same
+        names, same options): the varied template reads exactly those."""
+        if not table.structure:
+            return
+        if self.varied_table is None:
+            raise UserError(f"sampling table: class {self.name!r} has no structure variables "
+                            f"(structure.{next(iter(table.structure))}); only a varied table holds them")
+        known = self.varied_table.structure
+        for name, value in table.structure.items():
+            if name not in known:
+                raise UserError(f"sampling table: unknown structure variable structure.{name} (known: {', '.join(known)})")
+            if isinstance(value, dict) and set(value) != set(known[name]):
+                raise UserError(f"sampling table: structure.{name} must weigh the options {', '.join(known[name])}")
+        missing = [name for name in known if name not in table.structure]
+        if missing:
+            raise UserError(f"sampling table: structure.{missing[0]} is missing")
+
+    def template_path(self, *, varied: bool = False) -> Path:
+        """The template file (with ``varied``, the varied template): itself if absolute, else
+        a file of ``urdf_templates/``."""
+        name = self.template
+        if varied:
+            if self.varied_template is None:
+                raise UserError(f"class {self.name!r} has no varied template; its tables hold no structure variables")
+            name = self.varied_template
+        if Path(name).is_absolute():
+            return Path(name)
+        path = resources.files("articulated_dataset.urdf_templates").joinpath(name)
         return Path(str(path))
 
 

@@ -544,7 +544,7 @@ def configure_allocator() -> bool:
     By default every block above 32 MB is mapped fresh and unmapped when freed, so each of the
     dense pipeline's batch-sized tensors (the network input of 128 images is 95 MB) costs its
     pages' faults and zeroing every time: 40-45 ms per such tensor on one core of the 2-core
-    machine, a fifth of the batched pipeline's time (``benchmarks/dense_inference.py``: cabinet
+    machine, 20% of the batched pipeline's time (``benchmarks/dense_inference.py``: cabinet
     305-327 against 399-411 images/s).  The cost: the process keeps its peak heap until it ends.
     For commands and worker processes, never called by library functions.  Returns whether it
     was set: not where a user set any of :data:`ALLOCATOR_VARIABLES`, nor without glibc."""

@@ -113,7 +113,8 @@ def all_classes() -> list[ObjectClass]:
 
 def check_table(obj_class: ObjectClass, table: SamplingTable) -> None:
     """UserError unless ``table`` fits ``obj_class``: one q range per joint, a revolute joint
-    opening at most one turn."""
+    opening at most one turn, structure variables only the class's varied table has."""
+    obj_class.check_structure(table)
     if len(table.q) != obj_class.n_joints:
         raise UserError(f"sampling table: q needs {obj_class.n_joints} ranges (one per joint), got {len(table.q)}")
     for j, (joint, (_, hi)) in enumerate(zip(obj_class.joints, table.q)):

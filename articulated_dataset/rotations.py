@@ -3,8 +3,7 @@
 All functions are pure and vectorised over leading axes.  Label quaternions follow the
 convention w >= 0 (:func:`matrix_to_quat`).
 
-Why ours and not ``scipy.spatial.transform.Rotation`` (issue 16 prefers scipy's rotations
-where ours duplicate them): scipy is an optional dependency (ICP, mixture scoring), while
+Why ours and not ``scipy.spatial.transform.Rotation``: scipy is an optional dependency (ICP, mixture scoring), while
 generation, the format, the loaders and the metrics need these without it; and the labels of
 every generated split are computed by :func:`matrix_to_quat`, so its exact arithmetic is part
 of the dataset's bytes (``scripts/compare_generated_bytes.sh``).  The package keeps this one

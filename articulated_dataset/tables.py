@@ -9,14 +9,21 @@ A table may instead give its geometry a joint distribution (``shape``, a
 ``artdata generate --table realistic`` (:mod:`articulated_dataset.generators.realistic`);
 its ``geometry`` ranges are then the bounds that truncate the mixture.
 
+A table may also hold structure variables (``structure``): how an object of a class is built
+beyond its three sizes (door overlay or inset, plinth, countertop, handle kind...), the
+tables of ``artdata generate --table varied`` (:mod:`articulated_dataset.generators.varied`).
+A variable's kind is read from its name's suffix (:data:`STRUCTURE_KINDS`); each object draws
+one value per variable from its own structure stream
+(:data:`articulated_dataset.generation.sampling.STRUCTURE_STREAM`).
+
 A table can be overridden from a JSON or TOML file holding any subset of the keys of
 :meth:`SamplingTable.to_dict`, e.g. ``{"geometry": {"height_m": [1.5, 1.8]}}``;
 :func:`table_from_options` is the table ``artdata generate --table`` names (a table name,
 then files overriding it).
 
-Why one module of ~440 lines (issue 16 asks for a reason above ~400): it is one data type,
+Why one module of ~500 lines: it is one data type,
 the sampling table, with the two parts of its geometry (independent ranges, the shape
-mixture) and its file format (read, and chosen by ``--table``), all checked by the same
+mixture), its structure variables and its file format (read, and chosen by ``--table``), all checked by the same
 validators (``_number``, ``_check_range``, ``_mapping``) against the same sanity bounds.  The manifest, the
 generators and third-party classes read and write tables as one ``to_dict`` /
 ``from_dict`` round trip; splitting the mixture into its own module would make those
@@ -41,10 +48,22 @@ Range = tuple[float, float]
 
 GEOMETRY_KEYS = ("depth_m", "width_m", "height_m")
 POSE_KEYS = ("x_m", "y_m", "z_m", "yaw_rad")
-TABLE_KEYS = ("geometry", "pose", "q", "chirality_p", "extra", "shape")
+TABLE_KEYS = ("geometry", "pose", "q", "chirality_p", "extra", "shape", "structure")
 #: Named tables of a built-in class (``artdata generate --table NAME``): the paper's
-#: Appendix A (independent uniform ranges) and realistic joint distributions of the sizes.
-TABLE_NAMES = ("paper", "realistic")
+#: Appendix A (independent uniform ranges), realistic joint distributions of the sizes, and
+#: those sizes with varied structure (doors, plinths, handles...; the classes that have one).
+TABLE_NAMES = ("paper", "realistic", "varied")
+#: Kinds of structure variables, by the suffix of their name: a probability (a 0/1 flag
+#: drawn), a range of lengths (m), a range of fractions (of a part's size, in [0, 1]), and
+#: weights of named options (one option drawn, with probability proportional to its weight).
+STRUCTURE_KINDS = ("_p", "_m", "_frac", "_weights")
+#: Names of structure variables and of their options: a lower-case letter, then lower-case
+#: letters, digits and underscores (they become Xacro arguments and string values).
+_STRUCTURE_NAME = re.compile(r"^[a-z][a-z0-9_]{0,47}$")
+_OPTION_NAME = re.compile(r"^[a-z0-9][a-z0-9_]{0,31}$")
+#: Most structure variables in one table, and options of one variable.
+MAX_STRUCTURE_VARIABLES = 64
+MAX_STRUCTURE_OPTIONS = 16
 
 #: Sanity bounds of a table (not physics: they keep absurd values from reaching MuJoCo and
 #: the renderer).  Object sides in metres: 1 mm (the smallest a third-party object is given,
@@ -261,6 +280,63 @@ class ShapeMixture:
         return cls(d["components"])
 
 
+def structure_kind(name: str) -> str:
+    """The kind (one of :data:`STRUCTURE_KINDS`) of the structure variable ``name``; a name
+    without a known suffix is the user's mistake."""
+    if not isinstance(name, str) or not _STRUCTURE_NAME.match(name):
+        raise UserError(f"sampling table: structure variable names are 1-48 lower-case letters, digits or "
+                        f"underscores, got {_show(name)}")
+    for kind in STRUCTURE_KINDS:
+        if name.endswith(kind):
+            return kind
+    raise UserError(f"sampling table: structure.{name} must end in one of {', '.join(STRUCTURE_KINDS)} "
+                    f"(probability, lengths in m, fractions, option weights)")
+
+
+def _structure_value(name: str, v):
+    """One structure variable checked by the kind its name gives: a probability in [0, 1], a
+    length range in [0, MAX_SIZE_M] m, a fraction range in [0, 1], or option weights
+    (non-negative, not all zero; returned in option-name order)."""
+    kind, where = structure_kind(name), f"structure.{name}"
+    if kind == "_p":
+        p = _number(where, v)
+        if not 0.0 <= p <= 1.0:
+            raise UserError(f"sampling table: {where} must be a probability in [0, 1], got {p}")
+        return p
+    if kind == "_m":
+        return _check_range(where, v, 0.0, MAX_SIZE_M, " m")
+    if kind == "_frac":
+        return _check_range(where, v, 0.0, 1.0)
+    weights = _mapping(where, v)
+    if not 1 <= len(weights) <= MAX_STRUCTURE_OPTIONS:
+        raise UserError(f"sampling table: {where} must weigh 1-{MAX_STRUCTURE_OPTIONS} options, got {len(weights)}")
+    checked = {}
+    for option, w in weights.items():
+        if not _OPTION_NAME.match(option):
+            raise UserError(f"sampling table: {where} option names are 1-32 lower-case letters, digits or "
+                            f"underscores, got {_show(option)}")
+        checked[option] = _number(f"{where}.{option}", w)
+        if not 0.0 <= checked[option] <= 1e6:
+            raise UserError(f"sampling table: {where}.{option} must be a weight in [0, 1e6], got {checked[option]}")
+    if sum(checked.values()) <= 0.0:
+        raise UserError(f"sampling table: {where} needs one option of positive weight")
+    # options in name order: a table read back from a manifest (JSON, keys sorted) draws the same
+    return {option: checked[option] for option in sorted(checked)}
+
+
+def check_structure(structure) -> dict:
+    """A table's structure variables checked (:func:`_structure_value`), keys in sorted order."""
+    given = _mapping("structure", structure)
+    if len(given) > MAX_STRUCTURE_VARIABLES:
+        raise UserError(f"sampling table: structure holds at most {MAX_STRUCTURE_VARIABLES} variables, got {len(given)}")
+    return {k: _structure_value(k, given[k]) for k in sorted(given)}
+
+
+def _structure_to_dict(structure: Mapping) -> dict:
+    return {k: (list(v) if isinstance(v, tuple) else dict(v) if isinstance(v, Mapping) else v)
+            for k, v in structure.items()}
+
+
 @dataclass(frozen=True)
 class SamplingTable:
     """Uniform sampling ranges for one object class.
@@ -275,6 +351,10 @@ class SamplingTable:
     shape: None (the paper's tables: each geometry range sampled uniformly and independently)
         or a :class:`ShapeMixture`, the joint distribution of the three sizes, truncated to
         the ``geometry`` ranges (``--table realistic``).
+    structure: structure variables (``--table varied``; empty for the paper's and the
+        realistic tables): name -> probability, range or option weights, the kind given by
+        the name's suffix (:data:`STRUCTURE_KINDS`).  The class's template reads one drawn
+        value of each (:mod:`articulated_dataset.generators.varied`).
     """
 
     geometry: Mapping[str, Range]
@@ -283,6 +363,7 @@ class SamplingTable:
     chirality_p: float = 0.0
     extra: Mapping[str, float] = field(default_factory=dict)
     shape: ShapeMixture | None = None
+    structure: Mapping[str, object] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         geometry, pose = _mapping("geometry", self.geometry), _mapping("pose", self.pose)
@@ -313,6 +394,7 @@ class SamplingTable:
                     if not all(lo <= v <= hi for v in c.sizes_m[k]):
                         raise UserError(f"sampling table: shape component {c.name!r} sizes_m.{k} must lie within "
                                         f"geometry.{k} [{lo}, {hi}]")
+        object.__setattr__(self, "structure", check_structure(self.structure))
         object.__setattr__(self, "shape", shape)
         object.__setattr__(self, "geometry", geometry)
         object.__setattr__(self, "pose", pose)
@@ -329,6 +411,8 @@ class SamplingTable:
             "extra": dict(self.extra),
             # only a joint table stores one (the paper's tables, and their bytes, are unchanged)
             **({} if self.shape is None else {"shape": self.shape.to_dict()}),
+            # only a varied table stores one (the paper's and realistic tables' bytes are unchanged)
+            **({"structure": _structure_to_dict(self.structure)} if self.structure else {}),
         }
 
     def to_json(self) -> str:
@@ -346,6 +430,7 @@ class SamplingTable:
         return cls(
             geometry=d["geometry"], pose=d["pose"], q=tuple(q) if isinstance(q, list) else q,
             chirality_p=d.get("chirality_p", 0.0), extra=d.get("extra", {}), shape=d.get("shape"),
+            structure=d.get("structure", {}),
         )
 
     @property
@@ -356,8 +441,9 @@ class SamplingTable:
     def override(self, changes: Mapping) -> "SamplingTable":
         """Return a copy with the keys in ``changes`` (same layout as :meth:`to_dict`) replaced.
 
-        Every key must be one the table has (``extra`` keys included: the class defines
-        them); wrong types and out-of-range values are a :class:`UserError` naming the key.
+        Every key must be one the table has (``extra`` and ``structure`` variables included:
+        the class defines them; a structure variable's options given replace its weights, those
+        left out weighing 0); wrong types and out-of-range values are a :class:`UserError` naming the key.
         """
         changes = _mapping("(top level)", changes)
         unknown = sorted(set(changes) - set(TABLE_KEYS))
@@ -384,6 +470,23 @@ class SamplingTable:
             kwargs["chirality_p"] = changes["chirality_p"]
         if "shape" in changes:  # a whole mixture, or null for independent uniform sizes
             kwargs["shape"] = changes["shape"]
+        if "structure" in changes:
+            given = _mapping("structure", changes["structure"])
+            unknown = sorted(set(given) - set(self.structure))
+            if unknown:
+                known = ", ".join(self.structure) or "none for this table; --table varied has them"
+                raise UserError(f"sampling table: unknown structure variable structure.{unknown[0]} (known: {known})")
+            structure = dict(self.structure)
+            for name, value in given.items():
+                if structure_kind(name) == "_weights":  # options left out weigh 0: {"knob": 1} forces one
+                    value = _mapping(f"structure.{name}", value)
+                    options = sorted(set(value) - set(structure[name]))
+                    if options:
+                        raise UserError(f"sampling table: structure.{name} has no option {options[0]!r} "
+                                        f"(known: {', '.join(structure[name])})")
+                    value = {option: value.get(option, 0.0) for option in structure[name]}
+                structure[name] = value
+            kwargs["structure"] = structure
         return replace(self, **kwargs)
 
 

@@ -1,4 +1,4 @@
-"""Counts of the scene and occluder options (issue 18) per class, for DATASHEET.md.
+"""Counts of the scene and occluder options per class, for DATASHEET.md.
 
 Generates ``--objects`` objects per class (seed 0, 16 images each) with each setting and
 prints, per class: pose draws per object, the moving parts' ``visible_fraction`` (mean,

@@ -21,7 +21,7 @@ configuration error, scored as ``artdata score`` scores them
   pixels: each group's share and mean errors.  The paper's pose table (Appendix A) puts a
   metre-high cabinet close to a level camera, so most renders cut it off; the paper's text says
   positions were drawn "from the view frustum of the camera".  This table tells how a model does
-  on the renders that show everything (docs/dense.md, "Twenty-seventh session").
+  on the renders that show everything (docs/dense.md).
 """
 
 from __future__ import annotations

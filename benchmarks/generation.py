@@ -10,12 +10,12 @@ Whole machine (``--workers N``): the same two rates with N processes, measured i
     python benchmarks/generation.py --objects 128 --workers 2
     python benchmarks/generation.py --objects 8 --workers --option-objects 24   # + options only
 
-Generation options beside the default (issue 18, one process, ``--option-objects`` per class):
+Generation options beside the default (one process, ``--option-objects`` per class):
 end-to-end images/s with ``--camera head``, with ``--intrinsics kinect2`` at the default size,
 with ``--table realistic``, with ``--scene kitchen``/``room``, with ``--occluders 2``, with
 both, with ``--rgb`` alone and with all three, each next to the paper's setting measured in the same run (a figure, not a target).
 
-Targets (issue 2/3): end to end >= 60% of the bare rate; < 4 KB per image; whole machine
+Targets: end to end >= 60% of the bare rate; < 4 KB per image; whole machine
 >= 1,000 images/s on 2 cores.
 """
 

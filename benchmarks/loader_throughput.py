@@ -19,8 +19,8 @@ time is printed apart): samples/s, and CPU time per sample of this process and a
     python benchmarks/loader_throughput.py                  # 200 cabinets, batch 128, 2 workers
     python benchmarks/loader_throughput.py --data OUT/cabinet/train --epochs 4
 
-Target: >= 5,000 samples/s through the torch and JAX loaders on 2 cores (issue 5), and at least the
-5,500 samples/s measured before the loader rework (issue 17: torch, 2 workers).
+Target: >= 5,000 samples/s through the torch and JAX loaders on 2 cores, and >= 5,500 samples/s
+through torch with 2 workers.
 """
 
 from __future__ import annotations

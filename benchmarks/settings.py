@@ -1,4 +1,4 @@
-"""The dense estimator on each generation setting (issue 18): generate, optionally mask, predict, score.
+"""The dense estimator on each generation setting: generate, optionally mask, predict, score.
 
 For every class and setting (the paper's default; ``--scene kitchen|room``; ``--occluders 2``;
 both; ``--camera head``; ``--table realistic``; ``--intrinsics d435``) this generates a small test

@@ -5,6 +5,7 @@ from articulated_dataset.tables import SamplingTable
 
 from .common import NEAR_POSE_M, REVOLUTE_Q_RAD, YAW_RAD
 from .realistic import CABINET, realistic_table
+from .varied import CABINET_DOOR_Q_RAD, CABINET_STRUCTURE, varied_table
 
 TABLE = SamplingTable(
     geometry={"depth_m": (0.56, 0.64), "width_m": (0.60, 1.40), "height_m": (0.60, 1.40)},
@@ -16,6 +17,10 @@ TABLE = SamplingTable(
 #: ``--table realistic``: sizes from standard dimensions (generators/realistic.py).
 REALISTIC_TABLE = realistic_table(TABLE, *CABINET)
 
+#: ``--table varied``: the realistic sizes, doors opening to 120 degrees and the structure
+#: variables of generators/varied.py (urdf_templates/cabinet_varied.urdf.xacro).
+VARIED_TABLE = varied_table(REALISTIC_TABLE, (CABINET_DOOR_Q_RAD,), CABINET_STRUCTURE)
+
 CLASS = ObjectClass(
     name="cabinet",
     template="cabinet.urdf.xacro",
@@ -25,5 +30,7 @@ CLASS = ObjectClass(
     description="1 revolute door, hinged on the left or right front edge",
     order=0,
     realistic_table=REALISTIC_TABLE,
+    varied_table=VARIED_TABLE,
+    varied_template="cabinet_varied.urdf.xacro",
     mirror_joints=(0,),
 )

@@ -5,6 +5,7 @@ from articulated_dataset.tables import SamplingTable
 
 from .common import NEAR_POSE_M, REVOLUTE_Q_RAD, YAW_RAD
 from .realistic import CABINET2, realistic_table
+from .varied import CABINET_DOOR_Q_RAD, CABINET_STRUCTURE, varied_table
 
 TABLE = SamplingTable(
     geometry={"depth_m": (0.56, 0.64), "width_m": (0.60, 1.40), "height_m": (0.60, 1.40)},
@@ -15,6 +16,10 @@ TABLE = SamplingTable(
 #: ``--table realistic``: sizes from standard dimensions (generators/realistic.py).
 REALISTIC_TABLE = realistic_table(TABLE, *CABINET2)
 
+#: ``--table varied``: the realistic sizes, doors opening to 120 degrees and the structure
+#: variables of generators/varied.py (urdf_templates/cabinet2_varied.urdf.xacro).
+VARIED_TABLE = varied_table(REALISTIC_TABLE, (CABINET_DOOR_Q_RAD, CABINET_DOOR_Q_RAD), CABINET_STRUCTURE)
+
 CLASS = ObjectClass(
     name="cabinet2",
     template="cabinet2.urdf.xacro",
@@ -23,5 +28,7 @@ CLASS = ObjectClass(
     description="two-door cabinet: left door (joint 0) and right door (joint 1)",
     order=4,
     realistic_table=REALISTIC_TABLE,
+    varied_table=VARIED_TABLE,
+    varied_template="cabinet2_varied.urdf.xacro",
     mirror_joints=(1, 0),
 )

@@ -29,7 +29,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--checkpoint", required=True, help="finished dense checkpoint (artdata train --model dense)")
-    p.add_argument(required=True, help="its training split folder")
+    p.add_argument("--data", required=True, help="its training split folder")
     p.add_argument("--out", required=True, help="checkpoint to write")
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--clean", action="store_true",

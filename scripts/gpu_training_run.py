@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """One class's training on a single GPU inside a fixed wall-clock budget.
 
-What a short GPU lease is used for (docs/model.md records the run that produced shipped weights):
+What a short time on a GPU machine is used for (docs/model.md gives the run that produced shipped weights):
 
 1. generate the class's training split (``--objects`` objects, ``--seed``) and its test split
    (``--test-objects``, ``--test-seed``) with ``artdata generate`` on every CPU core;

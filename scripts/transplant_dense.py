@@ -13,9 +13,9 @@ mean the same in both classes -- the body's and the first parts' segmentation, t
 checkpoint ``artdata train --init-from`` continues from; its ``transplant`` field names both
 files by SHA-256 (``scripts/ship_weights.py`` records it in the lineage).
 
-The shipped cabinet was started this way from the shipped two-door cabinet (whose doors are
-cabinet doors of half the width): after 4 epochs it was better than the cabinet's own weights
-after 7 (docs/dense.md).
+The shipped cabinet starts this way from the shipped two-door cabinet (whose doors are cabinet
+doors of half the width): 4 epochs from it score better than 7 from the cabinet's own weights
+(docs/dense.md).
 """
 
 from __future__ import annotations

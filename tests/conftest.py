@@ -1,4 +1,4 @@
-"""Shared fixtures: small real datasets rendered once per test session."""
+"""Shared fixtures: small real datasets rendered once per pytest run."""
 
 from __future__ import annotations
 

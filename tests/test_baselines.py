@@ -346,8 +346,8 @@ def _damaged_train(tiny_root, tmp_path, field, value):
 @pytest.mark.parametrize("field, value", [("axis_pose", np.inf), ("axis_pose", 0.0), ("q", np.nan), ("geometry", 3e38)],
                          ids=["pose-inf", "pose-zero-quaternion", "q-nan", "geometry-huge"])
 def test_damaged_training_labels_are_one_line_naming_the_training_split(tiny_root, tmp_path, method, field, value):
-    """The Mean's rotation mean raised numpy's LinAlgError (a traceback) on an infinite or zero
-    axis quaternion; other damaged labels were refused by the predictions writer naming --out."""
+    """An infinite or zero axis quaternion (on which the Mean's rotation mean would raise numpy's
+    LinAlgError) and other damaged labels are refused naming the training split, not --out."""
     train = _damaged_train(tiny_root, tmp_path, field, value)
     out = tmp_path / "p.h5"
     res = _invoke([method, "--train", train, "--test", tiny_root / "cabinet" / "test", "--out", out, "-q"])
@@ -359,9 +359,10 @@ def test_damaged_training_labels_are_one_line_naming_the_training_split(tiny_roo
 
 @pytest.mark.parametrize("value", [np.nan, np.inf, 3e38], ids=["nan", "inf", "huge"])
 def test_damaged_depth_reads_as_no_return(tiny_root, icp_objects, value):
-    """NaN depth made every distance NaN and NN returned training row -1 (the last image's labels,
-    exit 0); infinite or huge depth overflowed float32 (RuntimeWarnings on stderr) and stopped ICP's
-    KD-tree query with a traceback.  Such pixels are no return, as for the dense model."""
+    """NaN, infinite or huge depth is no return, as for the dense model: NaN would make every
+    distance NaN (NN returning training row -1, the last image's labels, exit 0); infinite or huge
+    depth would overflow float32 (RuntimeWarnings on stderr) and stop ICP's KD-tree query with a
+    traceback."""
     import warnings
 
     _, yawed_dir, model = icp_objects

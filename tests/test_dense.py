@@ -368,7 +368,7 @@ def test_noise_training_validates_and_fits_on_one_noisy_draw_of_the_validation_i
 
 @pytest.mark.slow
 def test_a_two_step_run_trains_records_its_data_and_machine_and_fits_later(tiny_root, tmp_path):
-    """Two steps in all (OneCycleLR's warm-up would be empty: it used to fail); ``fit=False`` leaves
+    """Two steps in all (OneCycleLR's warm-up would be empty); ``fit=False`` leaves
     the inference fit out, and refit_inference then gives what training's own fit gives."""
     from articulated_dataset.errors import UserError
     from articulated_dataset.format import read_manifest
@@ -513,9 +513,9 @@ def _bad_checkpoint_contents():
 @pytest.mark.parametrize("name,change,words", _bad_checkpoint_contents(), ids=[n for n, _, _ in _bad_checkpoint_contents()])
 def test_checkpoints_with_bad_contents_are_one_line(overfit_run, tmp_path, tiny_root, name, change, words):
     """Weights, network configuration, class, step and q scale of a dense checkpoint are checked
-    when the file is read (before, NaN weights failed inside an eigendecomposition, a zero image
-    height inside the network, another class's name inside the refinement, a missing step after
-    the whole split was predicted)."""
+    when the file is read, not where they would fail (NaN weights inside an eigendecomposition, a
+    zero image height inside the network, another class's name inside the refinement, a missing
+    step after the whole split is predicted)."""
     from articulated_dataset.registry import class_names
 
     changed = change(dict(load_dense_checkpoint(overfit_run[0])))
@@ -661,8 +661,8 @@ def test_a_diverging_training_keeps_its_last_checkpoint(tiny_root, tmp_path, mon
 
 
 def test_nan_labels_are_refused_before_training(tiny_root, tmp_path):
-    """A split whose labels hold NaN (a real split without full ground truth) stopped at the first
-    step as "non-finite training loss ... lower --lr": the labels are now checked as they are read."""
+    """A split whose labels hold NaN (a real split without full ground truth) is refused as its
+    labels are read, not at the first step as "non-finite training loss ... lower --lr"."""
     import shutil
 
     import h5py

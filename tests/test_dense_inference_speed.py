@@ -390,7 +390,7 @@ def test_the_refinements_handles_are_handle_evidences(cabinet_split, max_q_deg):
 
 
 def test_refinement_candidates_share_one_network_pass(cabinet_split):
-    """fit_inference's sweeps (predict.predict_candidates): each candidate refinement gets what it
+    """fit_inference's candidate refinements (predict.predict_candidates): each candidate refinement gets what it
     gets alone (predict_modes), from one network pass; and the body's strip refined on the images
     whose box-frame pixels may make one (refine.strip_sized) alone, the others keeping the pair's
     quantities, is the strip refined on every image, to float rounding."""
@@ -436,7 +436,7 @@ def test_refinement_candidates_share_one_network_pass(cabinet_split):
 
 
 def test_the_fit_benchmark_reports_its_time_and_choice(tmp_path, capsys):
-    """benchmarks/fit_inference.py (the figures of docs/dense.md, "Twenty-fifth session") runs and
+    """benchmarks/fit_inference.py (the fit's time per class in docs/dense.md) runs and
     prints each class's seconds, images and the refinement chosen."""
     from pathlib import Path
 

@@ -565,7 +565,7 @@ def test_refinement_dict_reads_version_10_without_the_door_face():
 @pytest.mark.parametrize("q_deg", [0.0, 30.0, 65.0])
 def test_door_face_plane_is_read_from_the_door_pixels(q_deg):
     """Step 10's measurements on a plane through (1.5, 0, 0) m: its normal (facing the camera) and
-    its offset n . p, to a fraction of a millimetre, with a tenth of its pixels' normals corrupted."""
+    its offset n . p, to a fraction of a millimetre, with 10% of its pixels' normals corrupted."""
     depth, K, frame = _door_scene(math.radians(q_deg))
     n_true = Rotation.from_rotvec([0, 0, math.radians(q_deg)]).apply([-1.0, 0.0, 0.0])
     r = _door_refined(depth, K, frame)

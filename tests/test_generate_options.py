@@ -1,5 +1,5 @@
-"""``artdata generate``'s option rules as library functions (issue 16: the command only parses,
-calls and prints): the camera, the sampling table and the config its options name, with the
+"""``artdata generate``'s option rules as library functions (the command only parses, calls
+and prints): the camera, the sampling table and the config its options name, with the
 same one-line errors the command gives (tests/test_hostile_generate.py checks them end to end)."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The generation package's stages (issue 16): one compiler for every rebuild, the object's
+"""The generation package's stages: one compiler for every rebuild, the object's
 generator state kept for pose redraws, stage 1 free of Xacro, the scene free of sampling, one
 builder of shard attributes."""
 

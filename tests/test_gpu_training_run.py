@@ -1,4 +1,4 @@
-"""scripts/gpu_training_run.py, the script a GPU lease runs, exercised on the CPU."""
+"""scripts/gpu_training_run.py, the script a GPU machine runs, exercised on the CPU."""
 
 import json
 import subprocess
@@ -14,7 +14,7 @@ from articulated_dataset.models import WEIGHTS_DIR  # noqa: E402
 
 @pytest.mark.slow
 def test_gpu_training_run_script_on_the_cpu(tmp_path):
-    """scripts/gpu_training_run.py (what a GPU lease runs) as a CPU smoke test: it generates the
+    """scripts/gpu_training_run.py (what a GPU machine runs) as a CPU smoke test: it generates the
     split, sizes the dense model's epochs to its deadline, trains from the shipped weights and
     leaves an unfitted finished checkpoint whose record names the split and the machine."""
     repo = Path(__file__).resolve().parents[1]

@@ -1,6 +1,6 @@
-"""``artdata train --resume`` of a checkpoint whose ``data`` record is not a mapping (sweep B,
-finding 5): an ``AttributeError: 'list' object has no attribute 'get'`` traceback for the MDN
-and the dense model; now one line naming the file, which is kept."""
+"""``artdata train --resume`` of a checkpoint whose ``data`` record is not a mapping: one line
+naming the file, which is kept, for the MDN and the dense model (not an ``AttributeError: 'list'
+object has no attribute 'get'`` traceback)."""
 
 from __future__ import annotations
 

@@ -385,8 +385,8 @@ INDEX_CONTENT = {
 
 @pytest.mark.parametrize("case", list(INDEX_CONTENT))
 def test_import_exr_index_content_is_checked(base, world, case):
-    """Malformed or inconsistent split.json content: one line, nothing written (before, each of
-    these was a traceback, a 10 PiB allocation or a silently wrong split)."""
+    """Malformed or inconsistent split.json content: one line, nothing written (not a traceback,
+    a 10 PiB allocation or a silently wrong split)."""
     exp = _copy_export(base, world)
     _edit_json(exp / INDEX_NAME, INDEX_CONTENT[case])
     world.freeze()
@@ -890,8 +890,8 @@ def test_bad_meshes(urdf_world, case):
 
 @pytest.mark.parametrize("buffer", ["fifo", "directory"])
 def test_a_mesh_buffer_that_is_not_a_regular_file(urdf_world, buffer):
-    """A glTF inside the URDF's folder naming a FIFO as its buffer: the import blocked forever
-    reading it (the mesh file itself must be a regular file; the files it names were not checked)."""
+    """A glTF inside the URDF's folder naming a FIFO as its buffer is refused, not read forever
+    (the mesh file itself and the files it names must be regular files)."""
     import threading
 
     folder = _urdf_folder(urdf_world)

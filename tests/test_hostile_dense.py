@@ -139,8 +139,8 @@ def test_estimate_with_overflowing_weights_is_one_line(overflowing, tmp_path, mo
 
 def test_estimate_with_weights_that_compute_nonsense_is_one_line(tmp_path, monkeypatch):
     """Batch normalisation variances of 0 pass the checkpoint's checks and give finite outputs, but
-    axis origins of 1e33 m: estimate checks its arrays as a predictions file is checked (before, it
-    printed them, with NaN uncertainties that are not JSON)."""
+    axis origins of 1e33 m: estimate checks its arrays as a predictions file is checked (it does
+    not print them, with NaN uncertainties that are not JSON)."""
     ckpt = dict(read_checkpoint_file(SHIPPED))
     state = {k: torch.zeros_like(v) if k.endswith("running_var") else v for k, v in ckpt["model_state"].items()}
     torch.save({**ckpt, "model_state": state}, tmp_path / "bn0.pt")
@@ -153,8 +153,8 @@ def test_estimate_with_weights_that_compute_nonsense_is_one_line(tmp_path, monke
               "the model's estimate is not usable")
 
 # --- A dense checkpoint's calibration with finite but absurd numbers (a spread factor, floor or
-# outlier scale of 1e300) is refused when the file is read: before, estimate printed
-# RuntimeWarnings and an uncertainty of "Infinity" with exit 0, and predict refused its own
+# outlier scale of 1e300) is refused when the file is read: estimate must not print
+# RuntimeWarnings and an uncertainty of "Infinity" with exit 0, nor predict refuse its own
 # predictions file in three lines after predicting the whole split.
 def _absurd_calibration(**kw):
     return lambda c: {**c, "calibration": {**c["calibration"], **kw}}
@@ -191,8 +191,8 @@ def test_an_absurd_calibration_is_one_line(tmp_path, tiny_root, monkeypatch, nam
 
 # --- A split whose manifest records its generation settings in a form predict does not expect
 # (occluders as text or a list, the whole config a list) is predicted; the record is only read to
-# warn about scenes and occluders. Before: a ValueError, TypeError or AttributeError traceback from
-# ``int(config.get("occluders"))``.
+# warn about scenes and occluders (no ValueError, TypeError or AttributeError traceback from
+# ``int(config.get("occluders"))``).
 @pytest.mark.parametrize("change", [lambda m: m["config"].update(occluders="abc"),
                                     lambda m: m["config"].update(occluders=[1]),
                                     lambda m: m.update(config=[1])], ids=["occluders text", "occluders list",

@@ -1,8 +1,8 @@
-"""Hostile files and arguments found by a third sweep (issue 14's session 25): JSON nested past the
-parser's recursion limit, label numbers nested hundreds deep, YAML keys that are not text, names
-that are not UTF-8, a manifest listing a shard twice, loaders given non-integer batch sizes and
-indices, ``ingest --append`` with another training camera.  Each was a traceback or a silently
-wrong result; each is now one line (exit 2) or a clear exception."""
+"""Hostile files and arguments: JSON nested past the parser's recursion limit, label numbers
+nested hundreds deep, YAML keys that are not text, names that are not UTF-8, a manifest listing a
+shard twice, loaders given non-integer batch sizes and indices, ``ingest --append`` with another
+training camera.  Each is one line (exit 2) or a clear exception, never a traceback or a silently
+wrong result."""
 
 from __future__ import annotations
 
@@ -138,7 +138,7 @@ def test_ingest_append_refuses_another_training_camera(tiny_root, tmp_path):
 
 
 def test_import_exr_of_a_label_beyond_float32_is_one_line(split, tmp_path):
-    """A label of 1e300 was refused after numpy's overflow warning (three lines on stderr)."""
+    """A label of 1e300 is refused in one line, without numpy's overflow warning before it."""
     import subprocess
     import sys
 
@@ -152,7 +152,7 @@ def test_import_exr_of_a_label_beyond_float32_is_one_line(split, tmp_path):
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and r.stderr.startswith("artdata: error:"), r.stderr
 
 
-# ---- a fourth sweep: baselines, score, show, training options -----------------------------------
+# ---- baselines, score, show, training options ----------------------------------------------------
 
 def test_a_baseline_or_a_report_never_replaces_a_shard_of_its_inputs(tiny_root, split, tmp_path):
     train = tmp_path / "data" / "microwave" / "train"
@@ -179,8 +179,8 @@ def test_a_baseline_or_a_report_never_replaces_a_shard_of_its_inputs(tiny_root, 
 @pytest.mark.parametrize("where", ["mean", ".mean-object"])
 def test_icp_never_replaces_the_mean_object_it_finds(tiny_root, split, tmp_path, where):
     """Without --mean-object, ICP reads <train>/../mean or its cache <train>/../.mean-object/: an
-    --out there replaced the mean object's shard with the predictions (exit 0), and every later
-    ICP run of the class failed on it until the cache was deleted by hand."""
+    --out there is refused, since replacing the mean object's shard with the predictions would make
+    every later ICP run of the class fail until the cache is deleted by hand."""
     train = tmp_path / "data" / "microwave" / "train"
     shutil.copytree(tiny_root / "microwave" / "train", train)
     args = ["baseline", "icp", "--train", train, "--test", split, "--limit", 1, "--workers", 1, "-q"]

@@ -419,7 +419,7 @@ def test_resume_with_a_foreign_shard_file(sandbox, tiny_split, content):
 
 
 TAMPERED_RECORDS = {
-    "n-images-beyond-float": ("n_images", 10**400),  # was an OverflowError in the free-space check
+    "n-images-beyond-float": ("n_images", 10**400),  # not an OverflowError in the free-space check
     "object-range": ("object_stop", 10**6),
     "negative-start": ("object_start", -5),
     "checksum-not-hex": ("sha256", "../../x"),
@@ -451,8 +451,8 @@ def test_resume_never_carries_a_tampered_record_into_a_complete_manifest(sandbox
 
 
 def test_resume_never_adopts_a_shard_symlink_leading_out(sandbox, tiny_split):
-    """An unlisted shard-00001.h5 linking to a valid shard elsewhere was opened, hashed and
-    adopted (exit 0); every reader then refuses the split."""
+    """An unlisted shard-00001.h5 linking to a valid shard elsewhere is refused, not opened, hashed
+    and adopted (after which every reader would refuse the split)."""
     split = copy_split(tiny_split, sandbox / "out")
     manifest = json.loads((split / "manifest.json").read_text())
     manifest["shards"], manifest["complete"] = manifest["shards"][:1], False

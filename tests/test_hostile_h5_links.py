@@ -1,4 +1,4 @@
-"""Hostile HDF5 link layouts: hard-link aliases (sweep B, finding 1).
+"""Hostile HDF5 link layouts: hard-link aliases.
 
 A few hundred hard links to one group at each of three levels make a 100 KB file whose
 recursive layout check visited every path (300^3 = 2.7e7, about an hour; 1000 per level: days):

@@ -1,5 +1,5 @@
 """A predictions file's ``mixture_layout`` stored as an array of byte strings that are not UTF-8
-(sweep B, finding 2): a UnicodeDecodeError traceback, now one line naming the attribute."""
+is one line naming the attribute, not a UnicodeDecodeError traceback."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
-"""Values whose arithmetic overflows print numpy's RuntimeWarning (two more stderr lines) before
-the error line (sweep B, finding 6): an axis direction or quaternion of 1e300 components in a
-label file, a ``.npy`` header declaring a shape whose size overflows.  One line now."""
+"""Values whose arithmetic overflows give the error line alone, without numpy's RuntimeWarning
+(two more stderr lines) before it: an axis direction or quaternion of 1e300 components in a
+label file, a ``.npy`` header declaring a shape whose size overflows."""
 
 from __future__ import annotations
 

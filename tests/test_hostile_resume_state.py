@@ -1,9 +1,9 @@
-"""``--resume`` of a checkpoint whose optimizer parameter groups or moments are malformed (sweep B,
-finding 4).  Before: a NaN learning rate, ``eps`` 0 or a negative second moment trained on,
-exited 0 and replaced the resumable checkpoint with one of NaN weights that no reader loads
-("model_state holds NaN or infinite weights"); text ``betas`` or a negative ``step`` ended in a
-TypeError / RuntimeError traceback.  Now the state is refused in one line naming the file, the
-file is kept, and an MDN training never writes diverged weights."""
+"""``--resume`` of a checkpoint whose optimizer parameter groups or moments are malformed: the
+state is refused in one line naming the file, the file is kept, and an MDN training never writes
+diverged weights.  Unchecked, a NaN learning rate, ``eps`` 0 or a negative second moment would be
+trained on, exit 0 and replace the resumable checkpoint with one of NaN weights that no reader
+loads ("model_state holds NaN or infinite weights"); text ``betas`` or a negative ``step`` would
+end in a TypeError / RuntimeError traceback."""
 
 from __future__ import annotations
 
@@ -89,8 +89,8 @@ def test_an_mdn_training_never_writes_diverged_weights(unfinished, tmp_path, mon
 
 
 def test_an_mdn_training_refuses_nan_labels(unfinished, tmp_path):
-    """NaN labels (a real split without full ground truth) made every loss NaN from the first step,
-    then a message to lower --lr: the labels are checked as they are read."""
+    """NaN labels (a real split without full ground truth) are refused as they are read, not as a
+    NaN loss from the first step with a message to lower --lr."""
     import shutil
 
     import h5py

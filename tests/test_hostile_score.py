@@ -1,4 +1,4 @@
-"""Hostile input for ``artdata score`` and the predictions reader (issue 13).
+"""Hostile input for ``artdata score`` and the predictions reader.
 
 Every case runs the CLI as a user does and must end with exactly one stderr line
 ``artdata: error: ...``, exit code 2, nothing on stdout, and no file created, changed or

@@ -1,8 +1,8 @@
-"""A shard whose image size or joint count differs from its split's manifest and class (sweep B,
-finding 3): the loaders allocate their arrays from the manifest, so a shard of another class
-(two joints in a cabinet split) ended in ``ValueError: could not broadcast`` in ``ShardReader``,
+"""A shard whose image size or joint count differs from its split's manifest and class: the
+loaders allocate their arrays from the manifest, so unchecked, a shard of another class (two joints
+in a cabinet split) would end in ``ValueError: could not broadcast`` in ``ShardReader``,
 ``NormStats.from_split`` and the torch loaders, and ``artdata train --model dense`` in a
-``RuntimeError`` inside its loss; a shard of other images was called damaged."""
+``RuntimeError`` inside its loss, and a shard of other images would be called damaged."""
 
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
-"""Truth splits whose labels are infinite, absurd or zero-length quaternions (sweep B, finding 7):
-the predictions file is held to finite values within +-1e6 and non-zero quaternions, the truth
-was not, and ``artdata score`` printed ``inf +/- inf deg`` or an axis position error of
+"""Truth splits whose labels are infinite, absurd or zero-length quaternions: the truth is held,
+as the predictions file is, to finite values within +-1e6 and non-zero quaternions, so
+``artdata score`` never prints ``inf +/- inf deg`` or an axis position error of
 51961524322290241277160975777251865919488.00 cm with exit code 0.  NaN (a label not given, as in
-real captures) is still scored as undefined."""
+real captures) is scored as undefined."""
 
 from __future__ import annotations
 

@@ -61,7 +61,7 @@ def _yawed(quat, yaw_deg):
 @pytest.mark.parametrize("frame", sorted(FRAMES))
 def test_exact_mirror_scores_180(frame):
     """The truth turned half a turn about its own y axis (door on the other side of the same
-    hinge line): version 1 scored 0 (undefined twist); now 180."""
+    hinge line) scores 180 (metric version 1 scored 0: undefined twist)."""
     true = _yawed(FRAMES[frame], 23.0)
     mirror = rotations.quat_multiply(true, HALF_TURN["y"])
     assert M.axis_rotation_error_deg(mirror, true) == pytest.approx(180.0, abs=1e-9)

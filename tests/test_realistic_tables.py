@@ -1,4 +1,4 @@
-"""Realistic shapes (issue 18): ``generate --table realistic``.
+"""Realistic shapes: ``generate --table realistic``.
 
 Each built-in class has a realistic table (generators/realistic.py): its sizes are a mixture
 of correlated size classes built from standard dimensions instead of the paper's independent

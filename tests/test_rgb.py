@@ -1,4 +1,4 @@
-"""Colour images (issue 18, RGB-D): ``generate --rgb``.
+"""Colour images (RGB-D): ``generate --rgb``.
 
 An --rgb split must hold exactly the depth, mask and labels of the same split without it,
 plus colour images whose object pixels are exactly the pixels the depth has; for every class,

@@ -1,4 +1,4 @@
-"""Robot cameras (issue 18): ``generate --camera head``, ``--intrinsics`` presets, ``--resolution``.
+"""Robot cameras: ``generate --camera head``, ``--intrinsics`` presets, ``--resolution``.
 
 The stored labels of head-camera shards are checked against their own pixels image by
 image (every class, two objects each): the camera moves between images, so each image's

@@ -1,4 +1,4 @@
-"""Scene context and occluders (issue 18): ``generate --scene kitchen|room``, ``--occluders N``.
+"""Scene context and occluders: ``generate --scene kitchen|room``, ``--occluders N``.
 
 Every class is generated with a kitchen, with a room and two occluders, and with three
 occluders alone; the stored labels must explain the object's pixels image by image (scene

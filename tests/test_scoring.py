@@ -383,7 +383,7 @@ def test_truth_without_some_labels_is_averaged_where_defined(tiny_root, tmp_path
     assert any(f"{n - missing} of {n}" in note for note in report.notes)
 
 
-# ---------------------------------------------------------------- issue 19 / issue 13 scorer cases
+# ---------------------------------------------------------------- mirrored frames, chirality, scales, metric versions
 
 def test_mirrored_cabinet_is_not_perfect(tiny_root, tmp_path):
     """The issue's reproduction: true origin and q, axis_pose quaternion times (0, 0, 1, 0) on the right."""

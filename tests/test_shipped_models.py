@@ -21,7 +21,7 @@ from articulated_dataset.models.mdn.checkpoint import read_checkpoint_file  # no
 
 SHIPPED = M.shipped_models()
 pytestmark = pytest.mark.skipif(not SHIPPED, reason="this checkout ships no weights")
-#: Package-data budget for all weights (issue: at most 20 MB).
+#: Package-data budget for all weights (at most 20 MB).
 MAX_TOTAL_BYTES = 20_000_000
 #: Loose bounds on the shipped dense model's mean errors over the tiny test split (3 unseen
 #: objects x 16 images; seed 0 test split, never trained on): about 2x the figures measured on

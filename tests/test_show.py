@@ -379,7 +379,7 @@ def test_real_split_with_uneven_images_per_object(real_split, tmp_path):
 
 def test_predictions_that_match_no_drawn_image_are_refused(tiny_root, tmp_path):
     """--predictions of another split (no drawn image's sample id) or with another class's number
-    of joints drew no predicted axis and said nothing; now one line, exit 2."""
+    of joints is one line, exit 2 (not a figure without a predicted axis and no word)."""
     from articulated_dataset.benchmark.predictions import write_predictions
 
     split = tiny_root / "microwave" / "test"

@@ -172,7 +172,7 @@ def _write_exr(path, z: np.ndarray, data_window, display_window) -> None:
 
 def test_an_exr_crop_is_read_in_its_place(tmp_path):
     """Stored pixels x 2..7, y 3..6 of a 10 x 8 image: they stay there, the rest is no return
-    (read from the corner, estimate was 57 cm off with the sensor's intrinsics)."""
+    (read from the corner, an estimate with the sensor's intrinsics would be 57 cm off)."""
     z = np.arange(1, 25, dtype=np.float32).reshape(4, 6) / 10.0 + 1.0
     _write_exr(tmp_path / "crop.exr", z, ((2, 3), (7, 6)), ((0, 0), (9, 7)))
     depth = load_depth(tmp_path / "crop.exr")
@@ -278,8 +278,8 @@ def test_a_ply_texture_that_is_a_fifo_is_never_opened(tmp_path):
 
 @pytest.mark.parametrize("texture", ["outside", "eps"])
 def test_a_ply_texture_is_ignored(tmp_path, caplog, foreign_decoders, texture):
-    """A texture outside the capture's folder was a logged traceback (exit 0); an EPS one went to
-    PIL's EPS decoder.  Ingest needs no colour: the capture is read without it, quietly."""
+    """A texture outside the capture's folder or in EPS is not opened (no logged traceback, no
+    PIL EPS decoder).  Ingest needs no colour: the capture is read without it, quietly."""
     folder = tmp_path / "caps"
     folder.mkdir()
     (tmp_path / "secret.png").write_bytes(EPS)

@@ -217,7 +217,8 @@ def test_chest_two_joints_with_moved_zero(objects, tmp_path):
             pts = (backproject(depth, K, mask == 3) - t) @ R
             local = pts - (frame0 + q_drawer * a)
             assert len(local) >= cfg.min_part_pixels and _in_box(local, DRAWER_CENTRE, DRAWER_EXT, PIXEL_TOL_M).all()
-            np.testing.assert_allclose(L["geometry"][i], [CH_D, CH_W, CH_H, 0], atol=POS_TOL_M)
+            # chirality 1: joint 0 (the door) hinges on the right (-y) of its panel
+            np.testing.assert_allclose(L["geometry"][i], [CH_D, CH_W, CH_H, 1], atol=POS_TOL_M)
 
 
 #: Factor of the --scale test (a power of two: scaled coordinates are exact in binary).
@@ -363,7 +364,7 @@ def test_hidden_part_error_names_joints(tmp_path, monkeypatch):
     ("package_path", r"mesh file not found: .*nowhere/x\.obj"),
     ("no_part_geometry", r"joint 'j' of .* moves no geometry"),
     ("bad_name", r"invalid class name"),
-    ("duplicate_joint", r"invalid URDF .*: duplicate joint name 'j'"),  # was "listed twice in --joints", not given
+    ("duplicate_joint", r"invalid URDF .*: duplicate joint name 'j'"),  # not "listed twice in --joints" (not given)
 ])
 def test_bad_inputs_give_one_line_errors(tmp_path, case, pattern):
     kwargs = {}
@@ -397,11 +398,14 @@ def test_bad_inputs_give_one_line_errors(tmp_path, case, pattern):
 
 
 def test_reparametrize_range_cases():
+    # closed = the limit nearer the URDF zero (ties: the lower one); q = 0 there, opening positive
     assert reparametrize_range(0.0, 1.0) == ((0.0, 1.0), False, 0.0)
-    assert reparametrize_range(0.2, 1.0) == ((0.2, 1.0), False, 0.0)
+    assert reparametrize_range(0.2, 1.0) == ((0.0, 0.8), False, 0.2)
     assert reparametrize_range(-1.5, 0.0) == ((0.0, 1.5), True, 0.0)
-    assert reparametrize_range(-2.0, -0.5) == ((0.5, 2.0), True, 0.0)
+    assert reparametrize_range(-2.0, -0.5) == ((0.0, 1.5), True, -0.5)
     assert reparametrize_range(-0.25, 1.0) == ((0.0, 1.25), False, -0.25)
+    assert reparametrize_range(-1.0, 0.25) == ((0.0, 1.25), True, 0.25)
+    assert reparametrize_range(-0.5, 0.5) == ((0.0, 1.0), False, -0.5)
 
 
 def test_default_pose_table_keeps_the_box_in_view():

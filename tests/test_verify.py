@@ -28,7 +28,7 @@ def run_verify(*args):
 
 @pytest.fixture()
 def split(tiny_root, tmp_path):
-    """A private copy of one tiny split (the session fixture is read-only)."""
+    """A private copy of one tiny split (the shared fixture is read-only)."""
     dst = tmp_path / SOURCE[0] / SOURCE[1]
     shutil.copytree(tiny_root / SOURCE[0] / SOURCE[1], dst)
     return dst

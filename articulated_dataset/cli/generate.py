@@ -43,6 +43,20 @@ class _NoiseChoice(click.ParamType):
         return value
 
 
+class _ScaleParam(click.ParamType):
+    """``--scale``: a number, or ``auto:CLASS`` (kept as text; the importer checks the class)."""
+
+    name = "scale"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and value.strip().lower().startswith("auto:"):
+            return value.strip()
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number or auto:CLASS", param, ctx)
+
+
 #: ``--address``: ``auto``, ``HOST:PORT`` or a Ray client address ``ray://HOST:PORT``.
 _ADDRESS = re.compile(r"^(auto|(ray://)?[^\s:/]+:\d+)$")
 
@@ -56,8 +70,10 @@ _ADDRESS = re.compile(r"^(auto|(ray://)?[^\s:/]+:\d+)$")
 @click.option("--class-name", "urdf_class_name", default=None,
               help="With --urdf: class name stored in the shards and used for OUT/<class>/ (default: <folder>-<file stem>).")
 @click.option("--skip-missing-meshes", is_flag=True, help="With --urdf: drop mesh references whose file does not exist.")
-@click.option("--scale", "urdf_scale", type=float, default=None,
-              help="With --urdf: multiply every length of the file (meshes, origins, prismatic limits) by this  [default: 1].")
+@click.option("--scale", "urdf_scale", type=_ScaleParam(), default=None, metavar="S|auto:CLASS",
+              help="With --urdf: multiply every length of the file (meshes, origins, prismatic limits) by S, or by the "
+                   "factor that gives the body a standard size of the built-in CLASS (auto:cabinet; "
+                   "docs/third_party_urdf.md)  [default: 1].")
 @click.option("--mesh-root", "urdf_mesh_root", type=click.Path(file_okay=False), default=None,
               help="With --urdf: folder meshes may be read from  [default: the URDF's folder].")
 @click.option("--n", "n_objects", type=int, default=None,
@@ -75,9 +91,10 @@ _ADDRESS = re.compile(r"^(auto|(ray://)?[^\s:/]+:\d+)$")
               help="A depth sensor's intrinsics (fx, fy, cx, cy), scaled to the image size (default: the paper's camera).")
 @click.option("--camera", "camera_mount", type=click.Choice(list(CAMERA_MOUNTS)), default="fixed", show_default=True,
               help="fixed: the paper's level camera; head: a mobile manipulator's head camera (height, pitch, roll per image).")
-@click.option("--table", "tables", multiple=True, metavar="paper|realistic|FILE",
+@click.option("--table", "tables", multiple=True, metavar="paper|realistic|varied|FILE",
               help="Sampling table: paper (the paper's independent ranges; default), realistic (joint size distributions "
-                   "from standard dimensions, docs/generation.md) or a JSON/TOML file overriding part of it; "
+                   "from standard dimensions), varied (those sizes with varied structure: doors, plinths, handles...; "
+                   "the classes that have one; docs/generation.md) or a JSON/TOML file overriding part of it; "
                    "repeat to combine a name with files (applied in order).")
 @click.option("--framing", type=click.Choice(list(FRAMINGS)), default=DEFAULT_FRAMING, show_default=True,
               help="table4: poses drawn from the sampling table's ranges (the paper's Table 4; tall objects may be cut "

@@ -71,7 +71,7 @@ class SplitConfig:
     # Definition of a third-party URDF class (articulated_dataset.urdf_import), rebuilt in
     # every worker process; None for registry classes.
     third_party: dict | None = None
-    # Options beyond the paper's dataset (issue 18): in the manifest only when used.
+    # Options beyond the paper's dataset: in the manifest only when used.
     scene: str = "none"  # scene context around the object (SCENE_NAMES)
     occluders: int = 0  # occluding shapes between the camera and the object, per image
     rgb: bool = False  # also store colour images (articulated_dataset.generation.appearance)

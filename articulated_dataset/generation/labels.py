@@ -18,8 +18,10 @@ Definitions (see docs/format.md):
   direction made perpendicular to z (prismatic); y = z x x.
 * ``part_offset``: part centre at q = 0 in the axis frame.
 * ``geometry``: (depth, width, height) of the box bounding the body's geoms in the object
-  frame, and chirality (1 if joint 0's axis lies on the object's right, -y, for sided
-  classes; else 0).
+  frame, and chirality: 1 if joint 0's hinge line lies on the right (-y) of its part's centre,
+  seen from the front, for sided classes (the built-in cabinet, microwave, refrigerator, and
+  every third-party object) whose joint 0 is revolute with an axis within 45 deg of the
+  object's up direction; else 0.
 """
 
 from __future__ import annotations
@@ -36,6 +38,9 @@ from .scene import OBJECT_PREFIX, object_joint_ids, set_configuration
 from ..units import normalise
 
 HANDLE_SUFFIX = "_handle"
+#: A hinge has a side (left or right, the chirality) when joint 0's axis is within 45 deg of the
+#: object's up direction: a door's; a lid's or a drop-down door's horizontal hinge has none.
+SIDE_MIN_VERTICAL_COS = float(np.cos(np.pi / 4))
 
 _BOX_CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
 
@@ -145,12 +150,13 @@ def read_object_labels(model: mujoco.MjModel, data: mujoco.MjData, info: ModelIn
     axis_direction = np.zeros((J, 3))
     axis_pose = np.zeros((J, 7))
     part_offset = np.zeros((J, 3))
+    centres = np.zeros((J, 3))
     for j, jid in enumerate(info.joint_ids):
         part = info.part_bodies[j]
         geoms = np.nonzero((info.geom_part == MASK_FIRST_PART + j) & ~info.geom_is_handle)[0]
         pos, rot = data.xpos[part], data.xmat[part].reshape(3, 3)
         lo, hi = _box_in_frame(geom_corners_world(model, data, geoms), pos, rot)
-        centre = pos + rot @ (0.5 * (lo + hi))
+        centre = centres[j] = pos + rot @ (0.5 * (lo + hi))
         anchor, a = data.xanchor[jid].copy(), _frame_unit(data.xaxis[jid].copy())
         if info.joint_types[j] == PRISMATIC:
             # leading face: extreme of the part's box along +a (axis expressed in part frame)
@@ -171,8 +177,9 @@ def read_object_labels(model: mujoco.MjModel, data: mujoco.MjData, info: ModelIn
     lo, hi = _box_in_frame(geom_corners_world(model, data, body_geoms), base_pos, base_rot)
     size = hi - lo
     chirality = 0
-    if obj_class.sided:
-        hinge_y = (axis_origin[0] - base_pos) @ base_rot[:, 1]
+    if obj_class.sided and info.joint_types[0] != PRISMATIC and abs(axis_direction[0] @ up) >= SIDE_MIN_VERTICAL_COS:
+        # the hinge line's side of the part centre (both at q = 0), across the object (y)
+        hinge_y = (axis_origin[0] - centres[0]) @ base_rot[:, 1]
         chirality = int(hinge_y < 0)
     return {
         "axis_origin": axis_origin,

@@ -33,7 +33,7 @@ class UrdfOptions:
     joints: str | None = None  # --joints NAME,NAME,...
     class_name: str | None = None  # --class-name
     skip_missing_meshes: bool = False
-    scale: float | None = None
+    scale: float | str | None = None  # a number or auto:CLASS
     mesh_root: str | None = None
 
 

@@ -3,7 +3,9 @@
 Randomness is injected: every object gets its own ``numpy.random.Generator`` derived from
 ``SeedSequence([seed, class_key, split_key, object_index])`` only, so object k is the same
 whichever process generates it and however the work is split, and splits never share a
-random stream.
+random stream.  An object's structure variables (``--table varied``) come from a stream of
+their own (:data:`STRUCTURE_STREAM`), so the sizes, configurations and poses of a table are
+drawn the same with or without them.
 """
 
 from __future__ import annotations
@@ -14,9 +16,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..classes import ObjectClass
-from ..tables import GEOMETRY_KEYS, POSE_KEYS, SamplingTable
+from ..tables import GEOMETRY_KEYS, POSE_KEYS, SamplingTable, structure_kind
 
 SPLITS = ("train", "val", "test", "real")
+#: Extra SeedSequence word of an object's structure stream (noise 1, head camera 2, scene 3,
+#: occluders 4, appearance 5): the structure variables of ``--table varied``.
+STRUCTURE_STREAM = 6
 
 
 def stable_key(text: str) -> int:
@@ -81,6 +86,9 @@ class ObjectSample:
     # Head camera (CameraConfig.mount "head"): (n_images, 3) height_m, pitch_rad, roll_rad of
     # each image's camera (articulated_dataset.viewpoint), set by the pipeline; None: fixed.
     views: np.ndarray | None = None
+    # Structure variables drawn from the table's ``structure`` (:func:`draw_structure`): name
+    # -> 0/1 flag, length (m), fraction or option name; None for a table without them.
+    structure: dict | None = None
 
     # State of the object's generator after these draws (``bit_generator.state``): a pose
     # rejected later is redrawn from it (:meth:`pose_generator`), never by replaying the draws.
@@ -101,6 +109,42 @@ class ObjectSample:
 def sample_pose(rng: np.random.Generator, table: SamplingTable) -> dict:
     """Base position (m) and yaw (rad), uniform in the table's ranges."""
     return {k: float(rng.uniform(*table.pose[k])) for k in POSE_KEYS}
+
+
+def draw_structure(rng: np.random.Generator, structure) -> dict:
+    """One value of each structure variable (name order), one uniform draw each from ``rng``
+    whatever the variable's kind, so that forcing one variable (a probability of 1, one
+    option) leaves the others' values unchanged: a probability ``_p`` -> 0/1; a range ``_m``
+    or ``_frac`` -> a uniform value; option weights ``_weights`` -> an option name."""
+    out = {}
+    for name in sorted(structure):
+        value, u = structure[name], float(rng.random())
+        kind = structure_kind(name)
+        if kind == "_p":
+            out[name] = int(u < value)
+        elif kind == "_weights":
+            options = list(value)
+            cdf = np.cumsum([value[o] for o in options])
+            out[name] = options[min(int(np.searchsorted(cdf, u * cdf[-1], side="right")), len(options) - 1)]
+        else:
+            lo, hi = value
+            out[name] = float(lo + u * (hi - lo))
+    return out
+
+
+def centre_structure(structure) -> dict:
+    """The mean object's structure: flags with probability >= 0.5 set, ranges at their centre,
+    the heaviest option (the first of equals)."""
+    out = {}
+    for name in sorted(structure):
+        value, kind = structure[name], structure_kind(name)
+        if kind == "_p":
+            out[name] = int(value >= 0.5)
+        elif kind == "_weights":
+            out[name] = max(value, key=lambda o: value[o])
+        else:
+            out[name] = 0.5 * (value[0] + value[1])
+    return out
 
 
 def sample_object(
@@ -128,8 +172,12 @@ def sample_object(
     chirality = int(rng.random() < table.chirality_p)
     q = stratified_configurations(rng, table.q, n_images)
     pose = sample_pose(rng, table)
+    structure = None
+    if table.structure:
+        srng = object_rng(seed, obj_class.name, split, object_index, stream=STRUCTURE_STREAM)
+        structure = draw_structure(srng, table.structure)
     sample = ObjectSample(obj_class.name, split, seed, object_index, geometry, chirality, q, pose,
-                          rng_state=rng.bit_generator.state)
+                          structure=structure, rng_state=rng.bit_generator.state)
     return sample, rng
 
 
@@ -151,5 +199,6 @@ def mean_object(obj_class: ObjectClass, table: SamplingTable, *, split: str, n_i
             return np.arange(n)
 
     q = stratified_configurations(_Centre(), table.q, n_images)
-    return ObjectSample(obj_class.name, split, 0, 0, geometry, 0, q, pose)
+    structure = centre_structure(table.structure) if table.structure else None
+    return ObjectSample(obj_class.name, split, 0, 0, geometry, 0, q, pose, structure=structure)
 

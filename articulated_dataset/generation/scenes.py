@@ -145,12 +145,14 @@ def layout_boxes(scene: str, class_name: str, geometry: dict, d: dict) -> tuple[
         boxes.append(Box.span("scene_base_unit", (-D / 2 + 0.02, yr + 0.02, floor), (back, yl - 0.02, -t)))
     elif where == "under_counter_drawer":
         if kitchen:
-            floor = H + GAP_M + t - d["counter_height_m"]
+            # a carcass as tall as the space under the counter (--table varied) stands on the floor
+            floor = min(H + GAP_M + t - d["counter_height_m"], 0.0)
             boxes.append(Box.span("scene_counter_top", (xf - over, yr, H + GAP_M), (back, yl, H + GAP_M + t)))
             neighbours(floor, H + GAP_M)
         else:
             floor = -float(np.interp(d["counter_height_m"], SCENE_TABLE["counter_height_m"], SCENE_TABLE["chest_base_m"]))
-        boxes.append(Box.span("scene_base_unit", (xf, -W / 2, floor), (D / 2, W / 2, -GAP_M)))
+        if floor < -GAP_M:
+            boxes.append(Box.span("scene_base_unit", (xf, -W / 2, floor), (D / 2, W / 2, -GAP_M)))
     else:
         floor = 0.0
         if kitchen and where == "under_counter":

@@ -20,6 +20,8 @@ log = logging.getLogger(__name__)
 
 #: Only files with this suffix (our own templates) go through xacro; any other URDF is read as is.
 XACRO_SUFFIX = ".xacro"
+#: Suffixes of structure variables that their Xacro argument drops (a flag, an option name).
+STRUCTURE_ARGUMENT_SUFFIXES = ("_p", "_weights")
 
 
 @functools.lru_cache(maxsize=64)
@@ -50,15 +52,30 @@ def render_urdf(template_path: str | Path, mappings: dict[str, str]) -> str:
 def template_arguments(sample, table: SamplingTable) -> dict[str, str]:
     """Xacro arguments of an :class:`~articulated_dataset.generation.sampling.ObjectSample`'s
     class template (all strings, SI units): its geometry, chirality and the table's largest
-    opening of each joint (``q_max_<j>``)."""
+    opening of each joint (``q_max_<j>``); with structure variables (``--table varied``), one
+    argument each, named as the variable without a ``_p`` or ``_weights`` suffix (a flag
+    ``0``/``1``, an option name; lengths and fractions keep their names)."""
     m = {k: repr(float(v)) for k, v in sample.geometry.items()}
     m["chirality"] = str(int(sample.chirality))
     for j, (_, hi) in enumerate(table.q):
         m[f"q_max_{j}"] = repr(float(hi))
+    for name, value in (sample.structure or {}).items():
+        m[structure_argument(name)] = value if isinstance(value, str) else repr(value)
     return m
+
+
+def structure_argument(name: str) -> str:
+    """The Xacro argument of structure variable ``name``: ``door_inset_p`` -> ``door_inset``,
+    ``handle_weights`` -> ``handle``, ``plinth_height_m`` unchanged."""
+    for suffix in STRUCTURE_ARGUMENT_SUFFIXES:
+        if name.endswith(suffix):
+            return name[: -len(suffix)]
+    return name
 
 
 def object_urdf(obj_class, sample, table: SamplingTable) -> str:
     """Stage 2: the URDF text of a sampled object of ``obj_class`` (an
-    :class:`~articulated_dataset.classes.ObjectClass`)."""
-    return render_urdf(obj_class.template_path(), template_arguments(sample, table))
+    :class:`~articulated_dataset.classes.ObjectClass`): a sample with structure variables is
+    built from the class's varied template."""
+    path = obj_class.template_path(varied=sample.structure is not None)
+    return render_urdf(path, template_arguments(sample, table))

@@ -24,12 +24,17 @@ pose and configuration sampling and label definitions.  The URDF is turned into 
 * ``--scale s`` multiplies every length (mesh vertices, primitive sizes, joint and element
   origins, prismatic limits) by ``s``, for files in other units (PartNet-Mobility's are
   normalised); labels are read from the scaled model, so they follow;
-* joint coordinates are re-parametrised so that q = 0 is a joint limit and positive q
-  moves towards the other limit (the dataset's "q = 0 is closed, positive q opens"):
-  limits ``[lo, hi]`` with ``lo >= 0`` are kept; ``hi <= 0`` flips the axis, giving
-  ``[-hi, -lo]``; ``lo < 0 < hi`` moves the zero to ``lo`` (the joint origin is turned /
-  shifted by ``lo`` along the axis), giving ``[0, hi - lo]``.  Continuous joints use the
-  built-in revolute range [0, pi/2] rad;
+* joint coordinates are re-parametrised so that q = 0 is closed and positive q opens: the
+  closed pose is the limit nearer the URDF zero (the modelled pose; the lower limit on a
+  tie), limits ``[lo, hi]`` become ``[0, hi - lo]`` with the joint origin turned / shifted to
+  that limit along the axis, and the axis flipped where the closed limit is ``hi``
+  (:func:`.ranges.reparametrize_range`).  Continuous joints use the built-in revolute range
+  [0, pi/2] rad;
+* ``--scale auto:CLASS`` picks the scale that gives the body a standard size of a built-in
+  class (:func:`.build.auto_scale`);
+* each articulated link's protrusions (handles, knobs: the triangles outside its panel,
+  :mod:`.panel`) become a second geom named ``*_handle``, which the labeller leaves out of
+  the part's centre, as it does the built-in templates' handles;
 * every link gets a fixed unit inertia: only kinematics is ever computed.
 
 The processed files live in a content-addressed cache folder (:func:`.ranges.cache_root`), rebuilt
@@ -42,11 +47,12 @@ different copy on another node) stops with an error instead of writing different
 Object frame and default pose table: the object frame is the URDF root link's frame; the
 pose table places that frame (x, y, z, yaw), like the ``base`` link of the built-in
 classes.  The default ranges keep the whole object (all links at q = 0) inside the image:
-see :func:`.ranges.view_pose_ranges`.  Third-party objects have no chirality (always 0) and a
-fixed geometry (the table's geometry ranges are the body's bounding box, for reference).
+see :func:`.ranges.view_pose_ranges`.  Third-party classes are ``sided``: the chirality is read
+from geometry like the built-in ones' (the side of the part centre the hinge line lies on).
+Their geometry is fixed (the table's geometry ranges are the body's bounding box, for reference).
 
 The modules: :mod:`.ranges` (pose ranges, joint re-parametrisation, class names, the cache
-folder), :mod:`.parse` (the URDF read and checked as data, the joint plans), :mod:`.process`
+folder), :mod:`.panel` (a moving part's panel and protrusions), :mod:`.parse` (the URDF read and checked as data, the joint plans), :mod:`.process`
 (the processed model in the cache) and :mod:`.build` (definition -> class, :func:`import_urdf`).
 """
 

@@ -28,7 +28,11 @@ from .ranges import (FAR_DISTANCE_RATIO, MOVABLE_TYPES, VIEW_MARGIN, check_class
 
 
 #: Version of the processed-model recipe; part of the cache key (bump when it changes).
-IMPORT_VERSION = 2
+IMPORT_VERSION = 3
+#: ``--scale auto:CLASS``: the prefix before the built-in class whose standard sizes the object takes.
+AUTO_SCALE_PREFIX = "auto:"
+#: Aspect-ratio mismatches (log ratio) closer than this are ties in :func:`auto_scale`.
+AUTO_SCALE_TIE = 1e-9
 #: Smallest size (m) of a geometry-table entry (the table needs positive ranges).
 MIN_GEOMETRY_M = 1e-3
 #: Keys of a third-party definition (``GenerationConfig.third_party``); ``scale`` and
@@ -75,7 +79,9 @@ def _geom_points(model, data, g: int) -> np.ndarray:
     return data.geom_xpos[g] + local @ data.geom_xmat[g].reshape(3, 3).T
 
 
-def _build_class(definition: dict) -> tuple[ObjectClass, tuple[str, ...]]:
+def _build_class(definition: dict, fit_camera: bool = True) -> tuple[ObjectClass, tuple[str, ...]]:
+    """The class of a definition and the import's notes; ``fit_camera`` False skips the check that
+    the object fits the camera's depth range (to measure an object before ``--scale auto:CLASS``)."""
     import mujoco
 
     from ..generators.common import YAW_RAD
@@ -125,7 +131,7 @@ def _build_class(definition: dict) -> tuple[ObjectClass, tuple[str, ...]]:
     obj_class = ObjectClass(
         name=definition["class_name"], template=str(template), table=provisional,
         joints=tuple(JointSpec(p.name, MOVABLE_TYPES[p.urdf_type], p.part) for p in plans),
-        base_link=parsed.root, sided=False, description=f"third-party URDF {path}",
+        base_link=parsed.root, sided=True, description=f"third-party URDF {path}",
     )
     # Compile once at the identity pose (object frame = camera frame): checks that MuJoCo
     # reads the processed model and measures the object for the default pose table.
@@ -151,7 +157,8 @@ def _build_class(definition: dict) -> tuple[ObjectClass, tuple[str, ...]]:
     pts = np.concatenate([_geom_points(model, data, g) for g in obj_geoms])
     body = np.concatenate([_geom_points(model, data, g) for g in np.nonzero(info.geom_part == MASK_BODY)[0]])
     size = np.maximum(body.max(axis=0) - body.min(axis=0), MIN_GEOMETRY_M)
-    _check_fits_camera(pts.min(axis=0), pts.max(axis=0), camera, path)
+    if fit_camera:
+        _check_fits_camera(pts.min(axis=0), pts.max(axis=0), camera, path)
     table = SamplingTable(
         geometry={"depth_m": (size[0], size[0]), "width_m": (size[1], size[1]), "height_m": (size[2], size[2])},
         pose=view_pose_ranges(pts.min(axis=0), pts.max(axis=0), camera, YAW_RAD),
@@ -208,6 +215,49 @@ def class_from_definition(definition: dict) -> ObjectClass:
         return _class_for_key(json.dumps(definition, sort_keys=True))[0]
 
 
+def auto_scale_class(scale) -> ObjectClass | None:
+    """The built-in class of ``--scale auto:CLASS`` (None for a number); it must have a realistic
+    table (its standard sizes)."""
+    if not (isinstance(scale, str) and scale.strip().lower().startswith(AUTO_SCALE_PREFIX)):
+        return None
+    from ..registry import class_names, get_class
+
+    name = scale.strip()[len(AUTO_SCALE_PREFIX):]
+    if name not in class_names():
+        raise UserError(f"--scale {AUTO_SCALE_PREFIX}CLASS names a built-in class ({', '.join(class_names())}), "
+                        f"got {name[:40]!r}")
+    obj_class = get_class(name)
+    if obj_class.realistic_table is None or obj_class.realistic_table.shape is None:
+        raise UserError(f"--scale {AUTO_SCALE_PREFIX}{name}: class {name!r} has no standard sizes (realistic table)")
+    return obj_class
+
+
+def auto_scale(width_m: float, height_m: float, like: ObjectClass) -> tuple[float, tuple[str, ...]]:
+    """The scale of ``--scale auto:CLASS`` for a body ``width_m`` x ``height_m`` (m, at scale 1),
+    and one note saying what it chose.
+
+    Among the standard (width, height) pairs of the class's realistic table (each component's
+    ``sizes_m``), the pair whose aspect ratio ``H / W`` is nearest the body's (in log ratio;
+    ties: the component listed first, then the smaller size); the scale makes the body's front
+    area ``w h`` that pair's, ``s = sqrt(W H / (w h))``, keeping the object's proportions.
+    Deterministic: the same file and class give the same scale.
+    """
+    aspect = math.log(height_m / width_m)
+    best = None
+    for c in like.realistic_table.shape.components:
+        for W in sorted(c.sizes_m["width_m"]):
+            for H in sorted(c.sizes_m["height_m"]):
+                miss = abs(math.log(H / W) - aspect)
+                if best is None or miss < best[0] - AUTO_SCALE_TIE:
+                    best = (miss, c.name, W, H)
+    _, component, W, H = best
+    s = float(f"{math.sqrt(W * H / (width_m * height_m)):.6g}")
+    note = (f"--scale auto:{like.name}: body {width_m:.3g} x {height_m:.3g} (width x height) scaled by {s:g} to "
+            f"{width_m * s:.3f} x {height_m * s:.3f} m, the {like.name} size class {component!r} "
+            f"({W:.3f} x {H:.3f} m has the nearest proportions)")
+    return s, (note,)
+
+
 def import_urdf(
     urdf_path: str | Path,
     *,
@@ -215,7 +265,7 @@ def import_urdf(
     class_name: str | None = None,
     skip_missing_meshes: bool = False,
     camera: CameraConfig | None = None,
-    scale: float = 1.0,
+    scale: float | str = 1.0,
     mesh_root: str | Path | None = None,
 ) -> UrdfObject:
     """Check a URDF and prepare it for generation.
@@ -225,7 +275,9 @@ def import_urdf(
     :func:`default_class_name`).  ``skip_missing_meshes``: drop mesh references whose file
     does not exist instead of stopping.  ``camera``: the camera the default pose table is
     computed for.  ``scale``: multiplies every length of the file (mesh vertices, primitive
-    sizes, origins, prismatic limits; e.g. 0.001 for a file in millimetres).  ``mesh_root``:
+    sizes, origins, prismatic limits; e.g. 0.001 for a file in millimetres), or
+    ``"auto:CLASS"``: the scale that gives the body a standard size of the built-in class
+    ``CLASS`` (:func:`auto_scale`; recorded in the definition as the number).  ``mesh_root``:
     the folder meshes may be read from (default: the URDF's folder).  Raises
     :class:`UserError` with one line naming the file on any problem.
     """
@@ -235,12 +287,16 @@ def import_urdf(
 
 def _import_urdf(urdf_path, joints, class_name, skip_missing_meshes, camera, scale, mesh_root) -> UrdfObject:
     path = Path(urdf_path).expanduser().resolve()
-    try:
-        scale = float(scale)
-    except (TypeError, ValueError):
-        raise UserError(f"--scale must be a number, got {scale!r}") from None
-    if not (math.isfinite(scale) and scale > 0):
-        raise UserError(f"--scale must be a positive finite number, got {scale:g}")
+    like = auto_scale_class(scale)
+    if like is None:
+        try:
+            scale = float(scale)
+        except (TypeError, ValueError):
+            raise UserError(f"--scale must be a number or {AUTO_SCALE_PREFIX}CLASS, got {str(scale)[:80]!r}") from None
+        if not (math.isfinite(scale) and scale > 0):
+            raise UserError(f"--scale must be a positive finite number, got {scale:g}")
+    else:
+        scale = 1.0
     if mesh_root is not None:
         mesh_root = Path(mesh_root).expanduser().resolve()
         if not mesh_root.is_dir():
@@ -266,7 +322,14 @@ def _import_urdf(urdf_path, joints, class_name, skip_missing_meshes, camera, sca
         definition["mesh_root"] = str(mesh_root)
     if not parsed.missing or skip_missing_meshes:
         definition["sha256"] = source_digest(parsed)
+    auto_note = ()
+    if like is not None:
+        size = _build_class(definition, fit_camera=False)[0].table.geometry
+        scale, auto_note = auto_scale(size["width_m"][0], size["height_m"][0], like)
+        if scale != 1.0:  # the digest is of the files, whatever the scale
+            definition["scale"] = scale
     obj_class, notes = _class_for_key(json.dumps(definition, sort_keys=True))
+    notes = auto_note + notes
     if inferred:
         notes = (f"joints inferred: {', '.join(joints)} (choose with --joints)",) + notes
     return UrdfObject(definition, obj_class, notes)

@@ -470,7 +470,10 @@ def plan_joint(parsed: Parsed, name: str) -> JointPlan:
     if upper <= lower:
         raise UserError(f"joint {name!r} of {parsed.path} has an empty range [{lower}, {upper}]")
     q_range, flip, offset = reparametrize_range(lower, upper)
-    how = "axis flipped" if flip else (f"zero moved to the lower limit {lower:g} {unit}" if offset else "as in the URDF")
+    if flip:
+        how = f"closed at the upper limit {upper:g} {unit}: axis flipped" + (", zero moved there" if offset else "")
+    else:
+        how = f"closed at the lower limit: zero moved to {lower:g} {unit}" if offset else "as in the URDF"
     note = f"{name}: {j.type}, URDF limits [{lower:g}, {upper:g}] {unit} -> q in [{q_range[0]:g}, {q_range[1]:g}] {unit} ({how})"
     return JointPlan(name, j.type, j.child, q_range, flip, offset, note)
 

@@ -15,6 +15,7 @@ from ..errors import UserError
 from ..classes import REVOLUTE
 from .parse import (JointPlan, MAX_FILE_LENGTH, MAX_MESH_FILE_BYTES, Parsed, check_gltf_accessors, check_mesh_file,
                     one_line, unit_axis)
+from .panel import primitive_protrudes, protruding
 from .ranges import CACHE_ENV, MOVABLE_TYPES, cache_root, joint_motion, sanitize_class_name
 
 
@@ -161,20 +162,28 @@ def _thicken_if_flat(mesh):
     return trimesh.util.concatenate([mesh, back])
 
 
-def _processed_robot(parsed: Parsed, plans: list[JointPlan], mesh_files: dict):
-    """yourdfpy Robot of the processed model (meshes replaced by the per-link STL files)."""
+def _processed_robot(parsed: Parsed, plans: list[JointPlan], mesh_files: dict, handle_primitives: dict):
+    """yourdfpy Robot of the processed model (meshes replaced by the per-link STL files:
+    ``mesh_files[link, ""]`` the link's panel, ``mesh_files[link, HANDLE_SUFFIX]`` its protrusions;
+    ``handle_primitives[link]``: indices of the link's primitive elements that protrude)."""
     import yourdfpy
+
+    from ..generation.labels import HANDLE_SUFFIX
 
     by_name = {p.name: p for p in plans}
     links = []
     for i, link in enumerate(parsed.robot.links):
         collisions = []
-        if link.name in mesh_files:
-            collisions.append(yourdfpy.Collision(
-                name=f"g{i}_mesh", origin=None, geometry=yourdfpy.Geometry(mesh=yourdfpy.Mesh(filename=mesh_files[link.name]))))
+        for suffix in ("", HANDLE_SUFFIX):
+            key = (link.name, suffix)
+            if key in mesh_files:
+                collisions.append(yourdfpy.Collision(
+                    name=f"g{i}_mesh{suffix}", origin=None,
+                    geometry=yourdfpy.Geometry(mesh=yourdfpy.Mesh(filename=mesh_files[key]))))
         for k, e in enumerate(parsed.elements[link.name]):
             if e.mesh_file is None:
-                collisions.append(yourdfpy.Collision(name=f"g{i}_{k}", origin=e.origin, geometry=e.geometry))
+                suffix = HANDLE_SUFFIX if k in handle_primitives.get(link.name, ()) else ""
+                collisions.append(yourdfpy.Collision(name=f"g{i}_{k}{suffix}", origin=e.origin, geometry=e.geometry))
         inertial = yourdfpy.Inertial(origin=np.eye(4), mass=LINK_MASS_KG, inertia=np.eye(3) * LINK_INERTIA_KG_M2)
         links.append(yourdfpy.Link(name=link.name, inertial=inertial, visuals=[], collisions=collisions))
     joints = []
@@ -196,19 +205,79 @@ def _processed_robot(parsed: Parsed, plans: list[JointPlan], mesh_files: dict):
     return yourdfpy.Robot(name=sanitize_class_name(parsed.robot.name or "object"), links=links, joints=joints)
 
 
+def _moving_axes(parsed: Parsed, plans: list[JointPlan]) -> dict:
+    """``{link: (axis, prismatic)}`` of each articulated link: its joint's axis in the link's
+    frame (a prismatic joint's: its opening direction, after the re-parametrisation)."""
+    joints = {j.name: j for j in parsed.robot.joints}
+    out = {}
+    for p in plans:
+        axis = unit_axis(joints[p.name], parsed.path)
+        out[p.part] = (-axis if p.flip else axis, MOVABLE_TYPES[p.urdf_type] != REVOLUTE)
+    return out
+
+
+def _primitive_mesh(element):
+    """A primitive element (box, cylinder, sphere) as a trimesh in the link frame, or None."""
+    import trimesh
+
+    g = element.geometry
+    if g.box is not None:
+        return trimesh.creation.box(extents=np.asarray(g.box.size, float), transform=element.origin)
+    if g.cylinder is not None:
+        return trimesh.creation.cylinder(radius=float(g.cylinder.radius), height=float(g.cylinder.length),
+                                         transform=element.origin)
+    if g.sphere is not None:
+        m = trimesh.creation.icosphere(radius=float(g.sphere.radius))
+        m.apply_transform(element.origin)
+        return m
+    return None
+
+
+def _split_protrusions(mesh, elements: list, axis: np.ndarray, prismatic: bool) -> tuple[dict, set]:
+    """An articulated link's geometry split into its panel and its protrusions
+    (:mod:`.panel`): ``({"": panel mesh or None, HANDLE_SUFFIX: protrusion mesh or None},
+    indices of the primitive elements that protrude)``."""
+    import trimesh
+
+    from ..generation.labels import HANDLE_SUFFIX
+
+    primitives = {k: _primitive_mesh(e) for k, e in enumerate(elements) if e.mesh_file is None}
+    primitives = {k: m for k, m in primitives.items() if m is not None}
+    pieces = ([mesh] if mesh is not None else []) + list(primitives.values())
+    if not pieces:
+        return {"": mesh}, set()
+    masks = protruding(pieces, axis, prismatic)
+    handles = {k for k, m in zip(primitives, masks[len(masks) - len(primitives):]) if primitive_protrudes(m, primitives[k])}
+    if mesh is None or not masks[0].any() or masks[0].all():
+        return {"": mesh}, handles
+    faces = np.asarray(mesh.faces)
+
+    def part(keep):
+        piece = trimesh.Trimesh(np.asarray(mesh.vertices), faces[keep], process=False)
+        piece.remove_unreferenced_vertices()
+        return _thicken_if_flat(piece)
+
+    return {"": part(~masks[0]), HANDLE_SUFFIX: part(masks[0])}, handles
+
+
 def _write_processed(parsed: Parsed, plans: list[JointPlan], folder: Path, final: Path) -> None:
     """Write the per-link STL files and the processed URDF into ``folder`` (paths point to ``final``)."""
     import yourdfpy
     from lxml import etree
 
-    mesh_files = {}
+    moving = _moving_axes(parsed, plans)
+    mesh_files, handle_primitives = {}, {}
     for i, link in enumerate(parsed.robot.links):
         mesh = _link_mesh(parsed.elements[link.name], link.name, parsed.path)
-        if mesh is not None:
-            name = f"link_{i:04d}.stl"
-            mesh.export(str(folder / name), file_type="stl")
-            mesh_files[link.name] = str(final / name)
-    robot = _processed_robot(parsed, plans, mesh_files)
+        pieces = {"": mesh}
+        if link.name in moving:
+            pieces, handle_primitives[link.name] = _split_protrusions(mesh, parsed.elements[link.name], *moving[link.name])
+        for suffix, piece in pieces.items():
+            if piece is not None:
+                name = f"link_{i:04d}{suffix}.stl"
+                piece.export(str(folder / name), file_type="stl")
+                mesh_files[link.name, suffix] = str(final / name)
+    robot = _processed_robot(parsed, plans, mesh_files, handle_primitives)
     urdf = yourdfpy.URDF(robot=robot, build_scene_graph=False, load_meshes=False,
                          filename_handler=yourdfpy.filename_handler_null)
     tree = urdf.write_xml()

@@ -76,19 +76,19 @@ def half_fov(camera: CameraConfig) -> float:
 
 
 def reparametrize_range(lower: float, upper: float) -> tuple[tuple[float, float], bool, float]:
-    """New range of a joint with URDF limits ``[lower, upper]`` so that it starts at q >= 0.
+    """New range of a joint with URDF limits ``[lower, upper]``: q = 0 is closed, positive q opens.
 
-    Returns ``((lo', hi'), flip, offset)``; URDF coordinate ``q = offset + s q'`` with
-    ``s = -1`` if ``flip`` else ``+1``:
+    The closed pose is the limit nearer the URDF zero (the pose the meshes are modelled in,
+    which PartNet-Mobility and most URDFs model closed); on a tie (``-lower == upper``) the
+    lower limit.  Returns ``((0, upper - lower), flip, offset)``; URDF coordinate
+    ``q_urdf = offset + s q`` with ``s = -1`` if ``flip`` else ``+1``:
 
-    * ``lower >= 0``: unchanged, ``((lower, upper), False, 0)``;
-    * ``upper <= 0``: axis flipped, ``((-upper, -lower), True, 0)``;
-    * ``lower < 0 < upper``: zero moved to ``lower``, ``((0, upper - lower), False, lower)``.
+    * closed at ``lower`` (``|lower| <= |upper|``): ``flip`` False, ``offset = lower``;
+    * closed at ``upper`` (``|upper| < |lower|``): the axis flipped, ``offset = upper``
+      (opening runs towards ``lower``, i.e. negative URDF coordinates).
     """
-    if lower >= 0:
-        return (lower, upper), False, 0.0
-    if upper <= 0:
-        return (0.0 - upper, 0.0 - lower), True, 0.0  # 0.0 - x: no negative zero
+    if abs(upper) < abs(lower):
+        return (0.0, upper - lower), True, upper
     return (0.0, upper - lower), False, lower
 
 

@@ -98,7 +98,7 @@ def select_samples(n_objects: int, images_per_object: int, n: int, objects=None,
     """``n`` (object, image) pairs spread over the candidates.
 
     Objects are taken evenly spaced over ``objects`` (default: all) and images evenly
-    spaced over ``images`` (default: all), so a gallery sweeps from closed to open.  With
+    spaced over ``images`` (default: all), so a gallery runs from closed to open.  With
     fewer candidate pairs than ``n``, all of them are returned.  ``object_images`` (real
     splits: images of each object) leaves out the pairs an object does not have.
     """

@@ -31,32 +31,26 @@ HANDLE_PX_CANDIDATES = (1.0, 3.0, 6.0)
 #: Gates (m) tried for step 9 (the hinge's height from the handle) by :func:`fit_refinement`.
 HANDLE_HEIGHT_GATE_CANDIDATES_M = (0.05, 0.1, 0.2, 0.4)
 #: ... which is used only where it lowers the validation position error by at least this fraction:
-#: it measures the handle of every door, which costs inference time (the two-door cabinet's
-#: refinement: 226 instead of 142 ms per batch of 128 on 2 cores; the refrigerator's 1.8% gain
-#: was not worth its 500 images/s).
+#: it measures the handle of every door, which costs inference time (about 1.6x the refinement's
+#: time per batch).
 HANDLE_HEIGHT_MIN_GAIN = 0.03
 #: Segmentation probabilities a pixel needs to enter the box-frame fit (step 2), tried by
-#: :func:`~.predict.fit_inference` (None: every body pixel).  On the refrigerator's validation
-#: objects 0.9 took the rotation error from 0.77 to 0.46 deg: an open door's pixels taken for the
-#: body's had pulled the frame towards the door's face.  0.7 since the twentieth session: with
-#: one-sided normals, the cabinet's strips of body pixels beside its door (labelled with less
-#: confidence) turned the seed-14 / 11 selection cabinets' rotation from 2.18 / 2.37 to 2.15 / 2.32
-#: deg at 0.7 (0.8: 2.16 / 2.37; 0.95: 2.18 / 2.38); on the models' own validation objects the
-#: cabinet keeps 0.9 (2.29 against 2.34 deg) and the microwave takes 0.7 (0.091 -> 0.080 deg).
+#: :func:`~.predict.fit_inference` (None: every body pixel).  A threshold keeps an open door's
+#: pixels, taken for the body's, from pulling the frame towards the door's face; 0.7 still admits
+#: the strips of body pixels beside a door (labelled with less confidence) that one-sided normals
+#: read.  Each model keeps the one that gives the lowest rotation error on its validation objects.
 FRAME_PROB_CANDIDATES = (None, 0.7, 0.9)
 #: Whether step 2 also reads one-sided normals (:attr:`~.refine.Refinement.frame_one_sided`), tried
 #: with each threshold by :func:`~.predict.fit_inference`.
 FRAME_ONE_SIDED_CANDIDATES = (False, True)
 #: Elongations (variance along the line / across it) tried for step 2's strip of body pixels
 #: (:attr:`~.refine.Refinement.frame_strip_elongation`) by :func:`~.predict.fit_inference`, with
-#: the chosen threshold and normals.  The shipped cabinet (refinement version 13) on its seed-14 / 11
-#: selection objects (200 each), rotation / configuration deg: without 2.18 / 1.95 and 2.37 / 2.19;
-#: 100: 2.07 / 1.84 and 2.23 / 2.10; 1,000: 2.06 / 1.84 and 2.22 / 2.10; 10,000: 2.07 / 1.84 and
-#: 2.23 / 2.11 (position unchanged; seed 11 with a 2-cm :data:`~.refine.STRIP_MIN_SPREAD_M`).
+#: the chosen threshold and normals (the validation errors differ little between them; each
+#: lowers the cabinet's rotation and configuration errors against no strip).
 FRAME_STRIP_CANDIDATES = (100.0, 1000.0, 10000.0)
 #: ... the best of which is kept only where it lowers the validation rotation error by at least
 #: this fraction (a strip that turns a few images' frames by a hair is not worth its inference
-#: time; the shipped models' gains were 0-14%).
+#: time).
 FRAME_STRIP_MIN_GAIN = 0.005
 #: Gates (m) tried for step 10 (the hinge onto the door's face plane) by :func:`fit_refinement`.
 DOOR_FACE_GATE_CANDIDATES_M = (0.01, 0.02, 0.03, 0.05, 0.1)

@@ -86,8 +86,8 @@ class PackedConv2d(nn.Module):
     kernels ``torch.compile`` with freezing emits for a CPU convolution).  ``nn.Conv2d`` reorders
     the weights on every call; prepacked, a cabinet batch of 128 takes 218 instead of 237 ms on one
     idle core (``benchmarks/dense_inference.py --threads 1``), 1.4-1.7x less time where another
-    process loads the machine, and whole test splits in two worker processes ran 6-11% faster
-    (docs/dense.md, "Twenty-sixth session"); the outputs the same to float rounding (within about
+    process loads the machine, and whole test splits in two worker processes run 6-11% faster;
+    the outputs the same to float rounding (within about
     3e-5).  The packed weights are an opaque tensor: made
     at the first call (again when the input's channels or size change) and left out when the module
     is pickled (a prediction worker packs its own)."""

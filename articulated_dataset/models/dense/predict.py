@@ -15,8 +15,8 @@ of every column (and a floor per kind of column), with a small weight fitted on 
 validation objects.  It stands for the
 estimate's gross failures (a door's hinge put on the wrong side, a frame turned 180 deg), which
 the modes' Gaussians, fitted to the far more numerous good estimates, would give a density of
-zero: one such image used to decide a class's mean NLL (the shipped cabinet's: 1.4e6 nats on
-3,200 selection images, its median -60).  The point estimate and the modes are unchanged.
+zero: without the component one such image decides a class's mean NLL (the cabinet's: 1.4e6
+nats on 3,200 selection images, its median -60).  The point estimate and the modes are unchanged.
 """
 
 from __future__ import annotations
@@ -77,8 +77,8 @@ OUTLIER_CALIBRATION_ROUNDS = 2
 #: and the validation images show no spread in it: a vertical hinge's axis is (0, 0, -1) in every
 #: image, a door's part offset across the door about 0, a one-sided class's chirality 0 or 1.  An
 #: estimate that failed outright may still move them (a microwave's frame flipped about its door:
-#: the axis read as (0, 0, +1), off by 2; before this floor that cost 10^6 nats in the seed-2026
-#: test microwaves and refrigerators).  Half the range of a unit vector's component and of the
+#: the axis read as (0, 0, +1), off by 2; without this floor the test microwaves' and
+#: refrigerators' NLL reaches ~10^6 nats).  Half the range of a unit vector's component and of the
 #: chirality (a flipped axis is then 4 scales off: 8 nats), 5 cm, 0.1 rad (or 10 cm) of q.
 OUTLIER_MIN_SCALES = {"origin": 0.05, "axis": 0.5, "xaxis": 0.5, "q": 0.1, "offset": 0.05,
                       "depth": 0.05, "width": 0.05, "height": 0.05, "chirality": 0.5}

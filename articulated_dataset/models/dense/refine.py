@@ -42,12 +42,11 @@ regressed (:func:`refined_quantities`, per image and joint):
    a door seen almost edge-on (the cabinet's wide-open doors), show faces whose normals are at
    ``pi / 2 - q``: where the fit chooses ``door_angle_folded``, each pixel's angle ``a_i`` is
    replaced by ``pi / 2 - a_i`` where that is nearer the votes' ``q`` (the modes' ``q`` by
-   weight), so the votes pick the face and the normals give the angle (cabinet, seed-14
-   selection objects: 2.49 -> 2.13 deg).  Where it chooses ``door_angle_signed``, the angle keeps
-   its signs: ``-atan2(n . x, n . y)`` modulo ``pi / 2`` is ``q`` on the door's faces and edges
+   weight), so the votes pick the face and the normals give the angle.  Where it chooses
+   ``door_angle_signed``, the angle keeps its signs: ``-atan2(n . x, n . y)`` modulo ``pi / 2`` is ``q`` on the door's faces and edges
    alike (``x`` the mode's, from the hinge towards the door); its median on that circle, and of
-   the angles equal modulo ``pi / 2`` the one nearest the mode's vote (:func:`signed_door_angle`;
-   seed-14 objects: 2.13 -> 2.04 deg).  ``door_angle_gate_deg`` keeps the votes where the
+   the angles equal modulo ``pi / 2`` the one nearest the mode's vote (:func:`signed_door_angle`).
+   ``door_angle_gate_deg`` keeps the votes where the
    measured angle is further from them.
 6. **Hinge height.**  A door's axis origin is at the door's mid-height (the templates' convention:
    ``common.xacro``'s ``side_door``), and the door's pixels show its extent along the axis: the
@@ -55,8 +54,7 @@ regressed (:func:`refined_quantities`, per image and joint):
    ``1 - DOOR_EXTENT_QUANTILE`` quantiles of the door pixels' ``p . z``.  Not where the door's
    pixels reach within one output pixel of the image's top or bottom rows (the door is cut off),
    nor where the move would exceed ``door_extent_gate_m``.  It corrects the votes' tails (a
-   misjudged door height) and is used only where it lowers the validation position error
-   (the microwave's: 2.9 -> 2.2 cm on validation objects).
+   misjudged door height) and is used only where it lowers the validation position error.
 7. **Hinge side from the handle** (:mod:`.handle`).  A closed door whose vote mode puts the hinge
    at the door's handle is mirrored across the door (the cabinet's one-image side errors).
 8. **Mirror image** (:mod:`.mirror`).  Where the class's mirror image is again an object of the
@@ -102,8 +100,7 @@ regressed (:func:`refined_quantities`, per image and joint):
    more than a panel behind the front are the shell's, and the front-most of them is its edge,
    where a closed drawer's panel begins.  Last, ``q`` becomes the front plane's distance from the
    mode's origin along its axis, less a fitted offset (``drawer_front_offset_m``, the outer face's
-   ~0), where that moves it by less than ``drawer_front_gate_m``.  Shipped drawer, validation
-   objects: position 4.01 -> 2.92 cm, configuration 4.20 -> 2.66 cm.
+   ~0), where that moves it by less than ``drawer_front_gate_m``.
 
 :func:`~.fit.fit_refinement` chooses, on the training split's validation objects, which steps
 are used (each only where it lowers the validation error) and fits ``t``; the choice is stored
@@ -126,29 +123,22 @@ from .handle import (EVERY_DOOR_DEG, HANDLE_KEYS, MIN_RADIUS_M, apply_handle_hei
                      door_handles, handle_candidates)
 
 #: Manhattan alignment rounds: a normal is matched to a frame axis within these angles (deg).  The
-#: last two rounds (seventeenth session) leave out the normals of a face's border pixels, whose
-#: central differences mix two faces and sit a few degrees off the face (seen on a cabinet's side
-#: wall: columns at 0, -0.9 and 5.1 deg from it), and which a 5-degree round still averaged in.
-#: Shipped weights, selection objects (seed 11 / 14, 200 each), rotation deg, (25, 10, 5) ->
-#: (25, 10, 5, 2, 1): cabinet 2.43 -> 2.36 / 2.25 -> 2.22, toaster 0.083 -> 0.021 / 0.124 -> 0.057,
-#: microwave 0.26 -> 0.23 / 0.25 -> 0.22, refrigerator 0.61 -> 0.55 / 0.49 -> 0.44, two-door cabinet
-#: 0.22 -> 0.19 / 0.20 -> 0.18, drawer 0.43 -> 0.39 / 0.64 -> 0.60; configuration lower for every door,
-#: position within 0.01 cm.  A 0.5-degree round after them moved the cabinet, microwave and toaster
-#: (seed 14) by 0.01 deg of rotation or less.
+#: last two rounds leave out the normals of a face's border pixels, whose central differences mix
+#: two faces and sit a few degrees off the face (on a cabinet's side wall: columns at 0, -0.9 and
+#: 5.1 deg from it), which a 5-degree round still averages in.  A further 0.5-degree round changes
+#: the rotation by 0.01 deg or less.
 INLIER_ANGLES_DEG = (25.0, 10.0, 5.0, 2.0, 1.0)
 #: Weight (in pixels) of the current frame's own axes in each alignment round.
 PRIOR_WEIGHT_PX = 10.0
 #: Step 2's strip (:func:`strip_normals`): an image's box-frame pixels are read as a strip only
 #: where there are at least :data:`STRIP_MIN_PX` and fewer than :data:`STRIP_MAX_PX` of them (a
-#: body seen whole has faces with normals; on the seed-14 selection cabinets the strip read on every
-#: image turned the frames of images with 500-2,000 body pixels, configuration 1.95 -> 1.96 deg,
-#: against 1.87 below 500).
+#: body seen whole has faces with normals, and a strip read there turns frames without lowering
+#: the configuration error).
 STRIP_MIN_PX = 10
 STRIP_MAX_PX = 500
 #: ... and where its points' standard deviation along their line is at least this (m): a strip
 #: seen end-on (a column of pixels down one vertical edge) projects to a point across the axis,
-#: whose "line" is rounding (seed-14 selection cabinets, rotation / configuration deg at
-#: elongation 10,000: 2.14 / 1.85 without this test, 2.07 / 1.84 with it at 0.01 or 0.03 m).
+#: whose "line" is rounding (0.01 and 0.03 m give the same validation errors).
 STRIP_MIN_SPREAD_M = 0.01
 #: The frame alignment reads the normals of every this-many-th row and column (2 is ~10% faster
 #: and measured ~0.05 deg worse on microwave validation objects).
@@ -195,9 +185,9 @@ SHELL_MIN_PX = 5
 #: 8: ``handle_cut_bars``; 9: ``door_angle_folded``; 10: ``door_angle_signed``, ``door_angle_gate_deg``;
 #: 11: ``door_face_gate_m``, ``door_face_offsets_m``; 12: ``frame_one_sided``; 13: ``drawer_front_gate_m``,
 #: ``drawer_front_offset_m``, ``drawer_centre_gate_m``, ``drawer_shell_gate_m``, ``drawer_shell_offset_m``;
-#: 14: ``frame_strip_elongation``; older versions read as without them).  The stored fields, not their implementation: since the tenth
-#: session every version's ``mirror_joints`` averages the network's outputs (:mod:`.mirror`), not the
-#: refined vote modes of two passes.
+#: 14: ``frame_strip_elongation``; older versions read as without them).  The versions name the
+#: stored fields, not their implementation: every version's ``mirror_joints`` averages the
+#: network's outputs (:mod:`.mirror`).
 REFINEMENT_VERSION = 14
 
 

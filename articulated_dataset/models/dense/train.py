@@ -43,8 +43,8 @@ log = logging.getLogger(__name__)
 
 #: A calibration-only refit (:func:`refit_inference`) fits the modes' scales as before and compares
 #: them with the checkpoint's: the same validation objects give them again to within this median
-#: relative difference over the columns' factors and floors (float rounding in code changed since
-#: moves them by 0.1-0.4%, though a floor in a flat stretch of its likelihood may jump by 30%);
+#: relative difference over the columns' factors and floors (float rounding moves them by
+#: 0.1-0.4%, though a floor in a flat stretch of its likelihood may jump by 30%);
 #: other objects move most floors by several per cent (each is a fraction of the residuals' median).
 SAME_CALIBRATION_TOLERANCE = 0.01
 

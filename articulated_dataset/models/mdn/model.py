@@ -54,7 +54,7 @@ class ModelConfig:
 
     ``stem``: ``"imagenet"`` is ResNet's 7x7 stride-2 convolution + 3x3 stride-2 max pool
     (total stride 4); ``"light"`` is a 3x3 stride-2 convolution without pooling (stride 2);
-    ``"light-pool"`` adds the 3x3 stride-2 max pool (stride 4) at a ninth of the 7x7's cost.
+    ``"light-pool"`` adds the 3x3 stride-2 max pool (stride 4) at 1/9 of the 7x7's cost.
     """
 
     in_channels: int
