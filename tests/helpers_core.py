@@ -256,3 +256,41 @@ def flap_split_outside(root: Path, split: str = "train") -> tuple[Path, Path]:
     assert result.exit_code == 0, result.output
     (split_dir,) = [p.parent for p in (root / "out").glob(f"*/{split}/manifest.json")]
     return urdf, split_dir
+
+
+def check_forced_split(split: Path, obj_class, table, *, front_m: float | None = None,
+                       standoff_m: float | None = None, min_body_px: int = 1000):
+    """The checks every forced varied structure passes: ``split`` verifies, its manifest records
+    ``table``, its labels explain its pixels (:func:`check_stored_images`, the body's box reaching
+    ``front_m`` of door or front and ``standoff_m`` of handle in front of it, where given), and each
+    object's ``geometry`` is its sampled size.  Yields ``(config, arrays, sample, rows)`` per object
+    for a test's own checks (``rows``: the object's images in ``arrays``)."""
+    from articulated_dataset.format import open_split
+    from articulated_dataset.verify import verify_split
+
+    global PANEL_M, HANDLE_STANDOFF_M
+    report = verify_split(split)
+    assert report.ok, report.problems
+    manifest, shards = open_split(split)
+    config = GenerationConfig.from_dict(manifest["config"])
+    assert config.table == table
+    K = np.asarray(shards[0].K)
+    counts = np.zeros(3, int)
+    saved = PANEL_M, HANDLE_STANDOFF_M
+    PANEL_M = saved[0] if front_m is None else front_m
+    HANDLE_STANDOFF_M = saved[1] if standoff_m is None else standoff_m
+    try:
+        for sh in shards:
+            a = {k: sh.read(k) for k in (*IMAGE_CHECK_FIELDS, "object_index")}
+            sh.close()
+            counts += check_stored_images(obj_class, a, K)
+            for k in np.unique(a["object_index"]):
+                sample = object_sample(config, int(k))
+                rows = a["object_index"] == k
+                sizes = a["geometry"][rows, :3].astype(np.float64)  # every fixed part's box: the sampled size
+                assert np.allclose(sizes, [sample.geometry[key] for key in ("depth_m", "width_m", "height_m")], atol=1e-6)
+                yield config, a, sample, rows
+    finally:
+        PANEL_M, HANDLE_STANDOFF_M = saved
+    checked, detected, n_body = counts
+    assert checked > 0 and detected >= 0.9 * checked and n_body > min_body_px

@@ -19,10 +19,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-import helpers_core
 from articulated_dataset.camera import CameraConfig
 from articulated_dataset.cli import main
-from articulated_dataset.format import open_split
 from articulated_dataset.generation import GenerationConfig, generate_split, object_sample
 from articulated_dataset.generation.compiled import compile_object
 from articulated_dataset.generation.labels import read_object_labels
@@ -33,7 +31,7 @@ from articulated_dataset.generation.templating import object_urdf
 from articulated_dataset.generators.drawer import DRAWER_Q_M, DRAWER_STRUCTURE, FLOOR_STANDING_M, VARIED_TABLE, shortest_box_m
 from articulated_dataset.registry import get_class
 from articulated_dataset.verify import verify_split
-from helpers_core import IMAGE_CHECK_FIELDS, check_stored_images
+from helpers_core import check_forced_split
 from test_varied_tables import _geoms
 
 DRAWER = get_class("drawer")
@@ -244,29 +242,12 @@ def forced_root(tmp_path_factory):
 
 
 @pytest.mark.parametrize("label", FORCED)
-def test_forced_structures_verify_and_their_labels_explain_their_pixels(forced_root, monkeypatch, label):
-    split = forced_root / label / "drawer" / "train"
-    report = verify_split(split)
-    assert report.ok, report.problems
+def test_forced_structures_verify_and_their_labels_explain_their_pixels(forced_root, label):
     # the closed object's box reaches the front of the thickest front and farthest handle
-    monkeypatch.setattr(helpers_core, "PANEL_M", DRAWER_STRUCTURE["front_thickness_m"][1])
-    monkeypatch.setattr(helpers_core, "HANDLE_STANDOFF_M", DRAWER_STRUCTURE["handle_standoff_m"][1])
-    manifest, shards = open_split(split)
-    config = GenerationConfig.from_dict(manifest["config"])
-    assert config.table == _forced(**FORCED[label])
-    K = np.asarray(shards[0].K)
-    counts = np.zeros(3, int)
-    for sh in shards:
-        a = {k: sh.read(k) for k in (*IMAGE_CHECK_FIELDS, "object_index")}
-        sh.close()
-        counts += check_stored_images(DRAWER, a, K)
+    for _, a, _, _ in check_forced_split(forced_root / label / "drawer" / "train", DRAWER, _forced(**FORCED[label]),
+                                         front_m=DRAWER_STRUCTURE["front_thickness_m"][1],
+                                         standoff_m=DRAWER_STRUCTURE["handle_standoff_m"][1], min_body_px=500):
         assert np.all((a["q"] >= 0) & (a["q"] <= DRAWER_Q_M[1]))
-        for k in np.unique(a["object_index"]):
-            sample = object_sample(config, int(k))
-            sizes = a["geometry"][a["object_index"] == k, :3].astype(np.float64)
-            assert np.allclose(sizes, [sample.geometry[key] for key in ("depth_m", "width_m", "height_m")], atol=1e-6)
-    checked, detected, n_body = counts
-    assert checked > 0 and detected >= 0.9 * checked and n_body > 500
 
 
 def test_a_varied_mean_drawer_verifies(tmp_path):

@@ -31,7 +31,7 @@ from articulated_dataset.format import open_split, read_manifest
 from articulated_dataset.registry import all_classes, get_class
 from articulated_dataset.tables import SamplingTable
 from articulated_dataset.verify import verify_split
-from helpers_core import IMAGE_CHECK_FIELDS, assert_one_line_error, check_stored_images
+from helpers_core import assert_one_line_error, check_forced_split
 from test_golden_bytes import GOLDEN, GOLDEN_RASTERISER, IMAGES_PER_OBJECT, N_OBJECTS, digests, gl_renderer
 
 VARIED = [c for c in all_classes() if c.varied_table is not None]
@@ -183,30 +183,13 @@ def forced_root(tmp_path_factory):
 @pytest.mark.parametrize("label", FORCED)
 @pytest.mark.parametrize("obj_class", CABINETS, ids=lambda c: c.name)
 def test_every_structure_verifies_and_its_labels_explain_its_pixels(forced_root, obj_class, label):
-    split = forced_root / label / obj_class.name / "train"
-    report = verify_split(split)
-    assert report.ok, report.problems
-    manifest, shards = open_split(split)
-    config = GenerationConfig.from_dict(manifest["config"])
-    assert config.table == obj_class.varied_table.override({"structure": FORCED[label]})
-    K = np.asarray(shards[0].K)
-    counts = np.zeros(3, int)
-    for sh in shards:
-        a = {k: sh.read(k) for k in (*IMAGE_CHECK_FIELDS, "object_index")}
-        sh.close()
-        counts += check_stored_images(obj_class, a, K)
-        for k in np.unique(a["object_index"]):
-            sample = object_sample(config, int(k))
-            sizes = a["geometry"][a["object_index"] == k, :3].astype(np.float64)
-            # geometry is the body's outer box: carcass, face frame, plinth or legs, countertop
-            assert np.allclose(sizes, [sample.geometry[key] for key in ("depth_m", "width_m", "height_m")], atol=1e-6)
-            names = set(_geoms(compile_object(obj_class, object_urdf(obj_class, sample, config.table), ORIGIN_POSE,
-                                              config.camera).model))
-            present, absent = EXPECTED_GEOMS[label]
-            assert present <= names and not absent & names, (label, names)
-            assert any(n.endswith("_handle") for n in names) == (FORCED[label]["handle_weights"] != {"none": 1})
-    checked, detected, n_body = counts
-    assert checked > 0 and detected >= 0.9 * checked and n_body > 1000
+    table = obj_class.varied_table.override({"structure": FORCED[label]})
+    for config, _, sample, _ in check_forced_split(forced_root / label / obj_class.name / "train", obj_class, table):
+        names = set(_geoms(compile_object(obj_class, object_urdf(obj_class, sample, config.table), ORIGIN_POSE,
+                                          config.camera).model))
+        present, absent = EXPECTED_GEOMS[label]
+        assert present <= names and not absent & names, (label, names)
+        assert any(n.endswith("_handle") for n in names) == (FORCED[label]["handle_weights"] != {"none": 1})
 
 
 def test_cabinet_chirality_is_the_hinge_side_of_a_varied_door(forced_root):
