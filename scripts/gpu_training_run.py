@@ -120,7 +120,6 @@ def dense_worker(a) -> None:
 
 
 def mdn_worker(a) -> None:
-    import numpy as np
     import torch
 
     from articulated_dataset.models.mdn import train as mdn_train

@@ -1008,7 +1008,7 @@ def test_rebuilt_definition_checked_by_the_library(urdf_split):
     cfg = read_manifest(urdf_split["split"])["config"]
     cfg["third_party"]["class_name"] = "../x"
     with pytest.raises(UserError, match="corrupt third-party URDF definition"):
-        GenerationConfig.from_dict(cfg).obj_class
+        GenerationConfig.from_dict(cfg).obj_class  # noqa: B018 - the property reads and checks
 
 
 # --------------------------------------------------------------------------------------

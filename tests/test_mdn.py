@@ -310,7 +310,6 @@ def test_cli_train_predict_score_round_trip(tiny_root, tmp_path):
 
 
 def test_predict_two_joint_class_mode_and_snap_to_cloud(tiny_root, tmp_path):
-    from articulated_dataset.errors import UserError
     from articulated_dataset.models.mdn.predict import predict_split
     from articulated_dataset.benchmark.pointlik import object_cloud
 

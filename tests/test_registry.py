@@ -28,7 +28,7 @@ def test_every_generator_module_is_listed_and_is_data():
     modules = {m.name for m in pkgutil.iter_modules(generators.__path__)} - NOT_CLASSES
     assert set(registry.BUILTIN_GENERATORS) == modules
     for name in registry.BUILTIN_GENERATORS:
-        obj_class = getattr(__import__(f"articulated_dataset.generators.{name}", fromlist=["CLASS"]), "CLASS")
+        obj_class = __import__(f"articulated_dataset.generators.{name}", fromlist=["CLASS"]).CLASS
         assert isinstance(obj_class, ObjectClass) and obj_class.name == name
         assert registry.get_class(name) is obj_class
     assert registry.class_names() == ["cabinet", "drawer", "microwave", "toaster", "cabinet2", "refrigerator"]

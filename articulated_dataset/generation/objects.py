@@ -102,7 +102,7 @@ def stored_object_config(config: dict, split_dir, what: str, hint: str = "", *, 
                               f"({type(exc).__name__}: {exc}); {what} needs it") from None
     if urdf is not None:
         try:
-            generation.obj_class  # builds the class: reads the named files and compares their sha256
+            generation.obj_class  # noqa: B018 - builds the class: reads the named files, compares their sha256
         except SourceMismatchError:
             raise UserError(f"{urdf} is not the URDF this split was generated from (sha256 differs)") from None
     return generation

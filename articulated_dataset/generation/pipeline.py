@@ -71,7 +71,7 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
         framing = Framing.of(extent_points(obj_class, urdf, sample.q, config.camera), config.table, config.camera)
         poses = sample.pose_generator()
         sample, draws = _framed_pose(sample, framing, poses, draws)
-    for attempt in range(1, MAX_POSE_ATTEMPTS + 1):
+    for attempt in range(1, MAX_POSE_ATTEMPTS + 1):  # noqa: B007 - the count is returned
         placed = arrange(sample, config, streams)
         if placed is not None:  # else no scene layout fits this pose
             sample = placed.sample

@@ -314,7 +314,7 @@ def source_digest(parsed: Parsed) -> str:
     h = hashlib.sha256()
     h.update(parsed.path.read_bytes())
     meshes = sorted({e.mesh_file for els in parsed.elements.values() for e in els if e.mesh_file})
-    for f in meshes + sorted({buffer for f in meshes for buffer in gltf_buffer_files(f)} - set(meshes)):
+    for f in meshes + sorted({buffer for mesh in meshes for buffer in gltf_buffer_files(mesh)} - set(meshes)):
         h.update(os.path.relpath(f, parsed.path.parent).encode("utf-8"))
         with open(f, "rb") as fh:
             for block in iter(lambda: fh.read(1 << 20), b""):

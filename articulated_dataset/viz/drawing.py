@@ -86,7 +86,7 @@ def _draw_axes(ax, s: dict, view: SplitView) -> None:
             muv, _ = project(marks, K)
             if np.all(np.isfinite(muv[0])):
                 ax.plot(*muv[0], "s", ms=ORIGIN_MARKER_PT, mfc="none", mec=colour, mew=1.6, zorder=6)
-    for j, colour, muv in markers:  # dots above every line
+    for _, colour, muv in markers:  # dots above every line
         if np.all(np.isfinite(muv[0])):
             ax.plot(*muv[0], "o", ms=ORIGIN_MARKER_PT, mfc=colour, mec="white", mew=1.2, zorder=6)
         if len(muv) > 1 and np.all(np.isfinite(muv[1])):

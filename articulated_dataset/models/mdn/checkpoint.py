@@ -4,7 +4,6 @@ model rebuilt from a checkpoint."""
 
 from __future__ import annotations
 
-import os
 import pickle
 import warnings
 import zipfile
@@ -284,7 +283,6 @@ def check_checkpoint(ckpt: dict, path) -> None:
     from the file is allocated unchecked); the normalisation statistics fit the layout and are
     finite; the column lists are in range; the weights are finite tensors; the epoch count is
     a whole number.  Otherwise a one-line :class:`UserError` naming ``path``."""
-    import torch
 
     from ...registry import get_class
     from ...targets import NormStats, TargetLayout
