@@ -92,3 +92,23 @@ def resolve_split_folder(data_dir: str | None, data_option: str | None) -> str:
     if data_dir is None:
         raise UserError(f"missing the split folder DIR (see {command} --help)")
     return data_dir
+
+
+def split_folders(f):
+    """:func:`split_folder` for a command that reads one split folder or several (``DIR [DIR ...]``);
+    the command receives ``data_dirs`` (a tuple) and ``data_option`` and calls
+    :func:`resolve_split_folders`."""
+    f = click.option("--data", "data_option", type=click.Path(), default=None, metavar="DIR",
+                     help=f"Deprecated (removed in {DATA_OPTION_REMOVED_IN}): give DIR as the argument.")(f)
+    return click.argument("data_dirs", nargs=-1, type=click.Path(), metavar="DIR [DIR ...]")(f)
+
+
+def resolve_split_folders(data_dirs: tuple[str, ...], data_option: str | None) -> list[str]:
+    """The split folders given as ``DIR [DIR ...]`` or, deprecated, as one ``--data DIR``
+    (:func:`resolve_split_folder`'s warning and errors)."""
+    if len(data_dirs) > 1:
+        if data_option is not None:
+            raise UserError(f"the split folders are given twice ({' '.join(data_dirs)} and --data {data_option}); "
+                            f"give them once, as DIR [DIR ...]")
+        return list(data_dirs)
+    return [resolve_split_folder(data_dirs[0] if data_dirs else None, data_option)]

@@ -7,7 +7,9 @@ import time
 
 import click
 
-from .options import ClassChoice, prepare_torch, resolve_split_folder, split_folder
+from ..errors import UserError
+
+from .options import ClassChoice, prepare_torch, resolve_split_folders, split_folders
 
 
 @click.command("train")
@@ -15,7 +17,7 @@ from .options import ClassChoice, prepare_torch, resolve_split_folder, split_fol
               help="dense: the per-pixel voting network of the shipped models (docs/dense.md); mdn: the paper's "
                    "ResNet-18 mixture density network (docs/model.md).")
 @click.option("--class", "class_name", type=ClassChoice(), required=True, help="Object class (one network per class).")
-@split_folder
+@split_folders
 @click.option("--out", type=click.Path(dir_okay=False), required=True, help="Checkpoint file (written after every epoch).")
 @click.option("--small", is_flag=True, help="mdn: reduced network at 96x54 input: minutes per class on a 2-core CPU.")
 @click.option("--epochs", type=int, default=None, help="Epochs (default: mdn 30, or 8 with --small; dense 2).")
@@ -33,17 +35,22 @@ from .options import ClassChoice, prepare_torch, resolve_split_folder, split_fol
 @click.option("--noise-fraction", type=float, default=None, help="dense: the share of each batch --noise corrupts (default 0.5).")
 @click.option("--val-fraction", type=float, default=None,
               help="Fraction of the training split's OBJECTS held out for validation (0: none; default: mdn 0.1, dense 0.05).")
+@click.option("--mix-weights", default=None, metavar="W1,W2,...",
+              help="dense, several DIRs: each batch draws its images from the splits in proportion to these "
+                   "weights, one per DIR (default: to the splits' sizes).")
 @click.option("--max-objects", type=int, default=None, help="Train on the first N objects of the split only.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the initialisation, validation split and batch order.")
 @click.option("--device", default="auto", show_default=True, help="auto (GPU if present), cpu, cuda or cuda:N.")
 @click.option("--threads", type=int, default=None, help="CPU threads for torch (default: all cores of this process).")
 @click.option("--resume", is_flag=True, help="Continue the interrupted training stored in --out (same options).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or per-epoch lines.")
-def train_cmd(model_kind, class_name, data_dir, data_option, out, small, epochs, batch_size, lr, components, width, init_from,
-              origin_weight, noise, noise_fraction, val_fraction, max_objects, seed, device, threads, resume, quiet):
+def train_cmd(model_kind, class_name, data_dirs, data_option, out, small, epochs, batch_size, lr, components, width, init_from,
+              origin_weight, noise, noise_fraction, val_fraction, mix_weights, max_objects, seed, device, threads, resume, quiet):
     """Train one class's estimator on the training split in DIR (a split folder, e.g. data/cabinet/train;
-    checkpoints after every epoch; --resume continues)."""
-    data = resolve_split_folder(data_dir, data_option)
+    checkpoints after every epoch; --resume continues).  --model dense reads several DIRs as one
+    mixture (weighted by --mix-weights)."""
+    data = resolve_split_folders(data_dirs, data_option)
+    weights = None if mix_weights is None else parse_weights(mix_weights)
     prepare_torch(threads)
     from ..models.train import TrainingInterrupted, train_model
 
@@ -53,11 +60,19 @@ def train_cmd(model_kind, class_name, data_dir, data_option, out, small, epochs,
                           components=components, width=width, init_from=init_from, origin_weight=origin_weight,
                           noise=noise, noise_fraction=noise_fraction, val_fraction=val_fraction,
                           max_objects=max_objects, seed=seed, device=device, resume=resume, progress=not quiet,
-                          echo=None if quiet else click.echo)
+                          echo=None if quiet else click.echo, mix_weights=weights)
     except TrainingInterrupted as exc:
         raise click.ClickException(str(exc)) from None
     if not quiet:
         click.echo(f"{out}: {run.summary} in {time.perf_counter() - t0:.0f} s")
+
+
+def parse_weights(text: str) -> list[float]:
+    """``--mix-weights W1,W2,...`` as numbers (anything else is one line)."""
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        raise UserError(f"--mix-weights must be comma-separated numbers, got {text[:80]!r}") from None
 
 
 COMMANDS = [train_cmd]

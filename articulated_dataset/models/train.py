@@ -28,19 +28,20 @@ class TrainingRun:
     summary: str
 
 
-def train_model(kind: str, class_name: str, data: str | Path, out: str | Path, *, small: bool = False,
+def train_model(kind: str, class_name: str, data: str | Path | list, out: str | Path, *, small: bool = False,
                 epochs: int | None = None, batch_size: int | None = None, lr: float | None = None,
                 components: int | None = None, width: int | None = None, init_from: str | None = None,
                 origin_weight: float | None = None, val_fraction: float | None = None, max_objects: int | None = None, seed: int = 0,
                 noise: str | None = None, noise_fraction: float | None = None,
                 device: str = "auto", resume: bool = False, progress: bool = False,
-                echo: Callable[[str], None] | None = None) -> TrainingRun:
+                echo: Callable[[str], None] | None = None, mix_weights: list[float] | None = None) -> TrainingRun:
     """Train a ``kind`` (``mdn`` or ``dense``) network for ``class_name`` on the training split
     ``data`` into the checkpoint ``out``.  ``None`` settings take the kind's defaults (mdn: the
     ``small`` or full preset and 10% validation objects; dense: :class:`DenseTrainConfig`'s).
     ``small``/``components`` belong to mdn, ``width``/``init_from``/``origin_weight``/``noise``/``noise_fraction``
     to dense: given to the other
-    kind they are a :class:`UserError`.  Ctrl-C raises :class:`TrainingInterrupted`."""
+    kind they are a :class:`UserError`.  ``data`` may be a list of splits, mixed by ``mix_weights``
+    (dense only: :func:`~.dense.train.train_dense`).  Ctrl-C raises :class:`TrainingInterrupted`."""
     if kind not in KINDS:
         raise UserError(f"unknown model kind {kind!r}; expected one of {', '.join(KINDS)}")
     if max_objects is not None and max_objects <= 0:
@@ -55,7 +56,8 @@ def train_model(kind: str, class_name: str, data: str | Path, out: str | Path, *
         config = DenseTrainConfig(class_name=class_name, max_objects=max_objects, seed=seed, init_from=init_from,
                                   **{k: v for k, v in given.items() if v is not None})
         try:
-            ckpt = train_dense(data, out, config, resume=resume, progress=progress, echo=echo, device=device)
+            ckpt = train_dense(data, out, config, resume=resume, progress=progress, echo=echo, device=device,
+                               mix_weights=mix_weights)
         except KeyboardInterrupt:
             raise TrainingInterrupted(f"interrupted; the last checkpoint is in {out}. Continue with the same command "
                                       f"plus --resume") from None
@@ -64,6 +66,12 @@ def train_model(kind: str, class_name: str, data: str | Path, out: str | Path, *
     if width is not None or init_from is not None or origin_weight is not None or noise is not None \
             or noise_fraction is not None:
         raise UserError("--width, --init-from, --origin-weight, --noise and --noise-fraction belong to --model dense")
+    if isinstance(data, (list, tuple)):
+        if len(data) != 1:
+            raise UserError("--model mdn trains on one split; give one split folder (--model dense trains on several)")
+        data = data[0]
+    if mix_weights is not None:
+        raise UserError("--mix-weights belongs to --model dense")
     from .mdn.config import TrainConfig
     from .mdn.train import train
 

@@ -184,3 +184,36 @@ def _load_shard(task) -> dict:
         return out
     finally:
         sh.close()
+
+
+def concat_dense_data(parts: list[DenseData]) -> DenseData:
+    """Several splits' :class:`DenseData` as one, in order; each split's object indices shifted
+    past the previous splits' (its objects stay distinct from theirs), ``shard_of`` likewise."""
+    from dataclasses import fields, replace
+
+    obj_offset = shard_offset = 0
+    shifted = []
+    for part in parts:
+        shifted.append(replace(part, object_index=part.object_index + obj_offset,
+                               shard_of=part.shard_of + shard_offset))
+        obj_offset += int(part.object_index.max()) + 1 if len(part.object_index) else 0
+        shard_offset += int(part.shard_of.max()) + 1 if len(part.shard_of) else 0
+    return DenseData(**{f.name: None if getattr(shifted[0], f.name) is None else
+                        np.concatenate([getattr(p, f.name) for p in shifted]) for f in fields(DenseData)})
+
+
+def mixture_order(pools: list[np.ndarray], weights: np.ndarray, n: int, gen: np.random.Generator) -> np.ndarray:
+    """``n`` image indices drawn from the ``pools`` (one array of image indices per split) in
+    proportion to ``weights``: each position picks its split with probability ``weights /
+    weights.sum()``, and each split hands out its images in a fresh permutation, another
+    permutation after it runs out (a small split weighted high repeats its images within an epoch)."""
+    w = np.asarray(weights, np.float64)
+    choice = gen.choice(len(pools), size=n, p=w / w.sum())
+    order = np.empty(n, np.int64)
+    for s, pool in enumerate(pools):
+        at = np.nonzero(choice == s)[0]
+        if not len(at):
+            continue
+        rounds = -(-len(at) // len(pool))
+        order[at] = np.concatenate([gen.permutation(pool) for _ in range(rounds)])[: len(at)]
+    return order

@@ -37,7 +37,7 @@ import numpy as np
 from ...errors import UserError
 from .checkpoint import (CHECKPOINT_FORMAT, CHECKPOINT_VERSION, build_dense_model, build_inference_model,
                          load_dense_checkpoint)
-from .data import DenseData, load_dense_split, split_object_indices
+from .data import DenseData, concat_dense_data, load_dense_split, mixture_order, split_object_indices
 
 log = logging.getLogger(__name__)
 
@@ -221,10 +221,14 @@ def atomic_save(obj: dict, path: Path) -> None:
     atomic_torch_save(obj, path)
 
 
-def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, resume: bool = False,
+def train_dense(data: str | Path | list, out: str | Path, config: DenseTrainConfig, *, resume: bool = False,
                 progress: bool = True, echo=None, stop_after_steps: int | None = None, device: str | None = "cpu",
-                fit: bool = True) -> dict:
-    """Train (or resume) the dense estimator of ``config.class_name`` on the split at ``data``.
+                fit: bool = True, mix_weights: list[float] | None = None) -> dict:
+    """Train (or resume) the dense estimator of ``config.class_name`` on the split at ``data``,
+    or on a mixture of the splits of a list ``data`` (:func:`check_mixture`): each split holds
+    out its own validation objects, each batch draws its images from the splits in proportion
+    to ``mix_weights`` (:func:`~.data.mixture_order`; None: to their sizes, one concatenated
+    split), and the checkpoint's ``data["splits"]`` records every split's identity and weight.
 
     ``stop_after_steps`` stops early (checkpointed, resumable) after that many steps in total.
     ``device``: where the training steps run (``cpu``, ``cuda``, ``cuda:N`` or ``auto``); the
@@ -247,9 +251,18 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     out = Path(out)
     dev = resolve_device(device)
     obj_class = get_class(config.class_name)
-    split_dir = resolve_split_dir(data)
+    split_dirs = [resolve_split_dir(d) for d in (data if isinstance(data, (list, tuple)) else [data])]
+    split_dir = split_dirs[0]
+    mixture = len(split_dirs) > 1
+    weights = check_mixture(split_dirs, obj_class.name, mix_weights)
     ckpt = prepare_training_output(split_dir, obj_class.name, out, resume=resume, load=load_dense_checkpoint,
                                    config=config, example_name="dense.pt")
+    identities = [split_identity(d) for d in split_dirs]  # read once: every checkpoint records them
+    mixture_record = [{"split_dir": str(d), "split": ident, "weight": None if weights is None else float(w)}
+                      for d, ident, w in zip(split_dirs, identities, weights if weights is not None
+                                             else [None] * len(split_dirs))]
+    if ckpt is not None:
+        check_same_mixture(ckpt, out, mixture_record)
     if ckpt is not None and ckpt.get("finished"):
         log.info("%s: training already finished", out)
         return ckpt
@@ -262,15 +275,25 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     model_config = DenseConfig(n_joints=J, width=config.width)
     hw = (model_config.height_px, model_config.width_px)
     t_load = time.perf_counter()
-    data_ = load_dense_split(split_dir, J, hw, max_objects=config.max_objects, progress=progress)
+    loaded = [load_dense_split(d, J, hw, max_objects=config.max_objects, progress=progress) for d in split_dirs]
+    data_ = loaded[0] if not mixture else concat_dense_data(loaded)
+    source = np.concatenate([np.full(len(p.sample_id), s) for s, p in enumerate(loaded)])  # each image's split
     t_load = time.perf_counter() - t_load
     for name in ("origin", "rot6", "q", "part_offset", "geometry"):  # every label the losses read
         bad = ~np.isfinite(getattr(data_, name)).reshape(len(data_.sample_id), -1).all(1)
         if bad.any():  # (else the first step's loss is NaN, reported as a learning rate too high)
-            raise UserError(f"{split_dir}: {int(bad.sum())} image(s) have NaN or infinite '{name}' labels (a real split "
+            where = split_dirs[int(source[np.argmax(bad)])]  # the split of the first such image
+            raise UserError(f"{where}: {int(bad.sum())} image(s) have NaN or infinite '{name}' labels (a real split "
                             f"without full ground truth, or a damaged one: 'artdata verify'); training needs every label")
-    train_mask, val_mask = split_by_object(data_.object_index, config.val_fraction, config.seed)
-    tr_idx, va_idx = np.nonzero(train_mask)[0], np.nonzero(val_mask)[0]
+    val_mask = np.zeros(len(source), bool)
+    for s in range(len(split_dirs)):  # each split holds out its own validation objects
+        at = np.nonzero(source == s)[0]
+        val_mask[at] = split_by_object(data_.object_index[at], config.val_fraction, config.seed)[1]
+    tr_idx, va_idx = np.nonzero(~val_mask)[0], np.nonzero(val_mask)[0]
+    tr_pools = [tr_idx[source[tr_idx] == s] for s in range(len(split_dirs))]
+    for d, pool in zip(split_dirs, tr_pools):
+        if mixture and len(pool) == 0:
+            raise UserError(f"{d}: no training images after holding out validation objects")
     val_data, val_idx = (data_, va_idx) if config.noise is None or not len(va_idx) else \
         noisy_validation(data_, va_idx, config.noise, seed=config.seed)
     n_train = len(tr_idx)
@@ -323,7 +346,7 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
             raise UserError(f"{out}: checkpoint field 'cpu_seconds' is not a number") from None
     log.info("%s: %d train / %d val images, %s parameters, device %s", obj_class.name, n_train, len(va_idx),
              f"{count_parameters(model):,}", dev)
-    identity = split_identity(split_dir)  # read once: every checkpoint records it
+    identity = identities[0]
     generated = generation_of(identity)
     machine = machine_description(dev)
 
@@ -334,7 +357,11 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
             "train_config": config.to_dict(), "q_scale": [float(v) for v in q_scale],
             "data": {"split_dir": str(split_dir), "split": identity, "n_train_images": int(n_train),
                      "n_val_images": int(len(va_idx)),
-                     "n_objects": int(len(np.unique(data_.object_index))), "generated": generated},
+                     "n_objects": int(len(np.unique(data_.object_index))), "generated": generated,
+                     **({"splits": [{**m, "n_train_images": int(len(pool)),
+                                     "n_val_images": int((source[va_idx] == s).sum())}
+                                    for s, (m, pool) in enumerate(zip(mixture_record, tr_pools))]}
+                        if mixture else {})},
             "machine": machine, "device": dev.type,
             "step": step, "total_steps": total_steps, "finished": finished, "history": history,
             "cpu_seconds": cpu_seconds, "calibration": calibration,
@@ -347,7 +374,19 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
             return {}
         arrays = predict_arrays(inference_copy(model), val_data, val_idx, joint_types=list(obj_class.joint_types),
                                 calibration=None)
-        return quick_errors(arrays, val_data, val_idx, list(obj_class.joint_types))
+        together = quick_errors(arrays, val_data, val_idx, list(obj_class.joint_types))
+        if not mixture:
+            return together
+        per_split = {}  # the same predictions, scored split by split ("s0_...", "s1_...")
+        rows = np.arange(len(val_idx))
+        for s in range(len(split_dirs)):
+            mine = source[va_idx] == s
+            if mine.any():
+                sub = {k: (v[rows[mine]] if isinstance(v, np.ndarray) and len(v) == len(rows) else v)
+                       for k, v in arrays.items()}
+                per_split.update({f"s{s}_{k}": v for k, v in
+                                  quick_errors(sub, val_data, val_idx[mine], list(obj_class.joint_types)).items()})
+        return {**together, **per_split}
 
     end = total_steps if stop_after_steps is None else min(total_steps, stop_after_steps)
     bar = tqdm(total=total_steps, initial=step, desc=f"training {obj_class.name}", unit="step", disable=not progress)
@@ -357,7 +396,8 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     while step < end:
         epoch, pos = divmod(step, steps_per_epoch)
         gen = np.random.default_rng(config.seed * EPOCH_SEED_STRIDE + epoch)
-        order = gen.permutation(tr_idx)
+        order = gen.permutation(tr_idx) if weights is None else \
+            mixture_order(tr_pools, weights, steps_per_epoch * batch, gen)
         model.train()
         while pos < steps_per_epoch and step < end:
             idx = np.sort(order[pos * batch : (pos + 1) * batch])
@@ -416,6 +456,58 @@ def train_dense(data: str | Path, out: str | Path, config: DenseTrainConfig, *, 
     result["load_seconds"] = round(t_load, 1)
     atomic_save(result, out)
     return result
+
+
+def check_mixture(split_dirs: list[Path], class_name: str, mix_weights: list[float] | None) -> np.ndarray | None:
+    """The splits of a mixture checked (each of ``class_name`` and generated, each given once) and
+    their sampling weights as an array (None: sample in proportion to the splits' sizes); a
+    mismatch is one line naming the split."""
+    from ...format import Split
+
+    seen = set()
+    for d in split_dirs:
+        key = Path(d).resolve()
+        if key in seen:
+            raise UserError(f"{d}: given twice; give each split once and weight it with --mix-weights")
+        seen.add(key)
+        split = Split(d)
+        if split.class_name != class_name:
+            raise UserError(f"{d}: holds class {split.class_name!r}, not {class_name!r} (--class)")
+        if split.is_real:
+            raise UserError(f"{d} holds ingested real captures (labels NaN where not given); train on generated splits")
+    if mix_weights is None:
+        return None
+    if len(split_dirs) < 2:
+        raise UserError("--mix-weights weights several splits; give two split folders or more")
+    w = np.asarray([float(v) for v in mix_weights], np.float64)
+    if len(w) != len(split_dirs):
+        raise UserError(f"--mix-weights has {len(w)} weight(s) for {len(split_dirs)} split(s); give one per split")
+    if not (np.isfinite(w).all() and (w > 0).all()):
+        raise UserError(f"--mix-weights must be positive finite numbers, got {','.join(f'{v:g}' for v in w)}")
+    return w
+
+
+def check_same_mixture(ckpt: dict, out: Path, current: list[dict]) -> None:
+    """``--resume``: the checkpoint was trained on the same splits (identities, in order) with the
+    same weights as ``current``; else one line naming the first difference."""
+    from ..mdn.checkpoint import data_record
+
+    data = data_record(ckpt, out)
+    recorded = data.get("splits")
+    if recorded is None:  # one split: what a single-split checkpoint records
+        recorded = [{"split": data.get("split"), "weight": None}]
+    if not isinstance(recorded, list) or not all(isinstance(r, dict) for r in recorded):
+        raise UserError(f"{out}: checkpoint field 'data.splits' is not a list of mappings (corrupt checkpoint)")
+    if len(recorded) != len(current):
+        raise UserError(f"--resume: {out} was trained on {len(recorded)} split(s), not {len(current)}; "
+                        f"give the same splits and --mix-weights")
+    for i, (r, c) in enumerate(zip(recorded, current)):
+        if r.get("split") is not None and c["split"] is not None and r.get("split") != c["split"]:
+            raise UserError(f"--resume: split {i + 1} of {out} was {str(r.get('split'))[:160]}, not {c['split_dir']} "
+                            f"({c['split']}); give the same splits in the same order")
+        if r.get("weight") != c["weight"]:
+            raise UserError(f"--resume: split {i + 1} ({c['split_dir']}) was weighted {r.get('weight')}, "
+                            f"not {c['weight']}; repeat the original --mix-weights")
 
 
 def inference_copy(model):
@@ -497,6 +589,8 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     split_dir = resolve_split_dir(data)
     if split_class(split_dir) != ckpt["class_name"]:
         raise UserError(f"{split_dir}: holds class {split_class(split_dir)!r}, the checkpoint {ckpt['class_name']!r}")
+    if data_record(ckpt, checkpoint).get("splits") is not None:
+        raise UserError(f"{checkpoint}: trained on a mixture of splits; a refit reads one split's validation objects")
     config = DenseTrainConfig.from_dict(ckpt["train_config"])
     recorded, generated = data_record(ckpt, checkpoint).get("generated"), split_generation(split_dir)
     if recorded is not None and generated is not None and recorded != generated:
