@@ -360,6 +360,7 @@ LONG_OUTPUTS = {
     "show-per-sample": lambda s, p, c, e, out: ["show", s, "--per-sample", out, "--quiet"],
     "score-json": lambda s, p, c, e, out: _score_json(s, p, out),
     "score-csv": lambda s, p, c, e, out: _score_csv(s, p, out),
+    "card": lambda s, p, c, e, out: ["card", s, "--out", out],
 }
 
 

@@ -69,13 +69,19 @@ def prepare_torch(threads: int | None) -> int:
 DATA_OPTION_REMOVED_IN = "0.3"
 
 
+#: The ``--data DIR`` option that :func:`split_folder` and :func:`split_folders` keep until
+#: :data:`DATA_OPTION_REMOVED_IN`.
+_deprecated_data_option = click.option(
+    "--data", "data_option", type=click.Path(), default=None, metavar="DIR",
+    help=f"Deprecated (removed in {DATA_OPTION_REMOVED_IN}): give DIR as the argument.")
+
+
 def split_folder(f):
     """The split folder a command reads, as its positional ``DIR`` argument (the one way every
     command names its main split; its docstring says what DIR is), with the older ``--data DIR``
     still accepted, with a warning, until :data:`DATA_OPTION_REMOVED_IN`.  The command receives
     ``data_dir`` and ``data_option`` and calls :func:`resolve_split_folder`."""
-    f = click.option("--data", "data_option", type=click.Path(), default=None, metavar="DIR",
-                     help=f"Deprecated (removed in {DATA_OPTION_REMOVED_IN}): give DIR as the argument.")(f)
+    f = _deprecated_data_option(f)
     return click.argument("data_dir", required=False, type=click.Path(), metavar="DIR")(f)
 
 
@@ -98,8 +104,7 @@ def split_folders(f):
     """:func:`split_folder` for a command that reads one split folder or several (``DIR [DIR ...]``);
     the command receives ``data_dirs`` (a tuple) and ``data_option`` and calls
     :func:`resolve_split_folders`."""
-    f = click.option("--data", "data_option", type=click.Path(), default=None, metavar="DIR",
-                     help=f"Deprecated (removed in {DATA_OPTION_REMOVED_IN}): give DIR as the argument.")(f)
+    f = _deprecated_data_option(f)
     return click.argument("data_dirs", nargs=-1, type=click.Path(), metavar="DIR [DIR ...]")(f)
 
 

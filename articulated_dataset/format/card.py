@@ -571,6 +571,10 @@ def write_card(path: str | Path, out: str | Path | None = None, *, overwrite: bo
     if url is not None and not (urlsplit(url).scheme in ("http", "https") and urlsplit(url).netloc):
         raise UserError(f"--url {printable(url)[:120]!r} is not an http(s) address of the dataset's page")
     targets = [out / CARD_NAME, out / CROISSANT_NAME]
+    from ..safeio import check_name_length
+
+    for target in targets:  # a name too long for the filesystem is one line, before it is looked at
+        check_name_length(target)
     if not overwrite:
         for target in targets:
             if target.exists() or target.is_symlink():
