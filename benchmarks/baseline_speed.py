@@ -54,10 +54,10 @@ def main(argv=None) -> int:
     n_train, n_test = FULL_TRAIN_IMAGES // scale, FULL_TEST_IMAGES // scale
     icp_images = 16 if args.quick else args.icp_images
 
-    from articulated_dataset.baselines import icp_model, nn
-    from articulated_dataset.baselines.common import open_split_checked
+    from articulated_dataset.classes.registry import class_names
     from articulated_dataset.generation import GenerationConfig, generate_split
-    from articulated_dataset.registry import class_names
+    from articulated_dataset.methods.baselines import icp_model, nn
+    from articulated_dataset.methods.baselines.common import open_split_checked
 
     classes = args.classes or class_names()
     print(f"{os.cpu_count()} CPUs; load average {os.getloadavg()[0]:.1f}", flush=True)

@@ -25,9 +25,9 @@ SETTINGS = {"--scene kitchen": ("kitchen", 0), "--scene room": ("room", 0), "--o
 def counts(class_name: str, scene: str, occluders: int, n_objects: int, root: Path, seed: int = 0) -> dict:
     import numpy as np
 
+    from articulated_dataset.format import open_split
     from articulated_dataset.format.schema import MASK_OCCLUDER, MASK_SCENE
     from articulated_dataset.generation import GenerationConfig, generate_split
-    from articulated_dataset.format import open_split
 
     config = GenerationConfig(class_name, n_objects=n_objects, seed=seed, objects_per_shard=n_objects, scene=scene,
                               occluders=occluders)
@@ -46,7 +46,7 @@ def counts(class_name: str, scene: str, occluders: int, n_objects: int, root: Pa
 
 
 def main() -> None:
-    from articulated_dataset.registry import class_names
+    from articulated_dataset.classes.registry import class_names
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--objects", type=int, default=20)

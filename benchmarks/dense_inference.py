@@ -9,7 +9,7 @@ batch and (c) on ``--batches`` batches in a row (the rendered batch repeated: a 
 state, where every batch after the first writes its input into the previous one's tensor), and
 (d) the milliseconds of one ``articulated_dataset.estimate`` call (one image, model loaded), (e)
 images/s of ``--split-batches`` batches predicted as ``artdata predict`` runs a split of that
-size (``predict_split``'s worker processes, :func:`~articulated_dataset.models.dense.predict.default_workers`;
+size (``predict_split``'s worker processes, :func:`~articulated_dataset.methods.dense.predict.default_workers`;
 timed once, the workers' start included);
 then the batch's milliseconds per stage ("other": the one-batch pipeline's time beyond the
 stages: reading the depth, conversions to numpy; where the model uses the mirror image, refinement
@@ -52,17 +52,17 @@ def main(argv=None) -> int:
                    help="the network's arithmetic (predict --precision)")
     p.add_argument("--default-allocator", action="store_true",
                    help="leave glibc's malloc as it is (the commands set it to reuse freed memory: "
-                        "articulated_dataset.executors.configure_allocator)")
+                        "articulated_dataset.core.pool.configure_allocator)")
     args = p.parse_args(argv)
 
-    from articulated_dataset.executors import configure_allocator, configure_openmp_wait
+    from articulated_dataset.core.pool import configure_allocator, configure_openmp_wait
 
     configure_openmp_wait(args.threads)  # before torch loads its OpenMP runtime: the commands' choice
     if not args.default_allocator:
         configure_allocator()  # and their allocator settings
     import torch
 
-    from articulated_dataset.registry import class_names
+    from articulated_dataset.classes.registry import class_names
 
     torch.set_num_threads(args.threads)
     for name in class_names() if args.class_name == "all" else [args.class_name]:
@@ -77,18 +77,18 @@ def bench_class(args, class_name: str) -> None:
 
     import articulated_dataset as ad
     from articulated_dataset.generation import GenerationConfig, generate_split
-    from articulated_dataset.models import resolve_model
-    from articulated_dataset.models.dense.aggregate import vote_modes
-    from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
-    from articulated_dataset.models.dense.data import load_dense_split
-    from articulated_dataset.models.dense.features import make_inputs
-    from articulated_dataset.models.dense.predict import default_workers, modes_to_arrays, predict_arrays
+    from articulated_dataset.methods import resolve_model
+    from articulated_dataset.methods.dense.aggregate import vote_modes
+    from articulated_dataset.methods.dense.checkpoint import build_inference_model, load_dense_checkpoint
+    from articulated_dataset.methods.dense.data import load_dense_split
+    from articulated_dataset.methods.dense.features import make_inputs
+    from articulated_dataset.methods.dense.predict import default_workers, modes_to_arrays, predict_arrays
     try:  # the pipeline's network call (32 images at a time); a checkout without it calls the model
-        from articulated_dataset.models.dense.predict import network_outputs
+        from articulated_dataset.methods.dense.predict import network_outputs
     except ImportError:  # pragma: no cover - comparing with older code
         def network_outputs(model, x):
             return model(x)
-    from articulated_dataset.models.dense.refine import apply_refinement, refined_quantities, split_factor_of
+    from articulated_dataset.methods.dense.refine import apply_refinement, refined_quantities, split_factor_of
 
     n_objects = max(1, -(-args.batch // IMAGES_PER_OBJECT))
     split = generate_split(GenerationConfig(class_name, split="test", n_objects=n_objects, seed=1), args.root,
@@ -100,7 +100,7 @@ def bench_class(args, class_name: str) -> None:
     data = load_dense_split(split, c.n_joints, (c.height_px, c.width_px), with_labels=False)
     idx = np.arange(min(args.batch, len(data.sample_id)))
     try:
-        from articulated_dataset.models.dense.mirror import with_mirror
+        from articulated_dataset.methods.dense.mirror import with_mirror
     except ImportError:  # pragma: no cover - comparing with older code
         def with_mirror(refinement, mirror):
             return refinement
@@ -142,7 +142,7 @@ def bench_class(args, class_name: str) -> None:
             refine_options["handle_max_q_deg"] = handle_deg
         t_refine, r = timed(lambda: refined_quantities(parts, inputs, modes, joint_types, **refine_options))
         if handle_deg is not None and not in_refinement:  # pragma: no cover - older code measures them apart
-            from articulated_dataset.models.dense.handle import handle_candidates_evidence
+            from articulated_dataset.methods.dense.handle import handle_candidates_evidence
 
             t_handle, h = timed(lambda: handle_candidates_evidence(parts, inputs, modes, r, joint_types, handle_deg))
             t_refine += t_handle
@@ -190,8 +190,8 @@ def bench_class(args, class_name: str) -> None:
 
 
 def wait_policy() -> str:
-    """The OpenMP wait settings in effect (:func:`articulated_dataset.executors.configure_openmp_wait`)."""
-    from articulated_dataset.executors import OPENMP_WAIT_VARIABLES
+    """The OpenMP wait settings in effect (:func:`articulated_dataset.core.pool.configure_openmp_wait`)."""
+    from articulated_dataset.core.pool import OPENMP_WAIT_VARIABLES
 
     return ", ".join(f"{v}={os.environ[v]}" for v in OPENMP_WAIT_VARIABLES if v in os.environ) or "libgomp's default"
 

@@ -47,9 +47,9 @@ def per_image_errors(predictions: Path, truth: Path):
     from articulated_dataset.benchmark.predictions import read_predictions
     from articulated_dataset.benchmark.scoring import image_metrics
     from articulated_dataset.benchmark.truth import align, load_truth_set
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.core.rotations import quat_to_matrix
     from articulated_dataset.format import MASK_FIRST_PART, Split, object_on_border
-    from articulated_dataset.rotations import quat_to_matrix
 
     _, by_class = read_predictions(predictions)
     if len(by_class) != 1:
@@ -111,7 +111,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     import numpy as np
 
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
 
     try:
         class_name, prismatic, e = per_image_errors(args.predictions, args.truth)

@@ -2,7 +2,7 @@
 
     python benchmarks/fit_inference.py [--model dense|PATH] [--class cabinet|all] [--objects 40] [--threads 1]
 
-Runs :func:`articulated_dataset.models.dense.predict.fit_inference` (the vote modes' split factor,
+Runs :func:`articulated_dataset.methods.dense.predict.fit_inference` (the vote modes' split factor,
 the refinement's choices among its candidates, the mirror image, the calibration) of the shipped
 weights (or a checkpoint) on ``--objects`` labelled objects of a rendered split (generated under
 ``--root`` with ``--seed`` if needed; a stand-in for a training split's validation objects), and
@@ -34,13 +34,13 @@ def main(argv=None) -> int:
     import numpy as np
     import torch
 
-    from articulated_dataset.executors import configure_allocator
+    from articulated_dataset.classes.registry import class_names, get_class
+    from articulated_dataset.core.pool import configure_allocator
     from articulated_dataset.generation import GenerationConfig, generate_split
-    from articulated_dataset.models import resolve_model
-    from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
-    from articulated_dataset.models.dense.data import load_dense_split
-    from articulated_dataset.models.dense.predict import fit_inference
-    from articulated_dataset.registry import class_names, get_class
+    from articulated_dataset.methods import resolve_model
+    from articulated_dataset.methods.dense.checkpoint import build_inference_model, load_dense_checkpoint
+    from articulated_dataset.methods.dense.data import load_dense_split
+    from articulated_dataset.methods.dense.predict import fit_inference
 
     torch.set_num_threads(args.threads)
     configure_allocator()

@@ -98,11 +98,11 @@ def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: P
     """(images, seconds, bytes, mean pose draws per object) of one generate_split run
     (``camera``: CameraConfig keyword arguments besides the default image size; ``table``:
     the class's table of that name; ``scene``, ``occluders``, ``rgb``: --scene, --occluders, --rgb)."""
-    from articulated_dataset.camera import CameraConfig
+    from articulated_dataset.classes.registry import get_class
+    from articulated_dataset.core.camera import CameraConfig
+    from articulated_dataset.format import read_manifest
     from articulated_dataset.format.manifest import DEFAULT_OBJECTS_PER_SHARD
     from articulated_dataset.generation import GenerationConfig, generate_split
-    from articulated_dataset.registry import get_class
-    from articulated_dataset.format import read_manifest
 
     per_shard = min(DEFAULT_OBJECTS_PER_SHARD, max(1, n_objects // max(workers, 1) // 2))
     config = GenerationConfig(class_name, n_objects=n_objects, seed=seed, objects_per_shard=per_shard,
@@ -117,9 +117,9 @@ def _end_to_end(class_name: str, n_objects: int, seed: int, workers: int, out: P
 
 
 def main() -> None:
-    from articulated_dataset.registry import class_names
+    from articulated_dataset.classes.registry import class_names
+    from articulated_dataset.core.camera import CameraConfig
     from articulated_dataset.generation.render import process_renderer
-    from articulated_dataset.camera import CameraConfig
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--classes", nargs="*", default=None)

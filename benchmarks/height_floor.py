@@ -19,7 +19,7 @@ knows:
   body's inside, whose back edge, further from the camera, the image may show below a door whose
   top it cuts off.
 * **the handle.**  ``side_door`` centres the handle bar, 12 cm long, at the door's mid-height.
-  Where the handle is found in the door's true pixels (:func:`~articulated_dataset.models.dense.handle.handle_evidence`),
+  Where the handle is found in the door's true pixels (:func:`~articulated_dataset.methods.dense.handle.handle_evidence`),
   the height is known exactly.  Where it is not found and the strip of the door where it would
   be is seen, the bar lies outside the strip's visible extent.
 
@@ -76,10 +76,10 @@ def door_facts(truth: Path):
     import numpy as np
     import torch
 
+    from articulated_dataset.core.rotations import quat_to_matrix
     from articulated_dataset.format import MASK_FIRST_PART, Split
-    from articulated_dataset.models.dense.features import backproject_torch, make_inputs, output_labels
-    from articulated_dataset.models.dense.handle import handle_evidence
-    from articulated_dataset.rotations import quat_to_matrix
+    from articulated_dataset.methods.dense.features import backproject_torch, make_inputs, output_labels
+    from articulated_dataset.methods.dense.handle import handle_evidence
 
     out = {k: [] for k in ("sample_id", "top_m", "cut", "handle", "strip_lo_m", "strip_hi_m", "half_m")}
     with Split(truth) as split:
@@ -143,7 +143,7 @@ def oracle_along_error_m(f: dict, half_range_m: tuple[float, float]):
     error on the image's true height (m): over many images the two agree where the posterior is right."""
     import numpy as np
 
-    from articulated_dataset.models.dense.handle import HANDLE_LEN_M
+    from articulated_dataset.methods.dense.handle import HANDLE_LEN_M
 
     grid = np.linspace(half_range_m[0], half_range_m[1], GRID_POINTS)
     err = np.zeros(f["cut"].shape)
@@ -168,9 +168,9 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     import numpy as np
 
-    from articulated_dataset.errors import UserError
-    from articulated_dataset.models.mdn.data import resolve_split_dir, split_class
-    from articulated_dataset.registry import get_class
+    from articulated_dataset.classes.registry import get_class
+    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.methods.mdn.data import resolve_split_dir, split_class
 
     try:
         class_name = split_class(resolve_split_dir(args.truth))

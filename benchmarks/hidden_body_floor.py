@@ -80,7 +80,7 @@ class TurnedObject:
         import numpy as np
 
         from articulated_dataset.generation import compile_object, stored_sample
-        from articulated_dataset.generation.scene import ORIGIN_POSE, ObjectPlacer
+        from articulated_dataset.generation.mujoco_scene import ORIGIN_POSE, ObjectPlacer
         from articulated_dataset.generation.templating import object_urdf
 
         self.object_index = object_index
@@ -105,7 +105,7 @@ class TurnedObject:
     def render(self, d_rad: float, q_rad: float):
         import numpy as np
 
-        from articulated_dataset.generation.scene import set_configuration
+        from articulated_dataset.generation.mujoco_scene import set_configuration
         from articulated_dataset.generation.viewpoint import object_in_camera
 
         pose = self.turned_pose(d_rad)
@@ -133,7 +133,7 @@ def image_floor(obj: TurnedObject, q_rad: float, opens_with_yaw: float, table, s
     ``q - d``), -1 where it points down."""
     import numpy as np
 
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
 
     depth0, mask0, _ = obj.render(0.0, q_rad)
     if stored_mask is not None and int((mask0 != stored_mask).sum()) > STORED_MASK_TOL_PX:
@@ -163,15 +163,15 @@ def split_floors(truth: Path, step_deg: float = DEFAULT_STEP_DEG, max_body_px: i
     import numpy as np
     from tqdm import tqdm
 
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.core.rotations import quat_to_matrix
     from articulated_dataset.format import Split
     from articulated_dataset.generation import GenerationConfig
     from articulated_dataset.generation.render import process_renderer
-    from articulated_dataset.rotations import quat_to_matrix
 
     if not step_deg > 0 or not math.isfinite(step_deg):
         raise UserError(f"--step-deg must be a positive number of degrees, got {step_deg}")
-    from articulated_dataset.models.mdn.data import resolve_split_dir
+    from articulated_dataset.methods.mdn.data import resolve_split_dir
 
     split_dir = resolve_split_dir(truth)
     rows = {k: [] for k in ("sample_id", "body_px", "searched", "expected_deg", "realised_deg", "kept")}
@@ -229,7 +229,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     import numpy as np
 
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
 
     try:
         f = split_floors(args.truth, args.step_deg, args.max_body_px, progress=not args.quiet)

@@ -146,10 +146,10 @@ def main() -> None:
     args = ap.parse_args()
     skip = set(filter(None, args.skip.split(",")))
 
-    from articulated_dataset.loaders.batch import BatchProcessor, load_batch
-    from articulated_dataset.loaders.epoch import plan_epoch
-    from articulated_dataset.loaders.reader import ShardReader
-    from articulated_dataset.targets import NormStats, TargetLayout
+    from articulated_dataset.training.loaders.batch import BatchProcessor, load_batch
+    from articulated_dataset.training.loaders.epoch import plan_epoch
+    from articulated_dataset.training.loaders.reader import ShardReader
+    from articulated_dataset.training.targets import NormStats, TargetLayout
 
     tmp = None
     split = args.data
@@ -182,7 +182,7 @@ def main() -> None:
 
         results.append(measure("ShardReader, shuffled plan, 1 process", reader_epoch, args.epochs, 1))
     if "torch" not in skip or "torch-map" not in skip:
-        from articulated_dataset.loaders.torch import make_loader
+        from articulated_dataset.training.loaders.torch import make_loader
 
         for iterable, key in ((True, "torch"), (False, "torch-map")):
             if key in skip:
@@ -193,7 +193,7 @@ def main() -> None:
                 make=lambda it=iterable: make_loader(split, batch_size=args.batch, num_workers=args.workers,
                                                      target=layout, norm=norm, iterable=it)))
     if "jax" not in skip or "jax-workers" not in skip:
-        from articulated_dataset.loaders.jax import JaxLoader
+        from articulated_dataset.training.loaders.jax import JaxLoader
 
         for nw, key in ((0, "jax"), (args.workers, "jax-workers")):
             if key in skip:

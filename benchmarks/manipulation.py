@@ -56,8 +56,9 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
-from articulated_dataset.registry import REVOLUTE  # noqa: E402
-from articulated_dataset.rotations import axis_angle_quat, quat_multiply  # noqa: E402
+
+from articulated_dataset.classes.registry import REVOLUTE  # noqa: E402
+from articulated_dataset.core.rotations import axis_angle_quat, quat_multiply  # noqa: E402
 
 #: Table 1 metrics shown beside the success rate (keys of ``artdata score --json`` rows).
 TABLE1_METRICS = (("axis_position_error_cm", "pos cm"), ("axis_rotation_error_deg", "rot deg"),
@@ -85,7 +86,7 @@ def perturb(estimate, joint_types, rng: np.random.Generator, errors: tuple[float
     a 3-D Gaussian's norm is s sqrt(8 / pi)); the axis frame turned by |N(0, s^2)|,
     s = e sqrt(pi / 2), about a random axis perpendicular to the joint axis; q + N(0, s^2)."""
     from articulated_dataset import manipulation as M
-    from articulated_dataset.manipulation import Estimate
+    from articulated_dataset.manipulation import ObjectKinematics
 
     pos_e, rot_e, q_e = errors
     pose = estimate.axis_pose.copy()
@@ -99,7 +100,7 @@ def perturb(estimate, joint_types, rng: np.random.Generator, errors: tuple[float
         pose[j, 3:] = quat_multiply(axis_angle_quat(turn_axis, angle), pose[j, 3:])
         q_scale = q_e[0] if joint_types[j] == REVOLUTE else q_e[1]
         q[j] += rng.normal(0.0, q_scale * math.sqrt(math.pi / 2))
-    return Estimate(pose, q, estimate.part_offset, estimate.geometry, source=name)
+    return ObjectKinematics(pose, q, estimate.part_offset, estimate.geometry, source=name)
 
 
 def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, list[Path]], perturbations: dict,
@@ -119,7 +120,7 @@ def run_class(split_dir: Path, n_objects: int | None, predictions: dict[str, lis
     from tqdm import tqdm
 
     from articulated_dataset import manipulation as M
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
     from articulated_dataset.generation import GenerationConfig
     from articulated_dataset.generation.sampling import stable_key
 
@@ -202,7 +203,7 @@ def classes_in(path: Path) -> list[str]:
 
 def summarize(records: list[dict]) -> list[dict]:
     """Success rates and medians per (class, method), in first-seen order."""
-    from articulated_dataset.units import format_q
+    from articulated_dataset.core.units import format_q
 
     keys = list(dict.fromkeys((r["class"], r["method"]) for r in records))
     out = []
@@ -299,10 +300,10 @@ def _figure_case(split_dir: Path, joint: int, offset_m: float, title: str) -> di
     import mujoco
 
     from articulated_dataset import manipulation as M
-    from articulated_dataset.camera import CameraConfig, project
+    from articulated_dataset.core.camera import CameraConfig, project
     from articulated_dataset.generation import GenerationConfig
     from articulated_dataset.generation.render import process_renderer
-    from articulated_dataset.generation.scene import set_configuration
+    from articulated_dataset.generation.mujoco_scene import set_configuration
 
     path, manifest, labels = M.read_split_labels(split_dir)
     config = GenerationConfig.from_dict(manifest["config"])
@@ -368,8 +369,8 @@ def make_figure(root: Path, split: str, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from articulated_dataset.core.units import format_q
     from articulated_dataset.manipulation import MAX_FORCE_N
-    from articulated_dataset.units import format_q
 
     cases = []
     for cls, joint, offset, title in (("cabinet", 0, 0.0, "cabinet, true axis"),
@@ -439,7 +440,7 @@ TRAJECTORY_DRAWER = "drawer"
 def _trajectory_case(split_dir: Path, spec: str, name: str, seed: int) -> dict | None:
     """Open and closed loop on the view nearest closed of the split's first object, recorded."""
     from articulated_dataset import manipulation as M
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
     from articulated_dataset.generation import GenerationConfig
     from articulated_dataset.generation.sampling import stable_key
 
@@ -473,7 +474,7 @@ def make_trajectory_figure(root: Path, split: str, models: dict[str, str], out: 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from articulated_dataset.units import format_q
+    from articulated_dataset.core.units import format_q
 
     name, spec = next(iter(models.items()))
     cases = []
@@ -604,8 +605,8 @@ def main(argv=None) -> int:
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
 
-    from articulated_dataset.errors import UserError
-    from articulated_dataset.registry import class_names
+    from articulated_dataset.classes.registry import class_names
+    from articulated_dataset.core.errors import UserError
 
     predictions = _parse_predictions(args.predictions)
     models = _parse_models(args.model, predictions)

@@ -23,7 +23,7 @@ import platform
 import statistics
 import time
 
-from articulated_dataset.executors import configure_allocator, configure_openmp_wait  # noqa: E402
+from articulated_dataset.core.pool import configure_allocator, configure_openmp_wait  # noqa: E402
 
 configure_openmp_wait()  # before torch loads its OpenMP runtime: the commands' wait policy
 configure_allocator()  # and their allocator settings
@@ -31,12 +31,12 @@ configure_allocator()  # and their allocator settings
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from articulated_dataset.camera import CameraConfig  # noqa: E402
-from articulated_dataset.models.mdn.loss import mean_of_best  # noqa: E402
-from articulated_dataset.models.mdn.model import MixtureDensityNetwork, count_parameters  # noqa: E402
-from articulated_dataset.models.mdn.preprocess import assemble_inputs, preprocess_depth  # noqa: E402
-from articulated_dataset.models.mdn.config import PRESETS, TrainConfig  # noqa: E402
-from articulated_dataset.models.mdn.train import configure_threads  # noqa: E402
+from articulated_dataset.core.camera import CameraConfig  # noqa: E402
+from articulated_dataset.methods.mdn.config import PRESETS, TrainConfig  # noqa: E402
+from articulated_dataset.methods.mdn.loss import mean_of_best  # noqa: E402
+from articulated_dataset.methods.mdn.model import MixtureDensityNetwork, count_parameters  # noqa: E402
+from articulated_dataset.methods.mdn.preprocess import assemble_inputs, preprocess_depth  # noqa: E402
+from articulated_dataset.methods.mdn.train import configure_threads  # noqa: E402
 
 #: Target columns of a 2-joint class (13 per joint + 4 geometry), the larger case.
 TARGET_DIM = 30

@@ -5,7 +5,7 @@ For every class (default: all six), at a chosen scale:
 1. generate (or reuse) ``ROOT/<class>/train``, ``ROOT/<class>/test`` and the mean object
    ``ROOT/<class>/mean`` (``generate_split`` with ``resume``: a finished split is reused, an
    interrupted one continued; a split generated with other settings is an error);
-2. run the baselines (Mean, NN, ICP: :mod:`articulated_dataset.baselines`) and, if asked,
+2. run the baselines (Mean, NN, ICP: :mod:`articulated_dataset.methods.baselines`) and, if asked,
    the reference MDN (``--mdn-model CLASS=CKPT`` / ``--mdn-dir DIR`` holding ``<class>.pt``,
    or ``--train-mdn`` to train ``artdata train --small`` per class first), each writing
    ``ROOT/table1-predictions/<class>-<method>.h5``;
@@ -255,10 +255,10 @@ def format_text(rows: list[dict]) -> str:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    from articulated_dataset.baselines import BASELINES, run_baseline
-    from articulated_dataset.errors import UserError
-    from articulated_dataset.registry import class_names
     from articulated_dataset.benchmark.scoring import score
+    from articulated_dataset.classes.registry import class_names
+    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.methods.baselines import BASELINES, run_baseline
 
     classes = args.classes or class_names()
     out_dir = args.out or args.root

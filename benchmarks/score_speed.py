@@ -23,13 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from articulated_dataset import FORMAT_VERSION
-from articulated_dataset.camera import R_CAMERA_TO_OPTICAL, CameraConfig
-from articulated_dataset.rotations import quat_multiply
 from articulated_dataset.benchmark.predictions import write_predictions
-from articulated_dataset.registry import all_classes
-from articulated_dataset.format import FIELDS, open_split, write_manifest, write_shard
 from articulated_dataset.benchmark.scoring import score, target_matrix
-from articulated_dataset.targets import TargetLayout
+from articulated_dataset.classes.registry import all_classes
+from articulated_dataset.core.camera import R_CAMERA_TO_OPTICAL, CameraConfig
+from articulated_dataset.core.rotations import quat_multiply
+from articulated_dataset.format import FIELDS, open_split, write_manifest, write_shard
+from articulated_dataset.training.targets import TargetLayout
 
 #: Images of one class in the paper's test split (1,000 objects x 16 images).
 PAPER_TEST_IMAGES = 16_000

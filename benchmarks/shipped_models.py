@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
-from articulated_dataset.executors import configure_allocator, configure_openmp_wait  # noqa: E402
+from articulated_dataset.core.pool import configure_allocator, configure_openmp_wait  # noqa: E402
 
 configure_openmp_wait()  # before torch loads its OpenMP runtime: the commands' wait policy
 configure_allocator()  # and their allocator settings
@@ -58,12 +58,12 @@ def main(argv=None) -> int:
 
     import torch
 
-    from articulated_dataset.models.mdn.train import configure_threads
-    from articulated_dataset.models import resolve_model
-    from articulated_dataset.generation import GenerationConfig, generate_split
     from articulated_dataset.benchmark.predictions import write_predictions
-    from articulated_dataset.registry import class_names
     from articulated_dataset.benchmark.scoring import score
+    from articulated_dataset.classes.registry import class_names
+    from articulated_dataset.generation import GenerationConfig, generate_split
+    from articulated_dataset.methods import resolve_model
+    from articulated_dataset.methods.mdn.train import configure_threads
 
     configure_threads(None)
     classes = args.classes or class_names()
@@ -79,11 +79,12 @@ def main(argv=None) -> int:
             out.parent.mkdir(parents=True, exist_ok=True)
             t0 = time.perf_counter()
             if ref.kind == "dense":
-                from articulated_dataset.models.dense.predict import default_workers, predict_arrays
-                from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
-                from articulated_dataset.models.dense.data import load_dense_split
-                from articulated_dataset.models.dense.mirror import with_mirror
                 import numpy as np
+
+                from articulated_dataset.methods.dense.checkpoint import build_inference_model, load_dense_checkpoint
+                from articulated_dataset.methods.dense.data import load_dense_split
+                from articulated_dataset.methods.dense.mirror import with_mirror
+                from articulated_dataset.methods.dense.predict import default_workers, predict_arrays
 
                 ckpt = load_dense_checkpoint(ref.path)
                 model = build_inference_model(ckpt, args.precision)
@@ -98,7 +99,7 @@ def main(argv=None) -> int:
                 speed = len(data.sample_id) / (time.perf_counter() - t1)
                 method = "dense"
             else:
-                from articulated_dataset.models.mdn.predict import predict_split
+                from articulated_dataset.methods.mdn.predict import predict_split
 
                 _, arrays = predict_split(ref.path, split_dir, progress=False)
                 speed = len(arrays["sample_id"]) / (time.perf_counter() - t0)

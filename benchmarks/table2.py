@@ -14,9 +14,9 @@ Methods, each scored with and without the point-likelihood estimate (Table 2 pro
 point under the predicted mixture's marginal over it):
 
 * ``--models DIR``: trained MDN checkpoints (``DIR/<class>.pt``, ``DIR/<class>/*.pt``) via
-  :func:`articulated_dataset.models.mdn.predict.predict_split`;
+  :func:`articulated_dataset.methods.mdn.predict.predict_split`;
 * ``--shipped dense dense-kinect2 mdn-small``: the models shipped with the package (``artdata models``), via
-  :func:`articulated_dataset.models.predict.predict_to_file` as ``artdata predict`` runs them
+  :func:`articulated_dataset.methods.predict.predict_to_file` as ``artdata predict`` runs them
   (the dense model without the point likelihood: its origins are already votes of the cloud's
   points);
 * the Mean baseline (training-split mean; its "mixture" is one Gaussian at the mean origin
@@ -89,7 +89,7 @@ FIXED_Q_WIDTH = 1e-4
 def one_object_table(class_name: str, q_rad: float):
     """The class table with one geometry (range centres), chirality 0 and every joint's q in
     ``[q, q + FIXED_Q_WIDTH]`` (``q = q_rad`` clipped to the joint's range)."""
-    from articulated_dataset.registry import get_class
+    from articulated_dataset.classes.registry import get_class
 
     table = get_class(class_name).table
     geometry = {k: [0.5 * (lo + hi)] * 2 for k, (lo, hi) in table.geometry.items()}
@@ -136,9 +136,9 @@ def origin_layout(J: int) -> list[str]:
 
 def mean_predictions(train_dir: Path, test_dir: Path) -> tuple[dict, dict]:
     """Mean-baseline predictions and their point-likelihood-snapped version."""
-    from articulated_dataset.baselines import mean as mean_baseline
     from articulated_dataset.benchmark.pointlik import snap_axis_poses, snap_batch
     from articulated_dataset.format import open_split
+    from articulated_dataset.methods.baselines import mean as mean_baseline
 
     result = mean_baseline.predict(train_dir, test_dir)
     preds = {k: np.asarray(v) for k, v in result.predictions.items()}
@@ -162,7 +162,7 @@ def mean_predictions(train_dir: Path, test_dir: Path) -> tuple[dict, dict]:
 
 
 def mdn_predictions(model: Path, test_dir: Path) -> tuple[dict, dict]:
-    from articulated_dataset.models.mdn.predict import predict_split
+    from articulated_dataset.methods.mdn.predict import predict_split
 
     _, plain = predict_split(model, test_dir, snap_to_cloud=False, progress=False)
     _, snapped = predict_split(model, test_dir, snap_to_cloud=True, progress=False)
@@ -172,8 +172,8 @@ def mdn_predictions(model: Path, test_dir: Path) -> tuple[dict, dict]:
 def shipped_predictions(test_dir: Path, class_name: str, names: list[str], pred_dir: Path) -> list[Path]:
     """predictions.h5 files of the shipped models ``names`` (``SHIPPED_METHODS``) on ``test_dir``, as
     ``artdata predict --model NAME`` writes them; MDN-small also with the point likelihood."""
-    from articulated_dataset.models import SHIPPED
-    from articulated_dataset.models.predict import predict_to_file
+    from articulated_dataset.methods import SHIPPED
+    from articulated_dataset.methods.predict import predict_to_file
 
     files = []
     for name in names:
@@ -199,7 +199,7 @@ def _pm(v) -> str:
 
 
 def format_table(rows: list[Row], title: str) -> str:
-    from articulated_dataset.registry import PRISMATIC, get_class
+    from articulated_dataset.classes.registry import PRISMATIC, get_class
 
     names = [f"{r.class_name.capitalize()} - {r.condition.capitalize()} - {r.method} ({r.n})" for r in rows]
     w = max([46] + [len(n) + 1 for n in names])  # the row names' column
@@ -247,8 +247,8 @@ def run_methods(test_dir: Path, class_name: str, condition: str, args, work: Pat
 def noise_cost(work: Path, class_name: str, n_images: int, seed: int) -> dict:
     """Generation time per image of the stand-in without and with the kinect2 noise model
     (one process, same run) and the bare cost of the model on those frames."""
-    from articulated_dataset.camera import CameraConfig
-    from articulated_dataset.real.noise import get_noise_model
+    from articulated_dataset.core.camera import CameraConfig
+    from articulated_dataset.core.noise import get_noise_model
     from articulated_dataset.format import open_split
 
     out = {}
@@ -283,7 +283,7 @@ def main(argv=None) -> int:
     parser.add_argument("--timing", action="store_true", help="Also time generation without/with the noise model.")
     args = parser.parse_args(argv)
 
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
 
     work = Path(args.out)
     work.mkdir(parents=True, exist_ok=True)

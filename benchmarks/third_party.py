@@ -67,7 +67,7 @@ from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from articulated_dataset.errors import UserError  # noqa: E402  (imports neither MuJoCo nor torch)
+from articulated_dataset.core.errors import UserError  # noqa: E402  (imports neither MuJoCo nor torch)
 
 #: Metric version of the scores (:data:`articulated_dataset.benchmark.metrics.METRIC_VERSIONS`).
 METRIC_VERSION = 3
@@ -96,10 +96,10 @@ log = logging.getLogger("third_party")
 def read_mapping(path: Path) -> list[dict]:
     """The entries of the mapping file ``path``, checked and with paths resolved against its folder:
     ``{"name", "urdf", "class", "joints" (list or None), "scale" (text or None), "mesh_root"}``.
-    Any problem is one :class:`~articulated_dataset.errors.UserError` naming the file and entry."""
+    Any problem is one :class:`~articulated_dataset.core.errors.UserError` naming the file and entry."""
+    from articulated_dataset.classes.registry import class_names
     from articulated_dataset.format.shards import is_class_name
-    from articulated_dataset.registry import class_names
-    from articulated_dataset.urdf_import.ranges import default_class_name
+    from articulated_dataset.generation.urdf_import.ranges import default_class_name
 
     if not path.is_file():
         raise UserError(f"mapping file not found: {path}")
@@ -108,7 +108,6 @@ def read_mapping(path: Path) -> list[dict]:
     if len(raw) > MAX_MAPPING_BYTES:
         raise UserError(f"mapping file {path} is larger than {MAX_MAPPING_BYTES} bytes")
     import tomllib
-
     import yaml
 
     suffix = path.suffix.lower()
@@ -226,7 +225,7 @@ def entry_paths(root: Path, name: str) -> dict:
 def run_entry(entry: dict, root: Path, settings: dict, *, resume: bool, overwrite: bool) -> dict:
     """Generate, predict and score one entry (or read its record, with ``resume``); its record."""
     from articulated_dataset.benchmark import score
-    from articulated_dataset.safeio import atomic_write_text
+    from articulated_dataset.core.safeio import atomic_write_text
 
     paths = entry_paths(root, entry["name"])
     # what the figures depend on (workers and device change the speed only)
@@ -362,7 +361,7 @@ def main(argv=None) -> int:
     # before the commands run: their own logging set-up is then a no-op, so their warnings reach stderr
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     log.setLevel(logging.INFO if args.verbose else logging.WARNING)
-    from articulated_dataset.safeio import atomic_write_text
+    from articulated_dataset.core.safeio import atomic_write_text
 
     try:
         result = run(args)

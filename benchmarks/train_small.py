@@ -22,7 +22,7 @@ import platform
 import time
 from pathlib import Path
 
-from articulated_dataset.executors import configure_allocator, configure_openmp_wait  # noqa: E402
+from articulated_dataset.core.pool import configure_allocator, configure_openmp_wait  # noqa: E402
 
 configure_openmp_wait()  # before torch loads its OpenMP runtime: the commands' wait policy
 configure_allocator()  # and their allocator settings
@@ -31,8 +31,8 @@ PAPER_METRICS = ("axis_position_error_cm", "axis_rotation_error_deg", "configura
 
 
 def ensure_split(root: Path, class_name: str, split: str, n_objects: int, workers: int, generate: bool) -> Path:
-    from articulated_dataset.generation import GenerationConfig, generate_split, split_dir_for
     from articulated_dataset.format import read_manifest
+    from articulated_dataset.generation import GenerationConfig, generate_split, split_dir_for
 
     config = GenerationConfig(class_name, split=split, n_objects=n_objects)
     split_dir = Path(split_dir_for(root, config))
@@ -66,14 +66,14 @@ def main() -> None:
 
     import torch
 
-    from articulated_dataset.baselines import run_baseline
-    from articulated_dataset.models.mdn.predict import predict_split
-    from articulated_dataset.models.mdn.checkpoint import load_checkpoint
-    from articulated_dataset.models.mdn.config import TrainConfig
-    from articulated_dataset.models.mdn.train import configure_threads, train
     from articulated_dataset.benchmark.predictions import write_predictions
-    from articulated_dataset.registry import class_names
     from articulated_dataset.benchmark.scoring import score
+    from articulated_dataset.classes.registry import class_names
+    from articulated_dataset.methods.baselines import run_baseline
+    from articulated_dataset.methods.mdn.checkpoint import load_checkpoint
+    from articulated_dataset.methods.mdn.config import TrainConfig
+    from articulated_dataset.methods.mdn.predict import predict_split
+    from articulated_dataset.methods.mdn.train import configure_threads, train
 
     threads = configure_threads(args.threads)
     classes = args.classes.split(",") if args.classes else list(class_names())

@@ -7,7 +7,7 @@ set -e
 rm -rf ${WORK:-/tmp/artdata-bytes}; mkdir -p ${WORK:-/tmp/artdata-bytes}/old ${WORK:-/tmp/artdata-bytes}/new
 git -C "$REPO" archive ${1:-ff66c96} | tar -x -C ${WORK:-/tmp/artdata-bytes}/old
 git -C "$REPO" archive HEAD | tar -x -C ${WORK:-/tmp/artdata-bytes}/new
-# generators/ and urdf_templates/ are mapped into the package by pyproject.toml: put each tree's own copy
+# classes/ and classes/ are mapped into the package by pyproject.toml: put each tree's own copy
 # in place, or the editable install's finder supplies the working tree's (for old and new alike).
 for v in old new; do
   for d in generators urdf_templates; do
@@ -16,7 +16,7 @@ for v in old new; do
 done
 for v in old new; do
   cd ${WORK:-/tmp/artdata-bytes}/$v
-  PYTHONPATH=${WORK:-/tmp/artdata-bytes}/$v python -c "import articulated_dataset.generators as g, articulated_dataset.urdf_templates as t, sys; sys.exit(not all(m.__file__.startswith('${WORK:-/tmp/artdata-bytes}/$v/') for m in (g, t)))" || { echo "$v: generators/templates not from its own tree"; exit 1; }
+  PYTHONPATH=${WORK:-/tmp/artdata-bytes}/$v python -c "import articulated_dataset.classes as g, articulated_dataset.urdf_templates as t, sys; sys.exit(not all(m.__file__.startswith('${WORK:-/tmp/artdata-bytes}/$v/') for m in (g, t)))" || { echo "$v: generators/templates not from its own tree"; exit 1; }
   for c in cabinet drawer microwave toaster cabinet2 refrigerator; do
     for s in 0 7; do
       PYTHONPATH=${WORK:-/tmp/artdata-bytes}/$v python -m articulated_dataset.cli generate --class $c --n 3 --seed $s --objects-per-shard 2 --out ${WORK:-/tmp/artdata-bytes}/out-$v/s$s --workers 1 -q

@@ -1,12 +1,12 @@
 """Convert the shipped checkpoints from ``torch.save`` files to safetensors pairs (maintainers' tool).
 
-    python scripts/convert_weights_safetensors.py [--weights-dir articulated_dataset/weights] [--keep-pt]
+    python scripts/convert_weights_safetensors.py [--weights-dir articulated_dataset/methods/weights] [--keep-pt]
 
 For every ``models.json`` entry whose ``file`` is a ``.pt``: reads it with
 ``torch.load(weights_only=True)``, writes ``NAME.safetensors`` (the tensors) and ``NAME.json``
-(everything else) with :func:`articulated_dataset.models.safetensors_checkpoint.write_safetensors_checkpoint`,
+(everything else) with :func:`articulated_dataset.methods.safetensors_checkpoint.write_safetensors_checkpoint`,
 reads the pair back and stops unless it is the same checkpoint (every tensor's dtype, shape and bits,
-every other value; :func:`~articulated_dataset.models.safetensors_checkpoint.checkpoint_difference`),
+every other value; :func:`~articulated_dataset.methods.safetensors_checkpoint.checkpoint_difference`),
 so the models predict exactly as before.  The entry then names the pair (``file``, ``sha256``,
 ``bytes``, ``config``, ``config_sha256``, ``config_bytes``) and keeps the ``.pt`` it came from
 (``converted_from``: file, SHA-256, size; the figures measured on it hold for the pair).  The
@@ -22,12 +22,15 @@ from pathlib import Path
 
 import torch
 
+from articulated_dataset.core.safeio import atomic_write_text
 from articulated_dataset.format import sha256_file
-from articulated_dataset.models import WEIGHTS_DIR
-from articulated_dataset.models.safetensors_checkpoint import (SAFETENSORS_SUFFIX, checkpoint_difference,
-                                                               read_safetensors_checkpoint,
-                                                               write_safetensors_checkpoint)
-from articulated_dataset.safeio import atomic_write_text
+from articulated_dataset.methods import WEIGHTS_DIR
+from articulated_dataset.methods.safetensors_checkpoint import (
+    SAFETENSORS_SUFFIX,
+    checkpoint_difference,
+    read_safetensors_checkpoint,
+    write_safetensors_checkpoint,
+)
 
 #: Suffix of the ``torch.save`` checkpoints converted.
 PT_SUFFIX = ".pt"

@@ -4,8 +4,8 @@
 
 Loads the checkpoint's training split, takes the validation objects that training held out
 (same ``--val-fraction``, ``--seed`` and ``--max-objects``), chooses the geometric refinement
-(:func:`articulated_dataset.models.dense.fit.fit_refinement`) and refits the calibration on them
-(:func:`articulated_dataset.models.dense.predict.fit_inference`), and writes the checkpoint to
+(:func:`articulated_dataset.methods.dense.fit.fit_refinement`) and refits the calibration on them
+(:func:`articulated_dataset.methods.dense.predict.fit_inference`), and writes the checkpoint to
 ``--out``.  Training does this itself since the refinement exists; this script brings older
 checkpoints (the shipped ones trained before it, or before a refinement version) up to date.
 ``--clean`` fits a model trained with ``--noise`` on the noise-free validation images (training
@@ -43,8 +43,8 @@ def main(argv=None) -> int:
         p.error(f"--threads must be positive, got {args.threads}")
     import torch
 
-    from articulated_dataset.models.dense.train import refit_inference
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.methods.dense.train import refit_inference
 
     if args.threads:
         torch.set_num_threads(args.threads)

@@ -17,7 +17,7 @@ Everything the run leaves is in ``--out``: ``dense-<class>.pt``, ``mdn-history.j
 ``mdn-score.json``, ``run.json`` (timings, epochs) and the workers' logs.
 
     python scripts/gpu_training_run.py --class cabinet --seed 27 --objects 10000 \\
-        --init-from articulated_dataset/weights/dense-cabinet.safetensors --minutes 9 --out run
+        --init-from articulated_dataset/methods/weights/dense-cabinet.safetensors --minutes 9 --out run
 """
 
 from __future__ import annotations
@@ -70,11 +70,11 @@ def dense_worker(a) -> None:
     import numpy as np
     import torch
 
-    from articulated_dataset.models.dense import train as dense_train
-    from articulated_dataset.models.dense.checkpoint import build_dense_model, load_dense_checkpoint
-    from articulated_dataset.models.dense.data import load_dense_split
-    from articulated_dataset.models.dense.features import make_inputs
-    from articulated_dataset.models.mdn.data import resolve_split_dir, split_by_object
+    from articulated_dataset.methods.dense import train as dense_train
+    from articulated_dataset.methods.dense.checkpoint import build_dense_model, load_dense_checkpoint
+    from articulated_dataset.methods.dense.data import load_dense_split
+    from articulated_dataset.methods.dense.features import make_inputs
+    from articulated_dataset.methods.mdn.data import resolve_split_dir, split_by_object
 
     torch.set_num_threads(a.threads)
     split_dir = resolve_split_dir(a.data)
@@ -122,12 +122,12 @@ def dense_worker(a) -> None:
 def mdn_worker(a) -> None:
     import torch
 
-    from articulated_dataset.models.mdn import train as mdn_train
-    from articulated_dataset.models.mdn.config import TrainConfig
-    from articulated_dataset.models.mdn.data import load_split, resolve_split_dir, split_by_object
-    from articulated_dataset.models.mdn.model import MixtureDensityNetwork
-    from articulated_dataset.models.mdn.preprocess import assemble_inputs
-    from articulated_dataset.targets import TargetLayout
+    from articulated_dataset.methods.mdn import train as mdn_train
+    from articulated_dataset.methods.mdn.config import TrainConfig
+    from articulated_dataset.methods.mdn.data import load_split, resolve_split_dir, split_by_object
+    from articulated_dataset.methods.mdn.model import MixtureDensityNetwork
+    from articulated_dataset.methods.mdn.preprocess import assemble_inputs
+    from articulated_dataset.training.targets import TargetLayout
 
     torch.set_num_threads(a.threads)
     split_dir = resolve_split_dir(a.data)

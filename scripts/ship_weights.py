@@ -8,10 +8,10 @@
 Reads ``RUNS/dense-<class>.pt`` (``artdata train --model dense``),
 ``RUNS/mdn-small-<class>.pt`` (``artdata train --small``) and, with ``--dense-kinect2-dir``,
 ``RUNS/dense-kinect2-<class>.pt`` (``artdata train --model dense --noise kinect2``), keeps what inference needs
-(:func:`articulated_dataset.models.strip_for_shipping`: no optimizer, schedule or RNG
-state), writes ``articulated_dataset/weights/<model>-<class>.safetensors`` with its ``.json``
-(:mod:`articulated_dataset.models.safetensors_checkpoint`: read without pickle) and
-``articulated_dataset/weights/models.json`` (files, SHA-256s, sizes, training data and
+(:func:`articulated_dataset.methods.strip_for_shipping`: no optimizer, schedule or RNG
+state), writes ``articulated_dataset/methods/weights/<model>-<class>.safetensors`` with its ``.json``
+(:mod:`articulated_dataset.methods.safetensors_checkpoint`: read without pickle) and
+``articulated_dataset/methods/weights/models.json`` (files, SHA-256s, sizes, training data and
 recipe, history, and the test figures of ``benchmarks/shipped_models.py --json`` when
 ``--results`` is given: ``test`` from the noise-free test split, ``test_kinect2`` from the same
 objects through the Kinect v2 noise model, ``--noise kinect2``).  Only finished trainings are shipped.  ``--update`` keeps the manifest's
@@ -28,12 +28,12 @@ from pathlib import Path
 
 import torch
 
-from articulated_dataset.models import MODELS_MANIFEST, SHIPPED, WEIGHTS_DIR, strip_for_shipping
-from articulated_dataset.registry import class_names
+from articulated_dataset.classes.registry import class_names
 from articulated_dataset.format import sha256_file
-from articulated_dataset.models.dense.train import split_generation
-from articulated_dataset.models.mdn.checkpoint import read_checkpoint_file
-from articulated_dataset.models.safetensors_checkpoint import SAFETENSORS_SUFFIX, write_safetensors_checkpoint
+from articulated_dataset.methods import MODELS_MANIFEST, SHIPPED, WEIGHTS_DIR, strip_for_shipping
+from articulated_dataset.methods.dense.train import split_generation
+from articulated_dataset.methods.mdn.checkpoint import read_checkpoint_file
+from articulated_dataset.methods.safetensors_checkpoint import SAFETENSORS_SUFFIX, write_safetensors_checkpoint
 
 MACHINE = "2-core x86_64 CPU VM shared with other jobs, no GPU, PyTorch 2.13.0 CPU"
 #: Per model kind (``SHIPPED``): the training command, ``{file}`` the shipped model's file.

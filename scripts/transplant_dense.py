@@ -4,7 +4,7 @@
     artdata train --model dense --class cabinet --data DIR --out dense-cabinet.pt --init-from init-cabinet.pt ...
 
 ``--from``: a dense checkpoint of the source class (e.g. the shipped two-door cabinet:
-``artdata models --json`` names the files in ``articulated_dataset/weights``); ``--like``: a
+``artdata models --json`` names the files in ``articulated_dataset/methods/weights``); ``--like``: a
 dense checkpoint of the target class with the same architecture (its class, joints, model
 configuration and ``q`` loss scale are kept; its weights are not used).  The result holds the
 source's weights: the whole network but the last 1x1 layer, and of that layer the rows that
@@ -27,14 +27,14 @@ from pathlib import Path
 import torch
 
 from articulated_dataset.format import sha256_file
-from articulated_dataset.models.dense.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, build_dense_model
-from articulated_dataset.models.dense.model import GEOMETRY_CHANNELS, JOINT_CHANNELS
-from articulated_dataset.models.dense.train import load_dense_checkpoint
+from articulated_dataset.methods.dense.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, build_dense_model
+from articulated_dataset.methods.dense.model import GEOMETRY_CHANNELS, JOINT_CHANNELS
+from articulated_dataset.methods.dense.train import load_dense_checkpoint
 
 
 def head_rows(n_joints_src: int, n_joints_dst: int) -> tuple[list[int], list[int]]:
     """(source rows, target rows) of the last layer's outputs that mean the same in both classes
-    (:meth:`~articulated_dataset.models.dense.model.DenseNet.split`'s layout)."""
+    (:meth:`~articulated_dataset.methods.dense.model.DenseNet.split`'s layout)."""
     J = min(n_joints_src, n_joints_dst)
     src, dst = list(range(1 + J)), list(range(1 + J))  # body, parts 0..J-1
     for j in range(J):

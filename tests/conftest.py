@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
+from articulated_dataset.classes.registry import class_names
 from articulated_dataset.generation import GenerationConfig, generate_split
-from articulated_dataset.registry import class_names
 
 #: Objects per class in the shared tiny dataset (train) and its test split.
 TINY_TRAIN_OBJECTS = 6

@@ -10,16 +10,16 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from articulated_dataset.camera import CameraConfig, backproject
-from articulated_dataset.classes import PRISMATIC
+from articulated_dataset.classes.base import PRISMATIC
+from articulated_dataset.core.camera import CameraConfig, backproject
+from articulated_dataset.core.rotations import quat_to_matrix
 from articulated_dataset.generation import GenerationConfig, object_sample, render_object
 from articulated_dataset.generation.compiled import compile_object as compile_urdf
 from articulated_dataset.generation.labels import MASK_BODY, MASK_FIRST_PART, read_object_labels
 from articulated_dataset.generation.render import process_renderer
-from articulated_dataset.generation.scene import ORIGIN_POSE, ObjectPlacer, set_configuration
+from articulated_dataset.generation.mujoco_scene import ORIGIN_POSE, ObjectPlacer, set_configuration
 from articulated_dataset.generation.templating import object_urdf
 from articulated_dataset.generation.viewpoint import object_in_camera
-from articulated_dataset.rotations import quat_to_matrix
 
 
 def final_object(class_name: str, index: int = 0, camera: CameraConfig | None = None, split: str = "train", table=None):
@@ -100,7 +100,7 @@ def surface_distances(points, depth, mask_sel, K):
     pixels, which must all belong to ``mask_sel``.  Returns |z_point - z_surface| for the
     points that project inside such pixel quads.
     """
-    from articulated_dataset.camera import project
+    from articulated_dataset.core.camera import project
 
     uv, z = project(points, K)
     H, W = depth.shape
@@ -116,7 +116,7 @@ def surface_distances(points, depth, mask_sel, K):
     return np.abs(z[inside] - 1.0 / inv_z[inside])
 
 
-#: Template constants (urdf_templates/common.xacro): panel thickness and handle standoff (m),
+#: Template constants (classes/common.xacro): panel thickness and handle standoff (m),
 #: and the tolerance of a pixel's point against the object's box.
 PANEL_M = 0.02
 HANDLE_STANDOFF_M = 0.03
@@ -266,7 +266,7 @@ def check_forced_split(split: Path, obj_class, table, *, front_m: float | None =
     object's ``geometry`` is its sampled size.  Yields ``(config, arrays, sample, rows)`` per object
     for a test's own checks (``rows``: the object's images in ``arrays``)."""
     from articulated_dataset.format import open_split
-    from articulated_dataset.verify import verify_split
+    from articulated_dataset.tools.verify import verify_split
 
     global PANEL_M, HANDLE_STANDOFF_M
     report = verify_split(split)

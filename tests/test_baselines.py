@@ -10,12 +10,12 @@ import pytest
 from click.testing import CliRunner
 
 from articulated_dataset.benchmark import metrics
-from articulated_dataset import rotations
-from articulated_dataset.baselines import BASELINES, clouds, icp, icp_model, mean, nn
-from articulated_dataset.baselines.common import open_split_checked
+from articulated_dataset.classes.registry import get_class
 from articulated_dataset.cli import main
+from articulated_dataset.core import rotations
 from articulated_dataset.generation import GenerationConfig, generate_split
-from articulated_dataset.registry import get_class
+from articulated_dataset.methods.baselines import BASELINES, clouds, icp, icp_model, mean, nn
+from articulated_dataset.methods.baselines.common import open_split_checked
 from helpers_core import split_copy_with
 
 pytest.importorskip("scipy")
@@ -323,8 +323,8 @@ def test_worker_processes_give_the_serial_results(tiny_root, icp_objects, monkey
 def test_run_baseline_refuses_before_it_runs(tmp_path):
     """The library refuses an existing output without overwrite and non-positive workers before it
     reads any split (the folders here do not exist), as 'artdata baseline' reports them."""
-    from articulated_dataset.baselines import run_baseline
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.methods.baselines import run_baseline
 
     out = tmp_path / "p.h5"
     out.write_bytes(b"keep")

@@ -16,8 +16,8 @@ from click.testing import CliRunner
 
 from articulated_dataset.cli import main
 from articulated_dataset.format import FIELDS, Split
-from articulated_dataset.format.schema import OPTIONAL_FIELDS, RGB_FIELDS
 from articulated_dataset.format.card import CARD_NAME, CROISSANT_NAME, RAI_SOURCES
+from articulated_dataset.format.schema import OPTIONAL_FIELDS, RGB_FIELDS
 from helpers_core import assert_one_line_error
 from helpers_real import write_capture
 

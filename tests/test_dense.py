@@ -14,16 +14,23 @@ torch = pytest.importorskip("torch")
 
 from click.testing import CliRunner  # noqa: E402
 
-from articulated_dataset.camera import CameraConfig, backproject  # noqa: E402
 from articulated_dataset.cli import main  # noqa: E402
-from articulated_dataset.models.dense import aggregate as A  # noqa: E402
-from articulated_dataset.models.dense.features import (  # noqa: E402
-    HOLE_MAX_SPREAD_M, backproject_torch, fill_holes, make_inputs, output_labels, resize_depth, scale_intrinsics,
-    surface_normals)
-from articulated_dataset.models.dense.model import DenseConfig, DenseNet  # noqa: E402
-from articulated_dataset.models.dense.refine import REFINEMENT_VERSION  # noqa: E402
-from articulated_dataset.models.dense.checkpoint import load_dense_checkpoint  # noqa: E402
-from articulated_dataset.models.dense.train import DenseTrainConfig, train_dense  # noqa: E402
+from articulated_dataset.core.camera import CameraConfig, backproject  # noqa: E402
+from articulated_dataset.methods.dense import aggregate as A
+from articulated_dataset.methods.dense.checkpoint import load_dense_checkpoint  # noqa: E402
+from articulated_dataset.methods.dense.features import (  # noqa: E402
+    HOLE_MAX_SPREAD_M,
+    backproject_torch,
+    fill_holes,
+    make_inputs,
+    output_labels,
+    resize_depth,
+    scale_intrinsics,
+    surface_normals,
+)
+from articulated_dataset.methods.dense.model import DenseConfig, DenseNet  # noqa: E402
+from articulated_dataset.methods.dense.refine import REFINEMENT_VERSION  # noqa: E402
+from articulated_dataset.methods.dense.train import DenseTrainConfig, train_dense  # noqa: E402
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
@@ -180,8 +187,8 @@ def test_a_mode_voting_a_joint_closed_past_its_closed_state_reads_as_closed():
     """Every class's joints close at q = 0 (the templates' limits: each registered table's range
     starts there), so a vote mode's q below 0 comes out as 0, in the point estimate and in its
     mixture component; one above 0 and the other modes keep theirs."""
-    from articulated_dataset.models.dense.predict import Q_CLOSED, mixture_from_modes
-    from articulated_dataset.registry import class_names, get_class
+    from articulated_dataset.classes.registry import class_names, get_class
+    from articulated_dataset.methods.dense.predict import Q_CLOSED, mixture_from_modes
 
     assert all(lo == Q_CLOSED for c in class_names() for lo, _ in get_class(c).table.q)
     N, J, M = 2, 1, 2
@@ -197,7 +204,7 @@ def test_a_mode_voting_a_joint_closed_past_its_closed_state_reads_as_closed():
 
 
 def test_refinement_records_its_split_factor_and_old_ones_read_the_default():
-    from articulated_dataset.models.dense.refine import Refinement, split_factor_of
+    from articulated_dataset.methods.dense.refine import Refinement, split_factor_of
 
     for f in (None, 3.0):
         ref = Refinement(frame=True, split_factor=f)
@@ -217,9 +224,9 @@ def overfit_run(tiny_root, tmp_path_factory):
 
 
 def test_tiny_training_run_overfits(overfit_run, tiny_root):
-    from articulated_dataset.models.dense.predict import predict_arrays, quick_errors
-    from articulated_dataset.models.dense.checkpoint import build_dense_model
-    from articulated_dataset.models.dense.data import load_dense_split
+    from articulated_dataset.methods.dense.checkpoint import build_dense_model
+    from articulated_dataset.methods.dense.data import load_dense_split
+    from articulated_dataset.methods.dense.predict import predict_arrays, quick_errors
 
     out, ckpt, _ = overfit_run
     d = load_dense_split(tiny_root / "microwave" / "train", 1, (108, 192), max_objects=1)
@@ -248,20 +255,24 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
     assert resumed["calibration"] == whole["calibration"]
     # the refinement is chosen on the validation objects at the end (dense.fit.fit_refinement)
     assert whole["refinement"]["version"] == REFINEMENT_VERSION and resumed["refinement"] == whole["refinement"]
-    from articulated_dataset.models.dense.fit import TURN_GATE_CANDIDATES_DEG
+    from articulated_dataset.methods.dense.fit import TURN_GATE_CANDIDATES_DEG
 
     gates = {f"box_frame_turn<={t:g}deg" for t in TURN_GATE_CANDIDATES_DEG if t is not None}
     assert set(whole["refinement_report"]["rotation_deg"]) == {"votes", "box_frame"} | gates
     # the vote modes' split factor is chosen there too, from the candidates, each one's error reported
-    from articulated_dataset.models.dense.predict import SPLIT_FACTOR_CANDIDATES
+    from articulated_dataset.methods.dense.predict import SPLIT_FACTOR_CANDIDATES
 
     assert whole["refinement"]["split_factor"] in SPLIT_FACTOR_CANDIDATES
     assert len(whole["refinement_report"]["split_factor_position_cm"]) == len(SPLIT_FACTOR_CANDIDATES)
     # and the box frame's pixel threshold (refinement version 6) with its normals (central
     # differences only or one-sided ones too, version 12), each pair's errors reported
     # then the body's strip (version 14) with the best pair, each elongation's errors reported
-    from articulated_dataset.models.dense.fit import (FRAME_ONE_SIDED_CANDIDATES, FRAME_PROB_CANDIDATES,
-                                                      FRAME_STRIP_CANDIDATES, FRAME_STRIP_MIN_GAIN)
+    from articulated_dataset.methods.dense.fit import (
+        FRAME_ONE_SIDED_CANDIDATES,
+        FRAME_PROB_CANDIDATES,
+        FRAME_STRIP_CANDIDATES,
+        FRAME_STRIP_MIN_GAIN,
+    )
 
     assert whole["refinement"]["frame_min_prob"] in FRAME_PROB_CANDIDATES
     assert whole["refinement"]["frame_one_sided"] in FRAME_ONE_SIDED_CANDIDATES
@@ -288,8 +299,8 @@ def test_noise_augmentation_corrupts_its_share_of_a_batch_the_same_way_on_every_
     """``--noise``: each image of a batch is corrupted with probability ``noise_fraction`` by the
     named model, with its own generator for the epoch (a resumed run draws the same), the rest
     untouched; a run with it resumes to the identical state and records the setting."""
-    from articulated_dataset.models.dense.data import load_dense_split
-    from articulated_dataset.models.dense.train import noisy_depth
+    from articulated_dataset.methods.dense.data import load_dense_split
+    from articulated_dataset.methods.dense.train import noisy_depth
 
     data = load_dense_split(tiny_root / "drawer" / "train", 1, (108, 192), progress=False)
     idx = np.arange(min(16, len(data.sample_id)))
@@ -322,11 +333,11 @@ def test_noise_training_validates_and_fits_on_one_noisy_draw_of_the_validation_i
     (not per position: a refit, which reads only the validation objects, draws the same), its
     labels kept; the epoch's validation errors are those noisy images' and a refit gives what
     training's own fit gives."""
-    from articulated_dataset.models.dense.checkpoint import build_inference_model
-    from articulated_dataset.models.dense.data import load_dense_split
-    from articulated_dataset.models.dense.predict import predict_arrays, quick_errors
-    from articulated_dataset.models.dense.train import noisy_validation, refit_inference
-    from articulated_dataset.models.mdn.data import split_by_object
+    from articulated_dataset.methods.dense.checkpoint import build_inference_model
+    from articulated_dataset.methods.dense.data import load_dense_split
+    from articulated_dataset.methods.dense.predict import predict_arrays, quick_errors
+    from articulated_dataset.methods.dense.train import noisy_validation, refit_inference
+    from articulated_dataset.methods.mdn.data import split_by_object
 
     split = tiny_root / "drawer" / "train"
     data = load_dense_split(split, 1, (108, 192), max_objects=3, progress=False)
@@ -347,7 +358,7 @@ def test_noise_training_validates_and_fits_on_one_noisy_draw_of_the_validation_i
     # --clean: the same validation objects without the noise model (the intervals fitted to clean depth)
     # an output that cannot be written is one line before the fit, and leaves nothing behind
     (tmp_path / "folder.pt").mkdir()
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
 
     with pytest.raises(UserError):
         refit_inference(tmp_path / "a.pt", split, tmp_path / "folder.pt", progress=False)
@@ -370,9 +381,9 @@ def test_noise_training_validates_and_fits_on_one_noisy_draw_of_the_validation_i
 def test_a_two_step_run_trains_records_its_data_and_machine_and_fits_later(tiny_root, tmp_path):
     """Two steps in all (OneCycleLR's warm-up would be empty); ``fit=False`` leaves
     the inference fit out, and refit_inference then gives what training's own fit gives."""
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
     from articulated_dataset.format import read_manifest
-    from articulated_dataset.models.dense.train import refit_inference
+    from articulated_dataset.methods.dense.train import refit_inference
 
     torch.set_num_threads(1)
     split = tiny_root / "drawer" / "train"
@@ -516,7 +527,7 @@ def test_checkpoints_with_bad_contents_are_one_line(overfit_run, tmp_path, tiny_
     when the file is read, not where they would fail (NaN weights inside an eigendecomposition, a
     zero image height inside the network, another class's name inside the refinement, a missing
     step after the whole split is predicted)."""
-    from articulated_dataset.registry import class_names
+    from articulated_dataset.classes.registry import class_names
 
     changed = change(dict(load_dense_checkpoint(overfit_run[0])))
     bad = tmp_path / "bad.pt"
@@ -547,7 +558,7 @@ def test_a_malformed_calibration_is_one_line(overfit_run, tmp_path, tiny_root, n
     """A checkpoint's calibration (the modes' scales and the outlier component) is checked when
     the file is read: predict and estimate say what is wrong in one line instead of failing
     inside the mixture's arithmetic."""
-    from articulated_dataset.models.dense.predict import OUTLIER_MIN_SCALES, _layout_names
+    from articulated_dataset.methods.dense.predict import OUTLIER_MIN_SCALES, _layout_names
 
     ckpt = dict(load_dense_checkpoint(overfit_run[0]))
     calibration = dict(ckpt["calibration"] or {"spread_factor": [1.0] * 17, "floor": [0.01] * 17})
@@ -590,7 +601,7 @@ def _bad_refinements():
 def test_a_malformed_refinement_is_one_line(overfit_run, tmp_path, tiny_root, name, change):
     """A checkpoint's refinement is checked when the file is read: predict says what is wrong in
     one line instead of a traceback from inside the refinement."""
-    from articulated_dataset.models.dense.refine import Refinement
+    from articulated_dataset.methods.dense.refine import Refinement
 
     ckpt = dict(load_dense_checkpoint(overfit_run[0]))
     refinement = ckpt.get("refinement") or Refinement(frame=True).to_dict()
@@ -641,7 +652,7 @@ def test_a_malformed_training_state_is_not_resumed(tiny_root, tmp_path, name, ch
 def test_a_diverging_training_keeps_its_last_checkpoint(tiny_root, tmp_path, monkeypatch):
     """Weights that turn non-finite stop the training in one line before a checkpoint is written:
     the last good one stays (a --resume would refuse diverged weights)."""
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
 
     torch.set_num_threads(1)
     cfg = DenseTrainConfig("drawer", epochs=2, batch_size=16, width=4, val_fraction=0.2, max_objects=3)
@@ -667,7 +678,7 @@ def test_nan_labels_are_refused_before_training(tiny_root, tmp_path):
 
     import h5py
 
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
 
     split = tmp_path / "drawer" / "train"
     shutil.copytree(tiny_root / "drawer" / "train", split)
@@ -707,9 +718,9 @@ def test_outputs_that_are_inputs_are_refused(overfit_run, tiny_root, tmp_path):
 
 
 def test_origin_weight_scales_only_the_origin_terms_of_the_loss(tiny_root):
-    from articulated_dataset.models.dense.data import load_dense_split
-    from articulated_dataset.models.dense.features import make_inputs
-    from articulated_dataset.models.dense.train import dense_loss
+    from articulated_dataset.methods.dense.data import load_dense_split
+    from articulated_dataset.methods.dense.features import make_inputs
+    from articulated_dataset.methods.dense.train import dense_loss
 
     d = load_dense_split(tiny_root / "microwave" / "train", 1, (108, 192), max_objects=1)
     idx = np.arange(4)
@@ -780,7 +791,7 @@ def _huge_exr(path, depth):
     pixels) in a few kilobytes."""
     import struct
 
-    from articulated_dataset.exr.files import write_depth_exr
+    from articulated_dataset.core.images.exr import write_depth_exr
 
     write_depth_exr(path, depth)
     raw = bytearray(path.read_bytes())
@@ -799,7 +810,7 @@ def test_estimate_refuses_hostile_inputs(overfit_run, tiny_root, tmp_path):
     import h5py
 
     import articulated_dataset as ad
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
 
     with h5py.File(next((tiny_root / "microwave" / "test").glob("shard-*.h5")), "r") as f:
         depth, K = f["depth"][5], f["K"][()]
@@ -865,7 +876,7 @@ def test_init_from_continues_a_finished_training(overfit_run, tiny_root, tmp_pat
 def test_a_split_read_in_two_processes_is_the_same_arrays(tiny_root):
     """load_dense_split(workers=2) reads the shards in processes: the arrays, their order and the
     object selection are those of the one-process read."""
-    from articulated_dataset.models.dense.data import load_dense_split
+    from articulated_dataset.methods.dense.data import load_dense_split
 
     split = tiny_root / "drawer" / "train"
     one = load_dense_split(split, 1, (108, 192), max_objects=5, workers=1)
@@ -879,7 +890,7 @@ def test_a_split_read_in_two_processes_is_the_same_arrays(tiny_root):
 def test_a_split_read_for_some_objects_is_the_full_reads_images_of_them(tiny_root):
     """load_dense_split(objects=...) (a refit's validation objects) gives exactly the full read's
     rows of those objects, in order; split_object_indices lists the full read's object indices."""
-    from articulated_dataset.models.dense.data import load_dense_split, split_object_indices
+    from articulated_dataset.methods.dense.data import load_dense_split, split_object_indices
 
     split = tiny_root / "drawer" / "train"
     full = load_dense_split(split, 1, (108, 192), max_objects=5, workers=1)
@@ -891,7 +902,7 @@ def test_a_split_read_for_some_objects_is_the_full_reads_images_of_them(tiny_roo
     for name in full.__dataclass_fields__:
         a, b = getattr(full, name), getattr(some, name)
         assert (a is None and b is None) or np.array_equal(a[rows], b), name
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
 
     with pytest.raises(UserError, match="no images selected"):
         load_dense_split(split, 1, (108, 192), max_objects=5, objects=np.array([7]), workers=1)
@@ -900,7 +911,7 @@ def test_a_split_read_for_some_objects_is_the_full_reads_images_of_them(tiny_roo
 def test_depth_quantisation_rounds_to_the_store_quantum_and_drops_what_it_cannot_hold():
     """quantise_depth scales float32 depths in float32 (exact: the quantum is a power of two); the
     result is the float64 formula's, edge cases included."""
-    from articulated_dataset.models.dense.data import DEPTH_STORE_QUANTUM_M, quantise_depth
+    from articulated_dataset.methods.dense.data import DEPTH_STORE_QUANTUM_M, quantise_depth
 
     def reference(d):
         d = np.nan_to_num(np.asarray(d, np.float64), nan=0.0, posinf=0.0, neginf=0.0)

@@ -14,12 +14,18 @@ torch = pytest.importorskip("torch")
 
 from torch.nn import functional as F  # noqa: E402
 
-from articulated_dataset.models.dense import refine as R  # noqa: E402
-from articulated_dataset.models.dense import handle as DH  # noqa: E402
-from articulated_dataset.models.dense.aggregate import image_groups  # noqa: E402
-from articulated_dataset.models.dense.features import (  # noqa: E402
-    HOLE_MAX_SPREAD_M, N_INPUT_CHANNELS, NORMAL_MAX_STEP_M, OUTPUT_STRIDE, POINT_SCALE_M,
-    backproject_torch, make_inputs)
+from articulated_dataset.methods.dense import handle as DH
+from articulated_dataset.methods.dense import refine as R
+from articulated_dataset.methods.dense.aggregate import image_groups  # noqa: E402
+from articulated_dataset.methods.dense.features import (  # noqa: E402
+    HOLE_MAX_SPREAD_M,
+    N_INPUT_CHANNELS,
+    NORMAL_MAX_STEP_M,
+    OUTPUT_STRIDE,
+    POINT_SCALE_M,
+    backproject_torch,
+    make_inputs,
+)
 
 
 def _random_depth(rng: np.random.Generator, B: int, H: int, W: int,
@@ -142,7 +148,7 @@ def _reference_one_sided(x: torch.Tensor, allowed: torch.Tensor, v: int, u: int)
     """Pixel (v, u)'s one-sided normal of ``features.one_sided_normals`` from the image's input ``x``
     (C, H, W), written out pixel by pixel: along each axis the shorter difference to a valid,
     allowed neighbour within NORMAL_MAX_STEP_M (the forward one on a tie); None without one."""
-    from articulated_dataset.models.dense.features import NORMAL_MAX_STEP_M
+    from articulated_dataset.methods.dense.features import NORMAL_MAX_STEP_M
 
     H, W = x.shape[1:]
     p = x[0:3, v, u]

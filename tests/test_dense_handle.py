@@ -1,4 +1,4 @@
-"""Refinement steps 7 and 9 (models/dense/handle.py): a closed door's hinge side, and a door's
+"""Refinement steps 7 and 9 (methods/dense/handle.py): a closed door's hinge side, and a door's
 hinge height, from its handle."""
 
 import math
@@ -8,9 +8,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from articulated_dataset.camera import CameraConfig  # noqa: E402
-from articulated_dataset.models.dense.features import OUTPUT_STRIDE, make_inputs  # noqa: E402
-from articulated_dataset.models.dense.handle import (  # noqa: E402
+from articulated_dataset.core.camera import CameraConfig  # noqa: E402
+from articulated_dataset.methods.dense.features import OUTPUT_STRIDE, make_inputs  # noqa: E402
+from articulated_dataset.methods.dense.handle import (  # noqa: E402
     EVERY_DOOR_DEG,
     HANDLE_LEN_M,
     HANDLE_STANDOFF_M,
@@ -20,7 +20,7 @@ from articulated_dataset.models.dense.handle import (  # noqa: E402
     handle_evidence,
     mirrored_by_handle,
 )
-from articulated_dataset.models.dense.refine import Refinement, apply_refinement  # noqa: E402
+from articulated_dataset.methods.dense.refine import Refinement, apply_refinement  # noqa: E402
 
 W_PX, H_PX = 192, 108
 DOOR_DEPTH_M = 1.5
@@ -217,9 +217,9 @@ def test_rendered_handles_seen_whole_are_at_the_labelled_origins_height(class_na
     """Labels against rendered pixels: a generated split's doors, segmented by their true masks,
     whose handle step 9 would use have it (seen whole: its mean point; cut by the image's border:
     half a bar's length from its visible end) at the labelled origin's height along the true axis."""
-    from articulated_dataset.models.dense.data import load_dense_split
-    from articulated_dataset.models.dense.handle import handle_seen_whole
-    from articulated_dataset.registry import get_class
+    from articulated_dataset.classes.registry import get_class
+    from articulated_dataset.methods.dense.data import load_dense_split
+    from articulated_dataset.methods.dense.handle import handle_seen_whole
     from helpers_core import generated_split
 
     n_joints = get_class(class_name).n_joints

@@ -14,9 +14,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from articulated_dataset import executors as E  # noqa: E402
-from articulated_dataset.models.dense import predict as P  # noqa: E402
-from articulated_dataset.models.dense.model import DenseConfig, DenseNet  # noqa: E402
+from articulated_dataset.core import pool as E
+from articulated_dataset.methods.dense import predict as P
+from articulated_dataset.methods.dense.model import DenseConfig, DenseNet  # noqa: E402
 from helpers_core import generated_split  # noqa: E402
 
 
@@ -52,7 +52,7 @@ def test_the_inference_copy_prepacks_its_convolutions_and_computes_the_same_func
     opaque packed weights, which the copy makes again."""
     import pickle
 
-    from articulated_dataset.models.dense import model as M
+    from articulated_dataset.methods.dense import model as M
 
     if not M._mkldnn_packing_available():
         pytest.skip("this PyTorch has no oneDNN convolution with prepacked weights")
@@ -80,7 +80,7 @@ def test_the_inference_copy_prepacks_its_convolutions_and_computes_the_same_func
 def test_a_convolution_oneDNN_cannot_prepack_runs_unpacked(monkeypatch, caplog):
     """Prepacking refused at run time (another CPU, a shape oneDNN declines): the plain
     convolution, the same function, and a warning."""
-    from articulated_dataset.models.dense import model as M
+    from articulated_dataset.methods.dense import model as M
 
     if not M._mkldnn_packing_available():
         pytest.skip("this PyTorch has no oneDNN convolution with prepacked weights")
@@ -133,9 +133,9 @@ def cabinet_split(tmp_path_factory):
 def test_worker_processes_give_the_same_predictions(cabinet_split, monkeypatch):
     """The shipped cabinet model (refinement with the mirror image and the handles) over three
     tasks in two spawned processes: the same images in the same order, the same numbers."""
-    from articulated_dataset.models import resolve_model
-    from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
-    from articulated_dataset.models.dense.data import load_dense_split
+    from articulated_dataset.methods import resolve_model
+    from articulated_dataset.methods.dense.checkpoint import build_inference_model, load_dense_checkpoint
+    from articulated_dataset.methods.dense.data import load_dense_split
 
     ckpt = load_dense_checkpoint(resolve_model("dense", "cabinet").path)
     model = build_inference_model(ckpt)
@@ -197,7 +197,7 @@ def test_predict_workers_errors(cabinet_split, tmp_path, model, workers, message
 #: is freed: bytes in mapped blocks (hblkhd) and the heap's free bytes (fordblks).
 MALLINFO = """
 import ctypes, json
-from articulated_dataset.executors import configure_allocator
+from articulated_dataset.core.pool import configure_allocator
 class Info(ctypes.Structure):
     _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
                                                 "fsmblks", "uordblks", "fordblks", "keepcost")]
@@ -263,9 +263,9 @@ def test_the_bfloat16_network_rounds_the_float32_one():
 def test_bfloat16_predictions_are_near_float32s(cabinet_split):
     """The shipped cabinet model in both precisions on a rendered split: the same hinge sides and
     axes within a few millimetres and tenths of a degree for nearly every image."""
-    from articulated_dataset.models import resolve_model
-    from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
-    from articulated_dataset.models.dense.data import load_dense_split
+    from articulated_dataset.methods import resolve_model
+    from articulated_dataset.methods.dense.checkpoint import build_inference_model, load_dense_checkpoint
+    from articulated_dataset.methods.dense.data import load_dense_split
 
     ckpt = load_dense_checkpoint(resolve_model("dense", "cabinet").path)
     out = {}
@@ -287,10 +287,10 @@ def test_only_the_door_angles_a_refinement_reads_are_computed(cabinet_split):
     refined_quantities with that subset gives those keys with the numbers of the full computation."""
     from dataclasses import replace
 
-    from articulated_dataset.models import resolve_model
-    from articulated_dataset.models.dense import refine as R
-    from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
-    from articulated_dataset.models.dense.data import load_dense_split
+    from articulated_dataset.methods import resolve_model
+    from articulated_dataset.methods.dense import refine as R
+    from articulated_dataset.methods.dense.checkpoint import build_inference_model, load_dense_checkpoint
+    from articulated_dataset.methods.dense.data import load_dense_split
 
     ckpt = load_dense_checkpoint(resolve_model("dense", "cabinet").path)
     ref = R.as_refinement(ckpt["refinement"])
@@ -338,7 +338,7 @@ def test_estimate_in_bfloat16(cabinet_split):
     import h5py
 
     import articulated_dataset as ad
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
 
     with h5py.File(next(cabinet_split.glob("shard-*.h5")), "r") as f:
         depth, K = f["depth"][0], f["K"][()]  # metres
@@ -356,11 +356,11 @@ def test_the_refinements_handles_are_handle_evidences(cabinet_split, max_q_deg):
     (refined_quantities(handle_max_q_deg=...), as batch_modes asks for them) are handle_evidence's of the
     same doors, from the whole input: every door's (step 9) and only the candidates' (step 7
     alone), to float rounding; and enough doors have a handle for the check to mean something."""
-    from articulated_dataset.models import resolve_model
-    from articulated_dataset.models.dense import refine as R
-    from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
-    from articulated_dataset.models.dense.data import load_dense_split
-    from articulated_dataset.models.dense.handle import EVERY_DOOR_DEG, HANDLE_KEYS, handle_candidates_evidence
+    from articulated_dataset.methods import resolve_model
+    from articulated_dataset.methods.dense import refine as R
+    from articulated_dataset.methods.dense.checkpoint import build_inference_model, load_dense_checkpoint
+    from articulated_dataset.methods.dense.data import load_dense_split
+    from articulated_dataset.methods.dense.handle import EVERY_DOOR_DEG, HANDLE_KEYS, handle_candidates_evidence
 
     ckpt = load_dense_checkpoint(resolve_model("dense", "cabinet").path)
     ref = R.as_refinement(ckpt["refinement"])
@@ -373,8 +373,8 @@ def test_the_refinements_handles_are_handle_evidences(cabinet_split, max_q_deg):
     _, got = P.batch_modes(model, depth, K, joint_types=joint_types, refine=True, split_factor=ref.split_factor,
                            handle_max_q_deg=limit, frame_min_prob=ref.frame_min_prob)
     with torch.inference_mode():
-        from articulated_dataset.models.dense.aggregate import vote_modes
-        from articulated_dataset.models.dense.features import make_inputs
+        from articulated_dataset.methods.dense.aggregate import vote_modes
+        from articulated_dataset.methods.dense.features import make_inputs
 
         inputs = make_inputs(depth, K)
         parts = model.split(model(inputs["x"]))
@@ -394,11 +394,11 @@ def test_refinement_candidates_share_one_network_pass(cabinet_split):
     gets alone (predict_modes), from one network pass; and the body's strip refined on the images
     whose box-frame pixels may make one (refine.strip_sized) alone, the others keeping the pair's
     quantities, is the strip refined on every image, to float rounding."""
-    from articulated_dataset.models import resolve_model
-    from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
-    from articulated_dataset.models.dense.data import load_dense_split
-    from articulated_dataset.models.dense.handle import EVERY_DOOR_DEG
-    from articulated_dataset.models.dense.refine import strip_sized
+    from articulated_dataset.methods import resolve_model
+    from articulated_dataset.methods.dense.checkpoint import build_inference_model, load_dense_checkpoint
+    from articulated_dataset.methods.dense.data import load_dense_split
+    from articulated_dataset.methods.dense.handle import EVERY_DOOR_DEG
+    from articulated_dataset.methods.dense.refine import strip_sized
 
     ckpt = load_dense_checkpoint(resolve_model("dense", "cabinet").path)
     model = build_inference_model(ckpt)
@@ -456,8 +456,8 @@ def test_the_fit_benchmark_reports_its_time_and_choice(tmp_path, capsys):
 def test_the_training_runs_inference_copy_is_the_cpu_packed_folded_network():
     """train.inference_copy (the per-epoch validation's and the fit's network): the folded function
     on the CPU, prepacked where oneDNN can, the training network left as it was."""
-    from articulated_dataset.models.dense import model as M
-    from articulated_dataset.models.dense.train import inference_copy
+    from articulated_dataset.methods.dense import model as M
+    from articulated_dataset.methods.dense.train import inference_copy
 
     model = _random_statistics(DenseNet(DenseConfig(n_joints=1, width=4))).train()
     copy = inference_copy(model)

@@ -1,4 +1,4 @@
-"""Refinement step 8 (models/dense/mirror.py): the network's outputs averaged with its outputs on
+"""Refinement step 8 (methods/dense/mirror.py): the network's outputs averaged with its outputs on
 the mirror image.
 
 The classes' ``mirror_joints`` registrations are checked against rendered pixels and labels: the
@@ -13,16 +13,20 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from articulated_dataset.camera import CameraConfig  # noqa: E402
-from articulated_dataset.classes import JointSpec, ObjectClass  # noqa: E402
-from articulated_dataset.models.dense.features import backproject_torch, make_inputs  # noqa: E402
-from articulated_dataset.models.dense.data import DenseData, quantise_depth  # noqa: E402
-from articulated_dataset.models.dense.mirror import (MIRROR_AXIS, merge_mirrored_outputs, mirror_inputs,  # noqa: E402
-                                                     mirror_network_input)
-from articulated_dataset.models.dense.model import DenseConfig, DenseNet  # noqa: E402
-from articulated_dataset.models.dense.predict import predict_arrays  # noqa: E402
-from articulated_dataset.models.dense.refine import Refinement  # noqa: E402
-from articulated_dataset.registry import REVOLUTE, all_classes, get_class  # noqa: E402
+from articulated_dataset.classes.base import JointSpec, ObjectClass  # noqa: E402
+from articulated_dataset.classes.registry import REVOLUTE, all_classes, get_class  # noqa: E402
+from articulated_dataset.core.camera import CameraConfig  # noqa: E402
+from articulated_dataset.methods.dense.data import DenseData, quantise_depth  # noqa: E402
+from articulated_dataset.methods.dense.features import backproject_torch, make_inputs  # noqa: E402
+from articulated_dataset.methods.dense.mirror import (  # noqa: E402
+    MIRROR_AXIS,
+    merge_mirrored_outputs,
+    mirror_inputs,
+    mirror_network_input,
+)
+from articulated_dataset.methods.dense.model import DenseConfig, DenseNet  # noqa: E402
+from articulated_dataset.methods.dense.predict import predict_arrays  # noqa: E402
+from articulated_dataset.methods.dense.refine import Refinement  # noqa: E402
 from helpers_core import compile_object, final_object, generated_split, render_at  # noqa: E402
 
 MIRRORED = [c for c in all_classes() if c.mirror_joints is not None]
@@ -197,7 +201,7 @@ def test_network_outputs_average_the_mirror_images_of_a_batch_larger_than_a_chun
     """A batch larger than a network chunk (the network runs chunk by chunk, each image and its
     mirror image in separate calls) gives the same numbers as averaging image by image; the
     mirror input keeps a channels-last input's layout."""
-    from articulated_dataset.models.dense.predict import NETWORK_CHUNK, network_outputs
+    from articulated_dataset.methods.dense.predict import NETWORK_CHUNK, network_outputs
 
     torch.manual_seed(1)
     model = DenseNet(DenseConfig(n_joints=2, width=4)).eval()
@@ -216,7 +220,7 @@ def test_network_outputs_average_the_mirror_images_of_a_batch_larger_than_a_chun
 
 
 def test_with_mirror_drops_only_step_8():
-    from articulated_dataset.models.dense.mirror import with_mirror
+    from articulated_dataset.methods.dense.mirror import with_mirror
 
     ref = Refinement(frame=True, mirror_joints=(0,))
     assert with_mirror(ref, True) == ref
@@ -243,9 +247,9 @@ def test_predict_no_mirror_skips_the_mirror_image(cabinet_split, tmp_path):
     """The shipped cabinet model averages with the mirror image; --no-mirror gives the
     estimate of the image alone (the pipeline without step 8) and says so in the file."""
     from articulated_dataset.benchmark.predictions import read_predictions
-    from articulated_dataset.models import resolve_model
-    from articulated_dataset.models.dense.checkpoint import build_dense_model, load_dense_checkpoint
-    from articulated_dataset.models.dense.data import load_dense_split
+    from articulated_dataset.methods import resolve_model
+    from articulated_dataset.methods.dense.checkpoint import build_dense_model, load_dense_checkpoint
+    from articulated_dataset.methods.dense.data import load_dense_split
 
     ckpt = load_dense_checkpoint(resolve_model("dense", "cabinet").path)
     if Refinement.from_dict(ckpt["refinement"]).mirror_joints is None:

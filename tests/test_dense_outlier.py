@@ -6,8 +6,12 @@ import numpy as np
 import pytest
 
 from articulated_dataset.benchmark import metrics as M
-from articulated_dataset.models.dense.predict import (
-    OUTLIER_WEIGHT_BOUNDS, fit_outlier_component, mixture_from_modes, with_outlier_component)
+from articulated_dataset.methods.dense.predict import (
+    OUTLIER_WEIGHT_BOUNDS,
+    fit_outlier_component,
+    mixture_from_modes,
+    with_outlier_component,
+)
 
 D = 5  # columns of the synthetic mixtures
 
@@ -107,11 +111,11 @@ def test_a_calibration_only_refit_keeps_the_estimates_and_adds_the_component(tin
     estimate and mode stay; the calibration gains the outlier component; the split the refit
     reads is recorded; a split generated otherwise than the checkpoint's is one line."""
     torch = pytest.importorskip("torch")
-    from articulated_dataset.errors import UserError
-    from articulated_dataset.models.dense.checkpoint import build_inference_model, load_dense_checkpoint
-    from articulated_dataset.models.dense.data import load_dense_split
-    from articulated_dataset.models.dense.predict import predict_arrays
-    from articulated_dataset.models.dense.train import DenseTrainConfig, refit_inference, train_dense
+    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.methods.dense.checkpoint import build_inference_model, load_dense_checkpoint
+    from articulated_dataset.methods.dense.data import load_dense_split
+    from articulated_dataset.methods.dense.predict import predict_arrays
+    from articulated_dataset.methods.dense.train import DenseTrainConfig, refit_inference, train_dense
 
     torch.set_num_threads(1)
     split = tiny_root / "drawer" / "train"
@@ -144,7 +148,7 @@ def test_a_column_the_class_holds_constant_keeps_its_kinds_floor():
     spread in ``j0.axis.z``; a failure that flips the frame reads +1 there.  The component's
     scale in that column is its kind's floor (half a unit), so the flip costs a few scales, not
     thousands (the seed-2026 test microwaves: 10^6 nats before the floor)."""
-    from articulated_dataset.models.dense.predict import OUTLIER_MIN_SCALES, _layout_names
+    from articulated_dataset.methods.dense.predict import OUTLIER_MIN_SCALES, _layout_names
 
     rng = np.random.default_rng(4)
     names = _layout_names(1)
@@ -172,7 +176,7 @@ def test_validation_labels_without_a_complete_image_leave_the_component_out(capl
     warning instead of failing the end of a training run."""
     from types import SimpleNamespace
 
-    from articulated_dataset.models.dense.predict import fitted_calibration
+    from articulated_dataset.methods.dense.predict import fitted_calibration
 
     rng = np.random.default_rng(5)
     N, J, M_ = 32, 1, 2

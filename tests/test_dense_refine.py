@@ -1,4 +1,4 @@
-"""Geometric refinement of the dense estimate (articulated_dataset.models.dense.refine): each step on
+"""Geometric refinement of the dense estimate (articulated_dataset.methods.dense.refine): each step on
 constructed cases with a known answer, the fit on synthetic validation arrays, and the
 refinement stored by training and applied by prediction."""
 
@@ -14,11 +14,11 @@ torch = pytest.importorskip("torch")
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from articulated_dataset.benchmark import metrics as M  # noqa: E402
-from articulated_dataset.models.dense import refine as R  # noqa: E402
-from articulated_dataset.models.dense import handle as DH  # noqa: E402
-from articulated_dataset.models.dense.fit import fit_refinement  # noqa: E402
-from articulated_dataset.models.dense.features import make_inputs  # noqa: E402
-from articulated_dataset.rotations import matrix_to_quat  # noqa: E402
+from articulated_dataset.core.rotations import matrix_to_quat  # noqa: E402
+from articulated_dataset.methods.dense import handle as DH
+from articulated_dataset.methods.dense import refine as R
+from articulated_dataset.methods.dense.features import make_inputs  # noqa: E402
+from articulated_dataset.methods.dense.fit import fit_refinement  # noqa: E402
 
 
 def _frame_columns(rot: Rotation) -> torch.Tensor:
@@ -656,7 +656,7 @@ def test_fit_recovers_the_face_offsets_and_gates_step_10():
     """Synthetic validation modes whose origins miss the hinge plane by 0.5 cm (votes); the faces'
     measurements put the hinge 0 cm behind the outer face and 2 cm behind the inner face: the fit
     finds those offsets and takes step 10, which lowers the position error."""
-    from articulated_dataset.models.dense.fit import fit_door_face_offsets
+    from articulated_dataset.methods.dense.fit import fit_door_face_offsets
 
     rng = np.random.default_rng(3)
     N = 300
@@ -722,7 +722,7 @@ def test_one_sided_normals_give_a_two_pixel_strip_its_planes_normal():
     """The input's central differences need both neighbours on each image axis: a face seen as a
     strip two pixels wide has none; the one-sided differences give every strip pixel its plane's
     normal (facing the camera), and a one-pixel strip none."""
-    from articulated_dataset.models.dense.features import one_sided_normals
+    from articulated_dataset.methods.dense.features import one_sided_normals
 
     depth, K = _strip_scene()
     inputs = make_inputs(depth, K)
@@ -745,7 +745,7 @@ def test_one_sided_normals_give_a_two_pixel_strip_its_planes_normal():
 def test_one_sided_normals_take_only_allowed_neighbours():
     """Beside the door (no gap) the strip's outer pixel has its nearest neighbour on the door's face:
     its normal mixes the two faces unless the door's pixels are not allowed."""
-    from articulated_dataset.models.dense.features import one_sided_normals
+    from articulated_dataset.methods.dense.features import one_sided_normals
 
     depth, K = _strip_scene(door_gap_px=0)
     x = make_inputs(depth, K)["x"]

@@ -6,9 +6,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from articulated_dataset.models.dense.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, build_dense_model  # noqa: E402
-from articulated_dataset.models.dense.model import GEOMETRY_CHANNELS, JOINT_CHANNELS, DenseConfig, DenseNet  # noqa: E402
-from articulated_dataset.models.dense.train import load_dense_checkpoint  # noqa: E402
+from articulated_dataset.methods.dense.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, build_dense_model  # noqa: E402
+from articulated_dataset.methods.dense.model import GEOMETRY_CHANNELS, JOINT_CHANNELS, DenseConfig, DenseNet  # noqa: E402
+from articulated_dataset.methods.dense.train import load_dense_checkpoint  # noqa: E402
 from helpers_core import load_script  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -14,7 +14,7 @@ A block that must not run here is marked, on the line before its fence, with
 with the reason in the text): paper-scale runs, installers, a cluster, downloads, timing
 benchmarks and API synopses whose names are placeholders.  A marker without a reason fails.
 Blocks that need the shipped model weights (``--model dense``, ``ad.estimate``,
-``make_estimator("dense", ...)``) run when ``articulated_dataset.models.shipped_models()``
+``make_estimator("dense", ...)``) run when ``articulated_dataset.methods.shipped_models()``
 lists any, and are skipped otherwise.
 """
 
@@ -89,8 +89,8 @@ def test_every_skip_marker_gives_a_reason():
 @pytest.fixture(scope="session")
 def docs_workdir(tmp_path_factory) -> Path:
     """The folder every page's run starts from (copied per page)."""
+    from articulated_dataset.classes.registry import class_names
     from articulated_dataset.generation import GenerationConfig, generate_split
-    from articulated_dataset.registry import class_names
 
     base = tmp_path_factory.mktemp("docs-base")
     for name in class_names():
@@ -117,7 +117,7 @@ def run_cli(args: list[str], cwd: Path) -> None:
 
 
 def has_shipped_weights() -> bool:
-    from articulated_dataset.models import shipped_models
+    from articulated_dataset.methods import shipped_models
 
     return bool(shipped_models())
 
@@ -135,7 +135,7 @@ def test_page_code_blocks_run(page, docs_workdir, tmp_path):
         if b.skip_reason is None and NEEDS_WEIGHTS.search(b.code):
             weights = has_shipped_weights() if weights is None else weights
             if not weights:
-                b.skip_reason = "needs the shipped model weights (none in articulated_dataset/weights)"
+                b.skip_reason = "needs the shipped model weights (none in articulated_dataset/methods/weights)"
         if b.skip_reason is None:
             runnable.append(b)
     if not runnable:

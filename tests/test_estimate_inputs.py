@@ -6,7 +6,7 @@ from __future__ import annotations
 from click.testing import CliRunner
 
 from articulated_dataset.cli import main
-from articulated_dataset.exr import export_split
+from articulated_dataset.tools.exr import export_split
 from helpers_core import assert_one_line_error
 
 

@@ -14,11 +14,13 @@ pytest.importorskip("safetensors")
 from click.testing import CliRunner  # noqa: E402
 
 from articulated_dataset.cli import main  # noqa: E402
-from articulated_dataset.errors import UserError  # noqa: E402
-from articulated_dataset.models import shipped_models  # noqa: E402
-from articulated_dataset.models.safetensors_checkpoint import (checkpoint_difference,  # noqa: E402
-                                                               read_safetensors_checkpoint,
-                                                               write_safetensors_checkpoint)
+from articulated_dataset.core.errors import UserError  # noqa: E402
+from articulated_dataset.methods import shipped_models  # noqa: E402
+from articulated_dataset.methods.safetensors_checkpoint import (  # noqa: E402
+    checkpoint_difference,
+    read_safetensors_checkpoint,
+    write_safetensors_checkpoint,
+)
 from helpers_core import assert_one_line_error, generated_split  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not shipped_models(), reason="this checkout ships no weights")
@@ -33,9 +35,9 @@ def test_onnx_export_of_the_dense_network_matches_pytorch(tmp_path):
     batch: the batch axis is free) within ``ONNX_ATOL + ONNX_RTOL |torch|`` of PyTorch's outputs."""
     onnx = pytest.importorskip("onnx")
     ort = pytest.importorskip("onnxruntime")
-    from articulated_dataset.models import resolve_model
-    from articulated_dataset.models.dense.checkpoint import build_dense_model, load_dense_checkpoint
-    from articulated_dataset.models.export import ONNX_ATOL, ONNX_INPUT, ONNX_OUTPUTS, ONNX_RTOL
+    from articulated_dataset.methods import resolve_model
+    from articulated_dataset.methods.dense.checkpoint import build_dense_model, load_dense_checkpoint
+    from articulated_dataset.methods.export import ONNX_ATOL, ONNX_INPUT, ONNX_OUTPUTS, ONNX_RTOL
 
     out = tmp_path / "dense-drawer.onnx"
     res = _run("export-model", "--model", "dense", "--class", "drawer", "--format", "onnx", "--out", out)
@@ -64,8 +66,8 @@ def test_onnx_export_of_the_dense_network_matches_pytorch(tmp_path):
 def _training_checkpoint(path):
     """A dense checkpoint as ``artdata train`` writes it (``torch.save``, with optimizer state whose
     keys are whole numbers and RNG state) from the shipped microwave model; the checkpoint."""
-    from articulated_dataset.models import resolve_model
-    from articulated_dataset.models.dense.checkpoint import load_dense_checkpoint
+    from articulated_dataset.methods import resolve_model
+    from articulated_dataset.methods.dense.checkpoint import load_dense_checkpoint
 
     ckpt = dict(load_dense_checkpoint(resolve_model("dense", "microwave").path))
     ckpt["optimizer_state"] = {"state": {0: {"step": torch.tensor(3.0), "exp_avg": torch.zeros(4)}},
@@ -79,7 +81,7 @@ def test_a_training_checkpoint_exports_to_a_pair_that_predicts_the_same(tmp_path
     """``--format safetensors`` of a ``.pt`` (still read with ``weights_only``) writes the checkpoint
     without its training state; the pair reads back bit for bit and ``--model`` takes it."""
     import articulated_dataset as ad
-    from articulated_dataset.models.shipped import without_training_state
+    from articulated_dataset.methods.shipped import without_training_state
 
     ckpt = _training_checkpoint(tmp_path / "run.pt")
     res = _run("export-model", "--model", tmp_path / "run.pt", "--format", "safetensors",
@@ -102,8 +104,8 @@ def test_a_training_checkpoint_exports_to_a_pair_that_predicts_the_same(tmp_path
 @pytest.mark.parametrize("damage", ["json-edited", "json-missing", "json-array", "weights-truncated",
                                     "tensor-unnamed"])
 def test_a_pair_that_does_not_hold_is_one_line(tmp_path, damage):
-    from articulated_dataset.models import resolve_model
-    from articulated_dataset.models.mdn.checkpoint import read_checkpoint_file
+    from articulated_dataset.methods import resolve_model
+    from articulated_dataset.methods.mdn.checkpoint import read_checkpoint_file
 
     ckpt = read_checkpoint_file(resolve_model("dense", "toaster").path)
     st, js = write_safetensors_checkpoint(ckpt, tmp_path / "m.safetensors")
@@ -139,7 +141,7 @@ def _write_pair_of(st, js, config, tensors) -> None:
 
     from safetensors.torch import save_file
 
-    from articulated_dataset.models.safetensors_checkpoint import CONFIG_SHA256_KEY
+    from articulated_dataset.methods.safetensors_checkpoint import CONFIG_SHA256_KEY
 
     text = json.dumps(config)
     js.write_text(text)

@@ -14,7 +14,7 @@ from click.testing import CliRunner
 from PIL import Image
 
 from articulated_dataset.cli import main
-from articulated_dataset.exr.files import DEPTH_CHANNEL, INDEX_NAME, read_depth_exr, sample_stem, write_depth_exr
+from articulated_dataset.core.images.exr import DEPTH_CHANNEL, INDEX_NAME, read_depth_exr, sample_stem, write_depth_exr
 from articulated_dataset.format import FIELDS, LABEL_FIELDS, open_split
 
 

@@ -6,7 +6,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from articulated_dataset.format.schema import FIELDS, MASK_OCCLUDER, MASK_SCENE, OPTIONAL_FIELDS, RGB_FIELDS, markdown_table
+from articulated_dataset.format.schema import (
+    FIELDS,
+    MASK_OCCLUDER,
+    MASK_SCENE,
+    OPTIONAL_FIELDS,
+    RGB_FIELDS,
+    markdown_table,
+)
 
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "format.md"
 

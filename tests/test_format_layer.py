@@ -14,7 +14,7 @@ import h5py
 import numpy as np
 import pytest
 
-from articulated_dataset.errors import DataFormatError, UserError
+from articulated_dataset.core.errors import DataFormatError, UserError
 from articulated_dataset.format import (
     IMAGE_FIELDS,
     LABEL_FIELDS,
@@ -39,11 +39,11 @@ def heavy_modules_after_import(*modules: str) -> list[str]:
 
 
 @pytest.mark.parametrize("module", ["articulated_dataset.format", "articulated_dataset.benchmark",
-                                    "articulated_dataset.benchmark.pointlik", "articulated_dataset.loaders",
-                                    "articulated_dataset.baselines.common", "articulated_dataset.format.summary",
+                                    "articulated_dataset.benchmark.pointlik", "articulated_dataset.training.loaders",
+                                    "articulated_dataset.methods.baselines.common", "articulated_dataset.format.summary",
                                     "articulated_dataset.cli.info",
-                                    "articulated_dataset.verify", "articulated_dataset.real.ingest",
-                                    "articulated_dataset.real.write", "articulated_dataset.viz"])
+                                    "articulated_dataset.tools.verify", "articulated_dataset.ingest.capture",
+                                    "articulated_dataset.ingest.write", "articulated_dataset.tools.viz"])
 def test_reading_imports_no_simulator_renderer_or_framework(module):
     assert heavy_modules_after_import(module) == []
 
@@ -91,12 +91,12 @@ def test_split_reads_the_shards_labels(generated):
 
 
 def test_every_consumer_reads_the_same_labels(generated):
-    from articulated_dataset.baselines.common import open_split_checked
-    from articulated_dataset.format.summary import summarize_split
-    from articulated_dataset.loaders import ShardReader
-    from articulated_dataset.manipulation import read_split_labels
     from articulated_dataset.benchmark.truth import load_truth_set
     from articulated_dataset.format import open_split
+    from articulated_dataset.format.summary import summarize_split
+    from articulated_dataset.manipulation import read_split_labels
+    from articulated_dataset.methods.baselines.common import open_split_checked
+    from articulated_dataset.training.loaders import ShardReader
 
     ref = raw_labels(generated)
     _, shards = open_split(generated)

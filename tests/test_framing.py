@@ -12,18 +12,24 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from articulated_dataset.camera import project
+from articulated_dataset.classes.registry import all_classes
 from articulated_dataset.cli import main
+from articulated_dataset.core.camera import project
 from articulated_dataset.format import MASK_BODY, MASK_FIRST_PART, object_on_border, open_split, read_manifest
 from articulated_dataset.generation import GenerationConfig, generate_split, object_sample, pipeline
 from articulated_dataset.generation import framing as framing_module
-from articulated_dataset.generation.framing import (FRAMING_DEPTH_MARGIN_M, Framing, extent_points, fit_depth_m,
-                                                    framed_table, in_view)
+from articulated_dataset.generation.framing import (
+    FRAMING_DEPTH_MARGIN_M,
+    Framing,
+    extent_points,
+    fit_depth_m,
+    framed_table,
+    in_view,
+)
 from articulated_dataset.generation.render import process_renderer
 from articulated_dataset.generation.sampling import sample_pose
 from articulated_dataset.generation.templating import object_urdf
-from articulated_dataset.registry import all_classes
-from articulated_dataset.verify import verify_split
+from articulated_dataset.tools.verify import verify_split
 from helpers_core import IMAGE_CHECK_FIELDS, assert_one_line_error, check_stored_images, write_flap_urdf
 
 CLASSES = all_classes()

@@ -10,11 +10,11 @@ import pytest
 from click.testing import CliRunner
 
 from articulated_dataset import FORMAT_VERSION
-from articulated_dataset.camera import CameraConfig, R_CAMERA_TO_OPTICAL
+from articulated_dataset.classes.registry import class_names
 from articulated_dataset.cli import main
-from articulated_dataset.generation import GenerationConfig, generate_split
-from articulated_dataset.registry import class_names
+from articulated_dataset.core.camera import R_CAMERA_TO_OPTICAL, CameraConfig
 from articulated_dataset.format import FIELDS, open_split, read_manifest, sha256_file
+from articulated_dataset.generation import GenerationConfig, generate_split
 
 
 def _checksums(split_dir):

@@ -8,11 +8,16 @@ import json
 
 import pytest
 
-from articulated_dataset.camera import DEFAULT_HEIGHT_PX, INTRINSICS_PRESETS, MAX_IMAGE_SIDE_PX, camera_from_options
-from articulated_dataset.errors import UserError
+from articulated_dataset.classes.registry import get_class
+from articulated_dataset.core.camera import (
+    DEFAULT_HEIGHT_PX,
+    INTRINSICS_PRESETS,
+    MAX_IMAGE_SIDE_PX,
+    camera_from_options,
+)
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.tables import table_from_options
 from articulated_dataset.generation.request import DEFAULT_N_OBJECTS, UrdfOptions, config_from_options, joint_names
-from articulated_dataset.registry import get_class
-from articulated_dataset.tables import table_from_options
 
 
 def test_camera_from_options():

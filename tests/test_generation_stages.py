@@ -13,13 +13,12 @@ import pytest
 
 import articulated_dataset
 from articulated_dataset.format import records
-from articulated_dataset.generation import GenerationConfig, object_sample, render_object, shard_attrs
+from articulated_dataset.generation import GenerationConfig, object_sample, render_object, sampling, shard_attrs
 from articulated_dataset.generation import objects as objects_module
 from articulated_dataset.generation import pipeline as pipeline_module
-from articulated_dataset.generation import sampling
 from articulated_dataset.generation.render import process_renderer
 from articulated_dataset.generation.sampling import ObjectSample, sample_object, sample_pose
-from articulated_dataset.generation.scene import yaw_quaternion
+from articulated_dataset.generation.mujoco_scene import yaw_quaternion
 
 PACKAGE = Path(articulated_dataset.__file__).parent
 
@@ -44,7 +43,7 @@ def test_objects_are_compiled_in_one_place():
     assert _calls("build_model") == ["generation/compiled.py"]
     assert _calls("model_info") == ["generation/compiled.py"]
     users = set(_calls("compile_object"))
-    assert {"generation/pipeline.py", "viz/data.py", "urdf_import/build.py", "manipulation/true_object.py"} <= users
+    assert {"generation/pipeline.py", "tools/viz/data.py", "generation/urdf_import/build.py", "manipulation/true_object.py"} <= users
 
 
 def _imported_names(path: Path) -> set[tuple[str, str]]:

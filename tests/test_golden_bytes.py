@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from articulated_dataset.classes.registry import class_names
+from articulated_dataset.core.mujoco_support import installed_mujoco_version
 from articulated_dataset.format import LABEL_FIELDS, Split
 from articulated_dataset.generation import GenerationConfig, generate_split
-from articulated_dataset.mujoco_support import installed_mujoco_version
-from articulated_dataset.registry import class_names
 
 #: The MuJoCo release whose depth and masks :data:`GOLDEN` holds.
 GOLDEN_MUJOCO_VERSION = "4.0.1"

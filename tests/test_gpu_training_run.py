@@ -9,7 +9,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from articulated_dataset.models import WEIGHTS_DIR  # noqa: E402
+from articulated_dataset.methods import WEIGHTS_DIR  # noqa: E402
 
 
 @pytest.mark.slow

@@ -11,12 +11,12 @@ import pytest
 from click.testing import CliRunner
 
 from articulated_dataset.cli import main
+from articulated_dataset.core.rotations import quat_to_matrix
 from articulated_dataset.format import Split
 from articulated_dataset.generation import GenerationConfig
 from articulated_dataset.generation.labels import read_object_labels
 from articulated_dataset.generation.render import process_renderer
 from articulated_dataset.generation.viewpoint import object_in_camera
-from articulated_dataset.rotations import quat_to_matrix
 from helpers_core import generated_split, load_script
 
 ROOT = Path(__file__).resolve().parents[1]

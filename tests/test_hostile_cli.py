@@ -25,8 +25,8 @@ import pytest
 from click.testing import CliRunner
 from PIL import Image
 
+from articulated_dataset.classes.registry import REVOLUTE
 from articulated_dataset.cli import EXIT_ENVIRONMENT_ERROR, EXIT_USER_ERROR, main
-from articulated_dataset.registry import REVOLUTE
 from articulated_dataset.format import open_split
 from helpers_core import split_copy_with
 from helpers_real import write_capture
@@ -51,8 +51,8 @@ class Inputs:
 
 @pytest.fixture(scope="module")
 def inputs(tiny_root, tmp_path_factory) -> Inputs:
-    from articulated_dataset.models.mdn.config import TrainConfig
-    from articulated_dataset.models.mdn.train import train
+    from articulated_dataset.methods.mdn.config import TrainConfig
+    from articulated_dataset.methods.mdn.train import train
 
     root = tmp_path_factory.mktemp("hostile")
     _, shards = open_split(tiny_root / "cabinet" / "test")
@@ -565,7 +565,7 @@ def test_real_split_is_test_data_for_the_baselines(env):
                                     "--out", "p.h5", "-q"])
     assert res.exit_code == 0, res.output
     from articulated_dataset.benchmark.predictions import read_predictions
-    from articulated_dataset.real.write import real_sample_id
+    from articulated_dataset.ingest.write import real_sample_id
 
     _, per_class = read_predictions(env.tmp / "p.h5")
     ids = per_class["cabinet"]["sample_id"].tolist()
@@ -575,8 +575,8 @@ def test_real_split_is_test_data_for_the_baselines(env):
 def test_a_checkpoint_that_would_run_code_is_refused_without_advice_to_run_it(tmp_path, monkeypatch):
     """torch's own message advises loading with weights_only=False; the error names what was
     refused (the global) instead, and nothing runs."""
-    from articulated_dataset.errors import UserError
-    from articulated_dataset.models.mdn.checkpoint import read_checkpoint_file
+    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.methods.mdn.checkpoint import read_checkpoint_file
 
     monkeypatch.chdir(tmp_path)
     with pytest.raises(UserError) as err:

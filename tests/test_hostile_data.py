@@ -25,14 +25,13 @@ import pytest
 import trimesh
 from click.testing import CliRunner
 
-from articulated_dataset import urdf_import
 from articulated_dataset.cli import main
-from articulated_dataset.errors import DataFormatError, UserError
-from articulated_dataset.exr import export_split
-from articulated_dataset.exr.files import INDEX_NAME
-from articulated_dataset.generation import GenerationConfig, generate_split
+from articulated_dataset.core.errors import DataFormatError, UserError
+from articulated_dataset.core.images.exr import INDEX_NAME
 from articulated_dataset.format import MANIFEST_NAME, resolve_inside
+from articulated_dataset.generation import GenerationConfig, generate_split, urdf_import
 from articulated_dataset.generation.templating import render_urdf
+from articulated_dataset.tools.exr import export_split
 
 #: What a payload would create if it were ever evaluated.
 PWNED = "PWNED"
@@ -228,7 +227,7 @@ def test_verify_reports_a_shard_symlink_leading_out_without_reading_it(base, wor
 
 @pytest.mark.parametrize("value", BAD_CLASS_NAMES[:8], ids=CLASS_IDS[:8])
 def test_loader_refuses_manifest_names(base, world, value):
-    from articulated_dataset.loaders.reader import ShardReader
+    from articulated_dataset.training.loaders.reader import ShardReader
 
     split = _copy_split(base, world)
     _edit_json(split / MANIFEST_NAME, _set_class(value))
@@ -612,7 +611,7 @@ def test_corrupt_chunk_in_other_readers(base, world, cmd):
 
 @pytest.mark.parametrize("damage", ["corrupt", "external"])
 def test_loader_reports_damaged_shards(base, world, damage):
-    from articulated_dataset.loaders.reader import ShardReader
+    from articulated_dataset.training.loaders.reader import ShardReader
 
     split = _copy_split(base, world)
     if damage == "corrupt":

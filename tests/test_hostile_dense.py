@@ -14,11 +14,10 @@ import torch
 from click.testing import CliRunner
 
 from articulated_dataset.cli import EXIT_USER_ERROR, main
-from articulated_dataset.errors import UserError
-from articulated_dataset.models.dense.checkpoint import load_dense_checkpoint
-from articulated_dataset.models.mdn.checkpoint import read_checkpoint_file
-from articulated_dataset.models.shipped import WEIGHTS_DIR
-
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.methods.dense.checkpoint import load_dense_checkpoint
+from articulated_dataset.methods.mdn.checkpoint import read_checkpoint_file
+from articulated_dataset.methods.shipped import WEIGHTS_DIR
 
 # --- Dense checkpoints holding numbers no float holds (a Python int such as 10**400 pickles fine):
 # every one is a one-line error when the file is read, not an OverflowError from inside the checks,

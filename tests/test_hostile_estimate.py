@@ -13,8 +13,7 @@ from click.testing import CliRunner
 
 import articulated_dataset as ad
 from articulated_dataset.cli import EXIT_USER_ERROR, main
-from articulated_dataset.errors import UserError
-
+from articulated_dataset.core.errors import UserError
 
 # --- articulated_dataset.estimate raises UserError, never another exception, for inputs a caller can
 # get wrong: a class name that is a list (TypeError: unhashable), a ragged or text mask (ValueError,

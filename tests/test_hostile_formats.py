@@ -17,7 +17,7 @@ import pytest
 from click.testing import CliRunner
 
 from articulated_dataset.cli import main
-from articulated_dataset.errors import UserError
+from articulated_dataset.core.errors import UserError
 from articulated_dataset.format import open_split
 from helpers_real import write_capture
 
@@ -63,7 +63,7 @@ def test_a_shard_attribute_nested_past_the_recursion_limit(split):
 
 
 def test_a_manifest_listing_a_shard_twice_is_refused_by_the_readers(split):
-    from articulated_dataset.loaders.reader import ShardReader
+    from articulated_dataset.training.loaders.reader import ShardReader
 
     manifest = json.loads((split / "manifest.json").read_text())
     manifest["shards"].append(dict(manifest["shards"][0]))
@@ -75,7 +75,7 @@ def test_a_manifest_listing_a_shard_twice_is_refused_by_the_readers(split):
 
 def test_loaders_refuse_non_integer_batch_sizes_and_indices(split):
     pytest.importorskip("torch")
-    from articulated_dataset.loaders.torch import DepthDataset, make_loader
+    from articulated_dataset.training.loaders.torch import DepthDataset, make_loader
 
     for bad in (0, 1.5, True):
         with pytest.raises(UserError, match="batch size"):
@@ -202,7 +202,7 @@ def test_show_refuses_huge_ranges_and_non_ascii_digits(split, tmp_path):
 
 def test_training_refuses_absurd_epochs_and_a_resume_on_another_split(tiny_root, tmp_path):
     pytest.importorskip("torch")
-    from articulated_dataset.models.dense.train import DenseTrainConfig, train_dense
+    from articulated_dataset.methods.dense.train import DenseTrainConfig, train_dense
 
     for model in ("dense", "mdn"):
         _one_line(*_run(["train", "--model", model, "--class", "drawer", tiny_root / "drawer" / "train",

@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from articulated_dataset.benchmark.predictions import read_predictions, validate_class
 from articulated_dataset.cli import main
-from articulated_dataset.errors import DataFormatError
+from articulated_dataset.core.errors import DataFormatError
 
 
 def _write(path, layout) -> None:

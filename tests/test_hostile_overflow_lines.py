@@ -13,8 +13,8 @@ from click.testing import CliRunner
 from PIL import Image
 
 from articulated_dataset.cli import main
-from articulated_dataset.errors import UserError
-from articulated_dataset.units import normalise
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.units import normalise
 
 CAMERA = {"fx": 100.0, "fy": 100.0, "cx": 95.5, "cy": 53.5, "width": 192, "height": 108}
 

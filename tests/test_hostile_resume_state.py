@@ -13,10 +13,10 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from articulated_dataset.errors import UserError  # noqa: E402
+from articulated_dataset.core.errors import UserError  # noqa: E402
 from articulated_dataset.generation import GenerationConfig, generate_split  # noqa: E402
-from articulated_dataset.models.mdn.config import TrainConfig  # noqa: E402
-from articulated_dataset.models.mdn.train import train  # noqa: E402
+from articulated_dataset.methods.mdn.config import TrainConfig  # noqa: E402
+from articulated_dataset.methods.mdn.train import train  # noqa: E402
 
 TINY = dict(preset="small", width=4, blocks=(1, 1), height_px=27, width_px=48, n_components=3, batch_size=16,
             val_fraction=0.0)

@@ -17,11 +17,11 @@ import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
-
-from articulated_dataset.cli import main
-from articulated_dataset.benchmark.predictions import PREDICTIONS_FORMAT_VERSION
-from articulated_dataset.format import open_split
 from test_scoring import raw_write
+
+from articulated_dataset.benchmark.predictions import PREDICTIONS_FORMAT_VERSION
+from articulated_dataset.cli import main
+from articulated_dataset.format import open_split
 
 FIELDS = ("sample_id", "axis_pose", "q", "geometry", "part_offset")
 CLASS = "cabinet"

@@ -14,10 +14,10 @@ import pytest
 from click.testing import CliRunner
 
 from articulated_dataset.cli import main
-from articulated_dataset.errors import DataFormatError
+from articulated_dataset.core.errors import DataFormatError
 from articulated_dataset.generation import GenerationConfig, generate_split
-from articulated_dataset.loaders.reader import ShardReader
-from articulated_dataset.targets import NormStats, TargetLayout
+from articulated_dataset.training.loaders.reader import ShardReader
+from articulated_dataset.training.targets import NormStats, TargetLayout
 
 JOINT_FIELDS = ("q", "axis_origin", "axis_direction", "axis_pose", "part_offset")
 

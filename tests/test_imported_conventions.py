@@ -14,17 +14,17 @@ import pytest
 import trimesh
 from click.testing import CliRunner
 
-from articulated_dataset import urdf_import
 from articulated_dataset.benchmark.scoring import image_metrics
-from articulated_dataset.camera import CameraConfig
+from articulated_dataset.classes.registry import get_class
 from articulated_dataset.cli import main
+from articulated_dataset.core.camera import CameraConfig
+from articulated_dataset.core.rotations import matrix_to_quat, quat_to_matrix
 from articulated_dataset.format import MASK_FIRST_PART
+from articulated_dataset.generation import urdf_import
 from articulated_dataset.generation.compiled import compile_object
 from articulated_dataset.generation.labels import geom_corners_world, read_object_labels
-from articulated_dataset.generation.scene import set_configuration
-from articulated_dataset.registry import get_class
-from articulated_dataset.rotations import matrix_to_quat, quat_to_matrix
-from articulated_dataset.urdf_import import import_urdf
+from articulated_dataset.generation.mujoco_scene import set_configuration
+from articulated_dataset.generation.urdf_import import import_urdf
 from helpers_core import assert_one_line_error
 
 # Body (depth, width, height), door panel thickness, and a bar handle standing off the door's

@@ -13,19 +13,27 @@ import numpy as np
 import pytest
 import yourdfpy
 
-from articulated_dataset.camera import CameraConfig, project
-from articulated_dataset.generation.labels import MASK_BODY, MASK_FIRST_PART
-from articulated_dataset.registry import PRISMATIC, all_classes, get_class
-from articulated_dataset.rotations import matrix_to_quat
+from articulated_dataset.classes.registry import PRISMATIC, all_classes, get_class
+from articulated_dataset.core.camera import CameraConfig, project
+from articulated_dataset.core.rotations import matrix_to_quat
 from articulated_dataset.format import open_split
-from helpers_core import (compile_object, final_object, object_transform, part_points, render_at, rotate_about_axis,
-                          surface_distances, to_object_frame)
+from articulated_dataset.generation.labels import MASK_BODY, MASK_FIRST_PART
+from helpers_core import (
+    compile_object,
+    final_object,
+    object_transform,
+    part_points,
+    render_at,
+    rotate_about_axis,
+    surface_distances,
+    to_object_frame,
+)
 
 CLASSES = all_classes()
 JOINT_CASES = [(c, j) for c in CLASSES for j in range(c.n_joints)]
 case_id = lambda case: f"{case[0].name}-j{case[1]}"  # noqa: E731
 
-#: Wall/panel thickness of the templates (urdf_templates/common.xacro, panel_m).
+#: Wall/panel thickness of the templates (classes/common.xacro, panel_m).
 PANEL_M = 0.02
 #: Pixel-level tolerances (m): depth is exact up to the 0.12 mm quantum, points are sampled
 #: at pixel centres.

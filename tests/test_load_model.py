@@ -13,8 +13,8 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("safetensors")
 
 import articulated_dataset as ad  # noqa: E402
-from articulated_dataset.errors import UserError  # noqa: E402
-from articulated_dataset.models import shipped_models  # noqa: E402
+from articulated_dataset.core.errors import UserError  # noqa: E402
+from articulated_dataset.methods import shipped_models  # noqa: E402
 from helpers_core import generated_split  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not shipped_models(), reason="this checkout ships no weights")
@@ -65,7 +65,7 @@ def test_predict_returns_the_predictions_files_arrays(microwave_split, tmp_path)
 def test_a_checkpoint_file_loads_with_its_own_class(microwave_split, tmp_path):
     """A ``.pt`` as ``artdata train`` writes it (read with ``weights_only``) and the same
     checkpoint as a safetensors pair give the shipped model's estimate."""
-    from articulated_dataset.models.safetensors_checkpoint import write_safetensors_checkpoint
+    from articulated_dataset.methods.safetensors_checkpoint import write_safetensors_checkpoint
 
     shipped = ad.load_model("dense", "microwave")
     torch.save(shipped.checkpoint, tmp_path / "mine.pt")

@@ -15,10 +15,10 @@ import h5py
 import numpy as np
 import pytest
 
-from articulated_dataset.errors import UserError
-from articulated_dataset.loaders.epoch import plan_epoch
-from articulated_dataset.loaders.reader import DEFAULT_FIELDS, ShardReader
+from articulated_dataset.core.errors import UserError
 from articulated_dataset.format import K_DATASET
+from articulated_dataset.training.loaders.epoch import plan_epoch
+from articulated_dataset.training.loaders.reader import DEFAULT_FIELDS, ShardReader
 
 SPLIT_KEYS = list(DEFAULT_FIELDS)
 
@@ -197,7 +197,7 @@ def test_plan_options():
 
 def test_torch_iterable_exactly_once_across_workers_and_ranks(cab, raw):
     pytest.importorskip("torch")
-    from articulated_dataset.loaders.torch import make_loader
+    from articulated_dataset.training.loaders.torch import make_loader
 
     # persistent workers (make_loader's default) must see set_epoch through the shared epoch
     loaders = [make_loader(cab, batch_size=16, num_workers=2, rank=rank, world_size=2, seed=5) for rank in range(2)]
@@ -225,7 +225,7 @@ def loaders_epoch(loader, epoch):
 
 def test_torch_map_style_and_sampler(cab, raw):
     torch = pytest.importorskip("torch")
-    from articulated_dataset.loaders.torch import DepthDataset, make_loader
+    from articulated_dataset.training.loaders.torch import DepthDataset, make_loader
 
     ds = DepthDataset(cab)
     item = ds[3]
@@ -254,7 +254,7 @@ def test_torch_map_style_and_sampler(cab, raw):
 @pytest.mark.slow
 def test_torch_single_sample_iterable_and_spawn(cab, raw):
     torch = pytest.importorskip("torch")
-    from articulated_dataset.loaders.torch import ShardIterableDataset
+    from articulated_dataset.training.loaders.torch import ShardIterableDataset
 
     ds = ShardIterableDataset(cab, ["depth", "q"], read_size=8, seed=2)
     loader = torch.utils.data.DataLoader(ds, batch_size=7, num_workers=1, multiprocessing_context="spawn")
@@ -266,8 +266,8 @@ def test_torch_single_sample_iterable_and_spawn(cab, raw):
 
 def test_torch_targets_in_batches(cab, raw):
     pytest.importorskip("torch")
-    from articulated_dataset.loaders.torch import make_loader
-    from articulated_dataset.targets import NormStats, TargetLayout
+    from articulated_dataset.training.loaders.torch import make_loader
+    from articulated_dataset.training.targets import NormStats, TargetLayout
 
     layout = TargetLayout.for_class("cabinet")
     stats = NormStats.from_split(cab, layout)
@@ -286,7 +286,7 @@ def test_torch_targets_in_batches(cab, raw):
 
 def test_batches_and_len_do_not_depend_on_num_workers(cab, raw):
     pytest.importorskip("torch")
-    from articulated_dataset.loaders.torch import make_loader
+    from articulated_dataset.training.loaders.torch import make_loader
 
     n = len(raw["depth"])  # 96: batches of 40 are [40, 40, 16]
     for iterable in (True, False):
@@ -310,8 +310,8 @@ def test_stock_dataloader_with_distributed_sampler_three_ranks(cab, raw):
     torch = pytest.importorskip("torch")
     from torch.utils.data import DataLoader, DistributedSampler
 
-    from articulated_dataset.loaders.torch import DepthDataset
-    from articulated_dataset.transforms import PixelDropout
+    from articulated_dataset.training.loaders.torch import DepthDataset
+    from articulated_dataset.training.transforms import PixelDropout
 
     torch.manual_seed(0)
     n, world = len(raw["depth"]), 3
@@ -347,8 +347,8 @@ def test_three_ranks_get_equal_steps_by_default(tmp_path):
     """world_size=3 with the defaults (remainder="pad") on 2 objects x 16 images (32 = 3 x 10 + 2):
     every rank the same number of batches, len(loader) each rank's batches per epoch, every image seen."""
     pytest.importorskip("torch")
-    from articulated_dataset.loaders.torch import make_loader
     from articulated_dataset.generation import GenerationConfig, generate_split
+    from articulated_dataset.training.loaders.torch import make_loader
 
     split = generate_split(GenerationConfig("drawer", split="test", n_objects=2), tmp_path)
     for iterable in (True, False):
@@ -371,9 +371,9 @@ def test_three_ranks_get_equal_steps_by_default(tmp_path):
 def test_jax_loader_matches_torch_and_raw(cab, raw):
     pytest.importorskip("torch")
     pytest.importorskip("grain")
-    from articulated_dataset.loaders.jax import JaxLoader
-    from articulated_dataset.loaders.torch import DepthDataset, ShardIterableDataset
-    from articulated_dataset.transforms import Compose, PixelDropout, RandomCrop
+    from articulated_dataset.training.loaders.jax import JaxLoader
+    from articulated_dataset.training.loaders.torch import DepthDataset, ShardIterableDataset
+    from articulated_dataset.training.transforms import Compose, PixelDropout, RandomCrop
 
     t = Compose([RandomCrop(100, 180), PixelDropout(0.1)])
     kw = dict(shuffle=True, seed=4, transform=t)
@@ -405,7 +405,7 @@ def test_jax_loader_matches_torch_and_raw(cab, raw):
 @pytest.mark.slow
 def test_jax_processes_cover_split_and_grain_workers(cab, raw):
     pytest.importorskip("grain")
-    from articulated_dataset.loaders.jax import JaxLoader
+    from articulated_dataset.training.loaders.jax import JaxLoader
 
     seen = []
     for p in range(3):
@@ -427,7 +427,7 @@ def test_jax_processes_cover_split_and_grain_workers(cab, raw):
 
 def test_grain_data_source_protocol(cab, raw):
     grain = pytest.importorskip("grain")
-    from articulated_dataset.loaders.jax import ShardDataSource
+    from articulated_dataset.training.loaders.jax import ShardDataSource
 
     src = ShardDataSource(cab, fields=["depth", "q", "sample_id"])
     assert isinstance(src, grain.sources.RandomAccessDataSource)
@@ -442,8 +442,8 @@ def test_grain_data_source_protocol(cab, raw):
 # --------------------------------------------------------------------------------------
 
 def test_core_package_imports_neither_torch_nor_jax():
-    code = ("import sys, articulated_dataset, articulated_dataset.loaders, articulated_dataset.targets, "
-            "articulated_dataset.transforms, articulated_dataset.cli; "
+    code = ("import sys, articulated_dataset, articulated_dataset.training.loaders, articulated_dataset.training.targets, "
+            "articulated_dataset.training.transforms, articulated_dataset.cli; "
             "bad = [m for m in ('torch', 'jax', 'grain') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr
@@ -454,8 +454,8 @@ def test_core_package_imports_neither_torch_nor_jax():
 
 def test_equal_steps_per_rank_by_default(cab, raw):
     pytest.importorskip("torch")
-    from articulated_dataset.loaders.jax import JaxLoader
-    from articulated_dataset.loaders.torch import make_loader
+    from articulated_dataset.training.loaders.jax import JaxLoader
+    from articulated_dataset.training.loaders.torch import make_loader
 
     n, world = len(raw["depth"]), 5  # 96 = 5 x 19 + 1
     for remainder, per_rank in (("pad", 20), ("drop", 19)):
@@ -482,8 +482,8 @@ def test_equal_steps_per_rank_by_default(cab, raw):
 
 def test_loader_advances_the_epoch_without_set_epoch(cab):
     pytest.importorskip("torch")
-    from articulated_dataset.loaders.jax import JaxLoader
-    from articulated_dataset.loaders.torch import make_loader
+    from articulated_dataset.training.loaders.jax import JaxLoader
+    from articulated_dataset.training.loaders.torch import make_loader
 
     for make in (lambda: make_loader(cab, batch_size=32, num_workers=0, fields=["q"]),
                  lambda: JaxLoader(cab, 32, fields=["q"])):
@@ -502,7 +502,7 @@ def test_grain_workers_keep_little_shared_memory(cab):
     pytest.importorskip("grain")
     import time
 
-    from articulated_dataset.loaders.jax import JaxLoader
+    from articulated_dataset.training.loaders.jax import JaxLoader
 
     shm = Path("/dev/shm")
     if not shm.is_dir():
@@ -538,7 +538,7 @@ def test_grain_workers_keep_little_shared_memory(cab):
 
 def test_jax_device_put_keeps_sample_ids_exact(cab, raw):
     pytest.importorskip("jax")
-    from articulated_dataset.loaders.jax import JaxLoader, device_put
+    from articulated_dataset.training.loaders.jax import JaxLoader, device_put
 
     batch = next(iter(JaxLoader(cab, 8, fields=["depth", "sample_id", "K"], shuffle=False)))
     big = np.array([3971172795307752716], dtype=np.int64)  # the value JAX turned into -33325812
@@ -549,8 +549,8 @@ def test_jax_device_put_keeps_sample_ids_exact(cab, raw):
 
 
 @pytest.mark.parametrize("block,code", [
-    ("torch", "import articulated_dataset.loaders.torch"),
-    ("grain", "from articulated_dataset.loaders.jax import JaxLoader; JaxLoader({cab!r}, 8, num_workers=2)"),
+    ("torch", "import articulated_dataset.training.loaders.torch"),
+    ("grain", "from articulated_dataset.training.loaders.jax import JaxLoader; JaxLoader({cab!r}, 8, num_workers=2)"),
 ])
 def test_missing_optional_dependency_is_one_line(cab, block, code):
     script = f"import sys; sys.modules[{block!r}] = None\n" + code.format(cab=str(cab))

@@ -12,12 +12,12 @@ import pytest
 from click.testing import CliRunner
 
 from articulated_dataset import manipulation as M
+from articulated_dataset.classes.registry import PRISMATIC, REVOLUTE, all_classes
 from articulated_dataset.cli import main
-from articulated_dataset.errors import UserError
-from articulated_dataset.registry import PRISMATIC, REVOLUTE, all_classes
-from articulated_dataset.units import parse_quantity
-from articulated_dataset.rotations import axis_angle_quat, quat_multiply, quat_to_matrix
-from articulated_dataset.generation.scene import set_configuration
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.rotations import axis_angle_quat, quat_multiply, quat_to_matrix
+from articulated_dataset.core.units import parse_quantity
+from articulated_dataset.generation.mujoco_scene import set_configuration
 from helpers_core import load_script
 
 CLASSES = [c.name for c in all_classes()]
@@ -369,14 +369,14 @@ def test_waypoint_count_limit_is_inclusive():
 def dense_ckpt():
     """The shipped dense microwave checkpoint, named by its file (a checkpoint of a few training
     steps estimates negative sizes, which estimate refuses)."""
-    from articulated_dataset.models.shipped import resolve_model
+    from articulated_dataset.methods.shipped import resolve_model
 
     return resolve_model("dense", "microwave").path
 
 
 def test_cli_plan_model_estimates_from_the_stored_image(tiny_root, dense_ckpt, tmp_path):
-    from articulated_dataset.models.estimation import estimate
     from articulated_dataset.format import open_split
+    from articulated_dataset.methods.estimation import estimate
 
     data = tiny_root / "microwave" / "test"
     out = tmp_path / "plan.json"
@@ -564,9 +564,9 @@ def test_cli_plan_with_an_mdn_checkpoint_matches_predict(tiny_root, tmp_path):
     """plan --model with an MDN checkpoint: the one-image estimate is the row predict gives."""
     import torch
 
-    from articulated_dataset.models.mdn.predict import predict_split
-    from articulated_dataset.models.mdn.config import TrainConfig
-    from articulated_dataset.models.mdn.train import train
+    from articulated_dataset.methods.mdn.config import TrainConfig
+    from articulated_dataset.methods.mdn.predict import predict_split
+    from articulated_dataset.methods.mdn.train import train
 
     torch.set_num_threads(1)
     model = tmp_path / "mdn.pt"
@@ -668,7 +668,7 @@ def test_mirrored_hypothesis_hand_worked():
     hinged at the panel's other edge, 0.9 m along it, axis -z, closed, its outward normal the
     panel's; mirroring that gives the first hinge back (closed, with the panel where it is)."""
     c = math.sqrt(0.5)  # -90 deg about z
-    e = M.Estimate(np.array([[0.0, 0.5, 0.2, c, 0.0, 0.0, -c]]), np.array([math.radians(30.0)]),
+    e = M.ObjectKinematics(np.array([[0.0, 0.5, 0.2, c, 0.0, 0.0, -c]]), np.array([math.radians(30.0)]),
                    np.array([[0.45, 0.0, 0.1]]))
     m = M.mirrored_hypothesis(e, 0)
     (o, d), (om, dm) = e.axis(0), m.axis(0)
@@ -684,27 +684,27 @@ def test_mirrored_hypothesis_hand_worked():
     back = M.mirrored_hypothesis(m, 0)
     assert np.allclose(back.axis(0)[0], o) and np.allclose(back.axis(0)[1], d)
     assert np.allclose(M.axis_frame(back.axis_pose[0])[1][:, 0], panel) and np.allclose(back.part_offset, e.part_offset)
-    assert M.mirrored_hypothesis(M.Estimate(e.axis_pose, e.q), 0) is None  # no part offset: no door to mirror
+    assert M.mirrored_hypothesis(M.ObjectKinematics(e.axis_pose, e.q), 0) is None  # no part offset: no door to mirror
 
 
 def test_hypotheses_group_by_axis():
     """Two images: hinge-left 0.8/0.4, hinge-right 0.2/0.6 -> left 0.6, right 0.4; a consistent
     hypothesis is picked by axis, not by weight."""
     c = math.sqrt(0.5)  # the frame turned -90 deg about z: x = -y (towards the door centre at y = 0)
-    left = M.Estimate(np.array([[0.0, 0.5, 0.0, c, 0.0, 0.0, -c]]), np.array([0.0]), np.array([[0.5, 0.0, 0.0]]))
+    left = M.ObjectKinematics(np.array([[0.0, 0.5, 0.0, c, 0.0, 0.0, -c]]), np.array([0.0]), np.array([[0.5, 0.0, 0.0]]))
     right = M.mirrored_hypothesis(left, 0)
     assert np.allclose(right.axis(0)[0], [0.0, -0.5, 0.0]) and np.allclose(right.axis(0)[1], [0.0, 0.0, -1.0])
     assert not M.same_axis(left, right, 0)
-    a = M.Estimate(left.axis_pose + [[0.01, 0, 0, 0, 0, 0, 0]], left.q, left.part_offset, weight=0.8,
-                   alternatives=[M.Estimate(right.axis_pose, right.q, right.part_offset, weight=0.2)])
-    b = M.Estimate(right.axis_pose, right.q, right.part_offset, weight=0.6,
-                   alternatives=[M.Estimate(left.axis_pose, left.q, left.part_offset, weight=0.4)])
+    a = M.ObjectKinematics(left.axis_pose + [[0.01, 0, 0, 0, 0, 0, 0]], left.q, left.part_offset, weight=0.8,
+                   alternatives=[M.ObjectKinematics(right.axis_pose, right.q, right.part_offset, weight=0.2)])
+    b = M.ObjectKinematics(right.axis_pose, right.q, right.part_offset, weight=0.6,
+                   alternatives=[M.ObjectKinematics(left.axis_pose, left.q, left.part_offset, weight=0.4)])
     groups = M.group_hypotheses([a, b], 0)
     assert [round(g[0], 6) for g in groups] == [0.6, 0.4]
     assert all(M.same_axis(h, left, 0) for h in groups[0][1]) and len(groups[0][1]) == 2
     assert M.consistent_hypothesis(b, left, 0).weight == 0.4
     assert M.consistent_hypothesis(a, right, 0).weight == 0.2
-    lone = M.Estimate(left.axis_pose, left.q, left.part_offset)
+    lone = M.ObjectKinematics(left.axis_pose, left.q, left.part_offset)
     assert M.consistent_hypothesis(lone, right, 0).weight == 0.0  # its mirror is the right-hinged door
     assert M.consistent_hypothesis(lone, right, 0, PRISMATIC) is None  # a drawer has no mirror: nothing agrees
 
@@ -756,11 +756,11 @@ def test_anchor_to_handle_hand_worked():
     """A closed door hinged at the origin (axis z, x along the panel, radius 0.45 m) believed
     20 degrees turned and 10 cm off: anchored to the handle where the true door has it, with the
     true panel normal, it becomes the true door."""
-    truth = M.Estimate(np.array([[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]]), np.array([0.0]), np.array([[0.45, 0.0, 0.1]]))
+    truth = M.ObjectKinematics(np.array([[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]]), np.array([0.0]), np.array([[0.45, 0.0, 0.1]]))
     g = M.grasp_pose_from_estimate(truth.axis_pose[0], truth.part_offset[0], None, REVOLUTE, 0.0)
     n = M.outward_normal(g, REVOLUTE)
     t = math.radians(20.0)
-    wrong = M.Estimate(np.array([[0.1, -0.05, 0.0, math.cos(t / 2), 0.0, 0.0, math.sin(t / 2)]]), np.array([0.0]),
+    wrong = M.ObjectKinematics(np.array([[0.1, -0.05, 0.0, math.cos(t / 2), 0.0, 0.0, math.sin(t / 2)]]), np.array([0.0]),
                        np.array([[0.45, 0.0, 0.1]]), weight=0.6, alternatives=[truth])
     a = M.anchor_to_handle(wrong, 0, REVOLUTE, g[:3], n)
     assert np.allclose(a.axis_pose[0, :3], 0.0, atol=1e-9) and np.allclose(np.abs(a.axis_pose[0, 3:]), [1, 0, 0, 0], atol=1e-9)

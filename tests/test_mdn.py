@@ -13,12 +13,18 @@ scipy_stats = pytest.importorskip("scipy.stats")
 from click.testing import CliRunner  # noqa: E402
 
 from articulated_dataset.cli import main  # noqa: E402
-from articulated_dataset.models.mdn.loss import mean_of_best, mixture_log_prob, mixture_mode, mixture_nll, point_estimate  # noqa: E402
-from articulated_dataset.models.mdn.model import MixtureDensityNetwork, ModelConfig, ResNet, count_parameters  # noqa: E402
-from articulated_dataset.models.mdn.preprocess import InputConfig, assemble_inputs, preprocess_depth  # noqa: E402
-from articulated_dataset.models.mdn.config import TrainConfig  # noqa: E402
-from articulated_dataset.models.mdn.data import split_by_object  # noqa: E402
-from articulated_dataset.models.mdn.train import lr_factor, train  # noqa: E402
+from articulated_dataset.methods.mdn.config import TrainConfig  # noqa: E402
+from articulated_dataset.methods.mdn.data import split_by_object  # noqa: E402
+from articulated_dataset.methods.mdn.loss import (  # noqa: E402
+    mean_of_best,
+    mixture_log_prob,
+    mixture_mode,
+    mixture_nll,
+    point_estimate,
+)
+from articulated_dataset.methods.mdn.model import MixtureDensityNetwork, ModelConfig, ResNet, count_parameters  # noqa: E402
+from articulated_dataset.methods.mdn.preprocess import InputConfig, assemble_inputs, preprocess_depth  # noqa: E402
+from articulated_dataset.methods.mdn.train import lr_factor, train  # noqa: E402
 
 #: A network small enough for tests: 4 channels, two one-block stages, 3 components, 27x48 input.
 TINY = dict(preset="small", width=4, blocks=(1, 1), height_px=27, width_px=48, n_components=3, batch_size=16)
@@ -180,9 +186,9 @@ def test_preprocess_hand_worked_example():
 
 
 def test_anchor_is_the_centroid_of_the_back_projected_pixels(tiny_root):
-    from articulated_dataset.camera import backproject
-    from articulated_dataset.models.mdn.preprocess import image_anchor
+    from articulated_dataset.core.camera import backproject
     from articulated_dataset.format import open_split
+    from articulated_dataset.methods.mdn.preprocess import image_anchor
 
     _, shards = open_split(tiny_root / "drawer" / "train")
     depth, K = shards[0].read("depth", slice(0, 3)), shards[0].K
@@ -202,8 +208,8 @@ def test_validation_split_is_by_object_and_seeded():
 
 
 def test_anchored_columns_round_trip():
-    from articulated_dataset.models.mdn.data import anchored_columns, shift_anchored
-    from articulated_dataset.targets import TargetLayout
+    from articulated_dataset.methods.mdn.data import anchored_columns, shift_anchored
+    from articulated_dataset.training.targets import TargetLayout
 
     names = TargetLayout.for_class("cabinet2").names
     cols = anchored_columns(names)
@@ -248,7 +254,7 @@ def test_resume_reaches_the_identical_state(tiny_root, tmp_path):
     assert [h["train_nll"] for h in full["history"]] == [h["train_nll"] for h in resumed["history"]]
     # the first epoch itself differs from the second (training moved the weights)
     assert not all(torch.equal(v, _params(part)[k]) for k, v in a.items())
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
 
     with pytest.raises(UserError, match="different settings"):
         train(data, tmp_path / "part.pt", TrainConfig(class_name="cabinet", epochs=3, **TINY), progress=False, resume=True)
@@ -267,8 +273,8 @@ def test_cpu_training_keeps_the_default_layout(tiny_root, tmp_path):
     import sys
 
     code = ("import sys, torch; torch.set_num_threads(1)\n"
-            "from articulated_dataset.models.mdn.config import TrainConfig\n"
-            "from articulated_dataset.models.mdn.train import train\n"
+            "from articulated_dataset.methods.mdn.config import TrainConfig\n"
+            "from articulated_dataset.methods.mdn.train import train\n"
             f"train(sys.argv[1], sys.argv[2], TrainConfig(class_name='cabinet', epochs=2, **{TINY!r}), progress=False)\n"
             "print('trained')\n")
     env = dict(os.environ, ONEDNN_MAX_CPU_ISA="AVX2", MALLOC_CHECK_="3")
@@ -310,8 +316,8 @@ def test_cli_train_predict_score_round_trip(tiny_root, tmp_path):
 
 
 def test_predict_two_joint_class_mode_and_snap_to_cloud(tiny_root, tmp_path):
-    from articulated_dataset.models.mdn.predict import predict_split
     from articulated_dataset.benchmark.pointlik import object_cloud
+    from articulated_dataset.methods.mdn.predict import predict_split
 
     model = tmp_path / "cabinet2.pt"
     train(tiny_root / "cabinet2" / "train", model, TrainConfig(class_name="cabinet2", epochs=1, **TINY), progress=False)
@@ -361,8 +367,8 @@ def test_cli_errors_are_one_line(tiny_root, tmp_path):
 
 
 def test_predict_split_refuses_bad_batch_sizes_and_estimates(tiny_root, tmp_path):
-    from articulated_dataset.errors import UserError
-    from articulated_dataset.models.mdn.predict import predict_split
+    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.methods.mdn.predict import predict_split
 
     model = tmp_path / "never-read.pt"  # the options are checked before the checkpoint is opened
     for kwargs, match in (({"batch_size": 0}, "--batch-size"), ({"batch_size": -5}, "--batch-size"),
@@ -376,9 +382,9 @@ def test_a_split_read_in_two_processes_is_the_same_inputs(tiny_root):
     """load_split(workers=2): the same planes, scalars, anchors, targets and order as one process."""
     import torch
 
-    from articulated_dataset.models.mdn.config import TrainConfig
-    from articulated_dataset.models.mdn.data import load_split
-    from articulated_dataset.targets import TargetLayout
+    from articulated_dataset.methods.mdn.config import TrainConfig
+    from articulated_dataset.methods.mdn.data import load_split
+    from articulated_dataset.training.targets import TargetLayout
 
     split = tiny_root / "drawer" / "train"
     cfg = TrainConfig(class_name="drawer", preset="small").resolved()
@@ -397,8 +403,8 @@ def test_more_components_than_the_predictions_format_holds_are_refused():
     """--components above the predictions format's limit would train for hours and fail when
     the predictions are written; it is refused when the configuration is resolved."""
     from articulated_dataset.benchmark.predictions import MAX_MIXTURE_COMPONENTS
-    from articulated_dataset.errors import UserError
-    from articulated_dataset.models.mdn.config import TrainConfig
+    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.methods.mdn.config import TrainConfig
 
     assert TrainConfig(class_name="drawer", preset="small", n_components=MAX_MIXTURE_COMPONENTS).resolved()
     with pytest.raises(UserError, match="--components must be at most"):

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from articulated_dataset.benchmark import metrics as M
-from articulated_dataset import rotations
-from articulated_dataset.registry import PRISMATIC, REVOLUTE
 from articulated_dataset.benchmark.scoring import image_metrics
+from articulated_dataset.classes.registry import PRISMATIC, REVOLUTE
+from articulated_dataset.core import rotations
 
 
 def quat_about(axis, angle_deg):

@@ -6,20 +6,24 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
-import tomllib
 from pathlib import Path
 
 import pytest
+import tomllib
 from click.testing import CliRunner
 
 import articulated_dataset
 from articulated_dataset.cli import main
-from articulated_dataset.errors import RenderError, UserError
+from articulated_dataset.core.errors import RenderError, UserError
+from articulated_dataset.core.mujoco_support import (
+    MANIFEST_KEY,
+    MUJOCO_REQUIREMENT,
+    installed_mujoco_version,
+    unsupported_mujoco,
+)
 from articulated_dataset.format import read_manifest
 from articulated_dataset.format.manifest import write_manifest
 from articulated_dataset.generation import GenerationConfig, generate_split
-from articulated_dataset.mujoco_support import (MANIFEST_KEY, MUJOCO_REQUIREMENT, installed_mujoco_version,
-                                                unsupported_mujoco)
 from helpers_core import assert_one_line_error, generated_split, tree_snapshot
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,7 +64,7 @@ def test_generate_with_an_unsupported_mujoco_is_one_line(tmp_path, monkeypatch):
 
 
 def test_building_a_scene_with_an_unsupported_mujoco_is_one_line(tmp_path, monkeypatch):
-    monkeypatch.setattr("articulated_dataset.mujoco_support.installed_mujoco_version", lambda: OLD_RELEASE)
+    monkeypatch.setattr("articulated_dataset.core.mujoco_support.installed_mujoco_version", lambda: OLD_RELEASE)
     with pytest.raises(RenderError, match=RANGE.replace(".", r"\.")) as exc:
         generate_split(GenerationConfig("drawer", n_objects=1, images_per_object=1), tmp_path)
     assert "\n" not in str(exc.value)
@@ -133,7 +137,7 @@ def test_a_recorded_version_that_is_no_version_is_one_line(split_dir, tmp_path, 
 
 
 def test_a_ray_node_with_another_mujoco_is_refused():
-    from articulated_dataset.executors import _ray_task
+    from articulated_dataset.core.pool import _ray_task
 
     with pytest.raises(UserError, match=f"MuJoCo {installed_mujoco_version()}.*MuJoCo {OTHER_RELEASE}"):
         _ray_task(len, "ab", articulated_dataset.__version__, OTHER_RELEASE)
@@ -144,7 +148,7 @@ def test_a_ray_node_with_another_mujoco_is_refused():
 #: exit hook (terminating its display) when the first context is created.
 _EXIT_ORDER_SCRIPT = """
 import atexit
-from articulated_dataset.camera import CameraConfig
+from articulated_dataset.core.camera import CameraConfig
 from articulated_dataset.generation import render
 
 class Context:

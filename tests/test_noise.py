@@ -8,8 +8,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from articulated_dataset.errors import UserError
-from articulated_dataset.real.noise import (
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.noise import (
     KINECT2,
     KINECT2_DEPTH_STEP_M,
     KINECT2_RANDOM_HOLE_P,
@@ -186,8 +186,8 @@ def test_lateral_noise_moves_edges_by_its_sigma():
 
 
 def test_pipeline_noise_is_seeded_and_keeps_labels(tmp_path):
-    from articulated_dataset.generation import GenerationConfig, generate_split
     from articulated_dataset.format import open_split
+    from articulated_dataset.generation import GenerationConfig, generate_split
 
     base = dict(class_name="microwave", split="test", n_objects=1, images_per_object=2)
     clean = generate_split(GenerationConfig(**base), tmp_path / "clean")

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from articulated_dataset import executors as E
+from articulated_dataset.core import pool as E
 
 SPIN = {"GOMP_SPINCOUNT": str(E.IDLE_MACHINE_SPIN_COUNT)}
 PASSIVE = {"OMP_WAIT_POLICY": "PASSIVE"}
@@ -44,7 +44,7 @@ def _child(code: str, **env) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-CHOOSE = ("import json, os; from articulated_dataset.executors import configure_openmp_wait as c; r = c(2); "
+CHOOSE = ("import json, os; from articulated_dataset.core.pool import configure_openmp_wait as c; r = c(2); "
           "print(json.dumps({'chosen': r, 'env': {k: os.environ.get(k) for k in ('OMP_WAIT_POLICY', 'GOMP_SPINCOUNT')}}))")
 
 
@@ -66,7 +66,7 @@ def test_a_users_setting_is_kept(var, value):
 @pytest.mark.slow
 def test_too_late_once_torch_is_imported():
     pytest.importorskip("torch")
-    r = _child("import json, torch; from articulated_dataset.executors import configure_openmp_wait as c; "
+    r = _child("import json, torch; from articulated_dataset.core.pool import configure_openmp_wait as c; "
                "print(json.dumps(c(2)))")
     assert r == {}
 

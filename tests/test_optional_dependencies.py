@@ -32,7 +32,7 @@ def test_onnx_export_without_onnx_is_one_line(monkeypatch, tmp_path, hidden):
 
 
 def test_shipped_models_without_safetensors_are_one_line(monkeypatch, tmp_path):
-    from articulated_dataset.models import estimation
+    from articulated_dataset.methods import estimation
 
     _hide(monkeypatch, "safetensors")
     monkeypatch.setattr(estimation, "_MODEL_CACHE", {})  # a model loaded by an earlier test is not read again

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from articulated_dataset.errors import UserError, import_optional
+from articulated_dataset.core.errors import UserError, import_optional
 
 
 @pytest.fixture

@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 import articulated_dataset
 from articulated_dataset.cli import main
-from articulated_dataset.errors import TORCH_INSTALL, UserError
+from articulated_dataset.core.errors import TORCH_INSTALL, UserError
 from helpers_core import assert_one_line_error
 
 #: The command that installs PyTorch's CPU build (a bare 'pip install torch' pulls CUDA).

@@ -7,16 +7,16 @@ import re
 import shutil
 import subprocess
 import sys
-import tomllib
 import zipfile
 from importlib.metadata import PackageNotFoundError, distribution, packages_distributions, version
 from pathlib import Path
 
 import pytest
+import tomllib
 import yaml
 
 import articulated_dataset
-from articulated_dataset.registry import all_classes
+from articulated_dataset.classes.registry import all_classes
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -50,7 +50,7 @@ def source_copy(dest: Path) -> Path:
 
 
 @pytest.mark.slow
-def test_wheel_ships_generators_and_templates(tmp_path):
+def test_wheel_ships_class_folders(tmp_path):
     before = sorted(p.name for p in ROOT.iterdir())
     src = source_copy(tmp_path / "src")
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp_path), str(src)],
@@ -59,10 +59,11 @@ def test_wheel_ships_generators_and_templates(tmp_path):
     wheel = next(tmp_path.glob("articulated_dataset-*.whl"))
     names = set(zipfile.ZipFile(wheel).namelist())
     for c in all_classes():
-        assert f"articulated_dataset/urdf_templates/{c.template}" in names
-        assert f"articulated_dataset/generators/{c.name}.py" in names
-    assert "articulated_dataset/urdf_templates/common.xacro" in names
-    tracked = subprocess.run(["git", "ls-files", "articulated_dataset/weights"], cwd=ROOT, capture_output=True, text=True)
+        assert f"articulated_dataset/classes/{c.name}/{c.template}" in names
+        assert f"articulated_dataset/classes/{c.name}/__init__.py" in names
+        assert f"articulated_dataset/classes/{c.name}/README.md" in names
+    assert "articulated_dataset/classes/common.xacro" in names
+    tracked = subprocess.run(["git", "ls-files", "articulated_dataset/methods/weights"], cwd=ROOT, capture_output=True, text=True)
     for w in tracked.stdout.split():  # the shipped weights and models.json (once committed)
         assert w in names, w
     # Installed non-editable into a separate folder and imported from elsewhere, the
@@ -70,7 +71,7 @@ def test_wheel_ships_generators_and_templates(tmp_path):
     target = tmp_path / "site"
     subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(target), str(wheel)],
                    check=True, capture_output=True)
-    code = ("import articulated_dataset.registry as r, articulated_dataset.generation.templating as t;"
+    code = ("import articulated_dataset.classes.registry as r, articulated_dataset.generation.templating as t;"
             "cs = r.all_classes(); assert str(cs[0].template_path()).startswith(%r);"
             "print(len(cs), len(t.render_urdf(cs[0].template_path(), {})))" % str(target))
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env={"PYTHONPATH": str(target), "PATH": "/usr/bin:/bin"},
@@ -80,18 +81,19 @@ def test_wheel_ships_generators_and_templates(tmp_path):
 
 
 def test_every_subpackage_is_packaged():
-    """The package list is explicit (generators/ and urdf_templates/ are mapped into the package):
-    a new subpackage left out of it is missing from the wheel and the sdist's build."""
-    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
-    found = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "articulated_dataset").rglob("__init__.py")
-             if "__pycache__" not in p.parts}
-    assert found - listed == set(), f"subpackages missing from [tool.setuptools] packages: {sorted(found - listed)}"
+    """Packages are found by setuptools (``[tool.setuptools.packages.find]``), which finds only
+    folders with an ``__init__.py``: a folder of modules without one would be left out of the wheel."""
+    find = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]
+    assert find["include"] == ["articulated_dataset*"]
+    folders = {p.parent for p in (ROOT / "articulated_dataset").rglob("*.py") if "__pycache__" not in p.parts}
+    missing = sorted(str(f.relative_to(ROOT)) for f in folders if not (f / "__init__.py").is_file())
+    assert missing == [], f"folders of modules without __init__.py (not packaged): {missing}"
 
 
 @pytest.mark.slow
-def test_sdist_ships_generators_templates_and_weights(tmp_path):
-    """The sdist (what `python -m build` builds the wheel from in .ci/run) carries the templates, the
-    generators, every tracked weight file and every subpackage."""
+def test_sdist_ships_class_folders_and_weights(tmp_path):
+    """The sdist (what `python -m build` builds the wheel from in .ci/run) carries the class folders
+    (templates, READMEs, CHANGELOGs), every tracked weight file and every subpackage."""
     src = source_copy(tmp_path / "src")
     res = subprocess.run([sys.executable, "-m", "build", "--sdist", "--no-isolation", "--outdir", str(tmp_path), str(src)],
                          capture_output=True, text=True, cwd=tmp_path)
@@ -101,11 +103,11 @@ def test_sdist_ships_generators_templates_and_weights(tmp_path):
     sdist = next(tmp_path.glob("articulated_dataset-*.tar.gz"))
     with tarfile.open(sdist) as tar:
         names = {n.split("/", 1)[1] for n in tar.getnames() if "/" in n}
-    want = [f"urdf_templates/{p.name}" for p in (ROOT / "urdf_templates").glob("*.xacro")]
-    want += [f"generators/{p.name}" for p in (ROOT / "generators").glob("*.py")]
+    want = [p.relative_to(ROOT).as_posix() for p in (ROOT / "articulated_dataset" / "classes").rglob("*")
+            if p.suffix in (".xacro", ".md")]
     want += [p.relative_to(ROOT).as_posix() for p in (ROOT / "articulated_dataset").rglob("__init__.py")
              if "__pycache__" not in p.parts]
-    tracked = subprocess.run(["git", "ls-files", "articulated_dataset/weights"], cwd=ROOT, capture_output=True, text=True)
+    tracked = subprocess.run(["git", "ls-files", "articulated_dataset/methods/weights"], cwd=ROOT, capture_output=True, text=True)
     want += tracked.stdout.split()
     missing = [w for w in want if w not in names]
     assert not missing, missing
@@ -130,9 +132,9 @@ def _requirement_names(reqs) -> set[str]:
 
 
 def _imported_distributions() -> dict[str, set[str]]:
-    """{third-party module the package or its generators import: the distributions providing it}."""
+    """{third-party module the package imports: the distributions providing it}."""
     mods = set()
-    for path in list((ROOT / "articulated_dataset").rglob("*.py")) + list((ROOT / "generators").glob("*.py")):
+    for path in (ROOT / "articulated_dataset").rglob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Import):
                 mods |= {a.name.split(".")[0] for a in node.names}

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from articulated_dataset.errors import UserError
 from articulated_dataset.benchmark.pointlik import (
     object_cloud,
     origin_log_likelihood,
@@ -13,6 +12,7 @@ from articulated_dataset.benchmark.pointlik import (
     snap_axis_poses,
     snap_batch,
 )
+from articulated_dataset.core.errors import UserError
 from articulated_dataset.format import open_split
 
 

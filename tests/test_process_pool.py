@@ -1,4 +1,4 @@
-"""The package's one process pool (:func:`articulated_dataset.executors.process_map`): results in
+"""The package's one process pool (:func:`articulated_dataset.core.pool.process_map`): results in
 order or as they finish, the initializer runs in every worker, and a worker that dies gives a
 one-line error instead of a hang, in every user of the pool (generation's executor, verify,
 and the NN and ICP baselines, which used ``multiprocessing.Pool`` before)."""
@@ -16,11 +16,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from articulated_dataset import executors
-from articulated_dataset.verify import split as verify_split_module
-from articulated_dataset.baselines import icp, nn
-from articulated_dataset.errors import UserError
-from articulated_dataset.executors import WORKER_DIED, ProcessExecutor, process_map
+from articulated_dataset.core import pool as executors
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.pool import WORKER_DIED, ProcessExecutor, process_map
+from articulated_dataset.methods.baselines import icp, nn
+from articulated_dataset.tools.verify import split as verify_split_module
 
 #: Seconds a pool may take to report a dead worker (spawning workers on a loaded machine included).
 DEADLINE_S = 120

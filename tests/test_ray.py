@@ -11,11 +11,11 @@ import pytest
 from click.testing import CliRunner
 
 from articulated_dataset.cli import main
-from articulated_dataset.errors import UserError
-from articulated_dataset.executors import RAY_INSTALL_HELP, RayExecutor, get_executor
-from articulated_dataset.generation import GenerationConfig, generate_split
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.pool import RAY_INSTALL_HELP, RayExecutor, get_executor
 from articulated_dataset.format import TMP_SUFFIX, shard_name
-from articulated_dataset.urdf_import import CACHE_ENV, import_urdf
+from articulated_dataset.generation import GenerationConfig, generate_split
+from articulated_dataset.generation.urdf_import import CACHE_ENV, import_urdf
 
 #: Small split: 4 shards of one object, so both Ray workers get work and one task can fail.
 ARGS = ["--class", "drawer", "--n", "4", "--images", "4", "--objects-per-shard", "1", "--seed", "3", "--quiet"]

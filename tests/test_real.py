@@ -10,15 +10,15 @@ import pytest
 from click.testing import CliRunner
 from PIL import Image
 
-from articulated_dataset.camera import R_CAMERA_TO_OPTICAL, CameraConfig, backproject
 from articulated_dataset.cli import main
-from articulated_dataset.errors import UserError
-from articulated_dataset.generation.labels import mat_to_quat
-from articulated_dataset.real.ingest import DEPTH_QUANTUM_M
-from articulated_dataset.real.readers import load_depth
-from articulated_dataset.real.resample import crop_intrinsics, resample_depth
-from articulated_dataset.real.write import real_sample_id
+from articulated_dataset.core.camera import R_CAMERA_TO_OPTICAL, CameraConfig, backproject
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.images.resample import crop_intrinsics, resample_depth
 from articulated_dataset.format import LABEL_FIELDS, open_split
+from articulated_dataset.generation.labels import mat_to_quat
+from articulated_dataset.ingest.capture import DEPTH_QUANTUM_M
+from articulated_dataset.ingest.readers import load_depth
+from articulated_dataset.ingest.write import real_sample_id
 
 #: Upsampling factor and placement of the synthetic 512 x 424 "Kinect v2" frame.
 SCALE = 2
@@ -333,7 +333,7 @@ def test_load_depth_units(tmp_path):
 
 
 def test_intrinsics_plausibility_hand_worked():
-    from articulated_dataset.real.intrinsics import check_intrinsics, intrinsics_matrix
+    from articulated_dataset.core.images.intrinsics import check_intrinsics, intrinsics_matrix
 
     # Kinect v2 depth camera: 2 atan(256 / 365.456) = 70.02 deg wide, 2 atan(212 / 365.456) = 60.24 deg high
     kinect = intrinsics_matrix(365.456, 365.456, 254.878, 205.395)
@@ -361,7 +361,7 @@ def test_depth_units_are_checked_both_ways(tmp_path):
 
 
 def test_label_rules_accept_real_labels_and_wrap_yaw(tmp_path):
-    from articulated_dataset.real.ground_truth import load_ground_truth, real_label_problems
+    from articulated_dataset.ingest.ground_truth import load_ground_truth, real_label_problems
 
     path = tmp_path / "x.labels.json"
     # a cabinet opened 2 deg past its 90 deg range (labelling error), yaw given as 7 rad
@@ -382,7 +382,7 @@ def _files(folder):
 
 def test_failed_overwrite_or_append_leaves_the_split_as_it_was(tiny_root, tmp_path, monkeypatch):
     import articulated_dataset.format.shards as shards_module
-    from articulated_dataset.errors import UserError as _UserError
+    from articulated_dataset.core.errors import UserError as _UserError
 
     s, K = _sample(tiny_root, "drawer", 0)
     for name in ("a", "b"):

@@ -1,6 +1,6 @@
 """Realistic shapes: ``generate --table realistic``.
 
-Each built-in class has a realistic table (generators/realistic.py): its sizes are a mixture
+Each built-in class has a realistic table (classes/realistic.py): its sizes are a mixture
 of correlated size classes built from standard dimensions instead of the paper's independent
 uniform ranges.  Checked here: the tables sample what they declare (2,000 draws per class, no
 rendering), the paper's tables are untouched, realistic splits of every class (2 objects
@@ -18,14 +18,14 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from articulated_dataset.classes.registry import all_classes, get_class
 from articulated_dataset.cli import main
-from articulated_dataset.errors import UserError
-from articulated_dataset.generation import GenerationConfig, generate_split, object_sample
-from articulated_dataset.registry import all_classes, get_class
-from articulated_dataset.generation.sampling import object_rng, sample_object
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.tables import GEOMETRY_KEYS, SamplingTable, ShapeMixture
 from articulated_dataset.format import MANIFEST_NAME, open_split, read_manifest, sha256_file
-from articulated_dataset.tables import GEOMETRY_KEYS, SamplingTable, ShapeMixture
-from articulated_dataset.verify import verify_split
+from articulated_dataset.generation import GenerationConfig, generate_split, object_sample
+from articulated_dataset.generation.sampling import object_rng, sample_object
+from articulated_dataset.tools.verify import verify_split
 from helpers_core import IMAGE_CHECK_FIELDS, check_stored_images, write_flap_urdf
 
 CLASSES = all_classes()
@@ -280,11 +280,11 @@ def test_cli_refuses_bad_tables_in_one_line(tmp_path, args, needle):
 
 
 def test_docs_show_every_realistic_table():
-    """docs/generation.md holds each table as ``python -m articulated_dataset.generators.realistic``
+    """docs/generation.md holds each table as ``python -m articulated_dataset.classes.realistic``
     prints it (a changed table must change the docs)."""
     from pathlib import Path
 
-    from articulated_dataset.generators.realistic import markdown_table
+    from articulated_dataset.classes.realistic import markdown_table
 
     text = (Path(__file__).resolve().parents[1] / "docs" / "generation.md").read_text()
     for c in CLASSES:

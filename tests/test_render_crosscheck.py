@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from articulated_dataset.registry import class_names
+from articulated_dataset.classes.registry import class_names
 
 HERE = Path(__file__).parent
 #: A gross-error check (a wrong camera orientation, a misplaced part, a wrong joint sign
@@ -41,9 +41,9 @@ def test_camera_intrinsics_match_mujoco_rasterisation():
     import mujoco
     import numpy as np
 
-    from articulated_dataset.camera import CameraConfig, project
+    from articulated_dataset.core.camera import CameraConfig, project
     from articulated_dataset.generation.render import process_renderer
-    from articulated_dataset.generation.scene import build_model, set_configuration
+    from articulated_dataset.generation.mujoco_scene import build_model, set_configuration
 
     cam = CameraConfig()
     renderer = process_renderer(cam)

@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from articulated_dataset.classes.registry import all_classes
 from articulated_dataset.cli import main
+from articulated_dataset.format import open_split, read_manifest
 from articulated_dataset.format.manifest import SplitConfig
 from articulated_dataset.format.schema import RGB_FORMAT_VERSION
 from articulated_dataset.generation import GenerationConfig, generate_split
 from articulated_dataset.generation.appearance import APPEARANCE_TABLE
-from articulated_dataset.registry import all_classes
-from articulated_dataset.format import open_split, read_manifest
 
 CLASSES = all_classes()
 
@@ -128,7 +128,7 @@ def test_cli_records_rgb_verifies_and_refuses_mismatched_resume(tmp_path):
 
 
 def test_config_refuses_hostile_values():
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
 
     for v in (1, "yes", None):
         with pytest.raises(UserError):
@@ -142,8 +142,8 @@ def rgb_split(tmp_path_factory):
 
 
 def test_loaders_serve_rgb_only_where_every_split_has_it(rgb_split, tmp_path):
-    from articulated_dataset.errors import UserError
-    from articulated_dataset.loaders.reader import DEFAULT_FIELDS, ShardReader
+    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.training.loaders.reader import DEFAULT_FIELDS, ShardReader
 
     r = ShardReader(rgb_split)
     assert r.fields == DEFAULT_FIELDS + ("rgb",)
@@ -157,12 +157,12 @@ def test_loaders_serve_rgb_only_where_every_split_has_it(rgb_split, tmp_path):
     with pytest.raises(UserError, match="no 'rgb' images"):
         ShardReader([rgb_split, plain], fields=["depth", "rgb"])
     # a crop cuts the colour image with the depth
-    from articulated_dataset.transforms import Crop, apply_to_batch
+    from articulated_dataset.training.transforms import Crop, apply_to_batch
 
     out = apply_to_batch(Crop(10, 20, 50, 60), r.get_batch([1, 2], fields=["depth", "rgb"]), np.array([1, 2]), seed=0, epoch=0)
     assert out["rgb"].shape == (2, 50, 60, 3) and np.array_equal(out["rgb"][0], r[1]["rgb"][10:60, 20:80])
     torch = pytest.importorskip("torch")
-    from articulated_dataset.loaders.torch import make_loader
+    from articulated_dataset.training.loaders.torch import make_loader
 
     batch = next(iter(make_loader(rgb_split, batch_size=2, shuffle=False, num_workers=0)))
     assert isinstance(batch["rgb"], torch.Tensor) and tuple(batch["rgb"].shape) == (2, 108, 192, 3)
@@ -170,7 +170,7 @@ def test_loaders_serve_rgb_only_where_every_split_has_it(rgb_split, tmp_path):
 
 def test_jax_loader_serves_rgb(rgb_split):
     pytest.importorskip("jax")
-    from articulated_dataset.loaders.jax import JaxLoader
+    from articulated_dataset.training.loaders.jax import JaxLoader
 
     batch = next(iter(JaxLoader(rgb_split, batch_size=2, shuffle=False)))
     assert tuple(batch["rgb"].shape) == (2, 108, 192, 3)
@@ -179,7 +179,7 @@ def test_jax_loader_serves_rgb(rgb_split):
 def test_verify_catches_colour_that_does_not_match_the_depth(rgb_split, tmp_path):
     import shutil
 
-    from articulated_dataset.verify import verify_split
+    from articulated_dataset.tools.verify import verify_split
 
     bad = tmp_path / "bad"
     shutil.copytree(rgb_split, bad)
@@ -221,7 +221,7 @@ def test_export_writes_rgb_png_and_import_restores_the_split(rgb_split, tmp_path
 
 
 def test_show_draws_the_stored_colour_panel(rgb_split, tmp_path):
-    from articulated_dataset.viz import make_gallery
+    from articulated_dataset.tools.viz import make_gallery
 
     panels = make_gallery([rgb_split], out=tmp_path / "g.png", n=2, cols=2)
     assert sorted(p.kind for p in panels) == ["depth", "depth", "rgb", "rgb"]
@@ -229,7 +229,7 @@ def test_show_draws_the_stored_colour_panel(rgb_split, tmp_path):
 
 def test_third_party_urdf_and_mean_object(tmp_path):
     """A --urdf object (its own rendering context for its assets) and the mean object take --rgb."""
-    from articulated_dataset.verify import verify_split
+    from articulated_dataset.tools.verify import verify_split
     from helpers_core import write_flap_urdf
 
     urdf = write_flap_urdf(tmp_path / "urdf")

@@ -13,16 +13,24 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from articulated_dataset.camera import INTRINSICS_PRESETS, CameraConfig, backproject, project
+from articulated_dataset.classes.registry import all_classes, get_class
 from articulated_dataset.cli import main
-from articulated_dataset.generation import GenerationConfig, generate_split
-from articulated_dataset.registry import all_classes, get_class
-from articulated_dataset.generation.render import DepthRenderer
-from articulated_dataset.generation.scene import _set_intrinsics
+from articulated_dataset.core.camera import INTRINSICS_PRESETS, CameraConfig, backproject, project
 from articulated_dataset.format import open_split, read_manifest
-from articulated_dataset.generation.viewpoint import (HEAD_AIM_JITTER_DEG, HEAD_HEIGHT_M, HEAD_PITCH_DEG, HEAD_ROLL_DEG,
-                                           aim_pitch_rad, head_views, level_pose_from_camera, object_in_camera)
-from articulated_dataset.verify import verify_split
+from articulated_dataset.generation import GenerationConfig, generate_split
+from articulated_dataset.generation.render import DepthRenderer
+from articulated_dataset.generation.mujoco_scene import _set_intrinsics
+from articulated_dataset.generation.viewpoint import (
+    HEAD_AIM_JITTER_DEG,
+    HEAD_HEIGHT_M,
+    HEAD_PITCH_DEG,
+    HEAD_ROLL_DEG,
+    aim_pitch_rad,
+    head_views,
+    level_pose_from_camera,
+    object_in_camera,
+)
+from articulated_dataset.tools.verify import verify_split
 from helpers_core import IMAGE_CHECK_FIELDS, check_stored_images
 
 PRESETS = list(INTRINSICS_PRESETS)

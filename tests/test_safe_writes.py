@@ -22,10 +22,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from articulated_dataset import safeio
 from articulated_dataset.cli import main
+from articulated_dataset.core import safeio
 from articulated_dataset.format import sha256_file
-
 from helpers_core import assert_one_line_error, tree_snapshot
 from helpers_real import write_capture
 
@@ -229,7 +228,7 @@ def _check_png(out):
 
 
 def _check_checkpoint(out):
-    from articulated_dataset.models.mdn.checkpoint import load_checkpoint
+    from articulated_dataset.methods.mdn.checkpoint import load_checkpoint
 
     assert load_checkpoint(out)["class_name"] == "drawer"
 

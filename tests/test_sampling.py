@@ -6,14 +6,20 @@ import math
 import numpy as np
 import pytest
 
-from articulated_dataset.errors import UserError
-from articulated_dataset.registry import all_classes, class_names, get_class
-from articulated_dataset.generation.sampling import mean_object, object_rng, sample_id, sample_object, stratified_configurations
-from articulated_dataset.tables import GEOMETRY_KEYS, POSE_KEYS, SamplingTable, load_table_file
+from articulated_dataset.classes.registry import all_classes, class_names, get_class
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.tables import GEOMETRY_KEYS, POSE_KEYS, SamplingTable, load_table_file
+from articulated_dataset.generation.sampling import (
+    mean_object,
+    object_rng,
+    sample_id,
+    sample_object,
+    stratified_configurations,
+)
 
 N_SAMPLES = 400
 
-# The paper's Appendix A, Tables 3 and 4, transcribed independently of generators/ (cm -> m).
+# The paper's Appendix A, Tables 3 and 4, transcribed independently of classes/ (cm -> m).
 PAPER_TABLES = {
     "cabinet": ((56, 64), (60, 140), (60, 140), (1.0, 2.0), (-0.5, 0.5), (-0.7, 0.3), math.pi / 2),
     "drawer": ((45, 60), (30, 76), (10, 30), (1.0, 2.0), (-0.5, 0.5), (-0.8, 0.0), 0.40),
@@ -146,7 +152,7 @@ def test_bad_table_overrides_are_user_errors(bad):
 
 def test_table_bounds_accept_the_edges_and_refuse_beyond():
     """Sizes in [MIN_SIZE_M, MAX_SIZE_M]: the edges are tables, a hair beyond is an error."""
-    from articulated_dataset.tables import MAX_SIZE_M, MIN_SIZE_M
+    from articulated_dataset.core.tables import MAX_SIZE_M, MIN_SIZE_M
 
     table = get_class("drawer").table
     assert table.override({"geometry": {"height_m": [MIN_SIZE_M, MAX_SIZE_M]}}).geometry["height_m"] == (MIN_SIZE_M, MAX_SIZE_M)

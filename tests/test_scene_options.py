@@ -13,19 +13,31 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from articulated_dataset.camera import backproject
+from articulated_dataset.classes.registry import all_classes
 from articulated_dataset.cli import main
-from articulated_dataset.generation.context_labels import (OCCLUDER_SHOW_RGB, SCENE_SHOW_RGB, VISIBLE_FRACTION_RANGE, object_depth,
-                                                tint_context, visible_fraction)
-from articulated_dataset.format.manifest import SplitConfig
-from articulated_dataset.format.schema import (CONTEXT_FORMAT_VERSION, MASK_BODY, MASK_OCCLUDER, MASK_SCENE, OPTIONAL_FIELDS,
-                                               visible_pixels)
-from articulated_dataset.generation import GenerationConfig, generate_split, stored_sample
-from articulated_dataset.registry import all_classes
-from articulated_dataset.rotations import quat_to_matrix
-from articulated_dataset.generation.scenes import MIN_CAMERA_HEIGHT_M, layout_boxes, scene_layout
+from articulated_dataset.core.camera import backproject
+from articulated_dataset.core.rotations import quat_to_matrix
 from articulated_dataset.format import open_split, read_manifest
-from articulated_dataset.verify import verify_split
+from articulated_dataset.format.manifest import SplitConfig
+from articulated_dataset.format.schema import (
+    CONTEXT_FORMAT_VERSION,
+    MASK_BODY,
+    MASK_OCCLUDER,
+    MASK_SCENE,
+    OPTIONAL_FIELDS,
+    visible_pixels,
+)
+from articulated_dataset.generation import GenerationConfig, generate_split, stored_sample
+from articulated_dataset.generation.context_labels import (
+    OCCLUDER_SHOW_RGB,
+    SCENE_SHOW_RGB,
+    VISIBLE_FRACTION_RANGE,
+    object_depth,
+    tint_context,
+    visible_fraction,
+)
+from articulated_dataset.generation.scenes import MIN_CAMERA_HEIGHT_M, layout_boxes, scene_layout
+from articulated_dataset.tools.verify import verify_split
 from helpers_core import IMAGE_CHECK_FIELDS, check_stored_images, compile_object, render_at
 
 CLASSES = all_classes()
@@ -241,7 +253,7 @@ def test_cli_refuses_bad_scene_options_in_one_line(tmp_path, args):
 
 
 def test_config_refuses_hostile_values():
-    from articulated_dataset.errors import UserError
+    from articulated_dataset.core.errors import UserError
 
     for kw in ({"occluders": True}, {"occluders": 1.5}, {"occluders": "2"}, {"scene": None}, {"scene": "Kitchen"}):
         with pytest.raises(UserError):

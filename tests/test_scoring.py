@@ -14,10 +14,10 @@ import pytest
 from click.testing import CliRunner
 
 from articulated_dataset.benchmark import metrics as M
-from articulated_dataset.cli import main
-from articulated_dataset.errors import UserError
 from articulated_dataset.benchmark.predictions import PREDICTIONS_FORMAT_VERSION, read_predictions, write_predictions
 from articulated_dataset.benchmark.scoring import score, target_matrix
+from articulated_dataset.cli import main
+from articulated_dataset.core.errors import UserError
 from articulated_dataset.format import open_split
 
 FIELDS = ("sample_id", "axis_pose", "q", "geometry", "part_offset")
@@ -195,7 +195,7 @@ def test_mixture_nll_and_calibration_end_to_end(tiny_root, tmp_path):
     layout = [f"j{j}.{k}.{c}" for j in range(J) for k in ("origin", "axis", "xaxis") for c in "xyz"]
     layout += [f"j{j}.q" for j in range(J)] + [f"j{j}.offset.{c}" for j in range(J) for c in "xyz"]
     layout += [f"geometry.{k}" for k in ("depth", "width", "height", "chirality")]
-    targets = pytest.importorskip("articulated_dataset.targets")
+    targets = pytest.importorskip("articulated_dataset.training.targets")
     assert sorted(layout) == sorted(targets.TargetLayout.for_class("cabinet2").names)  # the reference MDN's columns
     layout = layout[::-1]  # any order is accepted
     t64 = {k: truth[k].astype(np.float64) for k in FIELDS}
@@ -455,7 +455,7 @@ def test_tiny_mixture_scales_give_infinite_nll_never_dropped(good, tiny_root, tm
 def test_truth_reader_refuses_shards_outside_the_split(tiny_root, tmp_path, monkeypatch):
     """The split reader's own check on resolved shard paths (format.Split), independent of the manifest-name checks."""
     from articulated_dataset.benchmark import truth
-    from articulated_dataset.errors import DataFormatError
+    from articulated_dataset.core.errors import DataFormatError
     from articulated_dataset.format import split as split_module
 
     split = tmp_path / "cabinet" / "test"

@@ -13,7 +13,7 @@ from click.testing import CliRunner
 
 from articulated_dataset.cli import main
 from articulated_dataset.format import Split
-from articulated_dataset.verify import verify_split
+from articulated_dataset.tools.verify import verify_split
 from helpers_core import load_script
 
 ROOT = Path(__file__).resolve().parents[1]

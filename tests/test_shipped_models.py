@@ -12,12 +12,12 @@ torch = pytest.importorskip("torch")
 
 from click.testing import CliRunner  # noqa: E402
 
-from articulated_dataset.models import shipped as M  # noqa: E402
+from articulated_dataset.classes.registry import class_names  # noqa: E402
 from articulated_dataset.cli import main  # noqa: E402
-from articulated_dataset.errors import UserError  # noqa: E402
-from articulated_dataset.registry import class_names  # noqa: E402
+from articulated_dataset.core.errors import UserError  # noqa: E402
 from articulated_dataset.format import sha256_file  # noqa: E402
-from articulated_dataset.models.mdn.checkpoint import read_checkpoint_file  # noqa: E402
+from articulated_dataset.methods import shipped as M
+from articulated_dataset.methods.mdn.checkpoint import read_checkpoint_file  # noqa: E402
 
 SHIPPED = M.shipped_models()
 pytestmark = pytest.mark.skipif(not SHIPPED, reason="this checkout ships no weights")
@@ -147,7 +147,7 @@ def test_dense_kinect2_reads_noisy_depth_better_than_dense(noisy_root, tmp_path)
 
 
 def test_every_shipped_dense_model_carries_its_refinement():
-    from articulated_dataset.models.dense.refine import REFINEMENT_VERSION, Refinement
+    from articulated_dataset.methods.dense.refine import REFINEMENT_VERSION, Refinement
 
     dense = [m for m in SHIPPED if m["kind"] == "dense"]
     assert dense
@@ -163,8 +163,8 @@ def test_every_shipped_dense_model_carries_an_outlier_component():
     "Uncertainty"): a weight within the fit's bounds, one scale per target column, each at least
     its kind's floor (a flipped axis is a few scales off, not thousands), and a fit that lowered
     its validation NLL."""
-    from articulated_dataset.models.dense.predict import OUTLIER_WEIGHT_BOUNDS, outlier_scale_floors
-    from articulated_dataset.targets import TargetLayout
+    from articulated_dataset.methods.dense.predict import OUTLIER_WEIGHT_BOUNDS, outlier_scale_floors
+    from articulated_dataset.training.targets import TargetLayout
 
     for m in (m for m in SHIPPED if m["kind"] == "dense"):
         ckpt = read_checkpoint_file(M.WEIGHTS_DIR / m["file"])

@@ -11,15 +11,21 @@ from click.testing import CliRunner
 from matplotlib.colors import to_rgb
 from matplotlib.image import imread
 
-from articulated_dataset.camera import project
+from articulated_dataset.classes.registry import PRISMATIC, REVOLUTE
 from articulated_dataset.cli import main
-from articulated_dataset.registry import PRISMATIC, REVOLUTE
-from articulated_dataset.viz.data import SplitView, preview_rgb, select_samples
-from articulated_dataset.viz.drawing import legend_lines
-from articulated_dataset.viz.gallery import gallery_size_px, make_gallery
-from articulated_dataset.viz.style import (BACKGROUND_RGB, DEFAULT_DPI, axis_segment_m, depth_to_rgb, extent_along,
-                                           joint_colour)
-from articulated_dataset.units import format_q
+from articulated_dataset.core.camera import project
+from articulated_dataset.core.units import format_q
+from articulated_dataset.tools.viz.data import SplitView, preview_rgb, select_samples
+from articulated_dataset.tools.viz.drawing import legend_lines
+from articulated_dataset.tools.viz.gallery import gallery_size_px, make_gallery
+from articulated_dataset.tools.viz.style import (
+    BACKGROUND_RGB,
+    DEFAULT_DPI,
+    axis_segment_m,
+    depth_to_rgb,
+    extent_along,
+    joint_colour,
+)
 from helpers_real import ingest_uneven_cabinet2
 
 #: Max per-channel difference between a drawn colour and the PNG's pixel (8-bit rounding
@@ -210,7 +216,7 @@ def _write_predictions(split, path, object_image_pairs):
 @pytest.fixture
 def saved_figures(monkeypatch):
     """Every figure make_gallery saves, drawn with Agg (for text extents)."""
-    from articulated_dataset.viz import gallery
+    from articulated_dataset.tools.viz import gallery
 
     figs = []
     real_save = gallery._save
@@ -339,8 +345,8 @@ def test_unlabelled_q_reads_no_label(real_split, tmp_path, saved_figures):
 
 
 def test_text_wrapping_fits_and_keeps_words():
-    from articulated_dataset.viz.drawing import LEGEND_ITEMS, LEGEND_SEP, TextFitter
-    from articulated_dataset.viz.style import TEXT_FIT_FRACTION
+    from articulated_dataset.tools.viz.drawing import LEGEND_ITEMS, LEGEND_SEP, TextFitter
+    from articulated_dataset.tools.viz.style import TEXT_FIT_FRACTION
 
     fit = TextFitter(DEFAULT_DPI)
     for width_in in (1.5, 3.2, 6.0, 40.0):

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from articulated_dataset import urdf_import
 from articulated_dataset.cli import main
+from articulated_dataset.generation import urdf_import
 from helpers_core import assert_one_line_error, flap_split_outside, load_script, write_flap_urdf
 
 BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "manipulation.py"

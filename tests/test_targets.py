@@ -6,11 +6,17 @@ import h5py
 import numpy as np
 import pytest
 
-from articulated_dataset.errors import UserError
-from articulated_dataset.registry import all_classes, get_class
+from articulated_dataset.classes.registry import all_classes, get_class
+from articulated_dataset.core.errors import UserError
 from articulated_dataset.format import open_split
-from articulated_dataset.targets import (DEFAULT_STD_FLOOR, NormStats, TargetLayout, gram_schmidt, matrix_to_quat,
-                                         quat_to_matrix)
+from articulated_dataset.training.targets import (
+    DEFAULT_STD_FLOOR,
+    NormStats,
+    TargetLayout,
+    gram_schmidt,
+    matrix_to_quat,
+    quat_to_matrix,
+)
 
 CLASSES = [c.name for c in all_classes()]
 LABELS = ("axis_pose", "axis_origin", "axis_direction", "q", "part_offset", "geometry")

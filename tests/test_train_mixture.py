@@ -12,10 +12,9 @@ from click.testing import CliRunner  # noqa: E402
 
 from articulated_dataset.cli import main  # noqa: E402
 from articulated_dataset.generation import GenerationConfig, generate_split  # noqa: E402
-from articulated_dataset.models.dense.data import mixture_order  # noqa: E402
-from articulated_dataset.models.dense.train import DenseTrainConfig, train_dense  # noqa: E402
-from articulated_dataset.models.mdn.data import split_identity  # noqa: E402
-
+from articulated_dataset.methods.dense.data import mixture_order  # noqa: E402
+from articulated_dataset.methods.dense.train import DenseTrainConfig, train_dense  # noqa: E402
+from articulated_dataset.methods.mdn.data import split_identity  # noqa: E402
 from helpers_core import assert_one_line_error  # noqa: E402
 
 #: The second split of the mixture: its own seed and a few objects.
@@ -63,8 +62,8 @@ def test_two_splits_train_and_record_both_identities_and_weights(tiny_root, seco
     record = ckpt["history"][-1]
     for key in ("val_pos_cm", "val_s0_pos_cm", "val_s1_pos_cm"):  # together and per split
         assert np.isfinite(record[key]), key
-    from articulated_dataset.errors import UserError
-    from articulated_dataset.models.dense.train import refit_inference
+    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.methods.dense.train import refit_inference
 
     with pytest.raises(UserError, match="mixture"):  # its validation objects lie in several splits
         refit_inference(tmp_path / "m.pt", first, tmp_path / "r.pt", progress=False)

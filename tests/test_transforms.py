@@ -5,10 +5,20 @@ import importlib.util
 import numpy as np
 import pytest
 
-from articulated_dataset.camera import CameraConfig, project
-from articulated_dataset.errors import UserError
-from articulated_dataset.transforms import (CenterCrop, ClipDepth, Compose, Crop, PixelDropout, RandomCrop, Resize,
-                                            SensorNoise, apply_to_batch, sample_rng)
+from articulated_dataset.core.camera import CameraConfig, project
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.training.transforms import (
+    CenterCrop,
+    ClipDepth,
+    Compose,
+    Crop,
+    PixelDropout,
+    RandomCrop,
+    Resize,
+    SensorNoise,
+    apply_to_batch,
+    sample_rng,
+)
 
 H, W = 12, 16
 
@@ -102,10 +112,10 @@ def test_pixel_dropout():
         PixelDropout(1.5)
 
 
-@pytest.mark.skipif(importlib.util.find_spec("articulated_dataset.real.noise") is None,
-                    reason="articulated_dataset.real.noise (sensor-noise models) is not available")
+@pytest.mark.skipif(importlib.util.find_spec("articulated_dataset.core.noise") is None,
+                    reason="articulated_dataset.core.noise (sensor-noise models) is not available")
 def test_sensor_noise_wraps_the_noise_model():
-    from articulated_dataset.real.noise import get_noise_model
+    from articulated_dataset.core.noise import get_noise_model
 
     s = make_sample()
     out = SensorNoise("kinect2")(s, np.random.default_rng(5))

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from articulated_dataset.errors import UserError
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.units import NO_LABEL_TEXT, format_q, normalise, parse_quantity
 from articulated_dataset.format import PRISMATIC, REVOLUTE
-from articulated_dataset.units import NO_LABEL_TEXT, format_q, normalise, parse_quantity
 
 
 def test_normalise_stacks_and_keeps_zero_vectors():

@@ -22,17 +22,16 @@ import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from test_hostile_cli import assert_one_line_error
 
-from articulated_dataset import urdf_import
 from articulated_dataset.benchmark.predictions import read_predictions, write_predictions
 from articulated_dataset.cli import main
-from articulated_dataset.errors import DataFormatError, UserError
-from articulated_dataset.executors import RAY_CONNECT_TIMEOUT_S
+from articulated_dataset.core.errors import DataFormatError, UserError
+from articulated_dataset.core.pool import RAY_CONNECT_TIMEOUT_S
 from articulated_dataset.format import MANIFEST_NAME
-from articulated_dataset.generation import GenerationConfig, generate_split
-from articulated_dataset.loaders import ShardReader
+from articulated_dataset.generation import GenerationConfig, generate_split, urdf_import
+from articulated_dataset.training.loaders import ShardReader
 from helpers_core import flap_split_outside, split_copy_with
-from test_hostile_cli import assert_one_line_error
 
 #: Bytes that would move a terminal's cursor and clear its screen, and a line break.
 TERMINAL_CONTROL = "\x1b[2J\x1b[H"
@@ -98,7 +97,7 @@ def test_colour_images_of_another_shape_or_type_are_one_line(rgb_split, tmp_path
 # --------------------------------------------------------------------------------------
 
 def test_an_unsigned_index_past_int64_does_not_wrap_to_the_last_sample(rgb_split):
-    from articulated_dataset.loaders.torch import DepthDataset
+    from articulated_dataset.training.loaders.torch import DepthDataset
 
     huge = np.array([np.iinfo(np.uint64).max], np.uint64)  # as int64: -1, the last sample
     with pytest.raises(IndexError, match="out of range"):
@@ -213,7 +212,7 @@ def _rebuild(how: str, split: Path, tmp_path: Path):
 
 @pytest.mark.parametrize("how", ["show-rgb", "plan"])
 def test_a_recorded_urdf_outside_the_split_is_never_opened(flap_split, tmp_path, how, monkeypatch):
-    from articulated_dataset.urdf_import import parse
+    from articulated_dataset.generation.urdf_import import parse
 
     def never(*args, **kwargs):
         raise AssertionError("the manifest's URDF was opened")
@@ -289,8 +288,8 @@ def test_a_ray_address_where_something_else_listens_is_one_line(answer):
     import socket
     import threading
 
-    from articulated_dataset.errors import UserError
-    from articulated_dataset.executors import check_reachable
+    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.core.pool import check_reachable
 
     server = socket.create_server(("127.0.0.1", 0))
     port = server.getsockname()[1]

@@ -14,14 +14,14 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from click.testing import CliRunner  # noqa: E402
+from test_hostile_cli import assert_one_line_error  # noqa: E402
 
 import articulated_dataset  # noqa: E402
 from articulated_dataset.cli import main  # noqa: E402
-from articulated_dataset.errors import UserError  # noqa: E402
+from articulated_dataset.core.errors import UserError  # noqa: E402
 from articulated_dataset.format import Shard, open_split  # noqa: E402
 from articulated_dataset.generation import GenerationConfig, generate_split  # noqa: E402
-from articulated_dataset.models.mdn import checkpoint  # noqa: E402
-from test_hostile_cli import assert_one_line_error  # noqa: E402
+from articulated_dataset.methods.mdn import checkpoint
 
 #: Size of the zeros a crafted record inflates to: 64 MiB from a file of about 64 KB.
 BOMB_BYTES = 64 << 20
@@ -92,7 +92,7 @@ def test_a_record_whose_sizes_lie_is_refused_before_torch_load(tmp_path, monkeyp
 
 
 def test_a_checkpoint_written_by_torch_save_passes_the_record_check(tmp_path):
-    from articulated_dataset.models.mdn.model import MixtureDensityNetwork, ModelConfig
+    from articulated_dataset.methods.mdn.model import MixtureDensityNetwork, ModelConfig
 
     state = MixtureDensityNetwork(ModelConfig(in_channels=4, target_dim=8, n_components=3, width=4,
                                               blocks=(1, 1))).state_dict()
@@ -112,7 +112,7 @@ def test_estimate_takes_tensors_that_require_grad(drawer_image):
 
 
 def test_an_estimate_with_a_negative_size_is_refused(drawer_image, monkeypatch):
-    from articulated_dataset.models.dense import predict as dense_predict
+    from articulated_dataset.methods.dense import predict as dense_predict
 
     real = dense_predict.modes_to_arrays
 

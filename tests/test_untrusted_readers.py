@@ -29,19 +29,19 @@ import pytest
 import trimesh
 from click.testing import CliRunner
 from PIL import Image
-
-from articulated_dataset import urdf_import
-from articulated_dataset.cli import main
-from articulated_dataset.errors import UserError
-from articulated_dataset.exr import export_split
-from articulated_dataset.exr.files import read_depth_exr, read_mask_png
-from articulated_dataset.format import open_split
-from articulated_dataset.real.intrinsics import MAX_SOURCE_PIXELS
-from articulated_dataset.real.readers import load_cloud, load_depth, load_mask
-from articulated_dataset.urdf_import import import_urdf, parse
-from helpers_real import write_capture
-from helpers_core import assert_one_line_error
 from test_hostile_estimate import _png_header
+
+from articulated_dataset.cli import main
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.images.exr import read_depth_exr, read_mask_png
+from articulated_dataset.core.images.intrinsics import MAX_SOURCE_PIXELS
+from articulated_dataset.format import open_split
+from articulated_dataset.generation import urdf_import
+from articulated_dataset.generation.urdf_import import import_urdf, parse
+from articulated_dataset.ingest.readers import load_cloud, load_depth, load_mask
+from articulated_dataset.tools.exr import export_split
+from helpers_core import assert_one_line_error
+from helpers_real import write_capture
 
 #: An Encapsulated PostScript file: PIL's EPS decoder hands it to Ghostscript to draw.
 EPS = b"%!PS-Adobe-3.0 EPSF-3.0\n%%BoundingBox: 0 0 1 1\n0 0 moveto 1 1 lineto stroke\nshowpage\n%%EOF\n"
@@ -203,7 +203,7 @@ def test_an_exported_exr_must_store_its_whole_image(tmp_path):
 def test_an_exr_of_many_channels_or_parts_is_refused_from_its_header(tmp_path):
     """OpenEXR decodes every channel: 40 compressed channels of 2000 x 2000 px are a 650 KB file
     and 640 MB decoded.  The channel count and the parts are read from the header first."""
-    from articulated_dataset.exr.files import MAX_EXR_CHANNELS
+    from articulated_dataset.core.images.exr import MAX_EXR_CHANNELS
 
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     channels = {f"C{i}": np.zeros((8, 10), np.float32) for i in range(MAX_EXR_CHANNELS)}
@@ -223,7 +223,7 @@ def test_an_exr_of_many_channels_or_parts_is_refused_from_its_header(tmp_path):
 def test_import_exr_refuses_an_index_declaring_huge_images(tiny_root, tmp_path):
     """An export index declares its images' size, and each depth image is decoded at that size:
     a size past import-exr's limit is one line before any image is read."""
-    from articulated_dataset.exr.restore import MAX_IMPORT_PIXELS
+    from articulated_dataset.tools.exr.restore import MAX_IMPORT_PIXELS
 
     exported = export_split(tiny_root / "drawer" / "test", tmp_path / "exp" / "drawer" / "test")
     index = json.loads((exported / "split.json").read_text())

@@ -15,16 +15,15 @@ import pytest
 import trimesh
 from click.testing import CliRunner
 
-from articulated_dataset.camera import CameraConfig, backproject
 from articulated_dataset.cli import main
-from articulated_dataset.errors import UserError
-from articulated_dataset.generation import GenerationConfig, generate_split
+from articulated_dataset.core.camera import CameraConfig, backproject
+from articulated_dataset.core.errors import UserError
 from articulated_dataset.format import open_split, read_manifest, sha256_file
-from articulated_dataset import urdf_import
-from articulated_dataset.urdf_import import import_urdf
-from articulated_dataset.urdf_import.build import _class_for_key
-from articulated_dataset.urdf_import.process import FLAT_MESH_THICKNESS_M, _thicken_if_flat, double_sided
-from articulated_dataset.urdf_import.ranges import VIEW_MARGIN, reparametrize_range, view_pose_ranges
+from articulated_dataset.generation import GenerationConfig, generate_split, urdf_import
+from articulated_dataset.generation.urdf_import import import_urdf
+from articulated_dataset.generation.urdf_import.build import _class_for_key
+from articulated_dataset.generation.urdf_import.process import FLAT_MESH_THICKNESS_M, _thicken_if_flat, double_sided
+from articulated_dataset.generation.urdf_import.ranges import VIEW_MARGIN, reparametrize_range, view_pose_ranges
 
 #: Tolerance (m) of label positions: float32 storage of ~2 m coordinates.
 POS_TOL_M = 1e-4
@@ -307,7 +306,7 @@ def test_data_is_verified_without_the_urdf_files(objects, tmp_path):
     assert r.exit_code == 0, r.output
     assert GenerationConfig.from_dict(read_manifest(split)["config"]).third_party == obj.definition
     # the loaders read it too (joint count from the manifest, not the registry)
-    from articulated_dataset.loaders.reader import ShardReader
+    from articulated_dataset.training.loaders.reader import ShardReader
 
     reader = ShardReader([split])
     sample = reader[len(reader) - 1]
@@ -469,7 +468,7 @@ def test_a_third_party_object_predicted_as_a_built_in_class(objects, tmp_path):
     code, text = run("predict", "--model", "dense", str(tiny_root_cabinet2(tmp_path)), "--out", str(out),
                      "--as-class", "cabinet")
     assert code == 2 and text.count("\n") == 1 and "built-in class 'cabinet2'" in text, text
-    from articulated_dataset.models import resolve_model
+    from articulated_dataset.methods import resolve_model
 
     microwave = str(resolve_model("dense", "microwave").path)  # a checkpoint file of another class
     code, text = run("predict", "--model", microwave, str(split), "--out", str(out), "--as-class", "cabinet")
@@ -500,7 +499,7 @@ def test_the_source_digest_covers_a_gltf_meshs_buffer(tmp_path):
     """A glTF mesh keeps its geometry in the buffer files it names: changing the .bin changes the
     object, so it must change the digest (the cache key, and the workers' check that every node
     builds the same object); a mesh of another format keeps the digest it had."""
-    from articulated_dataset.urdf_import.parse import load_structure, source_digest
+    from articulated_dataset.generation.urdf_import.parse import load_structure, source_digest
 
     _box_obj(tmp_path / "a.obj", [0.4, 0.4, 0.4], [0, 0, 0.2])
     door = trimesh.creation.box(extents=[0.02, 0.4, 0.4])

@@ -1,5 +1,5 @@
 """Varied structure of the drawer: ``generate --class drawer --table varied``
-(generators/drawer.py, urdf_templates/drawer_varied.urdf.xacro).
+(classes/drawer/__init__.py, classes/drawer/drawer_varied.urdf.xacro).
 
 The structure variables build the labelled drawer into a carcass: overlay or inset fronts, a
 column of closed drawers around it (a stack, a drawer over a door, a drawer column beside a
@@ -18,21 +18,27 @@ import mujoco
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from test_varied_tables import _geoms
 
-from articulated_dataset.camera import CameraConfig
+from articulated_dataset.classes.drawer import (
+    DRAWER_Q_M,
+    DRAWER_STRUCTURE,
+    FLOOR_STANDING_M,
+    VARIED_TABLE,
+    shortest_box_m,
+)
+from articulated_dataset.classes.registry import get_class
 from articulated_dataset.cli import main
+from articulated_dataset.core.camera import CameraConfig
 from articulated_dataset.generation import GenerationConfig, generate_split, object_sample
 from articulated_dataset.generation.compiled import compile_object
 from articulated_dataset.generation.labels import read_object_labels
 from articulated_dataset.generation.sampling import sample_object
+from articulated_dataset.generation.mujoco_scene import OBJECT_PREFIX, ORIGIN_POSE, set_configuration
 from articulated_dataset.generation.scenes import _draws, layout_boxes
-from articulated_dataset.generation.scene import OBJECT_PREFIX, ORIGIN_POSE, set_configuration
 from articulated_dataset.generation.templating import object_urdf
-from articulated_dataset.generators.drawer import DRAWER_Q_M, DRAWER_STRUCTURE, FLOOR_STANDING_M, VARIED_TABLE, shortest_box_m
-from articulated_dataset.registry import get_class
-from articulated_dataset.verify import verify_split
+from articulated_dataset.tools.verify import verify_split
 from helpers_core import check_forced_split
-from test_varied_tables import _geoms
 
 DRAWER = get_class("drawer")
 #: Forced structures (every option of every variable over the four).

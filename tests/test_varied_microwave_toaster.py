@@ -1,5 +1,5 @@
 """Varied structure of the microwave and the toaster oven (``generate --table varied``;
-generators/microwave.py, generators/toaster.py, urdf_templates/{microwave,toaster}_varied.urdf.xacro).
+classes/microwave/__init__.py, classes/toaster/__init__.py, classes/{microwave,toaster}_varied.urdf.xacro).
 
 Checked here: every option of every structure variable generates, verifies and has labels
 that explain its pixels; the microwave's hinge side is the label's chirality and the keypad
@@ -16,14 +16,14 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from articulated_dataset.classes.registry import get_class
 from articulated_dataset.cli import main
 from articulated_dataset.generation import GenerationConfig, generate_split
 from articulated_dataset.generation.compiled import compile_object
 from articulated_dataset.generation.sampling import sample_object
-from articulated_dataset.generation.scene import OBJECT_PREFIX, ORIGIN_POSE
+from articulated_dataset.generation.mujoco_scene import OBJECT_PREFIX, ORIGIN_POSE
 from articulated_dataset.generation.templating import object_urdf
-from articulated_dataset.registry import get_class
-from articulated_dataset.verify import verify_split
+from articulated_dataset.tools.verify import verify_split
 from helpers_core import check_forced_split
 
 #: Forced structures (table overrides) covering every option of every flag and option

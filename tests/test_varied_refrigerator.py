@@ -1,5 +1,5 @@
 """Varied structure of the refrigerator: ``generate --class refrigerator --table varied``
-(generators/refrigerator.py, urdf_templates/refrigerator_varied.urdf.xacro).
+(classes/refrigerator/__init__.py, classes/refrigerator/refrigerator_varied.urdf.xacro).
 
 The structure variables build top- or bottom-freezer refrigerators (the freezer's door the
 small one, joint 0 still the lower door), insulated walls and a mullion, thick doors whose
@@ -17,20 +17,20 @@ import mujoco
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from test_varied_tables import _geoms
 
-from articulated_dataset.camera import CameraConfig
+from articulated_dataset.classes.refrigerator import REFRIGERATOR_STRUCTURE
+from articulated_dataset.classes.registry import get_class
 from articulated_dataset.cli import main
+from articulated_dataset.core.camera import CameraConfig
 from articulated_dataset.generation import GenerationConfig, generate_split, object_sample
 from articulated_dataset.generation.compiled import compile_object
 from articulated_dataset.generation.labels import read_object_labels
 from articulated_dataset.generation.sampling import sample_object
-from articulated_dataset.generation.scene import ORIGIN_POSE
+from articulated_dataset.generation.mujoco_scene import ORIGIN_POSE
 from articulated_dataset.generation.templating import object_urdf
-from articulated_dataset.generators.refrigerator import REFRIGERATOR_STRUCTURE
-from articulated_dataset.registry import get_class
-from articulated_dataset.verify import verify_split
+from articulated_dataset.tools.verify import verify_split
 from helpers_core import check_forced_split
-from test_varied_tables import _geoms
 
 FRIDGE = get_class("refrigerator")
 #: Forced structures rendered (every option of every variable over the two, shelves apart).

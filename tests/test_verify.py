@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from articulated_dataset.cli import main
 from articulated_dataset.format import MANIFEST_NAME, sha256_file
-from articulated_dataset.verify import check_shard, quat_rotate_z, verify_split
+from articulated_dataset.tools.verify import check_shard, quat_rotate_z, verify_split
 
 #: The split every damage test starts from: 6 objects in shards of 4 -> 2 shards, J = 2.
 SOURCE = ("cabinet2", "train")

@@ -12,8 +12,8 @@
 Importing this package imports neither MuJoCo, OpenGL, torch nor jax.
 """
 
-from .predictions import read_predictions, write_predictions
-from .report import Report, ScoreRow
-from .scoring import score
+from articulated_dataset.benchmark.predictions import read_predictions, write_predictions
+from articulated_dataset.benchmark.report import Report, ScoreRow
+from articulated_dataset.benchmark.scoring import score
 
 __all__ = ["Report", "ScoreRow", "read_predictions", "score", "write_predictions"]

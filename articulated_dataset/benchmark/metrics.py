@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..rotations import quat_multiply, quat_to_matrix
-from ..units import CM_PER_M, DEG_PER_RAD, normalise
+from articulated_dataset.core.rotations import quat_multiply, quat_to_matrix
+from articulated_dataset.core.units import CM_PER_M, DEG_PER_RAD, normalise
 
 #: Version of the metric definitions, reported with every score (JSON ``metric_version``, CSV,
 #: table); docs/scoring.md lists what each version changed.  ``artdata score --metric-version``
@@ -387,7 +387,7 @@ def mixture_nll(y: np.ndarray, weights: np.ndarray, means: np.ndarray, scales: n
 
 def _normal_cdf(x: np.ndarray) -> np.ndarray:
     """Standard normal CDF ``Phi(x)`` (scipy's ``ndtr``; scipy is needed only for mixtures)."""
-    from ..errors import import_optional
+    from articulated_dataset.core.errors import import_optional
 
     return import_optional("scipy.special", "scoring mixture calibration").ndtr(x)
 

@@ -21,8 +21,8 @@ import math
 
 import numpy as np
 
-from ..camera import backproject
-from ..errors import UserError
+from articulated_dataset.core.camera import backproject
+from articulated_dataset.core.errors import UserError
 
 log = logging.getLogger(__name__)
 

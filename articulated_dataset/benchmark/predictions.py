@@ -22,7 +22,7 @@ reported by the scorer).  Column d of the mixture datasets is named by
 :func:`write_predictions` validates and writes a file; :func:`read_predictions` validates a
 file (shapes, dtypes, finite values within +-:data:`MAX_ABS_VALUE`, unit quaternions, unique
 ids, sizes >= 0 and a chirality in [0, 1], mixture parameters, names, layout and size) and
-raises :class:`~articulated_dataset.errors.DataFormatError` with one line naming the
+raises :class:`~articulated_dataset.core.errors.DataFormatError` with one line naming the
 dataset for anything wrong.  Non-unit quaternions are normalised with a logged warning;
 zero-length ones are rejected.
 """
@@ -37,10 +37,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..errors import DataFormatError, UserError
-from ..safeio import atomic_write_h5, available_memory_bytes, format_bytes
-from ..format import attr_value, open_h5
-from ..format.shards import JSON_TEXT_ERRORS
+from articulated_dataset.core.errors import DataFormatError, UserError
+from articulated_dataset.core.safeio import atomic_write_h5, available_memory_bytes, format_bytes
+from articulated_dataset.format import attr_value, open_h5
+from articulated_dataset.format.shards import JSON_TEXT_ERRORS
 
 log = logging.getLogger(__name__)
 

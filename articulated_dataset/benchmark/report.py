@@ -16,10 +16,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..format.manifest import printable
-from ..format.schema import PRISMATIC, REVOLUTE
-from . import metrics as M
-
+from articulated_dataset.benchmark import metrics as M
+from articulated_dataset.format.manifest import printable
+from articulated_dataset.format.schema import PRISMATIC, REVOLUTE
 
 # --------------------------------------------------------------------------------------
 # Metric table
@@ -160,18 +159,24 @@ class ScoreRow:
 
     @property
     def complete(self) -> bool:
+        """True when every image of the truth split was scored (``n_scored == n_truth``)."""
         return self.n_scored == self.n_truth
 
     @property
     def configuration_units(self) -> str:
+        """Units of the configuration error: ``deg`` (revolute joints), ``cm`` (prismatic), or ``mixed (deg | cm)``."""
         units = sorted({CONFIG_UNITS[t] for t in self.joint_types})
         return units[0] if len(units) == 1 else "mixed (deg | cm)"
 
     @property
     def label(self) -> str:
+        """Row label of the printed table: ``Class - method``."""
         return f"{self.class_name.capitalize()} - {self.method}"
 
     def to_dict(self) -> dict:
+        """The row as JSON-ready plain types: identification, counts, each metric's mean, std (and, from metric
+        version 3, SEM) with its units, per-joint means and the defined / infinite counts; non-finite values
+        cleaned for JSON."""
         v3 = self.metric_version >= 3
 
         def entry(name: str, mean: float, std: float) -> dict:
@@ -254,9 +259,12 @@ class Report:
 
     @property
     def metrics(self) -> tuple[MetricSpec, ...]:
+        """The metric specifications of this report's metric version."""
         return metrics_of_version(self.metric_version)
 
     def to_dict(self) -> dict:
+        """The report as JSON-ready plain types: metric version, truth root and sets, metric titles and units, rows,
+        unscored classes and notes."""
         return {
             "metric_version": self.metric_version,
             "truth_root": self.truth_root,
@@ -269,6 +277,7 @@ class Report:
         }
 
     def to_json(self, indent: int = 1) -> str:
+        """:meth:`to_dict` as JSON text, indented by ``indent`` spaces."""
         return json.dumps(self.to_dict(), indent=indent)
 
     def truth_sets(self) -> dict[str, dict]:

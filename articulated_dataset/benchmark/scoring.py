@@ -21,12 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataFormatError, UserError
-from ..format.schema import PRISMATIC
-from . import metrics as M
-from .predictions import MIXTURE_LAYOUT_ATTR, read_predictions
-from .report import Report, ScoreRow, aggregate, standard_errors
-from .truth import TruthSet, align, available_truth, select_truth
+from articulated_dataset.benchmark import metrics as M
+from articulated_dataset.benchmark.predictions import MIXTURE_LAYOUT_ATTR, read_predictions
+from articulated_dataset.benchmark.report import Report, ScoreRow, aggregate, standard_errors
+from articulated_dataset.benchmark.truth import TruthSet, align, available_truth, select_truth
+from articulated_dataset.core.errors import DataFormatError, UserError
+from articulated_dataset.format.schema import PRISMATIC
 
 log = logging.getLogger(__name__)
 
@@ -41,14 +41,14 @@ COVERAGE_MASSES = (0.5, 0.9)
 def target_matrix(layout: list[str], truth: dict, where: str = "", class_name: str = "") -> np.ndarray:
     """True target vectors ``(N, D)`` in label units (float32 precision, returned as float64), column d named ``layout[d]``.
 
-    The columns are taken from :meth:`articulated_dataset.targets.TargetLayout.encode` of the
+    The columns are taken from :meth:`articulated_dataset.training.targets.TargetLayout.encode` of the
     truth labels (``axis_pose``, ``q``, ``part_offset``, ``geometry``): ``j{j}.origin.{x,y,z}``
     (m), ``j{j}.axis.{x,y,z}`` (axis frame z), ``j{j}.xaxis.{x,y,z}`` (axis frame x),
     ``j{j}.q`` (rad | m), ``j{j}.offset.{x,y,z}`` (m), ``geometry.{depth,width,height,chirality}``.
     ``layout`` may be any subset of these names in any order; a name outside the class's
     layout is a :class:`DataFormatError`.
     """
-    from ..targets import TargetLayout
+    from articulated_dataset.training.targets import TargetLayout
 
     J = truth["axis_pose"].shape[1]
     full = TargetLayout(class_name or "?", J)
@@ -167,7 +167,7 @@ def score_class(pred: dict, truth: TruthSet, method: str, predictions_path: str,
 
 
 def _class_order(name: str) -> tuple:
-    from ..registry import class_names
+    from articulated_dataset.classes.registry import class_names
 
     names = class_names()
     return (names.index(name), "") if name in names else (len(names), name)

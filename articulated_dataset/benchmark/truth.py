@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataFormatError, UserError
-from ..format import Split, splits_by_class
+from articulated_dataset.core.errors import DataFormatError, UserError
+from articulated_dataset.format import Split, splits_by_class
 
 #: Truth split chosen when a class has several and no ``split`` is given.
 DEFAULT_SPLIT = "test"
@@ -38,6 +38,7 @@ class TruthSet:
 
     @property
     def n_images(self) -> int:
+        """Number of labelled images in the split."""
         return int(self.arrays["sample_id"].shape[0])
 
 
@@ -71,7 +72,7 @@ def _check_truth_values(split_dir: Path, arrays: dict) -> None:
     may hold (:func:`.predictions.validate_class`): finite, within +-MAX_ABS_VALUE and with
     quaternions of non-zero length.  An infinite, absurd or zero-length label is a damaged split
     (``artdata verify`` reports it): a DataFormatError, never a score of ``inf`` or 10^40 cm."""
-    from .predictions import MAX_ABS_VALUE, MIN_QUATERNION_NORM, beyond_bounds
+    from articulated_dataset.benchmark.predictions import MAX_ABS_VALUE, MIN_QUATERNION_NORM, beyond_bounds
 
     for name, a in arrays.items():
         if name in ID_FIELDS:

@@ -8,13 +8,13 @@ its help (or ``artdata --help`` lists them all); ``options.py`` holds the option
 set-up several commands share.  Importing this package loads no MuJoCo, OpenGL, torch or
 jax: MuJoCo is imported only by the commands of :data:`MUJOCO_COMMANDS` when they run.
 
-Errors: a :class:`~articulated_dataset.errors.UserError` (bad option, bad file, existing
+Errors: a :class:`~articulated_dataset.core.errors.UserError` (bad option, bad file, existing
 output...) and every click usage error (unknown option, bad value, missing option or
 argument, bad choice) are printed as one line ``artdata: error: ...`` and exit with code 2;
 anything else is a bug and keeps its traceback.  A machine that cannot render offscreen (no
 EGL/OSMesa) gets one line and exit code 3 from the commands that render; the others
 (``score``, ``info``, ``verify``, ...) work without a GL library.  A MuJoCo release outside the
-supported range (:mod:`articulated_dataset.mujoco_support`) gets one line naming the range and exit
+supported range (:mod:`articulated_dataset.core.mujoco_support`) gets one line naming the range and exit
 code 3 from the commands of :data:`MUJOCO_COMMANDS`.  A full disk (or standard
 output on one) is also one line and exit code 3.
 """
@@ -30,9 +30,9 @@ import sys
 
 import click
 
-from .. import __version__
-from ..errors import RenderError, UserError
-from ..mujoco_support import installed_mujoco_version, unsupported_mujoco
+from articulated_dataset import __version__
+from articulated_dataset.core.errors import RenderError, UserError
+from articulated_dataset.core.mujoco_support import installed_mujoco_version, unsupported_mujoco
 
 EXIT_USER_ERROR = 2
 #: The machine lacks something a command needs (EGL/OSMesa libraries for rendering, disk space).

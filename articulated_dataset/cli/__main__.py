@@ -1,5 +1,5 @@
 """``python -m articulated_dataset.cli``: the ``artdata`` command."""
 
-from . import main
+from articulated_dataset.cli import main
 
 main()

@@ -6,7 +6,7 @@ import time
 
 import click
 
-from ..errors import UserError
+from articulated_dataset.core.errors import UserError
 
 
 def _common_options(fn):
@@ -31,7 +31,7 @@ def _workers_option(fn):
 
 
 def _run(name: str, train_dir, test_dir, out, overwrite: bool, quiet: bool, workers=None, **options) -> None:
-    from ..baselines import run_baseline
+    from articulated_dataset.methods.baselines import run_baseline
 
     t0 = time.perf_counter()
     result = run_baseline(name, train_dir, test_dir, out, workers=workers, progress=not quiet, overwrite=overwrite,

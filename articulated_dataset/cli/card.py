@@ -23,7 +23,7 @@ def card_cmd(path, out, overwrite, datasheet, citation, url):
     (a split folder, a class folder or a data root <class>/<split>/): one datasets config per class, its splits'
     shards as data_files, the schema's fields with units, the datasheet, the citation. Needs the publish extra
     (datasets, mlcroissant). See docs/publishing.md."""
-    from ..format.card import write_card
+    from articulated_dataset.format.card import write_card
 
     for written in write_card(path, out, overwrite=overwrite, datasheet=datasheet, citation=citation, url=url):
         click.echo(f"wrote {written}")

@@ -6,7 +6,7 @@ import json
 
 import click
 
-from .options import ClassChoice, no_mirror_option, precision_option, prepare_torch
+from articulated_dataset.cli.options import ClassChoice, no_mirror_option, precision_option, prepare_torch
 
 
 @click.command("estimate")
@@ -34,7 +34,7 @@ def estimate_cmd(depth, class_name, camera_path, mask_path, depth_units, model, 
     camera frame (x forward, y left, z up) in metres; the summary prints a door's opening q in
     degrees, --json gives it in radians (a drawer's in metres in both).
     """
-    from ..models.estimation import estimate_file
+    from articulated_dataset.methods.estimation import estimate_file
 
     est = estimate_file(depth, class_name, camera_path=camera_path, mask_path=mask_path, depth_units=depth_units,
                         model=model, mirror=not no_mirror, precision=precision,

@@ -6,7 +6,7 @@ import os
 
 import click
 
-from ..errors import UserError
+from articulated_dataset.core.errors import UserError
 
 #: Interchange formats ``artdata export`` can write.
 EXPORT_FORMATS = ("exr",)
@@ -41,8 +41,8 @@ def export_cmd(path, out_root, fmt, overwrite, quiet):
     """
     from tqdm import tqdm
 
-    from ..exr import export_split, target_dir
-    from ..format import Split, find_split_dirs
+    from articulated_dataset.format import Split, find_split_dirs
+    from articulated_dataset.tools.exr import export_split, target_dir
 
     split_dirs = find_split_dirs(path)
     opened = [Split(d) for d in split_dirs]  # names and shard paths checked before any output
@@ -68,7 +68,7 @@ def import_cmd(path, out_root, overwrite, quiet):
     """Rebuild HDF5 shards from folders written by 'artdata export --format exr' (exact round trip)."""
     from tqdm import tqdm
 
-    from ..exr import find_exports, import_split, load_index, target_dir
+    from articulated_dataset.tools.exr import find_exports, import_split, load_index, target_dir
 
     exports = find_exports(path)
     indexes = [load_index(d) for d in exports]  # bad folders fail here, before any output

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import click
 
-from ..errors import UserError
-from ..models.export import EXPORT_FORMATS
-from .options import ClassChoice, prepare_torch
+from articulated_dataset.cli.options import ClassChoice, prepare_torch
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.methods.export import EXPORT_FORMATS
 
 
 @click.command("export-model")
@@ -29,8 +29,8 @@ from .options import ClassChoice, prepare_torch
 def export_model_cmd(model, class_name, fmt, out, overwrite, quiet):
     """Export a model for use outside this package: the dense network as ONNX (the voting, refinement and
     calibration after it stay in Python), or any checkpoint as safetensors + JSON (read without pickle)."""
-    from ..models.safetensors_checkpoint import config_path, is_safetensors_path
-    from ..safeio import check_can_create, check_outputs_distinct
+    from articulated_dataset.core.safeio import check_can_create, check_outputs_distinct
+    from articulated_dataset.methods.safetensors_checkpoint import config_path, is_safetensors_path
 
     out = Path(out)
     outputs = [out, config_path(out)] if fmt == "safetensors" else [out]
@@ -42,7 +42,7 @@ def export_model_cmd(model, class_name, fmt, out, overwrite, quiet):
             raise UserError(f"{path} exists; pass --overwrite to replace it")
         check_can_create(path)
     prepare_torch(None)
-    from ..models.export import ONNX_ATOL, ONNX_CHECK_IMAGES, ONNX_RTOL, export_model
+    from articulated_dataset.methods.export import ONNX_ATOL, ONNX_CHECK_IMAGES, ONNX_RTOL, export_model
 
     result = export_model(model, class_name, out, fmt)
     if quiet:

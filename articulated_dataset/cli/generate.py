@@ -9,27 +9,40 @@ import time
 
 import click
 
-from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, INTRINSICS_PRESETS, KINECT_V2_VFOV_DEG, camera_from_options
-from ..errors import UserError
-from ..executors import EXECUTORS, get_executor
-from ..format.manifest import (DEFAULT_FRAMING, DEFAULT_IMAGES_PER_OBJECT, DEFAULT_OBJECTS_PER_SHARD, DEFAULT_SEED, FRAMINGS,
-                               MAX_OCCLUDERS, SCENE_NAMES)
-from ..generation import generate_split
-from ..generation.request import DEFAULT_N_OBJECTS, UrdfOptions, config_from_options
-from ..generation.viewpoint import CAMERA_MOUNTS
-from .options import ClassChoice
+from articulated_dataset.cli.options import ClassChoice
+from articulated_dataset.core.camera import (
+    DEFAULT_HEIGHT_PX,
+    DEFAULT_WIDTH_PX,
+    INTRINSICS_PRESETS,
+    KINECT_V2_VFOV_DEG,
+    camera_from_options,
+)
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.pool import EXECUTORS, get_executor
+from articulated_dataset.format.manifest import (
+    DEFAULT_FRAMING,
+    DEFAULT_IMAGES_PER_OBJECT,
+    DEFAULT_OBJECTS_PER_SHARD,
+    DEFAULT_SEED,
+    FRAMINGS,
+    MAX_OCCLUDERS,
+    SCENE_NAMES,
+)
+from articulated_dataset.generation import generate_split
+from articulated_dataset.generation.request import DEFAULT_N_OBJECTS, UrdfOptions, config_from_options
+from articulated_dataset.generation.viewpoint import CAMERA_MOUNTS
 
 
 class _NoiseChoice(click.ParamType):
-    """Noise models of :mod:`articulated_dataset.real.noise` (just ``none`` while it does not exist)."""
+    """Noise models of :mod:`articulated_dataset.core.noise` (just ``none`` while it does not exist)."""
 
     name = "noise"
 
     @staticmethod
     def choices() -> list[str]:
-        if importlib.util.find_spec("articulated_dataset.real.noise") is None:
+        if importlib.util.find_spec("articulated_dataset.core.noise") is None:
             return ["none"]
-        from ..real.noise import NOISE_MODELS
+        from articulated_dataset.core.noise import NOISE_MODELS
 
         names = list(NOISE_MODELS)
         return names if "none" in names else ["none", *names]
@@ -151,7 +164,7 @@ def generate_cmd(class_name, urdf_path, joint_names, urdf_class_name, skip_missi
         ) from None
     seconds = time.perf_counter() - t0
     if not quiet:
-        from ..format import read_manifest
+        from articulated_dataset.format import read_manifest
 
         m = read_manifest(split_dir)
         n_bytes = sum(s["bytes"] for s in m["shards"])

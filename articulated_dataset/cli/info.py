@@ -6,10 +6,10 @@ import json
 
 import click
 
-from ..format import find_split_dirs
-from ..format.manifest import DEFAULT_FRAMING
-from ..format.manifest import printable
-from ..format.summary import summarize_split
+from articulated_dataset.format import find_split_dirs
+from articulated_dataset.format.manifest import DEFAULT_FRAMING, printable
+from articulated_dataset.format.summary import summarize_split
+
 
 def _settings_line(s: dict) -> str | None:
     """``scene kitchen, 2 occluders per image, camera head, intrinsics d435, framing whole``: the options

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import click
 
-from ..camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, KINECT_V2_VFOV_DEG, CameraConfig
-from ..errors import UserError
+from articulated_dataset.core.camera import DEFAULT_HEIGHT_PX, DEFAULT_WIDTH_PX, KINECT_V2_VFOV_DEG, CameraConfig
+from articulated_dataset.core.errors import UserError
 
 
 def _parse_size(text: str | None) -> tuple[int, int] | None:
-    from ..real.intrinsics import check_source_size
+    from articulated_dataset.core.images.intrinsics import check_source_size
 
     if text is None:
         return None
@@ -68,10 +68,10 @@ def ingest_cmd(captures, class_name, out_root, split, mask_path, labels_path, in
     Next to NAME.png|.exr|.npy|.ply|.pcd the optional files NAME.mask.png, NAME.labels.json and
     NAME.camera.json (or camera.json in the folder) are picked up.  See docs/real_data.md.
     """
-    from ..real.ingest import IngestOptions
-    from ..real.ingest_split import camera_like, check_training_camera, ingest_split
-    from ..real.intrinsics import intrinsics_matrix, load_intrinsics
-    from ..registry import get_class
+    from articulated_dataset.classes.registry import get_class
+    from articulated_dataset.core.images.intrinsics import intrinsics_matrix, load_intrinsics
+    from articulated_dataset.ingest.capture import IngestOptions
+    from articulated_dataset.ingest.split import camera_like, check_training_camera, ingest_split
 
     get_class(class_name)
     given = [v is not None for v in (fx, fy, cx, cy)]

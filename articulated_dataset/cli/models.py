@@ -18,7 +18,7 @@ TABLE_WIDTH = 100
 def models_cmd(as_json):
     """List the shipped models: one row per model, class and test data, with its training data and
     test figures (docs/dense.md for dense and dense-kinect2, docs/model.md for mdn-small)."""
-    from ..models import shipped_models
+    from articulated_dataset.methods import shipped_models
 
     entries = shipped_models()
     if as_json:

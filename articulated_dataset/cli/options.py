@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import click
 
-from ..errors import UserError
+from articulated_dataset.core.errors import UserError
 
 
 class ClassChoice(click.ParamType):
@@ -14,12 +14,15 @@ class ClassChoice(click.ParamType):
     name = "class"
 
     def get_metavar(self, param, ctx=None):
-        from ..registry import class_names
+        """``[name|name|...]``: the registered class names, for --help."""
+        from articulated_dataset.classes.registry import class_names
 
         return "[" + "|".join(class_names()) + "]"
 
     def convert(self, value, param, ctx):
-        from ..registry import get_class
+        """The registered class's canonical name for ``value``; an unknown name fails the option with the registry's
+        message."""
+        from articulated_dataset.classes.registry import get_class
 
         try:
             return get_class(value).name
@@ -28,7 +31,7 @@ class ClassChoice(click.ParamType):
 
 
 #: ``--no-mirror`` of ``predict`` and ``estimate`` (the dense model's refinement without its mirror image:
-#: :func:`articulated_dataset.models.dense.mirror.with_mirror`).
+#: :func:`articulated_dataset.methods.dense.mirror.with_mirror`).
 no_mirror_option = click.option(
     "--no-mirror", is_flag=True,
     help="Dense model: skip the mirror image (the image reflected left-right, whose network outputs the cabinet "
@@ -36,7 +39,7 @@ no_mirror_option = click.option(
          "fast for those classes, with a 4-6% higher position error.")
 
 #: ``--precision`` of ``predict`` and ``estimate`` (the dense network's arithmetic:
-#: :meth:`articulated_dataset.models.dense.model.DenseNet.folded`).
+#: :meth:`articulated_dataset.methods.dense.model.DenseNet.folded`).
 precision_option = click.option(
     "--precision", type=click.Choice(["float32", "bfloat16"]), default="float32", show_default=True,
     help="Dense model: the network's arithmetic. bfloat16 runs it about twice as fast on CPUs with native bfloat16 "
@@ -46,19 +49,18 @@ precision_option = click.option(
 
 def prepare_torch(threads: int | None) -> int:
     """Import torch once for the command and set its threads, with the OpenMP wait policy
-    :func:`~articulated_dataset.executors.configure_openmp_wait` chooses (threads that spin
+    :func:`~articulated_dataset.core.pool.configure_openmp_wait` chooses (threads that spin
     between operations where the machine has a free CPU for each, else passive waiting: spinning
     threads slow a busy 2-core machine ten-fold) unless the user set one, and the C allocator set
-    to reuse freed memory (:func:`~articulated_dataset.executors.configure_allocator`)."""
-    from ..executors import configure_allocator, configure_openmp_wait
-
-    from ..errors import TORCH_INSTALL, import_optional
+    to reuse freed memory (:func:`~articulated_dataset.core.pool.configure_allocator`)."""
+    from articulated_dataset.core.errors import TORCH_INSTALL, import_optional
+    from articulated_dataset.core.pool import configure_allocator, configure_openmp_wait
 
     configure_openmp_wait(threads if threads is not None and threads > 0 else None)
     configure_allocator()
     ctx = click.get_current_context(silent=True)
     import_optional("torch", f"artdata {ctx.info_name}" if ctx is not None else "this command", TORCH_INSTALL)
-    from ..models.mdn.train import configure_threads
+    from articulated_dataset.methods.mdn.train import configure_threads
 
     if threads is not None and threads <= 0:
         raise UserError(f"--threads must be positive, got {threads}")

@@ -6,10 +6,9 @@ import math
 
 import click
 
-from ..errors import UserError
-from ..units import format_q
-from .options import resolve_split_folder, split_folder
-
+from articulated_dataset.cli.options import resolve_split_folder, split_folder
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.units import format_q
 
 #: What ends the refusal to rebuild a third-party URDF object from recorded paths outside its
 #: split folder (:func:`~articulated_dataset.generation.objects.stored_object_config`).
@@ -76,7 +75,7 @@ def plan_cmd(data_dir, data_option, index, joint, predictions_path, model, close
     the target.  A split generated with --urdf is rebuilt from the URDF named with --urdf (its
     recorded path is opened only inside the split folder).  See docs/manipulation.md.
     """
-    from ..manipulation.image_plan import plan_image, simulate_image_plan, write_plan_record
+    from articulated_dataset.manipulation.image_plan import plan_image, simulate_image_plan, write_plan_record
 
     data_dir = resolve_split_folder(data_dir, data_option)
     if index < 0:
@@ -92,8 +91,8 @@ def plan_cmd(data_dir, data_option, index, joint, predictions_path, model, close
     if out_path == "-":  # other commands' '-' is standard output, where plan prints its summary
         raise UserError("--out -: plan writes its record to a file (its summary is printed); give a file name")
     if out_path:
-        from ..models.mdn.data import resolve_split_dir
-        from ..safeio import check_can_create, check_outputs_distinct
+        from articulated_dataset.core.safeio import check_can_create, check_outputs_distinct
+        from articulated_dataset.methods.mdn.data import resolve_split_dir
 
         # the split read, the model and the predictions are never written over
         check_outputs_distinct([model, predictions_path], [out_path], input_folders=[resolve_split_dir(data_dir)])
@@ -103,7 +102,7 @@ def plan_cmd(data_dir, data_option, index, joint, predictions_path, model, close
     check_object_file_options(urdf, mesh_root)
 
     def prepare_model():
-        from .options import prepare_torch
+        from articulated_dataset.cli.options import prepare_torch
 
         prepare_torch(threads)
 

@@ -7,8 +7,14 @@ from pathlib import Path
 
 import click
 
-from ..errors import UserError
-from .options import no_mirror_option, precision_option, prepare_torch, resolve_split_folder, split_folder
+from articulated_dataset.cli.options import (
+    no_mirror_option,
+    precision_option,
+    prepare_torch,
+    resolve_split_folder,
+    split_folder,
+)
+from articulated_dataset.core.errors import UserError
 
 
 @click.command("predict")
@@ -42,7 +48,7 @@ def predict_cmd(model_path, data_dir, data_option, out, as_class, estimate, snap
                 device, threads, workers, overwrite, quiet):
     """Predict axis poses, configurations, geometry and the full mixture for every image of the split
     in DIR (a split folder, e.g. data/cabinet/test)."""
-    from ..safeio import check_can_create, check_name_length, check_outputs_distinct
+    from articulated_dataset.core.safeio import check_can_create, check_name_length, check_outputs_distinct
 
     data = resolve_split_folder(data_dir, data_option)
 
@@ -52,13 +58,13 @@ def predict_cmd(model_path, data_dir, data_option, out, as_class, estimate, snap
         raise UserError(f"{out} exists; pass --overwrite to replace it")
     if out.is_dir():
         raise UserError(f"--out {out} is a directory; give a file name such as predictions.h5")
-    from ..models.mdn.data import resolve_split_dir
+    from articulated_dataset.methods.mdn.data import resolve_split_dir
 
     # the checkpoint and the split read are never written over (beside the split, as data/p.h5, is fine)
     check_outputs_distinct([model_path], [out], input_folders=[resolve_split_dir(data)])
     check_can_create(out)  # before predicting: a parent that is a file, /proc, a read-only folder is one line now
     prepare_torch(threads)
-    from ..models.predict import predict_to_file
+    from articulated_dataset.methods.predict import predict_to_file
 
     t0 = time.perf_counter()
     run = predict_to_file(model_path, data, out, estimate=estimate, snap_to_cloud=snap_to_cloud, object_mask=object_mask,

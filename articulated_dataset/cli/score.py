@@ -6,8 +6,8 @@ from pathlib import Path
 
 import click
 
-from ..benchmark.metrics import METRIC_VERSION, METRIC_VERSIONS
-from ..errors import UserError
+from articulated_dataset.benchmark.metrics import METRIC_VERSION, METRIC_VERSIONS
+from articulated_dataset.core.errors import UserError
 
 
 def _write(path: str, text: str) -> None:
@@ -16,7 +16,7 @@ def _write(path: str, text: str) -> None:
     if path == "-":
         click.echo(text, nl=not text.endswith("\n"))
         return
-    from ..safeio import atomic_write_text
+    from articulated_dataset.core.safeio import atomic_write_text
 
     if Path(path).is_dir():
         raise UserError(f"cannot write {path}: is a directory")
@@ -48,9 +48,9 @@ def score_cmd(predictions, truth_path, split, json_path, csv_path, require_compl
     and the number of images scored), the standard error of each mean over objects, then the
     standard metrics.  See docs/scoring.md.
     """
-    from ..benchmark.scoring import score
-    from ..format import find_split_dirs
-    from ..safeio import check_can_create, check_outputs_distinct
+    from articulated_dataset.benchmark.scoring import score
+    from articulated_dataset.core.safeio import check_can_create, check_outputs_distinct
+    from articulated_dataset.format import find_split_dirs
 
     try:  # the truth's split folders: a report must not replace one of their shards or manifests
         truth_splits = find_split_dirs(truth_path)

@@ -6,9 +6,8 @@ from pathlib import Path
 
 import click
 
-from ..errors import UserError
-from .plan import URDF_HINT, check_object_file_options, object_file_options
-
+from articulated_dataset.cli.plan import URDF_HINT, check_object_file_options, object_file_options
+from articulated_dataset.core.errors import UserError
 
 #: What ends the refusal of --rgb to rebuild a third-party URDF object from recorded paths
 #: outside its split folder.
@@ -77,11 +76,10 @@ def show_cmd(path, out, per_sample_dir, n_samples, objects, images, cols, rgb, n
     with --urdf from the URDF named with --urdf (its recorded path is opened only inside the split
     folder), unless the split stores colour images.
     """
-    from ..format import find_split_dirs
-    from ..viz.gallery import make_gallery
-    from ..viz.style import DEFAULT_COLUMNS, DEFAULT_COLUMNS_RGB
-
-    from ..safeio import check_can_create, check_outputs_distinct
+    from articulated_dataset.core.safeio import check_can_create, check_outputs_distinct
+    from articulated_dataset.format import find_split_dirs
+    from articulated_dataset.tools.viz.gallery import make_gallery
+    from articulated_dataset.tools.viz.style import DEFAULT_COLUMNS, DEFAULT_COLUMNS_RGB
 
     check_object_file_options(urdf, mesh_root)
     if urdf is not None and not rgb:

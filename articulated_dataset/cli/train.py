@@ -4,12 +4,12 @@ or the paper's ResNet-18 mixture density network (``--model mdn``, the default).
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import click
 
-from ..errors import UserError
-
-from .options import ClassChoice, prepare_torch, resolve_split_folders, split_folders
+from articulated_dataset.cli.options import ClassChoice, prepare_torch, resolve_split_folders, split_folders
+from articulated_dataset.core.errors import UserError
 
 
 @click.command("train")
@@ -52,15 +52,16 @@ def train_cmd(model_kind, class_name, data_dirs, data_option, out, small, epochs
     data = resolve_split_folders(data_dirs, data_option)
     weights = None if mix_weights is None else parse_weights(mix_weights)
     prepare_torch(threads)
-    from ..models.train import TrainingInterrupted, train_model
+    from articulated_dataset.methods.train import TrainingInterrupted, TrainSettings, train_model
 
+    settings = TrainSettings(class_name=class_name, data=tuple(Path(d) for d in data), out=Path(out), small=small,
+                             epochs=epochs, batch_size=batch_size, lr=lr, components=components, width=width,
+                             init_from=init_from, origin_weight=origin_weight, noise=noise,
+                             noise_fraction=noise_fraction, val_fraction=val_fraction, max_objects=max_objects,
+                             seed=seed, device=device, mix_weights=None if weights is None else tuple(weights))
     t0 = time.perf_counter()
     try:
-        run = train_model(model_kind, class_name, data, out, small=small, epochs=epochs, batch_size=batch_size, lr=lr,
-                          components=components, width=width, init_from=init_from, origin_weight=origin_weight,
-                          noise=noise, noise_fraction=noise_fraction, val_fraction=val_fraction,
-                          max_objects=max_objects, seed=seed, device=device, resume=resume, progress=not quiet,
-                          echo=None if quiet else click.echo, mix_weights=weights)
+        run = train_model(model_kind, settings, resume=resume, progress=not quiet, echo=None if quiet else click.echo)
     except TrainingInterrupted as exc:
         raise click.ClickException(str(exc)) from None
     if not quiet:

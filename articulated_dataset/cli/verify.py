@@ -7,7 +7,7 @@ import os
 
 import click
 
-from ..errors import UserError
+from articulated_dataset.core.errors import UserError
 
 #: Exit status when data problems were found (2 is reserved for usage errors).
 EXIT_PROBLEMS = 1
@@ -30,8 +30,8 @@ def verify_cmd(ctx, path, quick, workers, as_json, quiet):
     """
     from tqdm import tqdm
 
-    from ..format.manifest import printable
-    from ..verify import count_shards, find_splits, verify_splits
+    from articulated_dataset.format.manifest import printable
+    from articulated_dataset.tools.verify import count_shards, find_splits, verify_splits
 
     if workers is None:
         workers = os.cpu_count() or 1

@@ -12,8 +12,8 @@
 Importing this package imports neither MuJoCo, OpenGL, torch nor jax.
 """
 
-from .discovery import find_split_dirs, find_splits, one_split_dir, splits_by_class
-from .manifest import (
+from articulated_dataset.format.discovery import find_split_dirs, find_splits, one_split_dir, splits_by_class
+from articulated_dataset.format.manifest import (
     DEFAULT_DEPTH_QUANTUM_M,
     DEFAULT_IMAGES_PER_OBJECT,
     DEFAULT_MIN_PART_FRACTION,
@@ -28,7 +28,7 @@ from .manifest import (
     split_config,
     write_manifest,
 )
-from .schema import (
+from articulated_dataset.format.schema import (
     FIELDS,
     FIELDS_BY_NAME,
     IMAGE_FIELDS,
@@ -49,7 +49,7 @@ from .schema import (
     validate_arrays,
     visible_pixels,
 )
-from .shards import (
+from articulated_dataset.format.shards import (
     MAX_CLASS_NAME_CHARS,
     SHARD_PATTERN,
     TMP_SUFFIX,
@@ -67,7 +67,7 @@ from .shards import (
     shard_name,
     write_shard,
 )
-from .split import Split, open_split
+from articulated_dataset.format.split import Split, open_split
 
 __all__ = [
     "DEFAULT_DEPTH_QUANTUM_M", "DEFAULT_IMAGES_PER_OBJECT", "DEFAULT_MIN_PART_FRACTION", "DEFAULT_OBJECTS_PER_SHARD",

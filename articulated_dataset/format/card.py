@@ -38,14 +38,14 @@ from urllib.parse import urlsplit
 
 import yaml
 
-from .. import __version__
-from ..errors import DataFormatError, UserError, import_optional
-from ..safeio import atomic_write_text, ensure_dir
-from .discovery import find_split_dirs
-from .manifest import MANIFEST_NAME, printable
-from .schema import FIELDS, OPTIONAL_FIELDS, RGB_FIELDS, Field, resolve_shape
-from .shards import json_list, sha256_file
-from .split import Split
+from articulated_dataset import __version__
+from articulated_dataset.core.errors import DataFormatError, UserError, import_optional
+from articulated_dataset.core.safeio import atomic_write_text, ensure_dir
+from articulated_dataset.format.discovery import find_split_dirs
+from articulated_dataset.format.manifest import MANIFEST_NAME, printable
+from articulated_dataset.format.schema import FIELDS, OPTIONAL_FIELDS, RGB_FIELDS, Field, resolve_shape
+from articulated_dataset.format.shards import json_list, sha256_file
+from articulated_dataset.format.split import Split
 
 log = logging.getLogger(__name__)
 
@@ -253,6 +253,7 @@ class Datasheet:
 
     @classmethod
     def read(cls, path: Path) -> "Datasheet":
+        """The datasheet at ``path``; a header without a ``license`` string is the user's mistake."""
         meta, body = front_matter(read_text(path, "datasheet"), path, "datasheet")
         if not isinstance(meta.get("license"), str):
             raise UserError(f"datasheet {path}: its YAML header names no licence ('license: ...', e.g. mit)")
@@ -324,6 +325,7 @@ def card_body_of(sheet: Datasheet) -> str:
 
 
 def read_citation(path: Path) -> dict:
+    """The CITATION.cff at ``path`` as a dict; unreadable YAML or a file without a title is the user's mistake."""
     try:
         cff = yaml.safe_load(read_text(path, "citation file"))
     except (yaml.YAMLError, RecursionError) as exc:
@@ -377,6 +379,7 @@ def field_text(field: Field) -> str:
 
 
 def size_category(n_images: int) -> str:
+    """The Hugging Face Hub's ``size_categories`` value for ``n_images`` images."""
     for bound, category in SIZE_CATEGORIES:
         if n_images < bound:
             return category
@@ -571,7 +574,7 @@ def write_card(path: str | Path, out: str | Path | None = None, *, overwrite: bo
     if url is not None and not (urlsplit(url).scheme in ("http", "https") and urlsplit(url).netloc):
         raise UserError(f"--url {printable(url)[:120]!r} is not an http(s) address of the dataset's page")
     targets = [out / CARD_NAME, out / CROISSANT_NAME]
-    from ..safeio import check_name_length
+    from articulated_dataset.core.safeio import check_name_length
 
     for target in targets:  # a name too long for the filesystem is one line, before it is looked at
         check_name_length(target)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..errors import UserError
-from .manifest import MANIFEST_NAME, read_manifest
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.format.manifest import MANIFEST_NAME, read_manifest
 
 #: Shard files of a split folder (names as :data:`~articulated_dataset.format.shards.SHARD_PATTERN` writes them).
 SHARD_GLOB = "shard-*.h5"

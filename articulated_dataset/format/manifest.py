@@ -15,13 +15,13 @@ import math
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-from .. import FORMAT_VERSION  # noqa: F401  (the default splits' version; schema.format_version_for)
-from ..camera import CameraConfig
-from ..errors import DataFormatError, UserError
-from ..safeio import atomic_write_bytes
-from ..tables import SamplingTable
-from .schema import check_version
-from .shards import check_class_name, check_shard_file, read_json_object, resolve_inside
+from articulated_dataset import FORMAT_VERSION  # noqa: F401  (the default splits' version; schema.format_version_for)
+from articulated_dataset.core.camera import CameraConfig
+from articulated_dataset.core.errors import DataFormatError, UserError
+from articulated_dataset.core.safeio import atomic_write_bytes
+from articulated_dataset.core.tables import SamplingTable
+from articulated_dataset.format.schema import check_version
+from articulated_dataset.format.shards import check_class_name, check_shard_file, read_json_object, resolve_inside
 
 MANIFEST_NAME = "manifest.json"
 
@@ -67,8 +67,8 @@ class SplitConfig:
     min_part_pixels: int | None = None  # None: DEFAULT_MIN_PART_FRACTION of the image
     depth_quantum_m: float = DEFAULT_DEPTH_QUANTUM_M
     mean: bool = False  # render the class's mean object (n_objects must be 1)
-    noise: str = "none"  # depth sensor-noise model applied after rendering (articulated_dataset.real.noise)
-    # Definition of a third-party URDF class (articulated_dataset.urdf_import), rebuilt in
+    noise: str = "none"  # depth sensor-noise model applied after rendering (articulated_dataset.core.noise)
+    # Definition of a third-party URDF class (articulated_dataset.generation.urdf_import), rebuilt in
     # every worker process; None for registry classes.
     third_party: dict | None = None
     # Options beyond the paper's dataset: in the manifest only when used.
@@ -140,19 +140,25 @@ class SplitConfig:
 
     @property
     def format_version(self) -> str:
-        from .schema import format_version_for
+        """The format version the split is written with
+        (:func:`~articulated_dataset.format.schema.format_version_for`)."""
+        from articulated_dataset.format.schema import format_version_for
 
         return format_version_for(self.has_context, self.rgb)
 
     @property
     def n_shards(self) -> int:
+        """Number of shards: ``n_objects / objects_per_shard``, rounded up."""
         return -(-self.n_objects // self.objects_per_shard)
 
     def shard_objects(self, shard_index: int) -> range:
+        """Object indices written to shard ``shard_index``."""
         start = shard_index * self.objects_per_shard
         return range(start, min(start + self.objects_per_shard, self.n_objects))
 
     def to_dict(self) -> dict:
+        """The configuration as recorded in the manifest: plain JSON types, the format version added, and the scene,
+        occluder, colour and framing options left out at their defaults."""
         d = asdict(self)
         d["camera"] = self.camera.to_dict()  # options beyond the paper's camera only when set
         d["table"] = self.table.to_dict()
@@ -310,5 +316,5 @@ def shard_paths(split_dir: str | Path, manifest: dict) -> list[Path]:
 
 def write_manifest(split_dir: str | Path, manifest: dict) -> None:
     """Write ``manifest`` as ``split_dir/manifest.json`` (sorted keys, one-space indent) atomically
-    (:func:`articulated_dataset.safeio.atomic_write_bytes`: readers see the old or the new file)."""
+    (:func:`articulated_dataset.core.safeio.atomic_write_bytes`: readers see the old or the new file)."""
     atomic_write_bytes(Path(split_dir) / MANIFEST_NAME, (json.dumps(manifest, indent=1, sort_keys=True) + "\n").encode())

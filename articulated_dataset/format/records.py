@@ -1,7 +1,7 @@
 """What a writer of a split records: the shard attributes (:func:`shard_attrs`) and the
 manifest (:func:`split_manifest`), built in one place for every writer (the generator,
 :mod:`articulated_dataset.generation.pipeline`; real-capture ingestion,
-:mod:`articulated_dataset.real.write`).
+:mod:`articulated_dataset.ingest.write`).
 
 Both are plain dicts of JSON/HDF5 attribute values; docs/format.md describes each key.
 """
@@ -9,10 +9,13 @@ Both are plain dicts of JSON/HDF5 attribute values; docs/format.md describes eac
 from __future__ import annotations
 
 import json
+from typing import TYPE_CHECKING
 
-from .. import __version__
-from ..classes import ObjectClass
-from .manifest import SplitConfig
+from articulated_dataset import __version__
+from articulated_dataset.format.manifest import SplitConfig
+
+if TYPE_CHECKING:  # the class is read through its attributes: the format imports no class code
+    from articulated_dataset.classes.base import ObjectClass
 
 
 def shard_attrs(config: SplitConfig, obj_class: ObjectClass, objects: range, **extra) -> dict:

@@ -14,12 +14,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import FORMAT_VERSION
-from ..errors import DataFormatError
+from articulated_dataset import FORMAT_VERSION
+from articulated_dataset.core.errors import DataFormatError
 
 
 @dataclass(frozen=True)
 class Field:
+    """One field (dataset) of a shard: its name, dtype, shape (symbols ``N``, ``J``, ``H``, ``W``, ``P`` and ints),
+    units, frame and description."""
     name: str
     dtype: str
     shape: tuple  # symbols ("N", "J", "H", "W", "P") and ints
@@ -91,10 +93,8 @@ def format_version_for(has_context: bool, rgb: bool = False) -> str:
     scene/occluders, else 1.0."""
     return RGB_FORMAT_VERSION if rgb else CONTEXT_FORMAT_VERSION if has_context else FORMAT_VERSION
 
-#: Joint types (the shards' ``joint_types`` attribute): ``q`` in radians or metres.
-REVOLUTE = "revolute"
-PRISMATIC = "prismatic"
-JOINT_TYPES = (REVOLUTE, PRISMATIC)
+#: Joint types (the shards' ``joint_types`` attribute), declared with the units of ``q``.
+from articulated_dataset.core.units import JOINT_TYPES, PRISMATIC, REVOLUTE  # noqa: E402, F401
 
 #: Mask values: 0 background, 1 body (everything not moved by a joint), 2 + j moving part j.
 MASK_BACKGROUND = 0
@@ -138,6 +138,8 @@ ROOT_ATTRS = (
 
 
 def resolve_shape(shape: tuple, *, N: int, J: int, H: int, W: int) -> tuple[int, ...]:
+    """``shape`` with its symbols replaced by sizes: ``N`` images, ``J`` joints, ``H`` x ``W`` pixels, ``P`` = 1 + J
+    parts."""
     sizes = {"N": N, "J": J, "H": H, "W": W, "P": 1 + J}
     return tuple(sizes[s] if isinstance(s, str) else int(s) for s in shape)
 
@@ -166,6 +168,8 @@ def validate_arrays(arrays: dict, *, N: int, J: int, H: int, W: int, where: str 
 
 
 def check_version(version: str, where: str = "") -> None:
+    """Raise :class:`DataFormatError` when ``version``'s major number is not the one this package reads; ``where``
+    prefixes the message."""
     major = str(version).split(".")[0]
     if major != FORMAT_VERSION.split(".")[0]:
         raise DataFormatError(

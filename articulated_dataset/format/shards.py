@@ -9,11 +9,11 @@ Layout of a generated split::
 
 Every check that refuses a crafted file (names leading out of the folder, links and external
 storage inside HDF5, sizes that do not fit, damaged chunks) lives here, with a one-line
-:class:`~articulated_dataset.errors.DataFormatError`.
+:class:`~articulated_dataset.core.errors.DataFormatError`.
 
 A shard becomes visible only when complete: :func:`write_shard` builds it in memory and
 writes it under a temporary name, fsync'ed and atomically renamed
-(:func:`articulated_dataset.safeio.atomic_write_h5`).
+(:func:`articulated_dataset.core.safeio.atomic_write_h5`).
 """
 
 from __future__ import annotations
@@ -29,10 +29,21 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..errors import DataFormatError
-from ..safeio import TMP_SUFFIX  # noqa: F401  (re-exported: one definition)
-from .schema import (FIELDS, FIELDS_BY_NAME, IMAGE_FIELDS, K_DATASET, OPTIONAL_FIELDS, OPTIONAL_FIELDS_BY_NAME,
-                     R_DATASET, RGB_FIELDS, RGB_FIELDS_BY_NAME, check_version, validate_arrays)
+from articulated_dataset.core.errors import DataFormatError
+from articulated_dataset.core.safeio import TMP_SUFFIX  # noqa: F401  (re-exported: one definition)
+from articulated_dataset.format.schema import (
+    FIELDS,
+    FIELDS_BY_NAME,
+    IMAGE_FIELDS,
+    K_DATASET,
+    OPTIONAL_FIELDS,
+    OPTIONAL_FIELDS_BY_NAME,
+    R_DATASET,
+    RGB_FIELDS,
+    RGB_FIELDS_BY_NAME,
+    check_version,
+    validate_arrays,
+)
 
 SHARD_PATTERN = "shard-{:05d}.h5"
 #: Longest class name: the shards' ``class`` field is S32 (32 ASCII bytes).
@@ -54,6 +65,7 @@ MIN_STORED_BYTES_PER_IMAGE = 16
 
 
 def shard_name(index: int) -> str:
+    """File name of shard ``index`` (:data:`SHARD_PATTERN`)."""
     return SHARD_PATTERN.format(index)
 
 
@@ -113,6 +125,7 @@ def resolve_inside(root: str | Path, name: str | Path, *, where: str | None = No
 
 
 def sha256_file(path: str | Path, chunk_bytes: int = 1 << 20) -> str:
+    """Hex SHA-256 digest of the file at ``path``, read in blocks of ``chunk_bytes``."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(chunk_bytes), b""):
@@ -130,6 +143,8 @@ class Shard:
 
     @property
     def file(self) -> h5py.File:
+        """The open, checked HDF5 file (opened on first use, and again in a process other than the one that opened
+        it)."""
         if self._file is None or self._pid != os.getpid():
             f = open_h5(self.path)
             try:
@@ -173,6 +188,7 @@ class Shard:
 
     @property
     def attrs(self) -> dict:
+        """The shard file's attributes as plain Python values."""
         f = self.file
         with reading(self.path):
             return {k: attr_value(v) for k, v in f.attrs.items()}
@@ -182,10 +198,13 @@ class Shard:
 
     @property
     def K(self) -> np.ndarray:  # noqa: N802
+        """Camera intrinsics (3, 3) of every image of the shard (OpenCV convention, pixel centres at integer
+        coordinates)."""
         return self.read(K_DATASET, ())
 
     @property
     def R(self) -> np.ndarray:  # noqa: N802
+        """Rotation (3, 3) from the camera frame to the optical frame (``p_optical = R p_camera``)."""
         return self.read(R_DATASET, ())
 
     def read(self, name: str, index=slice(None)) -> np.ndarray:
@@ -211,6 +230,7 @@ class Shard:
         return {f.name: self.read(f.name, ()) for f in FIELDS if f.name not in IMAGE_FIELDS}
 
     def close(self) -> None:
+        """Close the shard's file if open (it reopens on next use)."""
         if self._file is not None:
             self._file.close()
             self._file = None
@@ -316,7 +336,7 @@ def _selection_rows(index, shape) -> int:
 
 
 def _check_fits_memory(path: Path, name: str, nbytes: int) -> None:
-    from ..safeio import available_memory_bytes, format_bytes
+    from articulated_dataset.core.safeio import available_memory_bytes, format_bytes
 
     avail = available_memory_bytes()
     if avail is not None and nbytes > MAX_READ_MEMORY_FRACTION * avail:
@@ -392,7 +412,7 @@ def write_shard(path: str | Path, arrays: dict, attrs: dict, K: np.ndarray, R: n
     N, H, W = arrays["depth"].shape
     J = arrays["q"].shape[1]
     validate_arrays(arrays, N=N, J=J, H=H, W=W, where=str(path))
-    from ..safeio import atomic_write_h5
+    from articulated_dataset.core.safeio import atomic_write_h5
 
     def build(f: h5py.File) -> None:
         for field in FIELDS + tuple(f for f in OPTIONAL_FIELDS + RGB_FIELDS if f.name in arrays):  # optional: 1.1, 1.2

@@ -14,10 +14,10 @@ from typing import Iterable
 
 import numpy as np
 
-from ..errors import DataFormatError
-from .manifest import read_manifest, shard_paths, split_config
-from .schema import IMAGE_FIELDS, JOINT_TYPES, LABEL_FIELDS
-from .shards import Shard, json_list
+from articulated_dataset.core.errors import DataFormatError
+from articulated_dataset.format.manifest import read_manifest, shard_paths, split_config
+from articulated_dataset.format.schema import IMAGE_FIELDS, JOINT_TYPES, LABEL_FIELDS
+from articulated_dataset.format.shards import Shard, json_list
 
 
 def check_inside(split_dir: Path, path: Path) -> None:
@@ -60,6 +60,7 @@ class Split:
         self.close()
 
     def close(self) -> None:
+        """Close every shard's file."""
         for sh in self.shards:
             sh.close()
 
@@ -72,6 +73,7 @@ class Split:
 
     @property
     def class_name(self) -> str:
+        """The object class of the split (from its manifest)."""
         return str(self.manifest["class_name"])
 
     @property
@@ -81,6 +83,7 @@ class Split:
 
     @property
     def complete(self) -> bool:
+        """False when the manifest marks the split incomplete (a manifest without the key is complete)."""
         return bool(self.manifest.get("complete", True))
 
     @property
@@ -120,6 +123,7 @@ class Split:
 
     @property
     def n_joints(self) -> int:
+        """Number of joints of the split's objects (from the first shard)."""
         return int(self.shards[0].attrs["n_joints"])
 
     @property

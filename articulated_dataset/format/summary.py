@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import DataFormatError
-from ..mujoco_support import recorded_mujoco_version
-from .manifest import DEFAULT_FRAMING, MANIFEST_NAME
-from .shards import json_list
-from .split import Split
+from articulated_dataset.core.errors import DataFormatError
+from articulated_dataset.core.mujoco_support import recorded_mujoco_version
+from articulated_dataset.format.manifest import DEFAULT_FRAMING, MANIFEST_NAME
+from articulated_dataset.format.shards import json_list
+from articulated_dataset.format.split import Split
 
 _SUMMARY_FIELDS = ("q", "axis_origin", "geometry", "object_yaw", "visible_pixels")
 #: Summarised too where a split has a scene or occluders (format 1.1 stores it).

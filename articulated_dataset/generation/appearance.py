@@ -29,8 +29,9 @@ import json
 import mujoco
 import numpy as np
 
-from ..format.schema import MASK_FIRST_PART, MASK_OCCLUDER, MASK_SCENE
-from .config import APPEARANCE_STREAM  # noqa: F401  (the stream's word, :func:`.config.appearance_rng`)
+from articulated_dataset.format.schema import MASK_FIRST_PART, MASK_OCCLUDER, MASK_SCENE
+from articulated_dataset.generation.config import APPEARANCE_STREAM  # noqa: F401  (the stream's word, :func:`.config.appearance_rng`)
+
 #: Procedural textures every ``--rgb`` model holds: (name, MuJoCo builtin, light grey, dark grey).
 TEXTURES = (
     ("rgb_flat", "FLAT", 1.0, 1.0),
@@ -71,6 +72,7 @@ def appearance_record() -> str:
 
 
 def n_material_slots(n_joints: int) -> int:
+    """Number of material slots of a model with ``n_joints`` moving parts: body, one per part, scene, occluders."""
     return 1 + n_joints + 2
 
 

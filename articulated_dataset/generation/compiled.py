@@ -4,7 +4,7 @@
 :func:`compile_object` is the one place an object is compiled: the pipeline (every object it
 renders), ``viz`` (``show --rgb`` rebuilds), ``urdf_import`` (measuring a third-party class)
 and ``manipulation.load_true_object`` (the physics of a stored object).  The scene it builds
-is :func:`~articulated_dataset.generation.scene.build_model`'s (camera at the world origin,
+is :func:`~articulated_dataset.generation.mujoco_scene.build_model`'s (camera at the world origin,
 the object's base at ``pose``).
 """
 
@@ -14,10 +14,10 @@ from dataclasses import dataclass
 
 import mujoco
 
-from ..camera import CameraConfig
-from ..classes import ObjectClass
-from .labels import ModelInfo, model_info
-from .scene import build_model
+from articulated_dataset.classes.base import ObjectClass
+from articulated_dataset.core.camera import CameraConfig
+from articulated_dataset.generation.labels import ModelInfo, model_info
+from articulated_dataset.generation.mujoco_scene import build_model
 
 
 @dataclass

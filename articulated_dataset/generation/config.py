@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..format.manifest import SplitConfig
-from ..registry import ObjectClass, check_table, resolve
-from .sampling import object_rng
-from .viewpoint import CAMERA_STREAM
+from articulated_dataset.classes.registry import ObjectClass, check_table, get_class, register, registered_third_party
+from articulated_dataset.format.manifest import SplitConfig
+from articulated_dataset.generation.sampling import object_rng
+from articulated_dataset.generation.viewpoint import CAMERA_STREAM
 
 
 @dataclass(frozen=True)
@@ -35,7 +35,23 @@ class GenerationConfig(SplitConfig):
 
     @property
     def obj_class(self) -> ObjectClass:
+        """The object class generated: the registered class ``class_name``, or the third-party object's class."""
         return resolve(self.class_name, self.third_party)
+
+
+def resolve(class_name: str, third_party: dict | None = None) -> ObjectClass:
+    """The class of a split config: the registered class ``class_name``, or the third-party
+    URDF class that ``third_party`` (its definition, as ``artdata generate --urdf`` writes it)
+    defines, built once per process and registered
+    (:func:`articulated_dataset.classes.registry.register`)."""
+    if third_party is None:
+        return get_class(class_name)
+    found = registered_third_party(third_party)
+    if found is None:
+        from articulated_dataset.generation.urdf_import import class_from_definition  # trimesh, lxml: on use
+
+        found = register(class_from_definition(third_party), definition=third_party)
+    return found
 
 
 def split_dir_for(out_root: str | Path, config: SplitConfig) -> Path:

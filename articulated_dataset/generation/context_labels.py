@@ -9,7 +9,7 @@ import json
 
 import numpy as np
 
-from ..format.schema import MASK_OCCLUDER, MASK_SCENE, OPTIONAL_FIELDS, resolve_shape
+from articulated_dataset.format.schema import MASK_OCCLUDER, MASK_SCENE, OPTIONAL_FIELDS, resolve_shape
 
 #: Every moving part keeps at least this fraction of its pixels (visible / alone) in every
 #: image of a split with a scene or occluders (the visibility rejection's bound; the stored

@@ -35,12 +35,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..camera import CameraConfig
-from ..classes import ObjectClass
-from ..format.manifest import DEFAULT_FRAMING
-from ..format.schema import MASK_BODY
-from ..tables import SamplingTable
-from .sampling import sample_pose
+from articulated_dataset.classes.base import ObjectClass
+from articulated_dataset.core.camera import CameraConfig
+from articulated_dataset.core.tables import SamplingTable
+from articulated_dataset.format.manifest import DEFAULT_FRAMING
+from articulated_dataset.format.schema import MASK_BODY
+from articulated_dataset.generation.sampling import sample_pose
 
 #: Depth (m) added to an object's fitting depth (:func:`fit_depth_m`) to give its largest
 #: depth, when that exceeds the table's: at the fitting depth itself only one position and
@@ -79,12 +79,12 @@ def shard_framing(attrs) -> str:
 def extent_points(obj_class: ObjectClass, urdf: str, q: np.ndarray, camera: CameraConfig) -> np.ndarray:
     """Points (P, 3) spanning the object's rendered geoms (a box's corners, a mesh's vertices;
     the groups the renderer draws) in each configuration of ``q`` (n, J), in the frame of its
-    pose (the object compiled at :data:`~articulated_dataset.generation.scene.ORIGIN_POSE`)."""
+    pose (the object compiled at :data:`~articulated_dataset.generation.mujoco_scene.ORIGIN_POSE`)."""
     import mujoco
 
-    from .compiled import compile_object
-    from .labels import geom_corners_world
-    from .scene import ORIGIN_POSE, set_configuration
+    from articulated_dataset.generation.compiled import compile_object
+    from articulated_dataset.generation.labels import geom_corners_world
+    from articulated_dataset.generation.mujoco_scene import ORIGIN_POSE, set_configuration
 
     obj = compile_object(obj_class, urdf, ORIGIN_POSE, camera)
     model, info = obj.model, obj.info
@@ -121,7 +121,7 @@ def in_view(points: np.ndarray, pose: dict, camera: CameraConfig) -> bool:
     """Whether ``points`` (P, 3, in the frame of the object's pose: base at the origin, yaw
     0), placed at ``pose`` (``x_m``, ``y_m``, ``z_m``, ``yaw_rad``; the fixed camera's frame),
     all project inside the image's interior and lie beyond the near clipping plane."""
-    from .scene import NEAR_CLIP_M
+    from articulated_dataset.generation.mujoco_scene import NEAR_CLIP_M
 
     left, right, up, down = interior_slopes(camera)
     qx, qy, qz = _rotated(points, np.asarray(pose["yaw_rad"], np.float64))
@@ -143,7 +143,7 @@ def fit_depth_m(points: np.ndarray, table: SamplingTable, camera: CameraConfig) 
     (y_lo - cU) / left)``.  The vertical pair gives the same with ``up``, ``down``, ``z``; the
     near plane adds ``x >= NEAR_CLIP_M - min qx``.
     """
-    from .scene import NEAR_CLIP_M
+    from articulated_dataset.generation.mujoco_scene import NEAR_CLIP_M
 
     left, right, up, down = interior_slopes(camera)
     (y_lo, y_hi), (z_lo, z_hi) = table.pose["y_m"], table.pose["z_m"]
@@ -180,6 +180,8 @@ class Framing:
 
     @classmethod
     def of(cls, points: np.ndarray, table: SamplingTable, camera: CameraConfig) -> "Framing":
+        """The framing of an object spanned by ``points`` (P, 3, pose frame): ``table`` with its depth range extended
+        so that the points fit in ``camera``'s view."""
         return cls(points, framed_table(table, fit_depth_m(points, table, camera)), camera)
 
     def draw(self, rng: np.random.Generator) -> tuple[dict | None, int]:

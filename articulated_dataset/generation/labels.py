@@ -31,11 +31,11 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from ..format.schema import MASK_BACKGROUND, MASK_BODY, MASK_FIRST_PART, visible_pixels  # noqa: F401  (declared with the format)
-from ..classes import PRISMATIC, ObjectClass
-from ..rotations import matrix_to_quat
-from .scene import OBJECT_PREFIX, object_joint_ids, set_configuration
-from ..units import normalise
+from articulated_dataset.classes.base import PRISMATIC, ObjectClass
+from articulated_dataset.core.rotations import matrix_to_quat
+from articulated_dataset.core.units import normalise
+from articulated_dataset.format.schema import MASK_BACKGROUND, MASK_BODY, MASK_FIRST_PART, visible_pixels  # noqa: F401  (declared with the format)
+from articulated_dataset.generation.mujoco_scene import OBJECT_PREFIX, object_joint_ids, set_configuration
 
 HANDLE_SUFFIX = "_handle"
 #: A hinge has a side (left or right, the chirality) when joint 0's axis is within 45 deg of the
@@ -64,6 +64,9 @@ class ModelInfo:
 
 
 def model_info(model: mujoco.MjModel, obj_class: ObjectClass) -> ModelInfo:
+    """Index tables (:class:`ModelInfo`) of a compiled model of ``obj_class``: joint ids and qpos addresses, base
+    body, each geom's mask value and handle flag, each moving part's body. A template joint whose type differs
+    from the registry's, or a missing base link, raises ValueError."""
     joint_ids = object_joint_ids(model, [j.name for j in obj_class.joints])
     for jid, spec in zip(joint_ids, obj_class.joints):
         expected = mujoco.mjtJoint.mjJNT_SLIDE if spec.type == PRISMATIC else mujoco.mjtJoint.mjJNT_HINGE

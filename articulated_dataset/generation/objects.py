@@ -23,19 +23,19 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from ..errors import DataFormatError, UserError
-from ..format.manifest import check_stored_object_files, third_party_definition
-from .appearance import Appearance
-from .compiled import CompiledObject
-from .config import GenerationConfig, appearance_rng, camera_rng, noise_rng
-from .context_labels import visible_fraction
-from .labels import read_configuration, read_object_labels, visible_pixels
-from .occluders import Context
-from .render import DepthRenderer
-from .sampling import ObjectSample, mean_object, sample_id, sample_object
-from .scene import ORIGIN_POSE, ObjectPlacer, set_configuration
-from .scenes import context_builder, context_rngs
-from .viewpoint import head_views, object_in_camera
+from articulated_dataset.core.errors import DataFormatError, UserError
+from articulated_dataset.format.manifest import check_stored_object_files, third_party_definition
+from articulated_dataset.generation.appearance import Appearance
+from articulated_dataset.generation.compiled import CompiledObject
+from articulated_dataset.generation.config import GenerationConfig, appearance_rng, camera_rng, noise_rng
+from articulated_dataset.generation.context_labels import visible_fraction
+from articulated_dataset.generation.labels import read_configuration, read_object_labels, visible_pixels
+from articulated_dataset.generation.occluders import Context
+from articulated_dataset.generation.render import DepthRenderer
+from articulated_dataset.generation.sampling import ObjectSample, mean_object, sample_id, sample_object
+from articulated_dataset.generation.mujoco_scene import ORIGIN_POSE, ObjectPlacer, set_configuration
+from articulated_dataset.generation.scenes import context_builder, context_rngs
+from articulated_dataset.generation.viewpoint import head_views, object_in_camera
 
 #: Label fields read from the compiled model (per object, or per image with the head camera).
 OBJECT_LABEL_FIELDS = ("axis_origin", "axis_direction", "axis_pose", "part_offset", "object_pose", "object_yaw", "geometry")
@@ -76,7 +76,9 @@ def stored_object_config(config: dict, split_dir, what: str, hint: str = "", *, 
     rebuilt from these files, which the caller named, instead of the recorded paths; they are used
     only if their sha256 (URDF and meshes) is the one the split recorded, else one line.  A
     built-in class needs no files (``urdf`` given for one is refused)."""
-    from ..urdf_import.build import SourceMismatchError  # (imported when a rebuild needs it)
+    from articulated_dataset.generation.urdf_import.build import (
+        SourceMismatchError,  # (imported when a rebuild needs it)
+    )
 
     if urdf is None:
         if mesh_root is not None:
@@ -121,6 +123,8 @@ class Streams:
 
     @classmethod
     def of(cls, config: GenerationConfig, object_index: int) -> "Streams":
+        """The generators of object ``object_index`` under ``config``: camera views (head mount, not --mean), scene,
+        occluders and colour appearance (--rgb), None where unused."""
         head = config.camera.mount == "head"
         crng = camera_rng(config, object_index) if head and not config.mean else None
         arng = appearance_rng(config, object_index) if config.rgb else None
@@ -224,7 +228,7 @@ def apply_sensor(depth: np.ndarray, config: GenerationConfig, object_index: int)
     shard's buffer): the sensor-noise model (seeded per object, :func:`noise_rng`), then
     rounding to ``config.depth_quantum_m``."""
     if config.noise != "none":
-        from ..real.noise import get_noise_model
+        from articulated_dataset.core.noise import get_noise_model
 
         apply_noise = get_noise_model(config.noise)
         nrng = noise_rng(config, object_index)

@@ -30,9 +30,9 @@ import json
 import mujoco
 import numpy as np
 
-from .context_labels import VISIBLE_FRACTION_RANGE, visible_fraction
-from ..format.schema import MASK_FIRST_PART, MASK_OCCLUDER, MASK_SCENE, visible_pixels
-from .render import CONTEXT_GEOM_GROUP
+from articulated_dataset.format.schema import MASK_FIRST_PART, MASK_OCCLUDER, MASK_SCENE, visible_pixels
+from articulated_dataset.generation.context_labels import VISIBLE_FRACTION_RANGE, visible_fraction
+from articulated_dataset.generation.render import CONTEXT_GEOM_GROUP
 
 #: Extra SeedSequence word of an object's occluder stream (noise 1, head camera 2, scene 3).
 OCCLUDER_STREAM = 4
@@ -105,8 +105,8 @@ class Context:
     def draw(self, data: mujoco.MjData, scale: float = 1.0) -> None:
         """Place every occluder for the model's current configuration (kinematics up to date),
         its drawn sizes multiplied by ``scale``."""
-        from .labels import geom_corners_world
-        from .scene import NEAR_CLIP_M
+        from articulated_dataset.generation.labels import geom_corners_world
+        from articulated_dataset.generation.mujoco_scene import NEAR_CLIP_M
 
         m, rng = self.model, self.rng
         near_x = float(geom_corners_world(m, data, self.object_geoms)[:, 0].min())

@@ -18,25 +18,32 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import R_CAMERA_TO_OPTICAL
-from ..errors import UserError
-from ..format.manifest import DEFAULT_FRAMING
-from ..format.records import shard_attrs as format_shard_attrs
-from ..format.schema import FIELDS, OPTIONAL_FIELDS, RGB_FIELDS, object_on_border
-from ..format.shards import shard_name, write_shard
-from ..registry import JOINT_TYPES
-from .appearance import appearance_record, with_appearance_assets
-from .compiled import compile_object
-from .config import GenerationConfig
-from .context_labels import VISIBLE_FRACTION_RANGE
-from .framing import MAX_FRAMING_DRAWS, Framing, extent_points, framing_record
-from .objects import Streams, apply_sensor, arrange, object_arrays, object_sample, render_images
-from .occluders import occluders_record
-from .render import DepthRenderer, process_renderer
-from .sampling import ObjectSample, sample_pose
-from .scenes import scene_record
-from .templating import object_urdf
-from .viewpoint import head_ranges
+from articulated_dataset.classes.registry import JOINT_TYPES
+from articulated_dataset.core.camera import R_CAMERA_TO_OPTICAL
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.format.manifest import DEFAULT_FRAMING
+from articulated_dataset.format.records import shard_attrs as format_shard_attrs
+from articulated_dataset.format.schema import FIELDS, OPTIONAL_FIELDS, RGB_FIELDS, object_on_border
+from articulated_dataset.format.shards import shard_name, write_shard
+from articulated_dataset.generation.appearance import appearance_record, with_appearance_assets
+from articulated_dataset.generation.compiled import compile_object
+from articulated_dataset.generation.config import GenerationConfig
+from articulated_dataset.generation.context_labels import VISIBLE_FRACTION_RANGE
+from articulated_dataset.generation.framing import MAX_FRAMING_DRAWS, Framing, extent_points, framing_record
+from articulated_dataset.generation.objects import (
+    Streams,
+    apply_sensor,
+    arrange,
+    object_arrays,
+    object_sample,
+    render_images,
+)
+from articulated_dataset.generation.occluders import occluders_record
+from articulated_dataset.generation.render import DepthRenderer, process_renderer
+from articulated_dataset.generation.sampling import ObjectSample, sample_pose
+from articulated_dataset.generation.scenes import scene_record
+from articulated_dataset.generation.templating import object_urdf
+from articulated_dataset.generation.viewpoint import head_ranges
 
 log = logging.getLogger(__name__)
 

@@ -18,8 +18,8 @@ from collections import OrderedDict
 import mujoco
 import numpy as np
 
-from ..camera import CameraConfig
-from ..errors import RenderError
+from articulated_dataset.core.camera import CameraConfig
+from articulated_dataset.core.errors import RenderError
 
 #: MuJoCo geom group of scene and occluder geoms (articulated_dataset.scenes, .occluders).
 CONTEXT_GEOM_GROUP = 3
@@ -201,6 +201,7 @@ class DepthRenderer:
             self._scn.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 1
 
     def close(self) -> None:
+        """Release the rendering contexts and the GL context (a failure to free it is ignored)."""
         self._shared_con = self._con = None
         self._asset_cons.clear()
         if self._gl is not None:

@@ -2,10 +2,10 @@
 
 The command parses its options, calls :func:`config_from_options` and prints.  The rules that
 tie options together live here or beside what they configure: the camera
-(:func:`articulated_dataset.camera.camera_from_options`), the sampling table
-(:func:`articulated_dataset.tables.table_from_options`), a third-party URDF
-(:func:`articulated_dataset.urdf_import.import_urdf`).  A contradiction or an impossible
-value is one :class:`~articulated_dataset.errors.UserError` line naming the options.
+(:func:`articulated_dataset.core.camera.camera_from_options`), the sampling table
+(:func:`articulated_dataset.core.tables.table_from_options`), a third-party URDF
+(:func:`articulated_dataset.generation.urdf_import.import_urdf`).  A contradiction or an impossible
+value is one :class:`~articulated_dataset.core.errors.UserError` line naming the options.
 
 Light: no MuJoCo until a ``--urdf`` object is imported (it is measured with MuJoCo).
 """
@@ -15,11 +15,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
-from ..camera import CameraConfig
-from ..errors import UserError
-from ..registry import ObjectClass, get_class, register
-from ..tables import table_from_options
-from .config import GenerationConfig
+from articulated_dataset.classes.registry import ObjectClass, get_class, register
+from articulated_dataset.core.camera import CameraConfig
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.tables import table_from_options
+from articulated_dataset.generation.config import GenerationConfig
 
 #: Objects generated without ``--n``.
 DEFAULT_N_OBJECTS = 100
@@ -55,7 +55,7 @@ def object_class_from_options(class_name: str | None, urdf: UrdfOptions, camera:
     if urdf.path is not None:
         if class_name is not None:
             raise UserError("give either --class or --urdf, not both")
-        from ..urdf_import import import_urdf
+        from articulated_dataset.generation.urdf_import import import_urdf
 
         imported = import_urdf(urdf.path, joints=joint_names(urdf.joints), class_name=urdf.class_name,
                                skip_missing_meshes=urdf.skip_missing_meshes, camera=camera,

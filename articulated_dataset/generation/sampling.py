@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..classes import ObjectClass
-from ..tables import GEOMETRY_KEYS, POSE_KEYS, SamplingTable, structure_kind
+from articulated_dataset.classes.base import ObjectClass
+from articulated_dataset.core.tables import GEOMETRY_KEYS, POSE_KEYS, SamplingTable, structure_kind
 
 SPLITS = ("train", "val", "test", "real")
 #: Extra SeedSequence word of an object's structure stream (noise 1, head camera 2, scene 3,

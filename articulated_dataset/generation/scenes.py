@@ -3,7 +3,7 @@
 The paper renders objects in isolation (``--scene none``, the default, unchanged bytes).  A
 scene adds boxes around the object, built in the *object frame* (origin at the centre of the
 body's bottom face, x from the front to the back, y to the object's left, z up;
-urdf_templates/common.xacro) and moved with it, so the class's pose ranges keep their
+classes/common.xacro) and moved with it, so the class's pose ranges keep their
 meaning: the object's base is where the table puts it, and the room is built around it.
 
 Every scene has a floor and a wall behind the object.  Where the object stands depends on
@@ -45,12 +45,12 @@ from dataclasses import dataclass, replace
 import mujoco
 import numpy as np
 
-from .context_labels import VISIBLE_FRACTION_RANGE
-from ..format.manifest import SCENE_NAMES  # noqa: F401  (re-exported: declared with the split config)
-from .occluders import OCCLUDER_STREAM, add_occluder_slots
-from .render import CONTEXT_GEOM_GROUP
-from .sampling import object_rng
-from .scene import yaw_quaternion
+from articulated_dataset.format.manifest import SCENE_NAMES  # noqa: F401  (re-exported: declared with the split config)
+from articulated_dataset.generation.context_labels import VISIBLE_FRACTION_RANGE
+from articulated_dataset.generation.occluders import OCCLUDER_STREAM, add_occluder_slots
+from articulated_dataset.generation.render import CONTEXT_GEOM_GROUP
+from articulated_dataset.generation.sampling import object_rng
+from articulated_dataset.generation.mujoco_scene import yaw_quaternion
 
 #: Extra SeedSequence word of an object's scene stream (noise 1, head camera 2).
 SCENE_STREAM = 3
@@ -77,7 +77,7 @@ ROOM_HALF_WIDTH_M = 4.0
 WALL_HEIGHT_M = 2.6
 WALL_THICKNESS_M = 0.10
 GAP_M = 0.003  # between the object and its neighbours / the counter above it
-#: Closed doors' and drawer fronts' thickness (urdf_templates/common.xacro, panel_m).
+#: Closed doors' and drawer fronts' thickness (classes/common.xacro, panel_m).
 PANEL_M = 0.02
 #: The camera is at least this high above the floor (a robot's or tripod's lowest camera).
 MIN_CAMERA_HEIGHT_M = 0.25
@@ -96,14 +96,17 @@ class Box:
 
     @classmethod
     def span(cls, name: str, lo, hi) -> "Box":
+        """The box spanning corners ``lo`` and ``hi`` (m, object frame)."""
         lo, hi = np.asarray(lo, float), np.asarray(hi, float)
         return cls(name, tuple(0.5 * (lo + hi)), tuple(0.5 * (hi - lo)))
 
     def contains(self, p, margin: float = 0.0) -> bool:
+        """True when point ``p`` (m, object frame) lies in the box grown by ``margin`` (m) on every side."""
         return bool(np.all(np.abs(np.asarray(p) - self.centre) <= np.asarray(self.half) + margin))
 
 
 def placement(class_name: str) -> str:
+    """Where objects of ``class_name`` stand in a scene (:data:`PLACEMENT`; ``floor`` for any other class)."""
     return PLACEMENT.get(class_name, "floor")
 
 

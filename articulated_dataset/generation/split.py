@@ -3,7 +3,7 @@
 
 Every shard is a pure function of the :class:`GenerationConfig` and its index
 (:func:`~articulated_dataset.generation.pipeline.generate_shard`), so executors (local
-processes, or Ray; :mod:`articulated_dataset.executors`) only map
+processes, or Ray; :mod:`articulated_dataset.core.pool`) only map
 :func:`~articulated_dataset.generation.pipeline.run_shard` over shard indices and any
 executor gives identical bytes.  Around them: the split's lock, ``--resume`` (the shards a
 run of the same settings completed), ``--overwrite`` (a staging sibling swapped in when
@@ -19,14 +19,26 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import DataFormatError, UserError
-from ..format.records import split_manifest
-from ..safeio import (FULL_HINT, WriteError, available_memory_bytes, check_free_space, check_name_length, check_writable_dir,
-                      ensure_dir, format_bytes, fsync_dir, remove_created_dirs, temporary_target, translated)
-from ..format.manifest import write_manifest
-from ..mujoco_support import different_mujoco, manifest_entry
-from .config import GenerationConfig, split_dir_for
-from .pipeline import run_shard, shard_attrs
+from articulated_dataset.core.errors import DataFormatError, UserError
+from articulated_dataset.core.mujoco_support import different_mujoco, manifest_entry
+from articulated_dataset.core.safeio import (
+    FULL_HINT,
+    WriteError,
+    available_memory_bytes,
+    check_free_space,
+    check_name_length,
+    check_writable_dir,
+    ensure_dir,
+    format_bytes,
+    fsync_dir,
+    remove_created_dirs,
+    temporary_target,
+    translated,
+)
+from articulated_dataset.format.manifest import write_manifest
+from articulated_dataset.format.records import split_manifest
+from articulated_dataset.generation.config import GenerationConfig, split_dir_for
+from articulated_dataset.generation.pipeline import run_shard, shard_attrs
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +127,8 @@ class SplitLock:
         self._fd: int | None = None
 
     def acquire(self) -> None:
+        """Take the lock (non-blocking): another run holding it, or a symbolic link at the lock path, is the user's
+        mistake. Without ``fcntl`` (Windows) it logs a warning and locks nothing."""
         try:
             import fcntl
         except ImportError:  # no flock (Windows): runs are not protected from each other
@@ -146,6 +160,7 @@ class SplitLock:
             os.close(fd)  # released and removed by the run that held it: lock the new file
 
     def release(self) -> None:
+        """Remove the lock file and release the lock (nothing if not held)."""
         if self._fd is None:
             return
         try:
@@ -240,7 +255,7 @@ def _begin(split_dir: Path, config: GenerationConfig, *, resume: bool, overwrite
 def _resume_records(split_dir: Path, config: GenerationConfig) -> dict[int, dict]:
     """Records of the shards a run of ``config`` already completed in ``split_dir``; a
     manifest or shard of other settings is refused (never adopted)."""
-    from ..format import MANIFEST_NAME, Shard, read_manifest, resolve_inside, sha256_file
+    from articulated_dataset.format import MANIFEST_NAME, Shard, read_manifest, resolve_inside, sha256_file
 
     records: dict[int, dict] = {}
     manifest_path = split_dir / MANIFEST_NAME
@@ -373,7 +388,7 @@ def generate_split(
 
     Shards are independent, so the result is byte-identical for any executor, any number of
     ``workers`` and across interruptions with ``resume``.  ``executor`` (see
-    :mod:`articulated_dataset.executors`) defaults to local processes (``workers``).
+    :mod:`articulated_dataset.core.pool`) defaults to local processes (``workers``).
     Returns the split folder.
 
     Lifecycle (docs/security.md): the split is locked while a run writes it; a refused run
@@ -383,7 +398,7 @@ def generate_split(
     """
     from tqdm import tqdm
 
-    from ..executors import local_executor
+    from articulated_dataset.core.pool import local_executor
 
     if resume and overwrite:
         raise UserError("--resume and --overwrite are mutually exclusive")

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import xacro
 
-from ..errors import UserError
-from ..tables import SamplingTable
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.tables import SamplingTable
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +75,7 @@ def structure_argument(name: str) -> str:
 
 def object_urdf(obj_class, sample, table: SamplingTable) -> str:
     """Stage 2: the URDF text of a sampled object of ``obj_class`` (an
-    :class:`~articulated_dataset.classes.ObjectClass`): a sample with structure variables is
+    :class:`~articulated_dataset.classes.base.ObjectClass`): a sample with structure variables is
     built from the class's varied template."""
     path = obj_class.template_path(varied=sample.structure is not None)
     return render_urdf(path, template_arguments(sample, table))

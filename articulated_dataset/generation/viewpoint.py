@@ -42,7 +42,8 @@ import math
 
 import numpy as np
 
-CAMERA_MOUNTS = ("fixed", "head")
+from articulated_dataset.core.camera import CAMERA_MOUNTS  # noqa: F401  (the mounts, declared with the camera)
+
 #: Head camera height above the floor (m), pitch down and roll (deg), aim offset (deg).
 HEAD_HEIGHT_M = (1.05, 1.60)
 HEAD_PITCH_DEG = (0.0, 60.0)
@@ -145,7 +146,7 @@ def level_pose_from_camera(object_pose: np.ndarray) -> dict[str, np.ndarray]:
     ``roll_rad`` and the object's pose in the level frame: ``x_m``, ``y_m``, ``yaw_rad`` and
     ``z_m`` (base height relative to *this image's* camera height: the table's z minus the
     camera's rise ``height - mid-range``)."""
-    from ..rotations import quat_to_matrix
+    from articulated_dataset.core.rotations import quat_to_matrix
 
     p = np.atleast_2d(np.asarray(object_pose, np.float64))
     R = quat_to_matrix(p[:, 3:])

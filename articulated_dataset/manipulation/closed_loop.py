@@ -11,17 +11,43 @@ import math
 
 import numpy as np
 
-from ..errors import UserError
-from ..registry import PRISMATIC, REVOLUTE
-from .estimates import (Estimate, anchor_to_handle, consistent_hypothesis, fuse_estimates, group_hypotheses,
-                        mirrored_hypothesis, overview_hypothesis, same_axis, transform_estimate)
-from .estimators import DepthEstimator
-from .execution import ExecutionResult, GripperController
-from .gripper import MAX_FORCE_N, SETTLE_S
-from .perception import SceneCamera, depth_centroid, look_at_viewpoint, orbit_viewpoint, sight_handle
-from .planning import (ZERO_LENGTH, DEFAULT_STEP_M, DEFAULT_STEP_RAD, Plan, checked_vector, default_target, given_unit,
-                       outward_normal, plan_from_estimate, plan_waypoints, success_tolerance)
-from .true_object import TrueObject
+from articulated_dataset.classes.registry import PRISMATIC, REVOLUTE
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.manipulation.hypotheses import (
+    ObjectKinematics,
+    anchor_to_handle,
+    consistent_hypothesis,
+    fuse_estimates,
+    group_hypotheses,
+    mirrored_hypothesis,
+    overview_hypothesis,
+    same_axis,
+    transform_estimate,
+)
+from articulated_dataset.manipulation.sources import DepthEstimator
+from articulated_dataset.manipulation.execution import ExecutionResult, GripperController
+from articulated_dataset.manipulation.gripper import MAX_FORCE_N, SETTLE_S
+from articulated_dataset.manipulation.perception import (
+    SceneCamera,
+    depth_centroid,
+    look_at_viewpoint,
+    orbit_viewpoint,
+    sight_handle,
+)
+from articulated_dataset.manipulation.planning import (
+    DEFAULT_STEP_M,
+    DEFAULT_STEP_RAD,
+    ZERO_LENGTH,
+    Plan,
+    checked_vector,
+    default_target,
+    given_unit,
+    outward_normal,
+    plan_from_estimate,
+    plan_waypoints,
+    success_tolerance,
+)
+from articulated_dataset.manipulation.true_object import TrueObject
 
 #: Closed loop: at most this many axis hypotheses are checked with the wrist camera before
 #: grasping, each only if its score (mean weight over the images) is at least HYPOTHESIS_MIN_SCORE.
@@ -132,7 +158,7 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
     1. **Before grasping**: the estimate of ``first_depth`` (the observation, 1 image) and of
        ``len(view_angles_deg)`` renders from viewpoints swung about the object's depth
        centroid (:func:`orbit_viewpoint`) are mapped into the first camera's frame.  Every
-       image's hypotheses (the estimate and its :attr:`Estimate.alternatives`, e.g. a closed
+       image's hypotheses (the estimate and its :attr:`ObjectKinematics.alternatives`, e.g. a closed
        door hinged on the left or on the right) are grouped by axis (:func:`group_hypotheses`)
        and each group fused (:func:`fuse_estimates`).  For the best groups in turn (at most
        :data:`MAX_HANDLE_LOOKS`, score at least :data:`HYPOTHESIS_MIN_SCORE`) the grasp is
@@ -271,7 +297,7 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
     tol = success_tolerance(jt)
     last_cmd = hand
 
-    def motion_axis(vision: Estimate) -> tuple[np.ndarray, np.ndarray]:
+    def motion_axis(vision: ObjectKinematics) -> tuple[np.ndarray, np.ndarray]:
         o, d = vision.axis(joint)
         return (fit_axis_to_path(path, o, d) if jt == REVOLUTE and fit_hand_path else o), d
 

@@ -20,16 +20,37 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from ..errors import UserError
-from ..generation.scene import set_configuration
-from ..rotations import quat_multiply, quat_to_matrix
-from ..units import format_q
-from .estimates import Estimate
-from .gripper import (GRASP_CAPTURE_M, GRIPPER_DAMPING_N_S_PER_M, GRIPPER_ROT_DAMPING_NM_S_PER_RAD,
-                      GRIPPER_ROT_STIFFNESS_NM_PER_RAD, GRIPPER_STIFFNESS_N_PER_M, MAX_FORCE_N, MAX_TORQUE_NM, SETTLE_S,
-                      finger_hold, interpolate_pose, minimum_jerk, motion_duration, point_box_distance)
-from .planning import DEFAULT_STEP_M, DEFAULT_STEP_RAD, Plan, canonical_quat, default_target, plan_from_estimate, success_tolerance
-from .true_object import TrueObject, handle_geom
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.rotations import quat_multiply, quat_to_matrix
+from articulated_dataset.core.units import format_q
+from articulated_dataset.generation.mujoco_scene import set_configuration
+from articulated_dataset.manipulation.hypotheses import ObjectKinematics
+from articulated_dataset.manipulation.gripper import (
+    GRASP_CAPTURE_M,
+    GRIPPER_DAMPING_N_S_PER_M,
+    GRIPPER_ROT_DAMPING_NM_S_PER_RAD,
+    GRIPPER_ROT_STIFFNESS_NM_PER_RAD,
+    GRIPPER_STIFFNESS_N_PER_M,
+    MAX_FORCE_N,
+    MAX_TORQUE_NM,
+    SETTLE_S,
+    finger_hold,
+    interpolate_pose,
+    minimum_jerk,
+    motion_duration,
+    point_box_distance,
+)
+from articulated_dataset.manipulation.planning import (
+    DEFAULT_STEP_M,
+    DEFAULT_STEP_RAD,
+    Plan,
+    canonical_quat,
+    default_target,
+    plan_from_estimate,
+    success_tolerance,
+)
+from articulated_dataset.manipulation.true_object import TrueObject, handle_geom
+
 
 @dataclass
 class ExecutionResult:
@@ -59,21 +80,27 @@ class ExecutionResult:
 
     @property
     def error(self) -> float:
+        """``|q_reached - q_target|`` (rad or m)."""
         return abs(self.q_reached - self.q_target)
 
     @property
     def reached(self) -> bool:
+        """True when the configuration error is within the success tolerance of the joint type."""
         return self.error <= success_tolerance(self.joint_type)
 
     @property
     def within_limits(self) -> bool:
+        """True when the peak force and torque stayed within :data:`MAX_FORCE_N` and :data:`MAX_TORQUE_NM`."""
         return self.max_force_n <= MAX_FORCE_N and self.max_torque_nm <= MAX_TORQUE_NM
 
     @property
     def success(self) -> bool:
+        """True when the handle was grasped, the target reached, and the force and torque limits kept."""
         return self.grasped and self.reached and self.within_limits
 
     def failure_reason(self) -> str:
+        """Why the trial failed, in words (no grasp, missed handle, target not reached, force or torque exceeded);
+        empty when it succeeded."""
         if not self.grasped and not math.isfinite(self.grasp_error_m):
             return self.grasp_failure or "no grasp was planned"
         if not self.grasped:
@@ -90,6 +117,8 @@ class ExecutionResult:
         return "; ".join(reasons)
 
     def to_dict(self) -> dict:
+        """The result as plain JSON types (the trace and views excluded), with the derived error, reached,
+        within_limits, success and failure."""
         return {
             "joint": self.joint, "joint_type": self.joint_type, "q_start": self.q_start, "q_target": self.q_target,
             "q_reached": self.q_reached, "error": self.error, "grasped": self.grasped,
@@ -239,6 +268,8 @@ class GripperController:
         return False
 
     def result(self, q_target: float) -> ExecutionResult:
+        """The :class:`ExecutionResult` of the motion so far towards ``q_target``: the true q reached and the peak
+        forces, torques and tracking errors (nothing moved if the grasp failed)."""
         joint = self.joint
         base = dict(joint=joint, joint_type=self.obj.joint_types[joint], q_start=float(self.q0[joint]),
                     q_target=float(q_target), grasp_error_m=self.grasp_error_m)
@@ -285,7 +316,7 @@ def execute_plan(obj: TrueObject, waypoints: np.ndarray, joint: int, q_target: f
     return ctl.result(q_target)
 
 
-def run_trial(obj: TrueObject, estimate: Estimate, joint: int, q_target: float | None = None, *,
+def run_trial(obj: TrueObject, estimate: ObjectKinematics, joint: int, q_target: float | None = None, *,
               step_rad: float = DEFAULT_STEP_RAD, step_m: float = DEFAULT_STEP_M,
               record: bool = False) -> tuple[Plan, ExecutionResult]:
     """Plan with ``estimate`` (target default: :func:`default_target`, clipped to the joint's

@@ -15,8 +15,8 @@ import math
 import mujoco
 import numpy as np
 
-from ..rotations import quat_to_matrix
-from .planning import checked_vector, outward_normal
+from articulated_dataset.core.rotations import quat_to_matrix
+from articulated_dataset.manipulation.planning import checked_vector, outward_normal
 
 #: The grasp closes on the handle if the planned grasp point lies within 3 cm of the
 #: handle bar's surface: with the bar's half-thickness (1-1.5 cm) the bar's centre line is

@@ -17,16 +17,28 @@ from typing import Callable
 
 import numpy as np
 
-from ..errors import UserError
-from ..registry import REVOLUTE
-from ..units import parse_quantity
-from .closed_loop import closed_loop_trial
-from .estimates import Estimate
-from .estimators import load_prediction_estimates, make_estimator
-from .execution import ExecutionResult, execute_plan
-from .gripper import GRASP_CAPTURE_M, MAX_FORCE_N, MAX_TORQUE_NM
-from .planning import DEFAULT_STEP_M, DEFAULT_STEP_RAD, Plan, default_target, plan_from_estimate, success_tolerance
-from .true_object import PlannableObject, load_true_object, split_row_labels, stored_image
+from articulated_dataset.classes.registry import REVOLUTE
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.units import parse_quantity
+from articulated_dataset.manipulation.closed_loop import closed_loop_trial
+from articulated_dataset.manipulation.hypotheses import ObjectKinematics
+from articulated_dataset.manipulation.sources import load_prediction_estimates, make_estimator
+from articulated_dataset.manipulation.execution import ExecutionResult, execute_plan
+from articulated_dataset.manipulation.gripper import GRASP_CAPTURE_M, MAX_FORCE_N, MAX_TORQUE_NM
+from articulated_dataset.manipulation.planning import (
+    DEFAULT_STEP_M,
+    DEFAULT_STEP_RAD,
+    Plan,
+    default_target,
+    plan_from_estimate,
+    success_tolerance,
+)
+from articulated_dataset.manipulation.true_object import (
+    PlannableObject,
+    load_true_object,
+    split_row_labels,
+    stored_image,
+)
 
 
 class CapturedObject(PlannableObject):
@@ -35,7 +47,7 @@ class CapturedObject(PlannableObject):
     for planning)."""
 
     def __init__(self, class_name: str, labels: dict):
-        from ..registry import get_class
+        from articulated_dataset.classes.registry import get_class
 
         obj_class = get_class(class_name)
         self.class_name = obj_class.name
@@ -45,7 +57,7 @@ class CapturedObject(PlannableObject):
         self.n_joints = obj_class.n_joints
 
 
-def usable_truth(estimate: Estimate, joint: int, where: str) -> Estimate:
+def usable_truth(estimate: ObjectKinematics, joint: int, where: str) -> ObjectKinematics:
     """The truth labels of ``joint`` with every field planning needs, else a :class:`UserError`
     naming those that are NaN (real captures: not given in their labels file).  A NaN
     ``part_offset`` with a known ``geometry`` places the handle from the geometry."""
@@ -204,7 +216,7 @@ def _json_default(o):
 
 def write_plan_record(path, record: dict) -> None:
     """Write a plan's record as JSON (written to a temporary sibling, then renamed into place)."""
-    from ..safeio import atomic_write_text, ensure_dir
+    from articulated_dataset.core.safeio import atomic_write_text, ensure_dir
 
     ensure_dir(Path(path).parent)
     atomic_write_text(path, json.dumps(record, indent=1, default=_json_default) + "\n")  # full disk: one line

@@ -14,12 +14,19 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from ..errors import UserError
-from ..generation.labels import mat_to_quat
-from ..generation.scene import set_configuration
-from ..rotations import axis_angle_quat, quat_multiply, quat_to_matrix
-from .planning import HANDLE_STANDOFF_M, ZERO_LENGTH, canonical_quat, checked_vector, given_unit
-from .true_object import TrueObject
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.rotations import axis_angle_quat, quat_multiply, quat_to_matrix
+from articulated_dataset.generation.labels import mat_to_quat
+from articulated_dataset.generation.mujoco_scene import set_configuration
+from articulated_dataset.manipulation.planning import (
+    HANDLE_STANDOFF_M,
+    ZERO_LENGTH,
+    canonical_quat,
+    checked_vector,
+    given_unit,
+)
+from articulated_dataset.manipulation.true_object import TrueObject
+
 
 def orbit_viewpoint(centre, angle_rad: float) -> tuple[np.ndarray, np.ndarray]:
     """Camera pose ``(rot, trans)`` (camera -> reference frame) of the reference camera swung by
@@ -41,8 +48,8 @@ class SceneCamera:
     """
 
     def __init__(self, obj: TrueObject, rng: np.random.Generator):
-        from ..generation.render import process_renderer
-        from ..generation.scene import CAMERA_NAME
+        from articulated_dataset.generation.render import process_renderer
+        from articulated_dataset.generation.mujoco_scene import CAMERA_NAME
 
         if obj.config is None:
             raise UserError(f"{obj.class_name}: no generation config, so no camera to render the scene with")
@@ -76,7 +83,7 @@ class SceneCamera:
             model.cam_pos[self.cam_id] = self.cam_pos0
             model.cam_quat[self.cam_id] = self.cam_quat0
         if config.noise != "none":
-            from ..real.noise import get_noise_model
+            from articulated_dataset.core.noise import get_noise_model
 
             depth = get_noise_model(config.noise)(depth, self.K, self.rng)
         if config.depth_quantum_m > 0:
@@ -86,7 +93,7 @@ class SceneCamera:
 
 def depth_centroid(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Mean back-projected point (m, camera frame) of the valid pixels: where the object is."""
-    from ..camera import backproject
+    from articulated_dataset.core.camera import backproject
 
     pts = backproject(depth_m, K)
     if len(pts) == 0:
@@ -100,7 +107,7 @@ def depth_centroid(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
 #: vertical field of view).  Within HANDLE_SEARCH_RADIUS_M of the
 #: view's centre the panel is the plane with most points within HANDLE_PLANE_TOL_M
 #: (RANSAC, HANDLE_RANSAC_ITERATIONS draws); handle candidates stand HANDLE_PROTRUSION_M
-#: (min, max) in front of it (the bar is a 3 cm deep block, urdf_templates/common.xacro).
+#: (min, max) in front of it (the bar is a 3 cm deep block, classes/common.xacro).
 #: The connected candidate region nearest the view's centre that is bar-shaped (at most
 #: HANDLE_MAX_EXTENT_M long and HANDLE_MAX_WIDTH_M wide, at least HANDLE_MIN_PIXELS pixels)
 #: is the handle; the grasp moves to its centroid, HANDLE_STANDOFF_M / 2 back towards the
@@ -169,8 +176,8 @@ def sight_handle(depth_m: np.ndarray, K: np.ndarray, rng: np.random.Generator,
     (:class:`HandleSighting`, camera frame of ``depth_m``: camera z is up), or None; method and
     thresholds: ``HANDLE_*`` above.  The panel's extent is that of every pixel of the image
     within :data:`HANDLE_PLANE_TOL_M` of its plane, along the plane's horizontal direction."""
-    from ..camera import R_CAMERA_TO_OPTICAL
-    from ..errors import import_optional
+    from articulated_dataset.core.camera import R_CAMERA_TO_OPTICAL
+    from articulated_dataset.core.errors import import_optional
 
     ndimage = import_optional("scipy.ndimage", "the handle close-up (manipulation.find_handle)")
 

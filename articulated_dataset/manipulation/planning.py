@@ -6,14 +6,14 @@ configuration (formulas in docs/manipulation.md):
 
 1. :func:`grasp_pose_from_estimate` -- the handle's grasp pose (camera frame) from an axis
    pose, part offset and configuration, by the rule the Xacro templates follow
-   (``urdf_templates/common.xacro``: handles sit :data:`HANDLE_INSET_M` in from the free
+   (``classes/common.xacro``: handles sit :data:`HANDLE_INSET_M` in from the free
    edge, standing :data:`HANDLE_STANDOFF_M` out of the panel's outer face).
 2. :func:`plan_waypoints` -- end-effector poses carrying the grasp along the arc (revolute:
    rotation about the axis line) or the line (prismatic: translation along the axis) from
    the current to the target configuration, every :data:`DEFAULT_STEP_RAD` /
    :data:`DEFAULT_STEP_M`, ending exactly at the target.
 3. :func:`plan_from_estimate` -- both for one joint of an
-   :class:`~articulated_dataset.manipulation.estimates.Estimate`, as a :class:`Plan`.
+   :class:`~articulated_dataset.manipulation.hypotheses.ObjectKinematics`, as a :class:`Plan`.
 
 Poses are ``(7,)`` arrays: position (m, camera frame) + quaternion (w, x, y, z).  Everything
 here is pure (numpy in, numpy out); the execution (:mod:`.execution`) touches MuJoCo state.
@@ -28,19 +28,19 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..errors import UserError
-from ..generation.labels import mat_to_quat
-from ..registry import JOINT_TYPES, PRISMATIC, REVOLUTE
-from ..rotations import axis_angle_quat, quat_multiply, quat_to_matrix
-from ..units import normalise
+from articulated_dataset.classes.registry import JOINT_TYPES, PRISMATIC, REVOLUTE
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.rotations import axis_angle_quat, quat_multiply, quat_to_matrix
+from articulated_dataset.core.units import normalise
+from articulated_dataset.generation.labels import mat_to_quat
 
 if TYPE_CHECKING:
-    from .estimates import Estimate
+    from articulated_dataset.manipulation.hypotheses import ObjectKinematics
 
 log = logging.getLogger(__name__)
 
 # --------------------------------------------------------------------------------------
-# Template constants (mirrors of urdf_templates/common.xacro; tests check the grasp rule
+# Template constants (mirrors of classes/common.xacro; tests check the grasp rule
 # against the compiled handle geoms, so a template change that breaks the rule fails CI)
 # --------------------------------------------------------------------------------------
 
@@ -305,7 +305,7 @@ class Plan:
         }
 
 
-def plan_from_estimate(estimate: Estimate, joint: int, joint_type: str, q_target: float,
+def plan_from_estimate(estimate: ObjectKinematics, joint: int, joint_type: str, q_target: float,
                        step_rad: float = DEFAULT_STEP_RAD, step_m: float = DEFAULT_STEP_M) -> Plan:
     """Grasp (:func:`grasp_pose_from_estimate`) and waypoints (:func:`plan_waypoints`) of
     joint ``joint`` from the estimated current configuration to ``q_target``."""

@@ -15,11 +15,11 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from ..errors import UserError
-from ..format import MASK_FIRST_PART
-from ..generation.labels import HANDLE_SUFFIX, ModelInfo, read_object_labels
-from ..generation.scene import set_configuration
-from .estimates import Estimate
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.format import MASK_FIRST_PART
+from articulated_dataset.generation.labels import HANDLE_SUFFIX, ModelInfo, read_object_labels
+from articulated_dataset.generation.mujoco_scene import set_configuration
+from articulated_dataset.manipulation.hypotheses import ObjectKinematics
 
 #: Gravity is ON (MuJoCo's default -9.81 m/s^2 along the camera's -z, which is the objects'
 #: down): the gripper must also hold the toaster's drop-down door.  Contacts are disabled:
@@ -39,9 +39,9 @@ class PlannableObject:
     (:class:`~articulated_dataset.manipulation.image_plan.CapturedObject`): its labels
     (``self.labels``) as the truth, and its joints' ranges (``self.q_ranges``) for the target."""
 
-    def truth(self) -> Estimate:
+    def truth(self) -> ObjectKinematics:
         L = self.labels
-        return Estimate(L["axis_pose"].astype(np.float64), L["q"].astype(np.float64),
+        return ObjectKinematics(L["axis_pose"].astype(np.float64), L["q"].astype(np.float64),
                         L["part_offset"].astype(np.float64), L["geometry"].astype(np.float64), source="truth")
 
     def clip_target(self, joint: int, q_target: float) -> float:
@@ -71,7 +71,7 @@ class TrueObject(PlannableObject):
 def read_split_labels(split_dir: str | Path) -> tuple[Path, dict, dict]:
     """``(split folder, manifest, {field: (N, ...) array})`` of every label field of a split
     (storage order; ``class`` decoded to str)."""
-    from ..format import Split, one_split_dir
+    from articulated_dataset.format import Split, one_split_dir
 
     split = Split(one_split_dir(split_dir))
     if not split.shards:
@@ -112,9 +112,9 @@ def load_true_object(manifest: dict, labels: dict, camera=None, split_dir: str |
     sha256 is the one the split recorded
     (:func:`~articulated_dataset.generation.objects.stored_object_config`).
     """
-    from ..generation import compile_object, stored_sample
-    from ..generation.objects import stored_object_config
-    from ..generation.templating import object_urdf
+    from articulated_dataset.generation import compile_object, stored_sample
+    from articulated_dataset.generation.objects import stored_object_config
+    from articulated_dataset.generation.templating import object_urdf
 
     config = stored_object_config(manifest.get("config"), split_dir, "plan", hint, urdf=urdf, mesh_root=mesh_root)
     if config.camera.mount != "fixed":
@@ -163,7 +163,7 @@ def handle_geom(obj: TrueObject, joint: int) -> int:
 
 def stored_image(split_dir: str | Path, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(depth_m (H, W) float32, K (3, 3), mask (H, W) uint8)`` of image ``index`` (storage order) of a split."""
-    from ..format import Split, one_split_dir
+    from articulated_dataset.format import Split, one_split_dir
 
     with Split(one_split_dir(split_dir)) as split:
         start = 0

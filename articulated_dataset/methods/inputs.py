@@ -1,0 +1,23 @@
+"""Checks of the depth a method reads, shared by training, prediction and :func:`articulated_dataset.estimate`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from articulated_dataset.core.errors import UserError
+
+
+def valid_depth_images(depth_m: np.ndarray) -> np.ndarray:
+    """(N,) bool: which images of ``depth_m`` (N, H, W) have a valid depth pixel (finite and > 0),
+    the least :func:`articulated_dataset.methods.estimation.check_depth` asks of one image."""
+    d = np.asarray(depth_m)
+    with np.errstate(invalid="ignore"):
+        return (np.isfinite(d) & (d > 0)).reshape(len(d), -1).any(axis=1)
+
+
+def check_split_has_depth(split_dir, n_valid: int, n_images: int) -> None:
+    """One line where none of a split's ``n_images`` selected images has a valid depth pixel (every
+    one empty, zero or NaN): a model would train on, or predict from, nothing."""
+    if n_images and not n_valid:
+        raise UserError(f"{split_dir}: none of its {n_images} images has a valid depth pixel (every depth is "
+                        f"empty, zero or NaN); there is nothing to train on or predict from")

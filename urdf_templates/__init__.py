@@ -1,1 +1,0 @@
-"""Xacro templates, one ``<class>.urdf.xacro`` per object class, plus shared ``common.xacro``."""
