@@ -20,12 +20,14 @@ __version__ = "0.1.0"
 FORMAT_VERSION = "1.0"
 
 
-def estimate(depth_m, K, class_name, mask=None, model="dense", mirror=True, precision="float32"):
+def estimate(depth_m, K, class_name, mask=None, model="dense", mirror=True, precision="float32", *, point=None,
+             box=None):
     """Estimate an object's articulation from one depth image: see
     :func:`articulated_dataset.methods.estimation.estimate` (imports torch on first use)."""
     from articulated_dataset.methods.estimation import estimate as _estimate
 
-    return _estimate(depth_m, K, class_name, mask=mask, model=model, mirror=mirror, precision=precision)
+    return _estimate(depth_m, K, class_name, mask=mask, model=model, mirror=mirror, precision=precision, point=point,
+                     box=box)
 
 
 def load_model(name, class_name=None):

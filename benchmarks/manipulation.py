@@ -302,8 +302,8 @@ def _figure_case(split_dir: Path, joint: int, offset_m: float, title: str) -> di
     from articulated_dataset import manipulation as M
     from articulated_dataset.core.camera import CameraConfig, project
     from articulated_dataset.generation import GenerationConfig
-    from articulated_dataset.generation.render import process_renderer
     from articulated_dataset.generation.mujoco_scene import set_configuration
+    from articulated_dataset.generation.render import process_renderer
 
     path, manifest, labels = M.read_split_labels(split_dir)
     config = GenerationConfig.from_dict(manifest["config"])

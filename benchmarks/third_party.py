@@ -372,11 +372,18 @@ def main(argv=None) -> int:
         return 2
     print(f"model {args.model}, {args.objects} object(s) x {args.images} images per entry, "
           f"metric version {METRIC_VERSION}\n")
-    print("per object (mean over its images)")
-    print(format_table(result["objects"], [("object", lambda r: r["name"]), ("class", lambda r: r["class"])]))
-    print("\nper class (mean over the images of its objects)")
-    print(format_table(result["classes"], [("class", lambda r: r["class"]), ("objects", lambda r: len(r["objects"]))]))
+    print(format_report(result))
     return 0
+
+
+def format_report(result: dict) -> str:
+    """The two tables the script prints for a ``--json`` document: per object, then per class."""
+    return "\n".join([
+        "per object (mean over its images)",
+        format_table(result["objects"], [("object", lambda r: r["name"]), ("class", lambda r: r["class"])]),
+        "\nper class (mean over the images of its objects)",
+        format_table(result["classes"], [("class", lambda r: r["class"]), ("objects", lambda r: len(r["objects"]))]),
+    ])
 
 
 if __name__ == "__main__":

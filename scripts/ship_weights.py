@@ -58,6 +58,30 @@ def _data_command(c: str, ckpt: dict) -> tuple[str, int]:
     return f"artdata generate --class {c} --n {n} --split train --seed {seed} --out {data}", seed
 
 
+def _mixture_commands(c: str, ckpt: dict, name: str) -> tuple[str, str] | None:
+    """For a checkpoint trained on a mixture of splits (``data.splits``): the generate command of
+    every split (its seed, size and framing, read from the split's manifest where it is still
+    there) joined by ``&&``, and the positional-DIR training command with ``--mix-weights``."""
+    splits = (ckpt.get("data") or {}).get("splits")
+    if not splits:
+        return None
+    generates, dirs = [], []
+    for rec in splits:
+        ident = rec["split"]
+        framing = "table4"
+        manifest = Path(rec.get("split_dir", "")) / "manifest.json"
+        if manifest.is_file():
+            framing = json.loads(manifest.read_text(encoding="utf-8"))["config"].get("framing", "table4")
+        out = f"data-seed{ident['seed']}" + ("" if framing == "table4" else f"-{framing}")
+        generates.append(f"artdata generate --class {c} --n {ident['n_objects']} --split train --seed {ident['seed']}"
+                         + ("" if framing == "table4" else f" --framing {framing}") + f" --out {out}")
+        dirs.append(f"{out}/{c}/train")
+    weights = ",".join(f"{rec['weight']:g}" for rec in splits)
+    train = TRAIN_COMMANDS["dense"].format(c=c, file=FILES[name].format(c=c), opts="").replace(
+        f"--data data/{c}/train", " ".join(dirs) + f" --mix-weights {weights}")
+    return " && ".join(generates), train
+
+
 def _previous_record(init_from: str, shipped: list[dict]) -> dict | None:
     """The models.json record (before this run) of the weights a training was continued from, when
     those were shipped weights (found by SHA-256), so the lineage of a continuation is kept."""
@@ -150,6 +174,9 @@ def _training_record(name: str, c: str, ckpt: dict, previous: dict | None = None
         if ckpt.get("device") == "cuda":
             opts += " --device cuda"
         command = TRAIN_COMMANDS["dense"].format(c=c, file=FILES[name].format(c=c), opts=opts).replace("data/", f"{data}/")
+        mixture = _mixture_commands(c, ckpt, name)
+        if mixture is not None:
+            data_command, command = mixture[0], mixture[1] + opts
     else:
         command = TRAIN_COMMANDS["mdn"].format(c=c, file=FILES[name].format(c=c))
     rec = {"data_command": data_command, "command": command, "seed": int(tc.get("seed", 0)),

@@ -1,25 +1,32 @@
-"""Helpers for the generator-core tests: render chosen configurations of one object."""
+"""Shared functions of the tests: render chosen configurations of one object and check its labels,
+the one-line error rule (:func:`assert_one_line_error`), snapshots of folders a refused command
+must leave as they were, crafted files, and the repository's root (:data:`ROOT`)."""
 
 from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import subprocess
 import sys
 from pathlib import Path
 
 import mujoco
 import numpy as np
 
+from articulated_dataset.benchmark.predictions import PREDICTIONS_FORMAT_VERSION
 from articulated_dataset.classes.base import PRISMATIC
 from articulated_dataset.core.camera import CameraConfig, backproject
 from articulated_dataset.core.rotations import quat_to_matrix
 from articulated_dataset.generation import GenerationConfig, object_sample, render_object
 from articulated_dataset.generation.compiled import compile_object as compile_urdf
 from articulated_dataset.generation.labels import MASK_BODY, MASK_FIRST_PART, read_object_labels
-from articulated_dataset.generation.render import process_renderer
 from articulated_dataset.generation.mujoco_scene import ORIGIN_POSE, ObjectPlacer, set_configuration
+from articulated_dataset.generation.render import process_renderer
 from articulated_dataset.generation.templating import object_urdf
 from articulated_dataset.generation.viewpoint import object_in_camera
+
+#: The repository's root folder (tests/ is one level below it, whatever the test file's depth).
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def final_object(class_name: str, index: int = 0, camera: CameraConfig | None = None, split: str = "train", table=None):
@@ -213,34 +220,153 @@ def split_copy_with(src: Path, dst: Path, field: str, value) -> Path:
     return Path(dst)
 
 
-def assert_one_line_error(result, *needles, code: int = 2) -> str:
-    """``result`` (a ``CliRunner`` result) is one line ``artdata: error: ...`` holding every
-    needle, with exit code ``code``; the line."""
-    assert result.exit_code == code, (result.exit_code, result.output, result.exception)
-    lines = result.output.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("artdata: error: "), result.output
+#: The first words of every line the command line prints for a user's mistake.
+ERROR_PREFIX = "artdata: error: "
+#: What every frame of a progress bar shows (its rate), as opposed to an error line.
+PROGRESS_FRAME = "img/s"
+
+
+def assert_one_line_error(result, *needles, code: int = 2, prefix: str = ERROR_PREFIX, ignore: tuple[str, ...] = ()) -> str:
+    """The house rule for a user's mistake: exit code ``code``, nothing on standard output and
+    one line ``artdata: error: ...`` on standard error holding every needle, never a traceback;
+    the line.
+
+    ``result``: a ``CliRunner`` result, a ``subprocess.CompletedProcess`` (captured as text) or
+    an ``(exit code, stdout, stderr)`` triple (a script's ``main()`` and ``capsys``).  ``prefix``:
+    the line's first words (a script's own ``NAME: error: ``).  ``ignore``: substrings of
+    standard-error lines left out of the count (a progress bar's frames, a warning a command logs
+    before it stops).
+    """
+    if isinstance(result, tuple):
+        (found, out, err), exc = result, None
+    elif isinstance(result, subprocess.CompletedProcess):
+        found, out, err, exc = result.returncode, result.stdout, result.stderr, None
+    else:
+        found, out, err, exc = result.exit_code, result.stdout, result.stderr, result.exception
+    out, err = out or "", err or ""
+    assert found == code, (found, out, err, exc)
+    assert out == "", (out, err)
+    assert "Traceback" not in err, err
+    frames = err.replace("\r", "\n").splitlines()  # a progress bar redraws its line after a carriage return
+    lines = [ln for ln in frames if ln.strip() and not any(s in ln for s in ignore)]
+    assert len(lines) == 1 and lines[0].startswith(prefix), err
     for needle in needles:
-        assert needle in lines[0], lines[0]
+        assert needle in lines[0], (needle, lines[0])
     return lines[0]
 
 
-def tree_snapshot(root: Path) -> dict:
-    """Every entry under ``root`` (links not followed): file digests, link targets, folders."""
+def run_cli(*args):
+    """``artdata ARGS`` run in this process (arguments converted to text); the ``CliRunner`` result.
+    A traceback is never the outcome: an exception other than the exit is a failure here."""
+    from click.testing import CliRunner
+
+    from articulated_dataset.cli import main
+
+    result = CliRunner().invoke(main, [str(a) for a in args])
+    assert result.exception is None or isinstance(result.exception, SystemExit), result.output
+    return result
+
+
+def edit_json(path: Path, edit) -> None:
+    """The JSON file at ``path`` rewritten with ``edit(its value)`` applied in place."""
+    import json
+
+    value = json.loads(path.read_text())
+    edit(value)
+    path.write_text(json.dumps(value))
+
+
+def tree_snapshot(root: Path, *, skip: tuple[str, ...] = (), digests: bool = True, times: bool = False) -> dict:
+    """Every entry under ``root`` (links not followed, special files not opened): file digests
+    (or, with ``digests=False``, sizes and modification times: cheap for large read-only inputs),
+    link targets, folders.  ``skip``: names of folders directly under ``root`` left out;
+    ``times``: each file's modification time recorded beside its digest (a rewrite of the same
+    bytes is a change)."""
     import hashlib
     import os
+    import stat
 
     out = {}
     for folder, dirs, files in os.walk(root):
+        if Path(folder) == Path(root):
+            dirs[:] = [d for d in dirs if d not in skip]
         for name in dirs + files:
             p = Path(folder) / name
             rel = p.relative_to(root).as_posix()
-            if p.is_symlink():
+            st = p.lstat()
+            if stat.S_ISLNK(st.st_mode):
                 out[rel] = ("link", os.readlink(p))
-            elif p.is_dir():
+            elif stat.S_ISDIR(st.st_mode):
                 out[rel] = ("dir",)
+            elif not stat.S_ISREG(st.st_mode):
+                out[rel] = ("special", stat.S_IFMT(st.st_mode))
+            elif digests:
+                out[rel] = ("file", hashlib.sha256(p.read_bytes()).hexdigest()) + ((st.st_mtime_ns,) if times else ())
             else:
-                out[rel] = ("file", hashlib.sha256(p.read_bytes()).hexdigest())
+                out[rel] = ("file", st.st_size, st.st_mtime_ns)
     return out
+
+
+def assert_unchanged(root: Path, before: dict, **snapshot_options) -> None:
+    """``root`` as :func:`tree_snapshot` (with the same options) recorded it in ``before``."""
+    after = tree_snapshot(root, **snapshot_options)
+    changed = sorted(set(after) ^ set(before)) + sorted(k for k in after if k in before and after[k] != before[k])
+    assert not changed, f"{root}: changed by a refused command: {changed[:5]}"
+
+
+#: What an injected payload would create if it were ever evaluated.
+PWNED = "PWNED"
+
+
+class GuardedFolder:
+    """A test's folder holding ``victim/`` (canary files that must never change) beside its inputs
+    and outputs: :meth:`freeze` records every file, :meth:`assert_untouched` checks that nothing
+    changed and that no payload ran (the processed-URDF cache, ``cache/``, may change)."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        self.victim = root / "victim"
+        (self.victim / "x" / "train").mkdir(parents=True)
+        (self.victim / "canary.txt").write_text("canary")
+        (self.victim / "x" / "train" / "keep.txt").write_text("keep")
+        self.before = None
+
+    def freeze(self) -> None:
+        self.before = tree_snapshot(self.root, skip=("cache",))
+
+    def assert_untouched(self) -> None:
+        assert not list(self.root.rglob(PWNED)) and not Path(PWNED).exists(), "a payload ran"
+        assert_unchanged(self.root, self.before, skip=("cache",))
+
+
+def raw_write(path, groups, method="raw", version=PREDICTIONS_FORMAT_VERSION, group_attrs=None):
+    """Write a predictions file with h5py directly (no validation), to build broken files
+    (``method`` or ``version`` None: the attribute left out)."""
+    import h5py
+
+    with h5py.File(path, "w") as f:
+        if version is not None:
+            f.attrs["format_version"] = version
+        if method is not None:
+            f.attrs["method"] = method
+        for cls, arrays in groups.items():
+            g = f.create_group(cls)
+            for k, v in arrays.items():
+                g.create_dataset(k, data=v)
+            for k, v in (group_attrs or {}).get(cls, {}).items():
+                g.attrs[k] = v
+    return path
+
+
+def png_header(width: int, height: int, bit_depth: int) -> bytes:
+    """A greyscale PNG declaring width x height pixels, with (almost) no pixel data."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+    ihdr = struct.pack(">IIBBBBB", width, height, bit_depth, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"")) + chunk(b"IEND", b"")
 
 
 def flap_split_outside(root: Path, split: str = "train") -> tuple[Path, Path]:

@@ -1,4 +1,4 @@
-"""Helpers for tests that ingest real captures: write one capture folder entry."""
+"""Shared functions of the tests that ingest real captures: write one capture folder entry."""
 
 from __future__ import annotations
 

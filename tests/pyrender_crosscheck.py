@@ -1,6 +1,6 @@
 """Render one generated object with pyrender (from yourdfpy's collision scene) and with
 MuJoCo, and print JSON statistics of their agreement.  Run as a script by
-tests/test_render_crosscheck.py as ``python pyrender_crosscheck.py OBJECT_INDEX CLASS...`` (a subprocess keeps the two renderers' GL contexts apart).
+tests/generation/test_render_crosscheck.py as ``python pyrender_crosscheck.py OBJECT_INDEX CLASS...`` (a subprocess keeps the two renderers' GL contexts apart).
 
 pyrender's IntrinsicsCamera puts pixel centres at half-integer coordinates, ours (OpenCV)
 at integers: its principal point is ours + 0.5 px.

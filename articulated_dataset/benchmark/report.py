@@ -282,7 +282,7 @@ class Report:
 
     def truth_sets(self) -> dict[str, dict]:
         """``{class: {split, path, n_images}}`` of the truth used for each scored class."""
-        out = {}
+        out: dict[str, dict] = {}
         for r in self.rows:
             out.setdefault(r.class_name, {"split": r.split, "path": r.truth_path, "n_images": r.n_truth})
         return out
@@ -302,7 +302,7 @@ class Report:
             for m in self.metrics:
                 mean, std = r.metrics.get(m.name, (None, None))
                 vals += [_cell(mean), _cell(std)] + ([_cell(r.sem.get(m.name))] if v3 else [])
-            ident = [_text_cell(t) for t in (r.class_name, r.method, r.split, r.truth_path)]
+            ident: list = [_text_cell(t) for t in (r.class_name, r.method, r.split, r.truth_path)]
             ident += [r.n_scored, r.n_truth] + ([r.n_objects] if v3 else [])
             writer.writerow(ident + [r.configuration_units, self.metric_version] + vals)
         return buf.getvalue()
@@ -380,7 +380,8 @@ class Report:
                     return "-"
                 return f"{mean:.3f}" if m.units == "fraction" else _pm(mean, std)
 
-            groups, current = [], []
+            groups: list[list[MetricSpec]] = []
+            current: list[MetricSpec] = []
             for m in std_metrics:  # wrap into blocks that fit the width (all in one block when wide)
                 trial = current + [m]
                 need = width + sum(2 + max(len(title(x)), 8, *(len(std_cell(r, x)) for r in self.rows)) for x in trial)

@@ -189,7 +189,7 @@ def score(predictions, truth_path: str | Path, split: str | None = None,
         raise UserError("no predictions file given")
     loaded = [(str(p), *read_predictions(p)) for p in paths]
     classes = sorted({c for _, _, per_class in loaded for c in per_class}, key=_class_order)
-    sources = {}
+    sources: dict[str, str] = {}
     for path, _, per_class in loaded:
         for c in per_class:
             sources.setdefault(c, path)

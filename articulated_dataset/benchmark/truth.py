@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from articulated_dataset.core.errors import DataFormatError, UserError
+from articulated_dataset.core.errors import DataFormatError, UserError, option
 from articulated_dataset.format import Split, splits_by_class
 
 #: Truth split chosen when a class has several and no ``split`` is given.
@@ -124,7 +124,7 @@ def select_truth(truth_path: str | Path, classes, split: str | None = None,
             chosen = DEFAULT_SPLIT
         else:
             raise UserError(f"class {cls!r} has several splits under {truth_path} ({', '.join(sorted(splits))}); "
-                            f"choose one with --split")
+                            f"choose one with {option('split')}")
         out[cls] = load_truth_set(splits[chosen])
     return out
 

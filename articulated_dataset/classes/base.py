@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.core.tables import TABLE_NAMES, SamplingTable
 from articulated_dataset.format.schema import JOINT_TYPES, PRISMATIC, REVOLUTE  # noqa: F401  (declared with the format)
 
@@ -102,12 +102,12 @@ class ObjectClass:
             if self.varied_table is None:
                 having = ", ".join(builtin_classes_with_varied_template())
                 raise UserError(f"class {self.name!r} has no varied table (classes with one: {having or 'none'}); "
-                                f"give --table paper, realistic or a table file")
+                                f"give {option('table')} paper, realistic or a table file")
             return self.varied_table
         if name == "realistic":
             if self.realistic_table is None:
                 raise UserError(f"class {self.name!r} has no realistic table (the built-in classes have one); "
-                                f"give --table paper or a table file")
+                                f"give {option('table')} paper or a table file")
             return self.realistic_table
         raise UserError(f"unknown sampling table {name!r}; choose from: {', '.join(TABLE_NAMES)} "
                         f"(or a .json/.toml table file)")
@@ -161,7 +161,7 @@ def builtin_template(name: str) -> Path:
     """A built-in Xacro template by file name: ``<class>.urdf.xacro`` and
     ``<class>_varied.urdf.xacro`` live in the class's folder ``classes/<class>/``."""
     folder = name.split(".", 1)[0].removesuffix(VARIED_TEMPLATE_SUFFIX)
-    return Path(str(resources.files("articulated_dataset.classes").joinpath(folder, name)))
+    return Path(str(resources.files("articulated_dataset.classes").joinpath(folder).joinpath(name)))
 
 
 def builtin_classes_with_varied_template() -> list[str]:

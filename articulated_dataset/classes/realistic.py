@@ -153,7 +153,7 @@ def markdown_table(table: SamplingTable) -> str:
     """A realistic table's size classes as Markdown rows: weight, sizes (m) and spread."""
     rows = ["| size class | weight | depth (m) | width (m) | height (m) | jitter sd d/w/h (mm) | corr dw/dh/wh |",
             "|---|---|---|---|---|---|---|"]
-    for c, p in zip(table.shape.components, table.shape.probabilities):
+    for c, p in zip(table.shape.components, table.shape.probabilities):  # type: ignore[union-attr]  # a realistic table has a shape
         sizes = [", ".join(f"{v:.3f}" for v in c.sizes_m[k]) for k in GEOMETRY_KEYS]
         sd = "/".join(f"{1000 * c.std_m[k]:g}" for k in GEOMETRY_KEYS)
         corr = "/".join(f"{v:g}" for v in (c.corr[0][1], c.corr[0][2], c.corr[1][2]))

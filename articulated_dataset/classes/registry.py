@@ -17,7 +17,7 @@ import json
 import math
 
 from articulated_dataset.classes.base import JointSpec, ObjectClass  # noqa: F401  (re-exported: the registry's types)
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.core.tables import SamplingTable
 from articulated_dataset.format.schema import JOINT_TYPES, PRISMATIC, REVOLUTE  # noqa: F401  (declared with the format)
 
@@ -50,7 +50,7 @@ def register(obj_class: ObjectClass, *, definition: dict | None = None) -> Objec
     if definition is not None:
         _load_builtins()
         if obj_class.name in _REGISTRY:
-            raise UserError(f"class name {obj_class.name!r} is a built-in class; pass another --class-name")
+            raise UserError(f"class name {obj_class.name!r} is a built-in class; pass another {option('urdf_class_name')}")
         _THIRD_PARTY[_definition_key(definition)] = obj_class
         return obj_class
     if obj_class.name in _REGISTRY and _REGISTRY[obj_class.name] != obj_class:

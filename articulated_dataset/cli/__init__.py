@@ -11,9 +11,11 @@ jax: MuJoCo is imported only by the commands of :data:`MUJOCO_COMMANDS` when the
 Errors: a :class:`~articulated_dataset.core.errors.UserError` (bad option, bad file, existing
 output...) and every click usage error (unknown option, bad value, missing option or
 argument, bad choice) are printed as one line ``artdata: error: ...`` and exit with code 2;
-anything else is a bug and keeps its traceback.  A machine that cannot render offscreen (no
-EGL/OSMesa) gets one line and exit code 3 from the commands that render; the others
-(``score``, ``info``, ``verify``, ...) work without a GL library.  A MuJoCo release outside the
+anything else is a bug and keeps its traceback.  A library message names the quantities it is
+about (:func:`~articulated_dataset.core.errors.option`); the line shows each as the flag of the
+command that ran (:func:`~articulated_dataset.cli.options.error_message`).  A machine that
+cannot render offscreen (no EGL/OSMesa) gets one line and exit code 3 from the commands that
+render; the others (``score``, ``info``, ``verify``, ...) work without a GL library.  A MuJoCo release outside the
 supported range (:mod:`articulated_dataset.core.mujoco_support`) gets one line naming the range and exit
 code 3 from the commands of :data:`MUJOCO_COMMANDS`.  A full disk (or standard
 output on one) is also one line and exit code 3.
@@ -31,6 +33,7 @@ import sys
 import click
 
 from articulated_dataset import __version__
+from articulated_dataset.cli.options import error_message
 from articulated_dataset.core.errors import RenderError, UserError
 from articulated_dataset.core.mujoco_support import installed_mujoco_version, unsupported_mujoco
 
@@ -41,7 +44,7 @@ EXIT_ENVIRONMENT_ERROR = 3
 #: one line and :data:`EXIT_ENVIRONMENT_ERROR`, not a traceback.
 FULL_OUTPUT_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 #: Every subcommand and the module of this package that defines it
-#: (tests/test_import_light.py checks it against the modules' ``COMMANDS``).
+#: (tests/cli/test_import_light.py checks it against the modules' ``COMMANDS``).
 COMMAND_MODULES = {
     "baseline": "baseline", "card": "card", "estimate": "estimate", "export": "export", "export-model": "export_model",
     "generate": "generate",
@@ -61,7 +64,7 @@ _GL_DISABLED = "disable"
 MUJOCO_GL_PROBLEM: str | None = None
 
 
-def _one_line(text: str) -> str:
+def _one_line(text: object) -> str:
     return " ".join(str(text).split())
 
 
@@ -76,7 +79,8 @@ def _usage_error_line(exc: click.UsageError, args=(), group: click.Group | None 
     elif group is not None:
         command: click.Command = group
         for a in args or ():
-            sub = command.get_command(None, a) if isinstance(command, click.Group) and isinstance(a, str) else None
+            # (click's Group.get_command looks the name up without using the context)
+            sub = command.get_command(None, a) if isinstance(command, click.Group) and isinstance(a, str) else None  # type: ignore[arg-type]
             if sub is not None:
                 words.append(a)
                 command = sub
@@ -84,7 +88,23 @@ def _usage_error_line(exc: click.UsageError, args=(), group: click.Group | None 
     return f"artdata: error: {_one_line(exc.format_message())} (see {where} --help)"
 
 
+#: The key of ``ctx.meta`` (which a command shares with its subcommands) that holds the command that
+#: runs (:class:`_Context`): a library error names the quantities it was given as that command's flags.
+_RUNNING = "articulated_dataset.cli.running"
+
+
+class _Context(click.Context):
+    """A command's context that records its command as the one that runs (:data:`_RUNNING`); the
+    innermost one, a subcommand's, is recorded last."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.meta[_RUNNING] = self.command
+
+
 class _Group(click.Group):
+    context_class = _Context
+
     def list_commands(self, ctx):
         return sorted(set(self.commands) | set(COMMAND_MODULES))
 
@@ -103,7 +123,7 @@ class _Group(click.Group):
                 click.echo(exc.ctx.get_help())
                 code = 0
             else:  # a group without its subcommand
-                names = ", ".join(exc.ctx.command.list_commands(exc.ctx)) if exc.ctx is not None else ""
+                names = ", ".join(exc.ctx.command.list_commands(exc.ctx)) if exc.ctx is not None else ""  # type: ignore[attr-defined]  # a group
                 click.echo(_usage_error_line(click.UsageError(f"missing command (one of: {names})", exc.ctx)), err=True)
                 code = EXIT_USER_ERROR
         except click.UsageError as exc:
@@ -125,7 +145,7 @@ class _Group(click.Group):
         try:
             return super().invoke(ctx)
         except UserError as exc:
-            click.echo(f"artdata: error: {_one_line(exc)}", err=True)
+            click.echo(f"artdata: error: {_one_line(error_message(exc, ctx.meta.get(_RUNNING)))}", err=True)
             ctx.exit(EXIT_USER_ERROR)
         except RenderError as exc:
             click.echo(f"artdata: error: {_one_line(exc)}", err=True)
@@ -181,7 +201,10 @@ def _import_mujoco() -> None:
 def _prepared(cmd: click.Command) -> click.Command:
     """``cmd`` with MuJoCo imported before it runs (commands of :data:`MUJOCO_COMMANDS`), stopping
     with a one-line exit-3 message when that MuJoCo release is not supported, or when MuJoCo cannot
-    render (commands of :data:`RENDERING_COMMANDS`); checked when it runs, so ``--help`` stays light."""
+    render (commands of :data:`RENDERING_COMMANDS`); checked when it runs, so ``--help`` stays light.
+    Each of its commands records itself as the one that runs (:class:`_Context`)."""
+    for leaf in _leaves(cmd):
+        leaf.context_class = _Context
     if cmd.name in MUJOCO_COMMANDS:
         for leaf in _leaves(cmd):
             leaf.callback = _with_mujoco(leaf.callback, cmd.name)

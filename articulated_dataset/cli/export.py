@@ -16,7 +16,7 @@ def _distinct_targets(sources, targets) -> None:
     """Refuse, before anything is written, two sources with one output folder (two class
     folders whose manifests name the same class, e.g. a copy ``data/drawer_backup``): the
     second refused after the first was written, or with --overwrite silently replaced it."""
-    seen = {}
+    seen: dict[str, object] = {}
     for source, target in zip(sources, targets):
         key = os.path.normpath(os.path.abspath(target))
         if key in seen:

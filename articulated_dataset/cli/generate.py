@@ -128,7 +128,8 @@ _ADDRESS = re.compile(r"^(auto|(ray://)?[^\s:/]+:\d+)$")
 @click.option("--rgb", is_flag=True,
               help="Also render colour images (same camera; randomised materials, textures and lights), stored as "
                    "the optional field rgb (format 1.2); docs/generation.md.")
-@click.option("--noise", type=_NoiseChoice(), default="none", show_default=True, help="Depth sensor-noise model.")
+@click.option("--noise", type=_NoiseChoice(), default="none", show_default=True,
+              help="Depth sensor-noise model (docs/real_data.md, section \"Sensor noise models\").")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run of the same command.")
 @click.option("--overwrite", is_flag=True, help="Replace existing data of this class and split (the new split is built beside it and swapped in when complete).")
 @click.option("--mean", "mean_object", is_flag=True, help="Render the class's mean object (centre of every range) into OUT/<class>/mean/.")

@@ -1,11 +1,55 @@
 """Option types and set-up that several commands share (no command of its own): the
-``--class`` type and torch's preparation for the commands that run a network."""
+``--class`` type, torch's preparation for the commands that run a network, and the flags that
+library messages show (:func:`error_message`)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import click
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import QuantityMessage, UserError, render_message
+
+#: The flag of each quantity whose flag is not its name with dashes (``max_objects``:
+#: ``--max-objects``), for a library message that names it (:func:`~articulated_dataset.core.errors.option`)
+#: where the command that ran has no option of that name: a message about another command's option.
+#: tests/cli/test_option_names.py checks it against every command's options.
+FLAGS = {
+    "as_json": "--json", "block_px": "--block", "camera_mount": "--camera", "camera_path": "--camera",
+    "class_name": "--class", "csv_path": "--csv", "data_option": "--data", "fmt": "--format",
+    "images_per_object": "--images", "intrinsics_path": "--intrinsics", "joint_names": "--joints",
+    "json_path": "--json", "labels_path": "--labels", "like_path": "--like", "mask_path": "--mask",
+    "mean_dir": "--mean-object", "mean_object": "--mean", "model_kind": "--model", "model_path": "--model",
+    "n_objects": "--n", "n_samples": "--n", "out_path": "--out", "out_root": "--out",
+    "per_sample_dir": "--per-sample", "predictions_path": "--predictions", "tables": "--table",
+    "test_dir": "--test", "train_dir": "--train", "truth_path": "--truth", "urdf_class_name": "--class-name",
+    "urdf_mesh_root": "--mesh-root", "urdf_path": "--urdf", "urdf_scale": "--scale",
+}
+
+
+def option_flag(param: click.Parameter) -> str | None:
+    """The flag that names an option in messages: its first long flag (``--out`` of ``-o/--out``)."""
+    if not isinstance(param, click.Option) or not param.opts:
+        return None
+    return next((o for o in param.opts if o.startswith("--")), param.opts[0])
+
+
+def flag_of(command: click.Command | None) -> Callable[[str], str]:
+    """The flag of each quantity a message names: the option of that name of ``command``, else
+    :data:`FLAGS`, else the name with dashes."""
+    own = {p.name: flag for p in (command.params if command is not None else ()) if (flag := option_flag(p))}
+    return lambda name: own.get(name) or FLAGS.get(name) or "--" + name.replace("_", "-")
+
+
+def error_message(exc: BaseException, command: click.Command | None = None) -> str:
+    """``exc``'s message as the command line shows it: each quantity it names as a flag of
+    ``command`` (by default the command that runs, :func:`flag_of`)."""
+    if not isinstance(exc, QuantityMessage):
+        return str(exc)
+    if command is None:
+        ctx = click.get_current_context(silent=True)
+        command = ctx.command if ctx is not None else None
+    return render_message(exc.message, flag_of(command))
 
 
 class ClassChoice(click.ParamType):
@@ -27,7 +71,7 @@ class ClassChoice(click.ParamType):
         try:
             return get_class(value).name
         except UserError as exc:
-            self.fail(str(exc), param, ctx)
+            self.fail(error_message(exc, ctx.command if ctx is not None else None), param, ctx)
 
 
 #: ``--no-mirror`` of ``predict`` and ``estimate`` (the dense model's refinement without its mirror image:

@@ -15,6 +15,7 @@ from articulated_dataset.cli.options import (
     split_folder,
 )
 from articulated_dataset.core.errors import UserError
+from articulated_dataset.methods.prompts import PROMPT_KINDS
 
 
 @click.command("predict")
@@ -32,7 +33,11 @@ from articulated_dataset.core.errors import UserError
               help="MDN: move each axis origin to the segmented depth point most likely under the mixture (paper, Table 2).")
 @click.option("--object-mask", is_flag=True,
               help="Dense model: keep only the object's pixels (the split's mask codes), as a robot's segmentation "
-                   "would; for splits made with --scene or --occluders.")
+                   "would; for splits made with --scene or --occluders (the same as --prompt mask).")
+@click.option("--prompt", type=click.Choice(PROMPT_KINDS), default=None,
+              help="Dense model: segment each image's object from the prompt a robot would have, simulated from "
+                   "the split's mask: a click (point), a detector's box (box), the mask itself, or none "
+                   "(docs/robot_view.md).")
 @no_mirror_option
 @precision_option
 @click.option("--method", default=None, help="Method name in the file and the score table (default: dense, MDN or MDN-small).")
@@ -44,7 +49,7 @@ from articulated_dataset.core.errors import UserError
                    "(default: one per thread for splits of 4,096 images or more, else 1: this process).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing --out file.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or summary.")
-def predict_cmd(model_path, data_dir, data_option, out, as_class, estimate, snap_to_cloud, object_mask, no_mirror, precision, method, batch_size,
+def predict_cmd(model_path, data_dir, data_option, out, as_class, estimate, snap_to_cloud, object_mask, prompt, no_mirror, precision, method, batch_size,
                 device, threads, workers, overwrite, quiet):
     """Predict axis poses, configurations, geometry and the full mixture for every image of the split
     in DIR (a split folder, e.g. data/cabinet/test)."""
@@ -69,7 +74,7 @@ def predict_cmd(model_path, data_dir, data_option, out, as_class, estimate, snap
     t0 = time.perf_counter()
     run = predict_to_file(model_path, data, out, estimate=estimate, snap_to_cloud=snap_to_cloud, object_mask=object_mask,
                           method=method, batch_size=batch_size, device=device, mirror=not no_mirror,
-                          workers=workers, precision=precision, progress=not quiet, as_class=as_class)
+                          workers=workers, precision=precision, progress=not quiet, as_class=as_class, prompt=prompt)
     if not quiet:
         click.echo(f"{out}: {run.n_images} {run.class_name} images predicted by {run.method}"
                    f"{' (snapped to the cloud)' if snap_to_cloud else ''} in {time.perf_counter() - t0:.1f} s")

@@ -22,7 +22,7 @@ def parse_index_list(text: str | None, what: str) -> list[int] | None:
     """``"0,3,5-7"`` -> [0, 3, 5, 6, 7]; None stays None."""
     if text is None:
         return None
-    out = []
+    out: list[int] = []
     for part in text.split(","):
         part = part.strip()
         if not part:

@@ -8,7 +8,13 @@ from pathlib import Path
 
 import click
 
-from articulated_dataset.cli.options import ClassChoice, prepare_torch, resolve_split_folders, split_folders
+from articulated_dataset.cli.options import (
+    ClassChoice,
+    error_message,
+    prepare_torch,
+    resolve_split_folders,
+    split_folders,
+)
 from articulated_dataset.core.errors import UserError
 
 
@@ -30,7 +36,7 @@ from articulated_dataset.core.errors import UserError
 @click.option("--origin-weight", type=float, default=None,
               help="dense: multiplies the axis-origin loss terms (default 1).")
 @click.option("--noise", default=None,
-              help="dense: a depth-noise model (kinect2) applied to --noise-fraction of each batch's images, "
+              help="dense: a depth-noise model (kinect2, d435 or azure-kinect) applied to --noise-fraction of each batch's images, "
                    "drawn afresh every epoch (docs/real_data.md).")
 @click.option("--noise-fraction", type=float, default=None, help="dense: the share of each batch --noise corrupts (default 0.5).")
 @click.option("--val-fraction", type=float, default=None,
@@ -63,7 +69,7 @@ def train_cmd(model_kind, class_name, data_dirs, data_option, out, small, epochs
     try:
         run = train_model(model_kind, settings, resume=resume, progress=not quiet, echo=None if quiet else click.echo)
     except TrainingInterrupted as exc:
-        raise click.ClickException(str(exc)) from None
+        raise click.ClickException(error_message(exc)) from None
     if not quiet:
         click.echo(f"{out}: {run.summary} in {time.perf_counter() - t0:.0f} s")
 

@@ -87,14 +87,14 @@ INTRINSICS_PRESETS: dict[str, CameraCalibration] = {
 
 def parse_resolution(text: str) -> tuple[int, int]:
     """``"WxH"`` -> ``(W, H)``; anything else (or a zero side) is a :class:`UserError`."""
-    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.core.errors import UserError, option
 
     m = re.fullmatch(r"\s*(\d{1,6})\s*[xX]\s*(\d{1,6})\s*", str(text))
     if m is None:
-        raise UserError(f"--resolution must be WIDTHxHEIGHT in pixels (e.g. 192x108), got {str(text)[:40]!r}")
+        raise UserError(f"{option('resolution')} must be WIDTHxHEIGHT in pixels (e.g. 192x108), got {str(text)[:40]!r}")
     w, h = int(m.group(1)), int(m.group(2))
     if w <= 0 or h <= 0:
-        raise UserError(f"--resolution must have positive sides, got {w}x{h}")
+        raise UserError(f"{option('resolution')} must have positive sides, got {w}x{h}")
     return w, h
 
 
@@ -169,23 +169,24 @@ def camera_from_options(width: int | None, height: int | None, resolution: str |
                         intrinsics: str | None, mount: str = "fixed") -> CameraConfig:
     """The camera of ``--width/--height`` or ``--resolution``, ``--vfov`` or ``--intrinsics``
     and ``--camera``; contradictions and impossible values are one-line UserErrors."""
-    from articulated_dataset.core.errors import UserError
+    from articulated_dataset.core.errors import UserError, option
 
     if resolution is not None:
         if width is not None or height is not None:
-            raise UserError("give either --resolution or --width/--height, not both")
+            raise UserError(f"give either {option('resolution')} or {option('width')}/{option('height')}, not both")
         width, height = parse_resolution(resolution)
     if intrinsics is not None:
         if vfov is not None:
-            raise UserError("--vfov is for the paper's camera; --intrinsics gives the sensor's own field of view")
+            raise UserError(f"{option('vfov')} is for the paper's camera; {option('intrinsics')} gives the sensor's own "
+                            "field of view")
         native = INTRINSICS_PRESETS[intrinsics]
         width = native.width_px if width is None else width
         height = native.height_px if height is None else height
     width = DEFAULT_WIDTH_PX if width is None else width
     height = DEFAULT_HEIGHT_PX if height is None else height
-    for name, px in (("--width", width), ("--height", height)):
+    for name, px in ((option("width"), width), (option("height"), height)):
         if px > MAX_IMAGE_SIDE_PX:
-            name = "--resolution" if resolution is not None else name
+            name = option("resolution") if resolution is not None else name
             raise UserError(f"{name} {px} px is larger than the renderer's largest image side ({MAX_IMAGE_SIDE_PX} px)")
     try:
         return CameraConfig(width, height, KINECT_V2_VFOV_DEG if vfov is None else vfov, intrinsics=intrinsics, mount=mount)

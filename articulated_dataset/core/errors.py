@@ -2,12 +2,58 @@
 
 ``UserError`` (and subclasses) mean "the input is wrong": the CLI prints its message on
 one line and exits with code 2.  Anything else is a bug and propagates with a traceback.
+
+Only the command line knows option names.  A message names a quantity that the user set with
+:func:`option` (``f"{option('max_objects')} must be positive, got {n}"``): ``str()`` of the error
+shows the bare name, as the library's callers spell it (``max_objects must be positive, got 0``),
+and the command line shows the flag of the command that ran (``--max-objects must be positive,
+got 0``) with :func:`render_message`.  :attr:`QuantityMessage.message` keeps the marks, for a
+message that quotes another (``raise UserError(f"{path}: {exc.message}")``).
 """
 
 from __future__ import annotations
 
+import re
+from collections.abc import Callable
 
-class UserError(Exception):
+#: Encloses a quantity's name in a message (:func:`option`): the ASCII unit separator, which no
+#: message, path or value that a message quotes contains.
+OPTION_MARK = "\x1f"
+#: A quantity marked by :func:`option`; group 1 is its name.
+_MARKED = re.compile(f"{OPTION_MARK}([A-Za-z_][A-Za-z0-9_]*){OPTION_MARK}")
+
+
+def option(name: str) -> str:
+    """The quantity ``name`` (a parameter name such as ``"max_objects"``) in an error message:
+    ``str()`` of the error shows ``name``, the command line the flag that sets it."""
+    if not name.isidentifier():
+        raise ValueError(f"not a quantity name: {name!r}")
+    return f"{OPTION_MARK}{name}{OPTION_MARK}"
+
+
+def render_message(message: str, flag_of: Callable[[str], str]) -> str:
+    """``message`` with each quantity marked by :func:`option` replaced by ``flag_of(name)``."""
+    return _MARKED.sub(lambda m: flag_of(m.group(1)), message)
+
+
+def _bare_name(name: str) -> str:
+    return name
+
+
+class QuantityMessage(Exception):
+    """An exception whose message may name quantities marked by :func:`option`: ``str()`` shows
+    their names, :attr:`message` keeps the marks (the command line shows each as its flag)."""
+
+    def __str__(self) -> str:
+        return render_message(super().__str__(), _bare_name)
+
+    @property
+    def message(self) -> str:
+        """The message with its quantities still marked by :func:`option`."""
+        return super().__str__()
+
+
+class UserError(QuantityMessage):
     """A problem with the user's input (bad option, bad file, existing output...)."""
 
 

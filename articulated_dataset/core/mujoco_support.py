@@ -2,7 +2,7 @@
 
 Generation is tested with MuJoCo :data:`MUJOCO_MIN_VERSION` up to, not including,
 :data:`MUJOCO_BELOW_VERSION`: pyproject.toml declares the same range
-(:data:`MUJOCO_REQUIREMENT`; tests/test_mujoco_version.py checks that they agree).  Older
+(:data:`MUJOCO_REQUIREMENT`; tests/core/test_mujoco_version.py checks that they agree).  Older
 releases cannot build the scenes: 3.3 and 3.4 refuse the integer light type that
 ``MjSpec.add_light`` is given and do not render the point light of ``--rgb``.  What is identical
 between releases of the range is stated in docs/generation.md (Reproducibility).

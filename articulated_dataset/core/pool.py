@@ -22,7 +22,7 @@ import os
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 
 log = logging.getLogger(__name__)
 
@@ -168,7 +168,7 @@ class ProcessExecutor:
         """``fn(task)`` for each task, yielded as the worker processes finish them; ``progress`` is called with each
         result's image count."""
         died = ("a generation worker process died (killed or out of memory?); completed shards are kept, "
-                "continue with --resume")
+                f"continue with {option('resume')}")
         for result in process_map(fn, tasks, self.workers, died=died):
             if progress is not None:
                 progress(result[1]["n_images"])
@@ -283,7 +283,11 @@ CPUS_PER_TASK = 1
 #: Tasks in flight without --workers (Ray queues them until CPUs are free; a bound keeps a
 #: split of millions of shards from being submitted at once).
 DEFAULT_TASKS_IN_FLIGHT = 1024
-RAY_INSTALL_HELP = "--executor ray needs Ray: pip install 'articulated_dataset[ray]' (or pip install 'ray>=2.9')"
+#: How to install Ray, which ``--executor ray`` needs.
+RAY_INSTALL_HELP = (f"{option('executor')} ray needs Ray: pip install 'articulated_dataset[ray]' "
+                    "(or pip install 'ray>=2.9')")
+#: Ray's command that starts a cluster's head node and prints its address.
+RAY_HEAD_COMMAND = "ray start --head"
 #: Seconds to wait for a TCP connection to a Ray cluster's address before ``ray.init`` (which
 #: retries an address where nothing listens without end).
 RAY_CONNECT_TIMEOUT_S = 10.0
@@ -338,7 +342,7 @@ def check_reachable(address: str | None, timeout_s: float = RAY_CONNECT_TIMEOUT_
             pass
     if len(head) < HTTP2_FRAME_HEADER_BYTES or head[HTTP2_FRAME_TYPE_BYTE] != HTTP2_SETTINGS_FRAME:
         raise UserError(f"{address} answers, but not as a Ray cluster (no gRPC server there); is it the head node's "
-                        f"address and port (ray start --head prints it)?")
+                        f"address and port ({RAY_HEAD_COMMAND} prints it)?")
 
 
 def _import_ray():
@@ -402,7 +406,7 @@ def _check_visible(task, result) -> None:
     path = Path(task[2]) / record["file"]
     if not path.is_file() or path.stat().st_size != record.get("bytes"):
         raise UserError(
-            f"shard {path} written by a Ray worker is not visible to the driver: --out must be a shared "
+            f"shard {path} written by a Ray worker is not visible to the driver: {option('out_root')} must be a shared "
             "filesystem mounted at the same path on every node"
         )
 
@@ -424,7 +428,7 @@ class RayExecutor:
 
     def __init__(self, address: str | None = None, workers: int | None = None, max_retries: int = DEFAULT_MAX_RETRIES):
         if workers is not None and workers < 1:
-            raise UserError(f"--workers must be positive, got {workers}")
+            raise UserError(f"{option('workers')} must be positive, got {workers}")
         if max_retries < 0:
             raise ValueError("max_retries must be >= 0")
         self.address = address
@@ -453,7 +457,7 @@ class RayExecutor:
         from articulated_dataset import __version__
         from articulated_dataset.core.mujoco_support import installed_mujoco_version
 
-        queue = (_absolute_task(t) for t in tasks)
+        queue: Iterator = (_absolute_task(t) for t in tasks)
         first = next(queue, None)
         if first is None:
             return
@@ -521,9 +525,9 @@ def get_executor(name: str = "local", workers: int | None = None, address: str |
     if name not in EXECUTORS:
         raise UserError(f"unknown executor {name!r}; choose from: {', '.join(EXECUTORS)}")
     if workers is not None and workers < 1:
-        raise UserError(f"--workers must be positive, got {workers}")
+        raise UserError(f"{option('workers')} must be positive, got {workers}")
     if address is not None and name != "ray":
-        raise UserError("--address is for --executor ray")
+        raise UserError(f"{option('address')} is for {option('executor')} ray")
     return EXECUTORS[name](workers, address)
 
 

@@ -1,4 +1,4 @@
-"""Rotation helpers shared by the whole package: quaternions (w, x, y, z) and matrices.
+"""Rotations shared by the whole package: quaternions (w, x, y, z) and matrices.
 
 All functions are pure and vectorised over leading axes.  Label quaternions follow the
 convention w >= 0 (:func:`matrix_to_quat`).
@@ -9,7 +9,7 @@ every generated split are computed by :func:`matrix_to_quat`, so its exact arith
 of the dataset's bytes (``scripts/compare_generated_bytes.sh``).  The package keeps this one
 copy (``quat_axis_z``/``quat_axis_x`` of :mod:`articulated_dataset.benchmark.metrics` compute
 one column of :func:`quat_to_matrix` without the matrix, for scoring's speed);
-``tests/test_metrics.py`` checks them against scipy where it is installed.
+``tests/benchmark/test_metrics.py`` checks them against scipy where it is installed.
 """
 
 from __future__ import annotations

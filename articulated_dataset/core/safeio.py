@@ -97,7 +97,7 @@ class WriteError(UserError):
         self.errno = errno_
 
     def __reduce__(self):  # picklable across worker processes with its fields
-        return (type(self), (str(self), self.path, self.errno))
+        return (type(self), (self.message, self.path, self.errno))
 
     @property
     def disk_full(self) -> bool:
@@ -424,7 +424,8 @@ def check_writable_dir(path: str | Path) -> None:
     _probe_create(Path(path))
 
 
-def check_outputs_distinct(inputs: list, outputs: list, names: str = "the outputs", input_folders: list = ()) -> None:
+def check_outputs_distinct(inputs: list, outputs: list, names: str = "the outputs",
+                           input_folders: list | tuple = ()) -> None:
     """Refuse an output path that is one of the input files ``inputs`` (writing it would replace
     an input: a checkpoint, a predictions file), lies inside one of ``input_folders`` (a split
     whose manifest or shard it would replace), or is named twice (the second write would replace

@@ -39,10 +39,12 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import option as option_name  # 'option' names a table's structure options
 
 Range = tuple[float, float]
 
@@ -368,7 +370,7 @@ class SamplingTable:
     chirality_p: float = 0.0
     extra: Mapping[str, float] = field(default_factory=dict)
     shape: ShapeMixture | None = None
-    structure: Mapping[str, object] = field(default_factory=dict)
+    structure: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         geometry, pose = _mapping("geometry", self.geometry), _mapping("pose", self.pose)
@@ -456,7 +458,7 @@ class SamplingTable:
         unknown = sorted(set(changes) - set(TABLE_KEYS))
         if unknown:
             raise UserError(f"sampling table: unknown key {unknown[0]!r} (known: {', '.join(TABLE_KEYS)})")
-        kwargs = {}
+        kwargs: dict[str, Any] = {}
         for key in ("geometry", "pose", "extra"):
             if key in changes:
                 given = _mapping(key, changes[key])
@@ -481,7 +483,7 @@ class SamplingTable:
             given = _mapping("structure", changes["structure"])
             unknown = sorted(set(given) - set(self.structure))
             if unknown:
-                known = ", ".join(self.structure) or "none for this table; --table varied has them"
+                known = ", ".join(self.structure) or f"none for this table; {option_name('table')} varied has them"
                 raise UserError(f"sampling table: unknown structure variable structure.{unknown[0]} (known: {known})")
             structure = dict(self.structure)
             for name, value in given.items():
@@ -540,7 +542,8 @@ def table_from_options(obj_class, values: Sequence[str]) -> SamplingTable:
     name nor a file (an existing path or a ``.json``/``.toml`` name) is a one-line UserError."""
     names = [v for v in values if v in TABLE_NAMES]
     if len(names) > 1:
-        raise UserError(f"give one table name (--table {names[0]} or --table {names[1]}), not both")
+        table_flag = option_name("table")
+        raise UserError(f"give one table name ({table_flag} {names[0]} or {table_flag} {names[1]}), not both")
     table = obj_class.named_table(names[0] if names else "paper")
     for value in values:
         if value in TABLE_NAMES:
@@ -550,7 +553,7 @@ def table_from_options(obj_class, values: Sequence[str]) -> SamplingTable:
         try:
             table = table.override(load_table_file(value))
         except UserError as exc:
-            message = str(exc)
+            message = exc.message
             raise UserError(message if str(value) in message else f"{value}: {message}") from None
     return table
 

@@ -39,7 +39,7 @@ from urllib.parse import urlsplit
 import yaml
 
 from articulated_dataset import __version__
-from articulated_dataset.core.errors import DataFormatError, UserError, import_optional
+from articulated_dataset.core.errors import DataFormatError, UserError, import_optional, option
 from articulated_dataset.core.safeio import atomic_write_text, ensure_dir
 from articulated_dataset.format.discovery import find_split_dirs
 from articulated_dataset.format.manifest import MANIFEST_NAME, printable
@@ -77,7 +77,7 @@ BULLETS = "bullets"
 #: each is taken from: (section heading, bold paragraph label), (heading, None) for the whole
 #: section, or (heading, :data:`BULLETS`) for each of its bullets.  A datasheet given with
 #: ``--datasheet`` needs them all (docs/publishing.md lists them).
-RAI_SOURCES = {
+RAI_SOURCES: dict[str, list[tuple[str, str | None]]] = {
     "data_collection": [("Collection process", None)],
     "data_collection_missing_data": [("Composition", "Missing information.")],
     "data_preprocessing_protocol": [("Preprocessing, cleaning, labelling", None)],
@@ -150,8 +150,8 @@ def describe_split(split_dir: Path) -> CardSplit:
     shards that disagree, a split name ``datasets`` refuses) is a :class:`UserError`."""
     with Split(split_dir) as split:
         if not split.complete:
-            raise UserError(f"{split_dir}: incomplete split; finish it ('artdata generate ... --resume') before "
-                            "publishing it")
+            raise UserError(f"{split_dir}: incomplete split; finish it ('artdata generate ... {option('resume')}') "
+                            "before publishing it")
         if not split.shards:
             raise UserError(f"{split_dir}: the manifest lists no shards; nothing to publish")
         if not HF_SPLIT_NAME.fullmatch(split.name):
@@ -415,7 +415,8 @@ def card_header(configs: dict[str, list[CardSplit]], sheet: Datasheet, out: Path
     metadata_mod = import_optional("datasets.utils.metadata", "artdata card", PUBLISH_INSTALL)
     header = {k: v for k, v in sheet.meta.items() if k not in ("configs", "dataset_info", "size_categories")}
     header["size_categories"] = [size_category(sum(s.n_images for group in configs.values() for s in group))]
-    infos, metadata = {}, {}
+    infos: dict = {}
+    metadata: dict[str, dict] = {}
     for k, (name, group) in enumerate(configs.items()):
         splits = datasets.SplitDict()
         for s in group:
@@ -572,7 +573,7 @@ def write_card(path: str | Path, out: str | Path | None = None, *, overwrite: bo
     root = Path(path)
     out = Path(out) if out is not None else root
     if url is not None and not (urlsplit(url).scheme in ("http", "https") and urlsplit(url).netloc):
-        raise UserError(f"--url {printable(url)[:120]!r} is not an http(s) address of the dataset's page")
+        raise UserError(f"{option('url')} {printable(url)[:120]!r} is not an http(s) address of the dataset's page")
     targets = [out / CARD_NAME, out / CROISSANT_NAME]
     from articulated_dataset.core.safeio import check_name_length
 
@@ -581,17 +582,18 @@ def write_card(path: str | Path, out: str | Path | None = None, *, overwrite: bo
     if not overwrite:
         for target in targets:
             if target.exists() or target.is_symlink():
-                raise UserError(f"{target} exists; pass --overwrite to replace it")
+                raise UserError(f"{target} exists; pass {option('overwrite')} to replace it")
     import_optional("datasets", "artdata card", PUBLISH_INSTALL)  # both, before anything is read
     import_optional("mlcroissant", "artdata card", PUBLISH_INSTALL)
     splits = [describe_split(d) for d in find_split_dirs(root)]
     if datasheet is None and any(s.real for s in splits):
         raise UserError(f"{root} holds ingested real captures ({next(s.path for s in splits if s.real)}); the "
-                        "repository's datasheet describes synthetic data: pass --datasheet FILE describing how they "
-                        "were collected (docs/publishing.md lists its sections)")
+                        f"repository's datasheet describes synthetic data: pass {option('datasheet')} FILE describing "
+                        "how they were collected (docs/publishing.md lists its sections)")
     if datasheet is None and not (REPOSITORY_ROOT / DATASHEET_NAME).is_file():
-        raise UserError(f"no {DATASHEET_NAME} beside the package (an installed wheel ships none): pass --datasheet "
-                        f"FILE and --citation FILE (the repository's {DATASHEET_NAME} and {CITATION_NAME})")
+        raise UserError(f"no {DATASHEET_NAME} beside the package (an installed wheel ships none): pass "
+                        f"{option('datasheet')} FILE and {option('citation')} FILE (the repository's {DATASHEET_NAME} "
+                        f"and {CITATION_NAME})")
     sheet = Datasheet.read(Path(datasheet) if datasheet is not None else REPOSITORY_ROOT / DATASHEET_NAME)
     missing = sheet.missing()
     if missing:

@@ -13,7 +13,7 @@ from articulated_dataset.format.manifest import MANIFEST_NAME, read_manifest
 SHARD_GLOB = "shard-*.h5"
 
 
-def find_split_dirs(path: str | Path, *, marker: str = MANIFEST_NAME, what: str = "generated split",
+def find_split_dirs(path: str | os.PathLike, *, marker: str = MANIFEST_NAME, what: str = "generated split",
                     unlisted_shards: bool = False) -> list[Path]:
     """Split folders (holding ``marker``) at ``path`` or one/two levels below (class/split layout).
 

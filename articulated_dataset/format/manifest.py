@@ -17,7 +17,7 @@ from pathlib import Path
 
 from articulated_dataset import FORMAT_VERSION  # noqa: F401  (the default splits' version; schema.format_version_for)
 from articulated_dataset.core.camera import CameraConfig
-from articulated_dataset.core.errors import DataFormatError, UserError
+from articulated_dataset.core.errors import DataFormatError, UserError, option
 from articulated_dataset.core.safeio import atomic_write_bytes
 from articulated_dataset.core.tables import SamplingTable
 from articulated_dataset.format.schema import check_version
@@ -94,24 +94,24 @@ class SplitConfig:
         if not 0 <= self.seed <= MAX_SEED:
             raise UserError(f"seed must be in [0, 2**63 - 1] (it is stored as a 64-bit integer), got {self.seed}")
         if self.mean and self.n_objects != 1:
-            raise UserError("--mean renders exactly one object (the class's mean object)")
+            raise UserError(f"{option('mean')} renders exactly one object (the class's mean object)")
         if not self.split or "/" in self.split or self.split.startswith(".") or not is_utf8(self.split):
             raise UserError(f"invalid split name {self.split!r}")
         if self.scene not in SCENE_NAMES:
             raise UserError(f"unknown scene {str(self.scene)[:40]!r}; choose from: {', '.join(SCENE_NAMES)}")
         if isinstance(self.occluders, bool) or not isinstance(self.occluders, int) or not 0 <= self.occluders <= MAX_OCCLUDERS:
-            raise UserError(f"--occluders must be an integer in [0, {MAX_OCCLUDERS}], got {str(self.occluders)[:40]}")
+            raise UserError(f"{option('occluders')} must be an integer in [0, {MAX_OCCLUDERS}], "
+                            f"got {str(self.occluders)[:40]}")
         if not isinstance(self.rgb, bool):
             raise UserError(f"rgb must be true or false, got {str(self.rgb)[:40]}")
         self._validate_framing()
         if self.has_context:
-            option = "--scene" if self.scene != "none" else "--occluders"
+            context = option("scene") if self.scene != "none" else option("occluders")
             if self.mean:
-                raise UserError(f"--mean renders the class's isolated mean object; drop {option}")
-            if self.camera.mount != "fixed":
-                raise UserError(f"{option} needs the fixed camera (--camera fixed); the head camera is not supported with it yet")
+                raise UserError(f"{option('mean')} renders the class's isolated mean object; drop {context}")
             if self.third_party is not None and self.scene != "none":
-                raise UserError("--scene places the built-in classes (docs/generation.md); a --urdf object takes --occluders only")
+                raise UserError(f"{option('scene')} places the built-in classes (docs/generation.md); a "
+                                f"{option('urdf_path')} object takes {option('occluders')} only")
 
     def _validate_framing(self) -> None:
         """``--framing whole`` draws each object's pose for the fixed camera's empty view."""
@@ -120,16 +120,17 @@ class SplitConfig:
         if self.framing == DEFAULT_FRAMING:
             return
         if self.mean:
-            raise UserError("--mean renders the class's mean object at the centre of the table's ranges; "
-                            "drop --framing whole")
+            raise UserError(f"{option('mean')} renders the class's mean object at the centre of the table's "
+                            f"ranges; drop {option('framing')} whole")
         if self.camera.mount != "fixed":
-            raise UserError("--framing whole keeps the whole object in the fixed camera's view (--camera fixed); "
-                            "the head camera aims at the object itself")
+            raise UserError(f"{option('framing')} whole keeps the whole object in the fixed camera's view "
+                            f"({option('camera_mount')} fixed); the head camera aims at the object itself")
         if self.has_context:
-            raise UserError("--framing whole keeps the object alone in view; drop --scene and --occluders")
+            raise UserError(f"{option('framing')} whole keeps the object alone in view; drop {option('scene')} and "
+                            f"{option('occluders')}")
         if min(self.camera.width_px, self.camera.height_px) < MIN_FRAMED_SIDE_PX:
             side = MIN_FRAMED_SIDE_PX
-            raise UserError(f"--framing whole needs an image of at least {side} x {side} px "
+            raise UserError(f"{option('framing')} whole needs an image of at least {side} x {side} px "
                             "(pixels inside the border rows and columns)")
 
     @property
@@ -161,7 +162,7 @@ class SplitConfig:
         occluder, colour and framing options left out at their defaults."""
         d = asdict(self)
         d["camera"] = self.camera.to_dict()  # options beyond the paper's camera only when set
-        d["table"] = self.table.to_dict()
+        d["table"] = self.table.to_dict()  # type: ignore[union-attr]  # filled in before a manifest is written
         d["format_version"] = self.format_version
         for key, default in (("scene", "none"), ("occluders", 0), ("rgb", False),
                              ("framing", DEFAULT_FRAMING)):  # a default split's manifest is as it was
@@ -193,7 +194,7 @@ def split_config(manifest: dict, where: str = "") -> SplitConfig:
     try:
         return SplitConfig.from_dict(config)
     except UserError as exc:
-        raise DataFormatError(f"{prefix}invalid generation config ({exc})") from None
+        raise DataFormatError(f"{prefix}invalid generation config ({exc.message})") from None
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise DataFormatError(f"{prefix}corrupt generation config ({type(exc).__name__}: "
                               f"{str(exc).splitlines()[0][:200] if str(exc) else ''})") from None
@@ -248,14 +249,14 @@ def check_stored_object_files(config, split_dir: str | Path | None, what: str, h
         inside = base is not None and isinstance(value, str) and "\0" not in value and Path(value).is_absolute()
         if inside:
             try:
-                real = Path(value).resolve()
+                real = Path(value).resolve()  # type: ignore[arg-type]  # inside: value is a str
             except (OSError, RuntimeError):  # a symbolic-link loop
                 inside = False
             else:
-                inside = real != base and real.is_relative_to(base)
+                inside = real != base and real.is_relative_to(base)  # type: ignore[arg-type]  # inside: base is set
         if not inside:
-            raise UserError(f"{split_dir or 'the split'}: a third-party URDF object (generate --urdf) whose {key} "
-                            f"{str(value)[:120]!r} lies outside the split folder; {what} would rebuild "
+            raise UserError(f"{split_dir or 'the split'}: a third-party URDF object (generate {option('urdf_path')}) "
+                            f"whose {key} {str(value)[:120]!r} lies outside the split folder; {what} would rebuild "
                             f"it from those files, and paths read from data are opened only inside the folder "
                             f"given{hint}")
 

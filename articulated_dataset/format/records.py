@@ -42,7 +42,7 @@ def shard_attrs(config: SplitConfig, obj_class: ObjectClass, objects: range, **e
         "min_part_pixels": config.min_part_pixels,
         "mean_object": int(config.mean),
         "noise_model": config.noise,
-        "sampling_table": config.table.to_json(),
+        "sampling_table": config.table.to_json(),  # type: ignore[union-attr]  # filled in before shards are written
         "package_version": __version__,
     }
     attrs.update(extra)

@@ -3,14 +3,16 @@
 Shapes use symbols: ``N`` images in the shard, ``J`` joints of the class, ``H``/``W`` image
 height/width, ``P = 1 + J`` (body + parts).  The writer and the reader both validate
 against :data:`FIELDS`; docs/format.md's field table is generated from the same table
-(:func:`markdown_table`; ``tests/test_format_doc.py`` checks that they agree).  The mask
+(:func:`markdown_table`; ``tests/format/test_format_doc.py`` checks that they agree).  The mask
 codes and the file-level dataset names are declared here too, so a reader needs nothing
 from the generator.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -114,7 +116,8 @@ def object_on_border(mask: np.ndarray) -> np.ndarray:
     (``generate --framing whole``; ``benchmarks/error_sources.py``)."""
     mask = np.asarray(mask)
     obj = (mask >= MASK_BODY) & ~np.isin(mask, CONTEXT_MASK_CODES)
-    return obj[..., 0, :].any(-1) | obj[..., -1, :].any(-1) | obj[..., :, 0].any(-1) | obj[..., :, -1].any(-1)
+    # (mypy types any(-1) as an array or a numpy bool; one (H, W) mask gives the 0-d numpy bool)
+    return obj[..., 0, :].any(-1) | obj[..., -1, :].any(-1) | obj[..., :, 0].any(-1) | obj[..., :, -1].any(-1)  # type: ignore[return-value]
 
 
 def visible_pixels(mask: np.ndarray, n_joints: int) -> np.ndarray:
@@ -144,7 +147,7 @@ def resolve_shape(shape: tuple, *, N: int, J: int, H: int, W: int) -> tuple[int,
     return tuple(sizes[s] if isinstance(s, str) else int(s) for s in shape)
 
 
-def validate_arrays(arrays: dict, *, N: int, J: int, H: int, W: int, where: str = "") -> None:
+def validate_arrays(arrays: Mapping[str, Any], *, N: int, J: int, H: int, W: int, where: str = "") -> None:
     """Check that ``arrays`` holds every field with the declared dtype and shape.
 
     Raises :class:`DataFormatError` naming the first offending field.
@@ -190,5 +193,5 @@ def markdown_table() -> str:
     return "\n".join(rows)
 
 
-if __name__ == "__main__":  # pragma: no cover - doc helper
+if __name__ == "__main__":  # pragma: no cover - prints the field table for the docs
     print(markdown_table())

@@ -24,7 +24,9 @@ import json
 import os
 import re
 import stat
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -239,7 +241,7 @@ class Shard:
         return {"path": self.path}
 
     def __setstate__(self, state):
-        self.__init__(state["path"])
+        self.__init__(state["path"])  # type: ignore[misc]  # this class's own: reopened lazily
 
 
 def attr_value(v):
@@ -403,7 +405,7 @@ IMAGE_GZIP_LEVEL = 1
 LABEL_GZIP_LEVEL = 4
 
 
-def write_shard(path: str | Path, arrays: dict, attrs: dict, K: np.ndarray, R: np.ndarray) -> dict:
+def write_shard(path: str | Path, arrays: Mapping[str, Any], attrs: dict, K: np.ndarray, R: np.ndarray) -> dict:
     """Validate ``arrays`` against the schema and write them atomically to ``path``.
 
     Returns the shard's manifest record (file name, images, bytes, sha256).

@@ -15,7 +15,7 @@ from typing import Iterable
 import numpy as np
 
 from articulated_dataset.core.errors import DataFormatError
-from articulated_dataset.format.manifest import read_manifest, shard_paths, split_config
+from articulated_dataset.format.manifest import SplitConfig, read_manifest, shard_paths, split_config
 from articulated_dataset.format.schema import IMAGE_FIELDS, JOINT_TYPES, LABEL_FIELDS
 from articulated_dataset.format.shards import Shard, json_list
 
@@ -48,7 +48,7 @@ class Split:
         for p in self.shard_paths:
             check_inside(self.path, p)
         self.shards: list[Shard] = [Shard(p) for p in self.shard_paths]
-        self._config = None
+        self._config: SplitConfig | None = None
 
     def __repr__(self) -> str:
         return f"Split({str(self.path)!r})"
@@ -139,12 +139,12 @@ class Split:
     def joint_types(self) -> tuple[str, ...]:
         """The joint types every shard declares; missing, unknown or differing types are a
         DataFormatError naming the shard."""
-        joint_types = None
+        joint_types: tuple[str, ...] | None = None
         for sh in self.shards:
-            types = json_list(sh.attrs.get("joint_types"))
-            if types is None:
+            listed = json_list(sh.attrs.get("joint_types"))
+            if listed is None:
                 raise DataFormatError(f"{sh.path}: missing or invalid 'joint_types' attribute")
-            types = tuple(types)
+            types = tuple(listed)
             if any(t not in JOINT_TYPES for t in types):
                 raise DataFormatError(f"{sh.path}: unknown joint type in {list(types)}")
             if joint_types is None:

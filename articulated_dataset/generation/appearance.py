@@ -25,6 +25,7 @@ The texture bank is the same in every model, so all objects share one rendering 
 from __future__ import annotations
 
 import json
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -43,7 +44,7 @@ TEXTURE_SIZE_PX = {"rgb_checker_fine": 256}  # the others: 64 (cells of 32 px: a
 #: Every range of the randomisation (uniform), recorded in every ``--rgb`` shard (attribute
 #: ``appearance``).  Floors keep object pixels non-black: ambient x colour x texture >= 0.2 x
 #: 0.2 x 0.4 of full scale (>= 4 of 255).
-APPEARANCE_TABLE = {
+APPEARANCE_TABLE: dict[str, Any] = {
     "material_rgb": (0.2, 1.0),  # per channel
     "specular": (0.0, 0.8),
     "shininess": (0.0, 1.0),
@@ -126,7 +127,7 @@ class Appearance:
         m, rng, t = self.model, self.rng, APPEARANCE_TABLE
         for k in range(n_material_slots(self.J)):
             mat = self.mat0 + k
-            m.mat_rgba[mat] = (*rng.uniform(*t["material_rgb"], size=3), 1.0)
+            m.mat_rgba[mat] = (*rng.uniform(*t["material_rgb"], size=3), 1.0)  # type: ignore[call-overload]  # mypy: *Any and size=
             m.mat_specular[mat] = rng.uniform(*t["specular"])
             m.mat_shininess[mat] = rng.uniform(*t["shininess"])
             m.mat_reflectance[mat] = rng.uniform(*t["reflectance"])
@@ -146,9 +147,9 @@ class Appearance:
         el = np.deg2rad(rng.uniform(*t["key_light_elevation_deg"]))
         # It shines forward (+x) from above the camera, turned by the azimuth about +z.
         m.light_dir[self.key] = (np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), -np.sin(el))
-        m.light_diffuse[self.key] = rng.uniform(*t["light_rgb"], size=3) * rng.uniform(*t["key_light_intensity"])
+        m.light_diffuse[self.key] = rng.uniform(*t["light_rgb"], size=3) * rng.uniform(*t["key_light_intensity"])  # type: ignore[call-overload]  # mypy: *Any and size=
         m.light_pos[self.fill] = [rng.uniform(lo, hi) for lo, hi in t["fill_light_pos_m"]]
-        m.light_diffuse[self.fill] = rng.uniform(*t["light_rgb"], size=3) * rng.uniform(*t["fill_light_intensity"])
+        m.light_diffuse[self.fill] = rng.uniform(*t["light_rgb"], size=3) * rng.uniform(*t["fill_light_intensity"])  # type: ignore[call-overload]  # mypy: *Any and size=
         ambient = rng.uniform(*t["ambient"])
         m.vis.headlight.ambient = (ambient,) * 3
         m.vis.headlight.diffuse = (0.0, 0.0, 0.0)

@@ -28,10 +28,10 @@ class GenerationConfig(SplitConfig):
         # back from a manifest) is not rebuilt here: its URDF files are needed only to render.
         obj_class = self.obj_class if self.third_party is None or self.table is None else None
         super()._validate()
-        if self.table is None:
-            object.__setattr__(self, "table", obj_class.table)
+        if self.table is None:  # (then obj_class was resolved above)
+            object.__setattr__(self, "table", obj_class.table)  # type: ignore[union-attr]
         if obj_class is not None:
-            check_table(obj_class, self.table)
+            check_table(obj_class, self.table)  # type: ignore[arg-type]  # set just above
 
     @property
     def obj_class(self) -> ObjectClass:

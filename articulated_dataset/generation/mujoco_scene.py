@@ -77,7 +77,7 @@ def _set_intrinsics(cam, camera: CameraConfig) -> None:
     W x H length units (1 unit = 1 px), focal lengths fx, fy and the principal point's
     offset from the sensor centre.  MuJoCo counts that offset with the opposite sign of
     OpenCV's (cx - centre, cy - centre) in both axes (checked against projected points by
-    tests/test_robot_camera.py and every label test run with a preset)."""
+    tests/generation/test_robot_camera.py and every label test run with a preset)."""
     W, H = camera.width_px, camera.height_px
     fx, fy, cx, cy = camera.intrinsics_px
     cam.resolution = [W, H]

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any, TypedDict, cast
 
 import mujoco
 import numpy as np
@@ -30,23 +31,55 @@ from articulated_dataset.generation.compiled import CompiledObject
 from articulated_dataset.generation.config import GenerationConfig, appearance_rng, camera_rng, noise_rng
 from articulated_dataset.generation.context_labels import visible_fraction
 from articulated_dataset.generation.labels import read_configuration, read_object_labels, visible_pixels
+from articulated_dataset.generation.mujoco_scene import ORIGIN_POSE, ObjectPlacer, set_configuration
 from articulated_dataset.generation.occluders import Context
 from articulated_dataset.generation.render import DepthRenderer
 from articulated_dataset.generation.sampling import ObjectSample, mean_object, sample_id, sample_object
-from articulated_dataset.generation.mujoco_scene import ORIGIN_POSE, ObjectPlacer, set_configuration
 from articulated_dataset.generation.scenes import context_builder, context_rngs
 from articulated_dataset.generation.viewpoint import head_views, object_in_camera
 
 #: Label fields read from the compiled model (per object, or per image with the head camera).
 OBJECT_LABEL_FIELDS = ("axis_origin", "axis_direction", "axis_pose", "part_offset", "object_pose", "object_yaw", "geometry")
 
+#: The fields every object has (a functional TypedDict: ``class`` is a keyword); n images, J
+#: joints, P = 1 + J parts; dtypes and units as :data:`articulated_dataset.format.schema.FIELDS`.
+_ObjectArraysFields = TypedDict("_ObjectArraysFields", {
+    "depth": np.ndarray,  # (n, H, W) float32, m; 0: no return
+    "mask": np.ndarray,  # (n, H, W) uint8: 0 background, 1 body, 2 + j part j
+    "q": np.ndarray,  # (n, J) float32, rad (revolute) or m (prismatic)
+    "axis_origin": np.ndarray,  # (n, J, 3) float32, m, camera frame
+    "axis_direction": np.ndarray,  # (n, J, 3) float32, unit
+    "axis_pose": np.ndarray,  # (n, J, 7) float32: position (m) and quaternion (w, x, y, z)
+    "part_offset": np.ndarray,  # (n, J, 3) float32, m, axis frame
+    "object_pose": np.ndarray,  # (n, 7) float32: position (m) and quaternion (w, x, y, z)
+    "object_yaw": np.ndarray,  # (n,) float32, rad
+    "geometry": np.ndarray,  # (n, 4) float32: depth, width, height (m) and chirality
+    "visible_pixels": np.ndarray,  # (n, P) int32, px
+    "object_index": np.ndarray,  # (n,) int64
+    "image_index": np.ndarray,  # (n,) int32
+    "sample_id": np.ndarray,  # (n,) int64
+    "class": np.ndarray,  # (n,) S32, ASCII class name
+})
+
+
+class ObjectArrays(_ObjectArraysFields, total=False):
+    """Every schema field of one object's n images (:func:`object_arrays`), concatenated over a
+    shard's objects for :func:`~articulated_dataset.format.shards.write_shard`; the optional
+    fields only where the split stores them."""
+
+    rgb: np.ndarray  # (n, H, W, 3) uint8 (--rgb)
+    unoccluded_pixels: np.ndarray  # (n, P) int32, px (a scene or occluders)
+    visible_fraction: np.ndarray  # (n, P) float32 (a scene or occluders)
+
 
 def object_sample(config: GenerationConfig, object_index: int) -> ObjectSample:
     """Stage 1 for object ``object_index`` of the split (the mean object with ``config.mean``).
     The sample keeps its generator's state for pose redraws (:meth:`ObjectSample.pose_generator`)."""
     if config.mean:
-        return mean_object(config.obj_class, config.table, split=config.split, n_images=config.images_per_object)
-    sample, _ = sample_object(config.obj_class, config.table, seed=config.seed, split=config.split,
+        return mean_object(config.obj_class, config.table,  # type: ignore[arg-type]  # GenerationConfig sets table
+                           split=config.split, n_images=config.images_per_object)
+    sample, _ = sample_object(config.obj_class, config.table,  # type: ignore[arg-type]  # GenerationConfig sets table
+                              seed=config.seed, split=config.split,
                               object_index=object_index, n_images=config.images_per_object)
     return sample
 
@@ -63,7 +96,7 @@ def stored_sample(config: GenerationConfig, object_index: int, object_pose, obje
     return replace(sample, pose={"x_m": float(p[0]), "y_m": float(p[1]), "z_m": float(p[2]), "yaw_rad": float(object_yaw)})
 
 
-def stored_object_config(config: dict, split_dir, what: str, hint: str = "", *, urdf=None,
+def stored_object_config(config: Any, split_dir, what: str, hint: str = "", *, urdf=None,
                          mesh_root=None) -> GenerationConfig:
     """The :class:`GenerationConfig` a stored object is rebuilt from (by :func:`stored_sample`,
     :func:`object_sample` and the compiler), made of a manifest's ``config`` dict.
@@ -146,8 +179,13 @@ def arrange(sample: ObjectSample, config: GenerationConfig, streams: Streams) ->
     views drawn now), with a scene or occluders in its context, else at its pose.  None when
     no scene layout fits the pose (it must be redrawn)."""
     if config.camera.mount == "head":
+        add_context = None
+        if config.has_context:  # the scene's floor sets the base height; the scene moves with the object
+            sample, add_context = context_builder(config, sample, streams.scene)
+            if add_context is None:
+                return None
         views = head_views(streams.camera, sample.pose, sample.geometry, config.images_per_object)
-        return Arrangement(replace(sample, views=views), ORIGIN_POSE)
+        return Arrangement(replace(sample, views=views), ORIGIN_POSE, add_context)
     if config.has_context:
         sample, add_context = context_builder(config, sample, streams.scene)
         return None if add_context is None else Arrangement(sample, sample.pose, add_context)
@@ -180,16 +218,18 @@ def render_images(obj: CompiledObject, sample: ObjectSample, config: GenerationC
     head = config.camera.mount == "head"
     data = mujoco.MjData(model)
     ctx = Context(model, info, config.occluders, streams.occluders) if config.has_context else None
-    if head:  # the object is built at the origin and placed in each image's camera frame
-        placer = ObjectPlacer(model, info.base_body)
-        per_image = [None] * n
+    if head:  # the object (and its scene) is built at the origin and placed in each image's camera frame
+        placers = [ObjectPlacer(model, info.base_body)]
+        if ctx is not None and ctx.scene_body >= 0:
+            placers.append(ObjectPlacer(model, ctx.scene_body))
+        per_image: list = [None] * n
     else:
         labels = read_object_labels(model, data, info, obj_class)
     renderer.bind(model)
     depth, mask = out["depth"], out["mask"]
     look = None
     if config.rgb:  # materials drawn once per compiled model, after the context's mask codes
-        look = Appearance(model, info.geom_part, J, streams.appearance)
+        look = Appearance(model, info.geom_part, J, streams.appearance)  # type: ignore[arg-type]  # made with --rgb
         look.dress()
     q = np.empty((n, J), np.float64)
     vis = np.empty((n, 1 + J), np.int32)
@@ -198,14 +238,16 @@ def render_images(obj: CompiledObject, sample: ObjectSample, config: GenerationC
     # check (doors edge-on or swung out of the frame), so a rejected pose costs few renders.
     for i in np.argsort(-sample.q.sum(axis=1), kind="stable"):
         if head:  # this image's camera: labels are read from the model as placed for it
-            placer.place(object_in_camera(sample.pose, sample.views[i]))
+            T = object_in_camera(sample.pose, sample.views[i])  # type: ignore[index]  # set for the head mount
+            for placer in placers:
+                placer.place(T)
             per_image[i] = read_object_labels(model, data, info, obj_class)
         set_configuration(model, data, info.joint_ids, sample.q[i])
         if ctx is not None:
-            counts = ctx.render(renderer, data, depth[i], mask[i], config.min_part_pixels)
+            counts = ctx.render(renderer, data, depth[i], mask[i], config.min_part_pixels)  # type: ignore[arg-type]  # set by SplitConfig
             if counts is None:  # no occluder draw leaves every moving part identifiable
                 return None
-            vis[i], alone[i] = counts
+            vis[i], alone[i] = counts  # type: ignore[index]  # made when ctx is
         else:
             _, geom_id = renderer.render(data, depth_out=depth[i])
             mask[i] = info.mask_from_geoms(geom_id)
@@ -241,7 +283,7 @@ def apply_sensor(depth: np.ndarray, config: GenerationConfig, object_index: int)
         np.multiply(depth, config.depth_quantum_m, out=depth)
 
 
-def object_arrays(sample: ObjectSample, config: GenerationConfig, views: Views) -> dict:
+def object_arrays(sample: ObjectSample, config: GenerationConfig, views: Views) -> ObjectArrays:
     """Stage 5: every schema field of the object's images (optional occlusion fields with a
     scene or occluders, format 1.1)."""
     n = config.images_per_object
@@ -262,4 +304,4 @@ def object_arrays(sample: ObjectSample, config: GenerationConfig, views: Views) 
     if views.unoccluded is not None:
         arrays["unoccluded_pixels"] = views.unoccluded
         arrays["visible_fraction"] = visible_fraction(views.visible, views.unoccluded)
-    return arrays
+    return cast(ObjectArrays, arrays)  # (the label fields are added by name above)

@@ -26,6 +26,7 @@ half length and a quaternion (cylinder) or per link a length, a radius and a dir
 from __future__ import annotations
 
 import json
+from typing import Any, cast
 
 import mujoco
 import numpy as np
@@ -38,7 +39,7 @@ from articulated_dataset.generation.render import CONTEXT_GEOM_GROUP
 OCCLUDER_STREAM = 4
 KINDS = ("box", "cylinder", "arm")
 #: The occluders' ranges (uniform), recorded in every shard (attribute ``occluders``).
-OCCLUDER_TABLE = {
+OCCLUDER_TABLE: dict[str, Any] = {
     "depth_fraction": (0.35, 0.85),  # centre depth / depth of the object's nearest point
     "half_size_m": (0.03, 0.15),  # box half sizes, cylinder radius and half length
     "arm_link_length_m": (0.15, 0.35),
@@ -92,7 +93,8 @@ class Context:
     def __init__(self, model: mujoco.MjModel, info, n_occluders: int, rng: np.random.Generator | None):
         self.model, self.info, self.rng = model, info, rng
         names = [model.geom(i).name for i in range(model.ngeom)]
-        scene = model.geom_bodyid == _body(model, "scene")  # no scene body: -1, no geom
+        self.scene_body = _body(model, "scene")  # -1 without a scene
+        scene = model.geom_bodyid == self.scene_body  # no scene body: no geom
         self.slots = [np.array([names.index(f"occluder_{k}_{g}") for g in range(SLOT_GEOMS)]) for k in range(n_occluders)]
         self.slot_bodies = [_body(model, f"occluder_{k}") for k in range(n_occluders)]
         info.geom_part[scene] = MASK_SCENE
@@ -108,9 +110,9 @@ class Context:
         from articulated_dataset.generation.labels import geom_corners_world
         from articulated_dataset.generation.mujoco_scene import NEAR_CLIP_M
 
-        m, rng = self.model, self.rng
+        m, rng = self.model, cast(np.random.Generator, self.rng)  # a model with occluders has their stream
         near_x = float(geom_corners_world(m, data, self.object_geoms)[:, 0].min())
-        boxes = [geom_corners_world(m, data, g) for g in self.part_geoms]
+        boxes: list = [geom_corners_world(m, data, g) for g in self.part_geoms]
         boxes = [(b.min(axis=0), b.max(axis=0)) for b in boxes]
         for body, geoms in zip(self.slot_bodies, self.slots):
             kind = KINDS[int(rng.integers(len(KINDS)))]
@@ -126,9 +128,9 @@ class Context:
                 continue
             g = geoms[0] if kind == "box" else geoms[1]
             if kind == "box":
-                size = rng.uniform(*OCCLUDER_TABLE["half_size_m"], size=3)
+                size = rng.uniform(*OCCLUDER_TABLE["half_size_m"], size=3)  # type: ignore[call-overload]  # mypy: *Any and size=
             else:
-                size = np.array([*rng.uniform(*OCCLUDER_TABLE["half_size_m"], size=2), 0.0])
+                size = np.array([*rng.uniform(*OCCLUDER_TABLE["half_size_m"], size=2), 0.0])  # type: ignore[call-overload]  # mypy: *Any and size=
             quat = _unit(rng.normal(size=4))
             radius = float(np.linalg.norm(size[:3] if kind == "box" else size[:2]))
             m.geom_size[g] = size * min(scale, room / radius)
@@ -137,7 +139,7 @@ class Context:
 
     def _arm(self, geoms: np.ndarray, room: float, scale: float) -> None:
         """An arm-like chain of capsules from the slot's centre, shrunk to stay within ``room``."""
-        m, rng = self.model, self.rng
+        m, rng = self.model, cast(np.random.Generator, self.rng)  # a model with occluders has their stream
         p, links = np.zeros(3), []
         for _ in geoms:
             length = float(rng.uniform(*OCCLUDER_TABLE["arm_link_length_m"]))

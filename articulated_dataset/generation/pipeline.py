@@ -15,12 +15,13 @@ import json
 import logging
 from dataclasses import replace
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
 from articulated_dataset.classes.registry import JOINT_TYPES
 from articulated_dataset.core.camera import R_CAMERA_TO_OPTICAL
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.format.manifest import DEFAULT_FRAMING
 from articulated_dataset.format.records import shard_attrs as format_shard_attrs
 from articulated_dataset.format.schema import FIELDS, OPTIONAL_FIELDS, RGB_FIELDS, object_on_border
@@ -31,6 +32,7 @@ from articulated_dataset.generation.config import GenerationConfig
 from articulated_dataset.generation.context_labels import VISIBLE_FRACTION_RANGE
 from articulated_dataset.generation.framing import MAX_FRAMING_DRAWS, Framing, extent_points, framing_record
 from articulated_dataset.generation.objects import (
+    ObjectArrays,
     Streams,
     apply_sensor,
     arrange,
@@ -52,7 +54,7 @@ MAX_POSE_ATTEMPTS = 200
 
 
 def render_object(sample: ObjectSample, config: GenerationConfig, renderer: DepthRenderer, *, check_visibility: bool = True,
-                  out: dict | None = None):
+                  out: dict | None = None) -> tuple[ObjectArrays, ObjectSample, int]:
     """Template, compile, render and label one sampled object.
 
     Redraws the pose (from the object's own generator, after its other draws: the state the
@@ -67,7 +69,7 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
     a shard's buffers) to render into.
     """
     obj_class = config.obj_class
-    urdf = object_urdf(obj_class, sample, config.table)
+    urdf = object_urdf(obj_class, sample, config.table)  # type: ignore[arg-type]  # GenerationConfig sets table
     n = config.images_per_object
     if out is None:
         out = image_buffers(config, n)
@@ -75,7 +77,8 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
     poses = None  # the object's pose-redraw stream, made on the first rejection
     framing, draws = None, 0
     if config.framing == "whole":  # the first pose too comes from the framed ranges
-        framing = Framing.of(extent_points(obj_class, urdf, sample.q, config.camera), config.table, config.camera)
+        framing = Framing.of(extent_points(obj_class, urdf, sample.q, config.camera),
+                             config.table, config.camera)  # type: ignore[arg-type]  # GenerationConfig sets table
         poses = sample.pose_generator()
         sample, draws = _framed_pose(sample, framing, poses, draws)
     for attempt in range(1, MAX_POSE_ATTEMPTS + 1):  # noqa: B007 - the count is returned
@@ -90,7 +93,7 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
         if poses is None:
             poses = sample.pose_generator()
         if framing is None:
-            sample = replace(sample, pose=sample_pose(poses, config.table))
+            sample = replace(sample, pose=sample_pose(poses, config.table))  # type: ignore[arg-type]  # GenerationConfig sets table
         else:
             sample, draws = _framed_pose(sample, framing, poses, draws)
     else:
@@ -99,10 +102,10 @@ def render_object(sample: ObjectSample, config: GenerationConfig, renderer: Dept
             f"with >= {config.min_part_pixels} px"
             + (" and the whole object in view" if framing is not None else "")
             + f" after {MAX_POSE_ATTEMPTS} attempts; check the table"
-            + (" or choose the joints that open with --joints (a hidden part cannot be labelled)"
+            + (f" or choose the joints that open with {option('joints')} (a hidden part cannot be labelled)"
                if config.third_party is not None else "")
             + (f" (and >= {VISIBLE_FRACTION_RANGE[0]:g} of its pixels unhidden by the scene and occluders; "
-               "try fewer --occluders)" if config.has_context else "")
+               f"try fewer {option('occluders')})" if config.has_context else "")
         )
     apply_sensor(views.depth, config, sample.object_index)
     return object_arrays(sample, config, views), sample, attempt if framing is None else draws
@@ -116,7 +119,7 @@ def _framed_pose(sample: ObjectSample, framing: Framing, poses, draws: int) -> t
         lo, hi = framing.table.pose["x_m"]
         raise UserError(f"{sample.class_name} object {sample.object_index}: no pose of the table's ranges "
                         f"(depth {lo:g}-{hi:.2f} m) keeps the whole object in view after {MAX_FRAMING_DRAWS} draws; "
-                        "check the table or use --framing table4")
+                        f"check the table or use {option('framing')} table4")
     return replace(sample, pose=pose), draws + k
 
 
@@ -170,10 +173,11 @@ def generate_shard(config: GenerationConfig, shard_index: int, split_dir: str | 
         arrays, _, tries = render_object(object_sample(config, k), config, renderer, check_visibility=not config.mean, out=out)
         attempts += tries
         for name in labels:
-            labels[name].append(arrays[name])
+            labels[name].append(arrays[name])  # type: ignore[literal-required]  # a stored field's name
         if progress is not None:
             progress(n)
-    arrays = {**images, **{name: np.concatenate(v, axis=0) for name, v in labels.items()}}
+    # (the shard's images: every field of its objects' arrays, concatenated)
+    arrays = cast(ObjectArrays, {**images, **{name: np.concatenate(v, axis=0) for name, v in labels.items()}})
     attrs = shard_attrs(config, objects)
     attrs["pose_attempts"] = attempts
     record = write_shard(Path(split_dir) / shard_name(shard_index), arrays, attrs, config.camera.K, R_CAMERA_TO_OPTICAL)

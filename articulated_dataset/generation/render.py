@@ -161,7 +161,7 @@ class DepthRenderer:
         ngeom = self._scn.ngeom
         rgb = self._rgb[::-1]
         if ngeom < 255:
-            seg = rgb[..., 0]
+            seg: np.ndarray = rgb[..., 0]
         else:
             seg = rgb[..., 0].astype(np.int32) | (rgb[..., 1].astype(np.int32) << 8) | (rgb[..., 2].astype(np.int32) << 16)
         lookup = np.full(ngeom + 1, -1, np.int32)

@@ -17,7 +17,7 @@ from typing import Callable, Sequence
 
 from articulated_dataset.classes.registry import ObjectClass, get_class, register
 from articulated_dataset.core.camera import CameraConfig
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.core.tables import table_from_options
 from articulated_dataset.generation.config import GenerationConfig
 
@@ -43,7 +43,7 @@ def joint_names(text: str | None) -> list[str] | None:
         return None
     names = [n.strip() for n in text.split(",") if n.strip()]
     if not names:
-        raise UserError("--joints needs at least one joint name (NAME,NAME,...)")
+        raise UserError(f"{option('joints')} needs at least one joint name (NAME,NAME,...)")
     return names
 
 
@@ -54,7 +54,7 @@ def object_class_from_options(class_name: str | None, urdf: UrdfOptions, camera:
     ``echo`` receives the lines that summarise the import."""
     if urdf.path is not None:
         if class_name is not None:
-            raise UserError("give either --class or --urdf, not both")
+            raise UserError(f"give either {option('class_name')} or {option('urdf_path')}, not both")
         from articulated_dataset.generation.urdf_import import import_urdf
 
         imported = import_urdf(urdf.path, joints=joint_names(urdf.joints), class_name=urdf.class_name,
@@ -66,12 +66,12 @@ def object_class_from_options(class_name: str | None, urdf: UrdfOptions, camera:
                 echo(line)
         return obj_class, imported.definition
     if class_name is None:
-        raise UserError("missing --class NAME (or --urdf FILE)")
-    unused = [opt for opt, v in (("--joints", urdf.joints), ("--class-name", urdf.class_name),
-                                 ("--skip-missing-meshes", urdf.skip_missing_meshes), ("--scale", urdf.scale is not None),
-                                 ("--mesh-root", urdf.mesh_root)) if v]
+        raise UserError(f"missing {option('class_name')} NAME (or {option('urdf_path')} FILE)")
+    unused = [name for name, v in (("joints", urdf.joints), ("urdf_class_name", urdf.class_name),
+                                   ("skip_missing_meshes", urdf.skip_missing_meshes),
+                                   ("scale", urdf.scale is not None), ("mesh_root", urdf.mesh_root)) if v]
     if unused:
-        raise UserError(f"{unused[0]} is for --urdf objects")
+        raise UserError(f"{option(unused[0])} is for {option('urdf_path')} objects")
     return get_class(class_name), None
 
 
@@ -79,7 +79,8 @@ def object_count(n_objects: int | None, mean: bool) -> int:
     """``--n`` with ``--mean`` (exactly one object) and its default."""
     if mean:
         if n_objects not in (None, 1):
-            raise UserError(f"--mean renders exactly one object (the class's mean object); drop --n {n_objects}")
+            raise UserError(f"{option('mean')} renders exactly one object (the class's mean object); "
+                            f"drop {option('n_objects')} {n_objects}")
         return 1
     return DEFAULT_N_OBJECTS if n_objects is None else n_objects
 

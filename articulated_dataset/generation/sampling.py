@@ -11,7 +11,9 @@ drawn the same with or without them.
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -93,7 +95,7 @@ class ObjectSample:
     # State of the object's generator after these draws (``bit_generator.state``): a pose
     # rejected later is redrawn from it (:meth:`pose_generator`), never by replaying the draws.
     # None for the mean object, whose pose is never redrawn.
-    rng_state: dict | None = field(default=None, compare=False, repr=False)
+    rng_state: Mapping[str, Any] | None = field(default=None, compare=False, repr=False)
 
     def pose_generator(self) -> np.random.Generator:
         """A new generator positioned where this sample's draws left the object's generator:
@@ -116,7 +118,7 @@ def draw_structure(rng: np.random.Generator, structure) -> dict:
     whatever the variable's kind, so that forcing one variable (a probability of 1, one
     option) leaves the others' values unchanged: a probability ``_p`` -> 0/1; a range ``_m``
     or ``_frac`` -> a uniform value; option weights ``_weights`` -> an option name."""
-    out = {}
+    out: dict[str, Any] = {}
     for name in sorted(structure):
         value, u = structure[name], float(rng.random())
         kind = structure_kind(name)
@@ -198,7 +200,7 @@ def mean_object(obj_class: ObjectClass, table: SamplingTable, *, split: str, n_i
         def permutation(self, n):
             return np.arange(n)
 
-    q = stratified_configurations(_Centre(), table.q, n_images)
+    q = stratified_configurations(_Centre(), table.q, n_images)  # type: ignore[arg-type]  # the two methods it calls
     structure = centre_structure(table.structure) if table.structure else None
     return ObjectSample(obj_class.name, split, 0, 0, geometry, 0, q, pose, structure=structure)
 

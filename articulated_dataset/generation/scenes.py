@@ -47,10 +47,11 @@ import numpy as np
 
 from articulated_dataset.format.manifest import SCENE_NAMES  # noqa: F401  (re-exported: declared with the split config)
 from articulated_dataset.generation.context_labels import VISIBLE_FRACTION_RANGE
+from articulated_dataset.generation.mujoco_scene import ORIGIN_POSE, yaw_quaternion
 from articulated_dataset.generation.occluders import OCCLUDER_STREAM, add_occluder_slots
 from articulated_dataset.generation.render import CONTEXT_GEOM_GROUP
 from articulated_dataset.generation.sampling import object_rng
-from articulated_dataset.generation.mujoco_scene import yaw_quaternion
+from articulated_dataset.generation.viewpoint import mid_height_m
 
 #: Extra SeedSequence word of an object's scene stream (noise 1, head camera 2).
 SCENE_STREAM = 3
@@ -70,6 +71,9 @@ SCENE_TABLE = {
     "counter_depth_m": (0.60, 0.65),  # on_counter support depth
     "neighbour_width_m": (0.30, 0.90),  # each side (kitchen), or the support's margin each side
 }
+#: The highest an object's base stands above a scene's floor (m): the highest counter or sideboard top.
+MAX_SUPPORT_HEIGHT_M = max(SCENE_TABLE["counter_height_m"][1], SCENE_TABLE["sideboard_height_m"][1])
+
 #: Fixed sizes (m): floor and wall extents, wall height and thickness, gaps.
 FLOOR_THICKNESS_M = 0.05
 FLOOR_FRONT_M = 8.0  # the floor reaches this far in front of the object (past the camera)
@@ -183,13 +187,18 @@ def camera_in_object_frame(pose: dict) -> np.ndarray:
     return np.array([c * p[0] + s * p[1], -s * p[0] + c * p[1], p[2]])
 
 
-def scene_layout(scene: str, class_name: str, pose: dict, geometry: dict, z_range, rng: np.random.Generator):
+def scene_layout(scene: str, class_name: str, pose: dict, geometry: dict, z_range, rng: np.random.Generator,
+                 *, head: bool = False):
     """``(pose, boxes)``: the object's pose (its height redrawn if the table's put the floor
-    above the camera) and the scene's boxes; ``None`` if no layout fits (module docstring)."""
+    above the camera; with the ``head`` camera, its height set so that the floor lies
+    :func:`~.viewpoint.mid_height_m` below the level frame) and the scene's boxes; ``None`` if
+    no layout fits (module docstring)."""
     for _ in range(MAX_LAYOUT_TRIES):
         boxes, floor = layout_boxes(scene, class_name, geometry, _draws(rng))
         z_max = -MIN_CAMERA_HEIGHT_M - floor  # base height at which the floor is that far below the camera
-        if pose["z_m"] > z_max:
+        if head:  # the robot stands on the scene's floor: the camera's height is measured from it
+            pose = {**pose, "z_m": float(-mid_height_m() - floor)}
+        elif pose["z_m"] > z_max:
             lo, hi = z_range[0], min(z_range[1], z_max)
             if lo > hi:
                 return None
@@ -214,7 +223,7 @@ def add_scene(spec, pose: dict, boxes: list[Box]) -> None:
                       group=CONTEXT_GEOM_GROUP, contype=0, conaffinity=0, rgba=list(SCENE_RGBA))
 
 
-def context_rngs(config, object_index: int):
+def context_rngs(config, object_index: int) -> tuple[np.random.Generator | None, np.random.Generator | None]:
     """Generators of one object's scene layout and occluders (None where not used), each its
     own stream: the object and its default images are the same with and without them."""
     def stream(used: bool, word: int):
@@ -228,15 +237,17 @@ def context_builder(config, sample, srng):
     where the table's is impossible) and the spec hook adding scene and occluder slots;
     ``add_context`` None when no scene layout fits the pose."""
     boxes = None
+    head = config.camera.mount == "head"
     if config.scene != "none":
-        placed = scene_layout(config.scene, config.class_name, sample.pose, sample.geometry, config.table.pose["z_m"], srng)
+        placed = scene_layout(config.scene, config.class_name, sample.pose, sample.geometry, config.table.pose["z_m"], srng,
+                              head=head)
         if placed is None:
             return sample, None
         sample, boxes = replace(sample, pose=placed[0]), placed[1]
 
     def add_context(spec):
-        if boxes is not None:
-            add_scene(spec, sample.pose, boxes)
+        if boxes is not None:  # with the head camera, built with the object at the origin and moved with it per image
+            add_scene(spec, ORIGIN_POSE if head else sample.pose, boxes)
         add_occluder_slots(spec, config.occluders)
 
     return sample, add_context

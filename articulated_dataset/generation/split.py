@@ -19,7 +19,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from articulated_dataset.core.errors import DataFormatError, UserError
+from articulated_dataset.core.errors import DataFormatError, UserError, option
 from articulated_dataset.core.mujoco_support import different_mujoco, manifest_entry
 from articulated_dataset.core.safeio import (
     FULL_HINT,
@@ -90,7 +90,8 @@ def _own_entries(folder: Path) -> tuple[list[Path], list[Path]]:
     everything else (other files, folders, symbolic links).  A symbolic link named as one of
     our temporary files (planted there: ours are never links) counts as ours, a leftover to
     remove: removing it deletes the link itself, never what it points to."""
-    ours, foreign = [], []
+    ours: list[Path] = []
+    foreign: list[Path] = []
     for p in sorted(folder.iterdir()):
         if p.is_symlink():
             own = _is_own_temporary(p.name)
@@ -204,7 +205,8 @@ def _refuse_links(split_dir: Path) -> None:
     for p in (split_dir.parent, split_dir, _sibling(split_dir, STAGING_SUFFIX), _sibling(split_dir, RETIRED_SUFFIX)):
         if p.is_symlink():
             raise UserError(f"{p} is a symbolic link; generate writes only into real folders, never through a link "
-                            "inside --out (remove the link, or give its target as --out)")
+                            f"inside {option('out_root')} (remove the link, or give its target as "
+                            f"{option('out_root')})")
 
 
 def _begin(split_dir: Path, config: GenerationConfig, *, resume: bool, overwrite: bool) -> _Run:
@@ -227,13 +229,14 @@ def _begin(split_dir: Path, config: GenerationConfig, *, resume: bool, overwrite
         if not data:
             if foreign:
                 raise UserError(f"{split_dir} is not empty and holds no generated split ({names}); "
-                                "choose another --out or --split")
+                                f"choose another {option('out_root')} or {option('split')}")
         elif not (resume or overwrite):
-            raise UserError(f"{split_dir} already holds generated data; pass --resume to continue it or --overwrite to replace it")
+            raise UserError(f"{split_dir} already holds generated data; pass {option('resume')} to continue it or "
+                            f"{option('overwrite')} to replace it")
         elif overwrite:
             if foreign:
-                raise UserError(f"{split_dir} holds files artdata did not write ({names}); --overwrite replaces "
-                                "only generated splits: move them away first")
+                raise UserError(f"{split_dir} holds files artdata did not write ({names}); {option('overwrite')} "
+                                "replaces only generated splits: move them away first")
             target = _sibling(split_dir, STAGING_SUFFIX)
         else:
             records = _resume_records(split_dir, config)
@@ -259,7 +262,7 @@ def _resume_records(split_dir: Path, config: GenerationConfig) -> dict[int, dict
 
     records: dict[int, dict] = {}
     manifest_path = split_dir / MANIFEST_NAME
-    different = "--resume needs the same command (or use --overwrite)"
+    different = f"{option('resume')} needs the same command (or use {option('overwrite')})"
     if manifest_path.exists():
         old = read_manifest(split_dir)
         try:
@@ -267,16 +270,17 @@ def _resume_records(split_dir: Path, config: GenerationConfig) -> dict[int, dict
             listed = [(_SHARD_FILE.fullmatch(rec["file"]), rec) for rec in old["shards"]]
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise DataFormatError(f"{manifest_path}: corrupt manifest ({type(exc).__name__}: {exc}); "
-                                  "use --overwrite") from None
+                                  f"use {option('overwrite')}") from None
         if old_config != config:
             raise UserError(f"{split_dir} was generated with different settings; {different}")
         other_mujoco = different_mujoco(old, str(manifest_path))  # its depth bytes could differ
         if other_mujoco is not None:
-            raise UserError(f"{split_dir} was {other_mujoco}; --resume needs the same MuJoCo (or use --overwrite)")
+            raise UserError(f"{split_dir} was {other_mujoco}; {option('resume')} needs the same MuJoCo "
+                            f"(or use {option('overwrite')})")
         for m, rec in listed:
             if m is None or int(m.group(1)) >= config.n_shards:
                 raise DataFormatError(f"{manifest_path}: corrupt manifest (shard file {str(rec['file'])[:80]!r}); "
-                                      "use --overwrite")
+                                      f"use {option('overwrite')}")
             records[int(m.group(1))] = rec
     # Shards listed but missing or of another size are generated again; shards on disk but
     # not in the manifest (killed between rename and manifest update) are complete by
@@ -368,7 +372,8 @@ def check_resources(config: GenerationConfig, split_dir: Path, *, workers: int, 
             raise UserError(
                 f"{in_flight} worker(s) with shards of {per_shard} images of {config.camera.width_px}x{config.camera.height_px} px "
                 f"need {format_bytes(need)} of memory, more than half of the {format_bytes(avail)} available; "
-                "lower --objects-per-shard, --images, --width/--height or --workers")
+                f"lower {option('objects_per_shard')}, {option('images_per_object')}, "
+                f"{option('width')}/{option('height')} or {option('workers')}")
     remaining = config.n_objects * config.images_per_object - done_images
     check_free_space(split_dir.parent if not split_dir.exists() else split_dir,
                      remaining * pixels * MIN_DISK_BYTES_PER_PIXEL, f"{remaining} images of {pixels} px")
@@ -401,7 +406,7 @@ def generate_split(
     from articulated_dataset.core.pool import local_executor
 
     if resume and overwrite:
-        raise UserError("--resume and --overwrite are mutually exclusive")
+        raise UserError(f"{option('resume')} and {option('overwrite')} are mutually exclusive")
     if executor is None:
         executor = local_executor(workers)
     split_dir = split_dir_for(out_root, config)
@@ -434,8 +439,8 @@ def generate_split(
         remove_created_dirs(run.created)  # only folders still empty: a run that wrote nothing leaves nothing
         if isinstance(exc, WriteError) and run.target == split_dir and records:
             when = "once there is space" if exc.disk_full else "once the folder can be written"
-            raise WriteError(f"{str(exc).removesuffix(FULL_HINT)}; the {len(records)} complete shard(s) are kept: "
-                             f"run the same command with --resume {when}", exc.path, exc.errno) from None
+            raise WriteError(f"{exc.message.removesuffix(FULL_HINT)}; the {len(records)} complete shard(s) are kept: "
+                             f"run the same command with {option('resume')} {when}", exc.path, exc.errno) from None
         raise
     run.lock.release()
     return split_dir

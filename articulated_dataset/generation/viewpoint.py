@@ -61,14 +61,15 @@ def head_ranges() -> dict:
             "aim_jitter_deg": HEAD_AIM_JITTER_DEG}
 
 
-def _mid_height_m() -> float:
+def mid_height_m() -> float:
+    """The middle of :data:`HEAD_HEIGHT_M`: the camera height the level frame (and the table's pose) refer to."""
     return 0.5 * (HEAD_HEIGHT_M[0] + HEAD_HEIGHT_M[1])
 
 
 def aim_pitch_rad(pose: dict, geometry: dict, height_m: float) -> float:
     """Pitch (down, rad) that puts the centre of the object's box on the optical axis's
     vertical: the camera at ``height_m`` looks at ``(x, y, z + height / 2)`` of the level frame."""
-    dz = pose["z_m"] + 0.5 * geometry["height_m"] - (height_m - _mid_height_m())
+    dz = pose["z_m"] + 0.5 * geometry["height_m"] - (height_m - mid_height_m())
     return math.atan2(-dz, pose["x_m"])
 
 
@@ -80,7 +81,7 @@ def head_views(rng: np.random.Generator | None, pose: dict, geometry: dict, n_im
     """
     lo, hi = (math.radians(a) for a in HEAD_PITCH_DEG)
     if rng is None:
-        height = np.full(n_images, _mid_height_m())
+        height = np.full(n_images, mid_height_m())
         jitter = np.zeros(n_images)
         roll = np.zeros(n_images)
     else:
@@ -112,7 +113,7 @@ def camera_in_level_frame(view) -> np.ndarray:
     height, pitch, roll = (float(v) for v in view)
     T = np.eye(4)
     T[:3, :3] = _rot_y(pitch) @ _rot_x(roll)
-    T[2, 3] = height - _mid_height_m()
+    T[2, 3] = height - mid_height_m()
     return T
 
 

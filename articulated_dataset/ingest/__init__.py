@@ -30,9 +30,9 @@ The modules, one job each:
 * :mod:`.resample` -- resampling to the training camera;
 * :mod:`.ground_truth` -- the labels JSON and the checks of a real image's labels;
 * :mod:`.ingest` -- one capture in, one training-resolution image out (:func:`.ingest.ingest_capture`);
-* :mod:`.write` -- ingested captures written as a split (:func:`.write.write_real_split`);
-* :mod:`.noise` -- depth-sensor noise models (Kinect v2) applied to rendered depth.
+* :mod:`.write` -- ingested captures written as a split (:func:`.write.write_real_split`).
 
-This package imports none of its modules: import the one you need (``articulated_dataset.core.noise``
-is used while generating, and stays as light as it is).
+This package imports none of its modules: import the one you need.  The depth-sensor noise
+models applied to rendered depth (``kinect2``, ``d435``, ``azure-kinect``) are in
+:mod:`articulated_dataset.core.noise`.
 """

@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import TypedDict
 
 import numpy as np
 
 from articulated_dataset.classes.registry import get_class
 from articulated_dataset.core.camera import R_CAMERA_TO_OPTICAL, CameraConfig
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.core.images.intrinsics import check_intrinsics, check_source_size, load_intrinsics
 from articulated_dataset.core.images.resample import (
     DEFAULT_CROP_MARGIN,
@@ -30,6 +31,18 @@ log = logging.getLogger(__name__)
 DEPTH_QUANTUM_M = 2.0**-13
 FITS = ("training", "crop")
 CLOUD_FRAMES = ("optical", "camera")
+
+
+class IngestOptionsRecord(TypedDict):
+    """The conversion options an ingested split records in its manifest (``real.options``;
+    :meth:`IngestOptions.to_dict`)."""
+
+    fit: str  # one of FITS
+    resample: str  # one of RESAMPLERS
+    crop_margin: float  # fit "crop": added on each side of the mask's bounding box, fraction of its size
+    depth_units: str  # one of DEPTH_UNITS
+    cloud_frame: str  # one of CLOUD_FRAMES
+    keep_background: bool
 
 
 @dataclass
@@ -54,7 +67,7 @@ class IngestOptions:
         if not 0.0 <= self.crop_margin < 10.0:
             raise UserError(f"crop margin must be in [0, 10), got {self.crop_margin}")
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> IngestOptionsRecord:
         """The conversion options recorded in the ingested split's manifest (camera, intrinsics and source size
         excluded)."""
         return {"fit": self.fit, "resample": self.resample, "crop_margin": self.crop_margin, "depth_units": self.depth_units,
@@ -84,13 +97,13 @@ def ingest_capture(files: CaptureFiles, class_name: str, options: IngestOptions)
     elif files.camera is not None:
         K_src, size = load_intrinsics(files.camera)
     else:
-        raise UserError(f"{files.data}: intrinsics missing; pass --intrinsics FILE or --fx/--fy/--cx/--cy, "
-                        f"or put camera.json next to it")
+        raise UserError(f"{files.data}: intrinsics missing; pass {option('intrinsics_path')} FILE or "
+                        f"{option('fx')}/{option('fy')}/{option('cx')}/{option('cy')}, or put camera.json next to it")
     if files.is_cloud:
         size = size or options.source_size
         if size is None:
             raise UserError(f"{files.data}: rasterising a point cloud needs the sensor's image size "
-                            f"(width/height in the camera file, or --source-size WxH)")
+                            f"(width/height in the camera file, or {option('source_size')} WxH)")
         check_source_size(size, str(files.data))
         check_intrinsics(K_src, size, str(files.data))
         points = load_cloud(files.data)
@@ -99,7 +112,7 @@ def ingest_capture(files: CaptureFiles, class_name: str, options: IngestOptions)
         depth = rasterise_cloud(points, K_src, size)
         if not (depth > 0).any():
             raise UserError(f"{files.data}: no point projects into the {size[0]}x{size[1]} image "
-                            f"(check --cloud-frame and the intrinsics)")
+                            f"(check {option('cloud_frame')} and the intrinsics)")
     else:
         depth = load_depth(files.data, options.depth_units)
         if size is not None and (depth.shape[1], depth.shape[0]) != tuple(size):
@@ -120,13 +133,14 @@ def ingest_capture(files: CaptureFiles, class_name: str, options: IngestOptions)
     out_size = (cam.width_px, cam.height_px)
     if options.fit == "crop":
         if files.mask is None:
-            raise UserError(f"{files.data}: --fit crop needs a segmentation mask ({files.name}{MASK_SUFFIX})")
+            raise UserError(f"{files.data}: {option('fit')} crop needs a segmentation mask ({files.name}{MASK_SUFFIX})")
         K_dst = crop_intrinsics(K_src, mask > 0, out_size, options.crop_margin)
     else:
         K_dst = cam.K
     inside = mask_fraction_inside(mask > 0, K_src, K_dst, out_size)
     if inside == 0.0 and (mask > 0).any():
-        raise UserError(f"{files.data}: the object lies outside the training camera's field of view; use --fit crop")
+        raise UserError(f"{files.data}: the object lies outside the training camera's field of view; "
+                        f"use {option('fit')} crop")
     if inside < 1.0:
         log.warning("%s: %.1f%% of the object's pixels fall outside the training camera's field of view",
                     files.data, 100.0 * (1.0 - inside))
@@ -136,7 +150,7 @@ def ingest_capture(files: CaptureFiles, class_name: str, options: IngestOptions)
     if (depth[mask > 0] > 0).any() and not (depth_r[mask_r > 0] > 0).any():
         raise UserError(f"{files.data}: no depth return of the object survives resampling onto the "
                         f"{out_size[0]}x{out_size[1]} training camera (fx={K_src[0, 0]:g}, fy={K_src[1, 1]:g} px); "
-                        f"check the intrinsics, or use --fit crop")
+                        f"check the intrinsics, or use {option('fit')} crop")
     depth_r = (np.round(depth_r / DEPTH_QUANTUM_M) * DEPTH_QUANTUM_M).astype(np.float32)
     labels = load_ground_truth(files.labels, J, class_name) if files.labels is not None else empty_labels(J)
     return Capture(files.name, depth_r, mask_r, K_dst, labels, inside, files.labels is not None)

@@ -3,6 +3,7 @@ and camera-info files."""
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -78,6 +79,18 @@ def capture_files(f: Path) -> CaptureFiles:
     folder = f.parent
     mask = folder / (stem + MASK_SUFFIX)
     labels = folder / (stem + LABELS_SUFFIX)
-    camera = next((c for c in (folder / f"{stem}{CAMERA_SUFFIX}.json", folder / f"{stem}{CAMERA_SUFFIX}.yaml",
-                               *(folder / n for n in CAMERA_FILES)) if c.is_file()), None)
-    return CaptureFiles(stem, f, mask if mask.is_file() else None, labels if labels.is_file() else None, camera)
+    camera = next((c for c in (_companion(folder / f"{stem}{CAMERA_SUFFIX}.json", "camera file"),
+                               _companion(folder / f"{stem}{CAMERA_SUFFIX}.yaml", "camera file"),
+                               *(_companion(folder / n, "camera file") for n in CAMERA_FILES)) if c is not None), None)
+    return CaptureFiles(stem, f, _companion(mask, "mask"), _companion(labels, "labels file"), camera)
+
+
+def _companion(path: Path, what: str) -> Path | None:
+    """``path`` where it is a regular file, None where nothing is there; anything else by that name
+    (a folder, a FIFO, a device, a dangling link) is a one-line :class:`UserError`: taking it for
+    "no file" would ingest the capture without what the user put beside it."""
+    if path.is_file():
+        return path
+    if not os.path.lexists(path):
+        return None
+    raise UserError(f"{path}: not a regular file; a capture's {what} must be one")

@@ -85,10 +85,10 @@ def real_label_problems(labels: dict, joint_types, q_ranges, has_ground_truth=No
     L = {k: np.asarray(labels[k], np.float64) for k in REAL_LABEL_FIELDS}
     n = L["q"].shape[0]
 
-    def flag(message: str, bad: np.ndarray) -> None:
+    def flag(message: str, bad: np.ndarray | np.bool_) -> None:
         bad = np.asarray(bad, bool).reshape(n, -1).any(axis=1)
         if bad.any():
-            out.append((message, bad))
+            out.append((message, bad))  # type: ignore[arg-type]  # any(axis=1) of a 2-D array: an array
 
     for k, v in L.items():
         flag(f"{k}: infinite values", np.isinf(v))
@@ -217,11 +217,11 @@ def load_ground_truth(path: str | Path, n_joints: int, class_name: str | None = 
     if yaw is not None:
         if frame != "camera":
             raise UserError(f"{path}: object_yaw is a camera-frame angle; give object_pose in the optical frame instead")
-        yaw = _wrap_angle(float(yaw))
-        if obj_pose is not None and abs(_wrap_angle(yaw - float(out["object_yaw"]))) > YAW_AGREEMENT_RAD:
-            raise UserError(f"{path}: object_yaw {yaw:.4f} rad disagrees with the yaw of object_pose "
+        yaw_rad = _wrap_angle(float(yaw))
+        if obj_pose is not None and abs(_wrap_angle(yaw_rad - float(out["object_yaw"]))) > YAW_AGREEMENT_RAD:
+            raise UserError(f"{path}: object_yaw {yaw_rad:.4f} rad disagrees with the yaw of object_pose "
                             f"({float(out['object_yaw']):.4f} rad)")
-        out["object_yaw"] = np.array(yaw)
+        out["object_yaw"] = np.array(yaw_rad)
     obj = d.get("object")
     if obj is not None and not (isinstance(obj, str) and obj.strip()):
         raise UserError(f"{path}: 'object' must be a non-empty name (string), got {str(obj)[:80]!r}")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.core.images.intrinsics import check_source_size
 from articulated_dataset.core.units import MM_PER_M
 from articulated_dataset.format import MASK_BODY, MASK_FIRST_PART
@@ -40,14 +40,15 @@ def _to_metres(raw: np.ndarray, units: str, path: Path) -> np.ndarray:
         raise UserError(f"{path}: {int((depth < 0).sum())} negative depth values")
     top = float(depth.max(initial=0.0))
     if top > MAX_PLAUSIBLE_DEPTH_M:
-        hint = "; it looks like millimetres: pass --depth-units mm" if units == "m" else ""
+        hint = f"; it looks like millimetres: pass {option('depth_units')} mm" if units == "m" else ""
         raise UserError(f"{path}: depth up to {top:.4g} m is not plausible for a depth sensor{hint}")
     returns = depth[depth > 0]
     median = float(np.median(returns)) if returns.size else 0.0
     if returns.size and median < MIN_PLAUSIBLE_DEPTH_M:
         as_m = median * (MM_PER_M if units == "mm" else 1.0)
-        hint = ("; it looks like metres: pass --depth-units m" if units == "mm" and MIN_PLAUSIBLE_DEPTH_M <= as_m <= MAX_PLAUSIBLE_DEPTH_M
-                else "; check the depth units (--depth-units)")
+        hint = (f"; it looks like metres: pass {option('depth_units')} m"
+                if units == "mm" and MIN_PLAUSIBLE_DEPTH_M <= as_m <= MAX_PLAUSIBLE_DEPTH_M
+                else f"; check the depth units ({option('depth_units')})")
         raise UserError(f"{path}: median depth {1000 * median:.3g} mm read as {units_name(units)} is closer than any "
                         f"depth sensor measures ({MIN_PLAUSIBLE_DEPTH_M:g} m){hint}")
     return depth
@@ -110,7 +111,7 @@ def load_depth(path: str | Path, units: str = "auto") -> np.ndarray:
         raw = np.array(raw)
         if units == "auto":
             if raw.dtype.kind != "f":
-                raise UserError(f"{path}: integer depth array has unknown units; pass --depth-units mm or m")
+                raise UserError(f"{path}: integer depth array has unknown units; pass {option('depth_units')} mm or m")
             units = "m"
         return _to_metres(raw, units, path)
     raise UserError(f"{path}: unsupported depth file type {suffix!r} (expected {', '.join(DEPTH_SUFFIXES)})")

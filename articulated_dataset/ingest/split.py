@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from articulated_dataset.core.camera import CameraConfig
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.core.safeio import check_memory
 
 #: Bytes per training-resolution pixel held per capture while ingesting: stored float32 depth
@@ -33,7 +33,7 @@ def camera_like(path: str) -> CameraConfig:
             raise TypeError("camera values are not numbers")
         return CameraConfig(w, h, float(vfov))
     except (KeyError, TypeError, ValueError) as exc:
-        raise UserError(f"--like {path}: {dirs[0]}/manifest.json has no readable camera "
+        raise UserError(f"{option('like_path')} {path}: {dirs[0]}/manifest.json has no readable camera "
                         f"({type(exc).__name__}: {str(exc)[:80]})") from None
 
 
@@ -43,7 +43,8 @@ def check_training_camera(camera: CameraConfig) -> None:
 
     check_memory(float(camera.width_px) * camera.height_px * BYTES_PER_PIXEL,
                  f"a {camera.width_px}x{camera.height_px} training image")
-    check_intrinsics(camera.K, (camera.width_px, camera.height_px), "training camera (--width/--height/--vfov)")
+    check_intrinsics(camera.K, (camera.width_px, camera.height_px),
+                     f"training camera ({option('width')}/{option('height')}/{option('vfov')})")
 
 
 def ingest_split(captures, class_name: str, out_root, options, *, split: str, mask_path=None, labels_path=None,
@@ -61,7 +62,8 @@ def ingest_split(captures, class_name: str, out_root, options, *, split: str, ma
     camera = options.camera
     files = find_captures(captures)
     if (mask_path or labels_path) and len(files) != 1:
-        raise UserError(f"--mask and --labels name the files of one capture; {len(files)} captures were given")
+        raise UserError(f"{option('mask_path')} and {option('labels_path')} name the files of one capture; "
+                        f"{len(files)} captures were given")
     check_memory(float(len(files)) * camera.width_px * camera.height_px * BYTES_PER_PIXEL,
                  f"{len(files)} captures at {camera.width_px}x{camera.height_px} px")
     if mask_path:

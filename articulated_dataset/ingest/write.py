@@ -15,7 +15,7 @@ import numpy as np
 
 from articulated_dataset.classes.registry import get_class
 from articulated_dataset.core.camera import R_CAMERA_TO_OPTICAL, CameraConfig
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.format import FIELDS, SplitConfig, visible_pixels
 from articulated_dataset.format.manifest import is_utf8
 from articulated_dataset.format.records import shard_attrs, split_manifest
@@ -39,8 +39,9 @@ def vfov_deg_of(K: np.ndarray, height_px: int) -> float:
     return math.degrees(2.0 * math.atan(0.5 * height_px / K[1, 1]))
 
 
-def _appendable(manifest: dict, split_dir: Path) -> tuple[list, list, list, tuple[int, int]]:
-    """``(shard records, object names, capture names, (W, H))`` of a real split's manifest,
+def _appendable(manifest: dict, split_dir: Path) -> tuple[list, list, list, tuple[int, int, float]]:
+    """``(shard records, object names, capture names, (W, H, vertical field of view in deg))`` of a
+    real split's manifest,
     checked to be what :func:`write_real_split` writes (a :class:`UserError` otherwise)."""
     def names(v) -> bool:
         return isinstance(v, list) and all(isinstance(x, str) and x for x in v)
@@ -57,7 +58,8 @@ def _appendable(manifest: dict, split_dir: Path) -> tuple[list, list, list, tupl
     except (KeyError, TypeError):
         ok = False
     if not ok:
-        raise UserError(f"{split_dir}/manifest.json: corrupt real-split record; cannot --append (run 'artdata verify')")
+        raise UserError(f"{split_dir}/manifest.json: corrupt real-split record; cannot {option('append')} "
+                        "(run 'artdata verify')")
     return list(shards), list(real["objects"]), list(real["captures"]), size
 
 
@@ -86,19 +88,20 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
     if not split or "/" in split or "\0" in split or split.startswith(".") or not is_utf8(split):
         raise UserError(f"invalid split name {split!r}")
     if append and overwrite:
-        raise UserError("--append and --overwrite are mutually exclusive")
+        raise UserError(f"{option('append')} and {option('overwrite')} are mutually exclusive")
     obj_class = get_class(class_name)
     options = options or IngestOptions()
     camera = camera or options.camera
     split_dir = Path(out_root) / class_name / split
     check_name_length(split_dir)
     if split_dir.is_symlink() or (split_dir.exists() and not split_dir.is_dir()):
-        raise UserError(f"{split_dir} is a symbolic link or a file; give --out a folder where the split can be written")
+        raise UserError(f"{split_dir} is a symbolic link or a file; give {option('out_root')} a folder where the split "
+                        "can be written")
     ours = [p for p in split_dir.iterdir() if _is_ours(p)] if split_dir.is_dir() else []
     foreign = [p.name for p in split_dir.iterdir() if not _is_ours(p)] if split_dir.is_dir() else []
     if foreign:
         raise UserError(f"{split_dir} holds files 'artdata ingest' did not write (e.g. {foreign[0]!r}); "
-                        f"move them or choose another --split")
+                        f"move them or choose another {option('split')}")
     existing = [p for p in ours if p.name == MANIFEST_NAME or p.suffix == ".h5"]
     old_shards: list[dict] = []
     objects: list[str] = []
@@ -107,18 +110,21 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
         if overwrite:  # replaced below, once the new split is complete; only a split ingest wrote
             if not _holds_real_split(split_dir, class_name):
                 raise UserError(f"{split_dir} does not hold ingested real data of class {class_name} (a generated or "
-                                f"imported split); --overwrite replaces only a real split: choose another --split")
+                                f"imported split); {option('overwrite')} replaces only a real split: choose another "
+                                f"{option('split')}")
         elif append:
             old = read_manifest(split_dir)
             if old.get("class_name") != class_name or "real" not in old:
-                raise UserError(f"{split_dir} does not hold ingested real data of class {class_name}; cannot --append")
+                raise UserError(f"{split_dir} does not hold ingested real data of class {class_name}; "
+                                f"cannot {option('append')}")
             old_shards, objects, names, old_size = _appendable(old, split_dir)
             if old_size[:2] != (camera.width_px, camera.height_px) or abs(old_size[2] - camera.vfov_deg) > 1e-9:
                 raise UserError(f"{split_dir} holds {old_size[0]}x{old_size[1]} images of a {old_size[2]:g} deg "
-                                f"training camera; cannot --append {camera.width_px}x{camera.height_px} at "
-                                f"{camera.vfov_deg:g} deg (pass --like {split_dir})")
+                                f"training camera; cannot {option('append')} {camera.width_px}x{camera.height_px} at "
+                                f"{camera.vfov_deg:g} deg (pass {option('like_path')} {split_dir})")
         else:
-            raise UserError(f"{split_dir} already holds data; pass --append to add captures or --overwrite to replace them")
+            raise UserError(f"{split_dir} already holds data; pass {option('append')} to add captures or "
+                            f"{option('overwrite')} to replace them")
     clash = sorted(set(names) & {c.name for c in captures})
     if clash:
         raise UserError(f"{split_dir}: capture(s) already ingested: {', '.join(clash[:5])}")
@@ -161,7 +167,7 @@ def write_real_split(captures: list[Capture], class_name: str, out_root: str | P
             for start in range(0, len(members), MAX_IMAGES_PER_SHARD):
                 chunk = members[start : start + MAX_IMAGES_PER_SHARD]
                 N = len(chunk)
-                arrays = {
+                arrays: dict[str, np.ndarray] = {
                     "depth": np.stack([captures[i].depth for i in chunk]).astype(np.float32),
                     "mask": np.stack([captures[i].mask for i in chunk]).astype(np.uint8),
                     "visible_pixels": np.stack([visible_pixels(captures[i].mask, J) for i in chunk]).astype(np.int32),

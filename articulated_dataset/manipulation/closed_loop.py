@@ -13,6 +13,8 @@ import numpy as np
 
 from articulated_dataset.classes.registry import PRISMATIC, REVOLUTE
 from articulated_dataset.core.errors import UserError
+from articulated_dataset.manipulation.execution import ExecutionResult, GripperController
+from articulated_dataset.manipulation.gripper import MAX_FORCE_N, SETTLE_S
 from articulated_dataset.manipulation.hypotheses import (
     ObjectKinematics,
     anchor_to_handle,
@@ -24,10 +26,8 @@ from articulated_dataset.manipulation.hypotheses import (
     same_axis,
     transform_estimate,
 )
-from articulated_dataset.manipulation.sources import DepthEstimator
-from articulated_dataset.manipulation.execution import ExecutionResult, GripperController
-from articulated_dataset.manipulation.gripper import MAX_FORCE_N, SETTLE_S
 from articulated_dataset.manipulation.perception import (
+    HandleSighting,
     SceneCamera,
     depth_centroid,
     look_at_viewpoint,
@@ -47,6 +47,7 @@ from articulated_dataset.manipulation.planning import (
     plan_waypoints,
     success_tolerance,
 )
+from articulated_dataset.manipulation.sources import DepthEstimator
 from articulated_dataset.manipulation.true_object import TrueObject
 
 #: Closed loop: at most this many axis hypotheses are checked with the wrist camera before
@@ -209,6 +210,7 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
     views.append({"when": "before grasp", "viewpoint_deg": 0.0, "q_estimate": float(first.q[joint])})
     centre = depth_centroid(first_depth, K)
     q_true0 = np.asarray(obj.labels["q"], np.float64)
+    e: ObjectKinematics | None  # an image's estimate (None: no hypothesis agrees with the axis)
     for angle in list(view_angles_deg)[: max(0, max_images - 1)]:
         rot, trans = orbit_viewpoint(centre, math.radians(angle))
         try:
@@ -229,6 +231,7 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
     plans = [plan_from_estimate(c, joint, jt, target, step_rad, step_m) for _, c in candidates]
     chosen = (candidates[0][1], plans[0])  # the best hypothesis unless a look finds another's handle
     sighting = None  # (hypothesis rank, HandleSighting in the reference frame)
+    seen: HandleSighting | None | list[tuple[float, np.ndarray]]  # a look's sighting; then (q, hand position) per image
     for rank, ((score, _), plan_k) in enumerate(zip(candidates, plans)):
         if not look_at_handle or n_images >= max_images:
             break
@@ -257,8 +260,8 @@ def closed_loop_trial(obj: TrueObject, estimator: DepthEstimator, joint: int, fi
             rank = overview_hypothesis([c for _, c in candidates] + ([mirror] if mirror is not None else []),
                                        joint, jt, seen)
             if rank == len(candidates):  # the best hypothesis's mirror (when it was not a candidate already)
-                candidates.append((0.0, mirror))
-                plans.append(mirror_plan)
+                candidates.append((0.0, mirror))  # type: ignore[arg-type]  # the mirror was a choice: not None
+                plans.append(mirror_plan)  # type: ignore[arg-type]  # (as the mirror)
             sighting = (rank, seen)
     if sighting is not None:
         rank, seen = sighting

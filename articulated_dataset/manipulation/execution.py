@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -24,7 +25,6 @@ from articulated_dataset.core.errors import UserError
 from articulated_dataset.core.rotations import quat_multiply, quat_to_matrix
 from articulated_dataset.core.units import format_q
 from articulated_dataset.generation.mujoco_scene import set_configuration
-from articulated_dataset.manipulation.hypotheses import ObjectKinematics
 from articulated_dataset.manipulation.gripper import (
     GRASP_CAPTURE_M,
     GRIPPER_DAMPING_N_S_PER_M,
@@ -40,6 +40,7 @@ from articulated_dataset.manipulation.gripper import (
     motion_duration,
     point_box_distance,
 )
+from articulated_dataset.manipulation.hypotheses import ObjectKinematics
 from articulated_dataset.manipulation.planning import (
     DEFAULT_STEP_M,
     DEFAULT_STEP_RAD,
@@ -158,7 +159,7 @@ class GripperController:
         self.max_f = self.max_t = self.max_pe = self.max_re = 0.0
         self.steps = 0
         self.record = record
-        self.trace = {k_: [] for k_ in ("t", "q", "force", "grasp", "command")} if record else {}
+        self.trace: dict[str, list] = {k_: [] for k_ in ("t", "q", "force", "grasp", "command")} if record else {}
 
     @property
     def q(self) -> np.ndarray:
@@ -271,7 +272,7 @@ class GripperController:
         """The :class:`ExecutionResult` of the motion so far towards ``q_target``: the true q reached and the peak
         forces, torques and tracking errors (nothing moved if the grasp failed)."""
         joint = self.joint
-        base = dict(joint=joint, joint_type=self.obj.joint_types[joint], q_start=float(self.q0[joint]),
+        base: dict[str, Any] = dict(joint=joint, joint_type=self.obj.joint_types[joint], q_start=float(self.q0[joint]),
                     q_target=float(q_target), grasp_error_m=self.grasp_error_m)
         if not self.grasped:
             return ExecutionResult(q_reached=float(self.q0[joint]), grasped=False, max_force_n=0.0, max_torque_nm=0.0,

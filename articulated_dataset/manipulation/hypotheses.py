@@ -47,6 +47,7 @@ class ObjectKinematics:
     alternatives: list = field(default_factory=list)
 
     def axis(self, joint: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(origin (3,) m, unit direction (3,))`` of joint ``joint``'s axis, camera frame."""
         origin, rot = axis_frame(self.axis_pose[joint])
         return origin, rot[:, 2]
 

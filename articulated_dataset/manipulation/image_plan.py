@@ -18,13 +18,12 @@ from typing import Callable
 import numpy as np
 
 from articulated_dataset.classes.registry import REVOLUTE
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.core.units import parse_quantity
 from articulated_dataset.manipulation.closed_loop import closed_loop_trial
-from articulated_dataset.manipulation.hypotheses import ObjectKinematics
-from articulated_dataset.manipulation.sources import load_prediction_estimates, make_estimator
 from articulated_dataset.manipulation.execution import ExecutionResult, execute_plan
 from articulated_dataset.manipulation.gripper import GRASP_CAPTURE_M, MAX_FORCE_N, MAX_TORQUE_NM
+from articulated_dataset.manipulation.hypotheses import ObjectKinematics
 from articulated_dataset.manipulation.planning import (
     DEFAULT_STEP_M,
     DEFAULT_STEP_RAD,
@@ -33,6 +32,7 @@ from articulated_dataset.manipulation.planning import (
     plan_from_estimate,
     success_tolerance,
 )
+from articulated_dataset.manipulation.sources import load_prediction_estimates, make_estimator
 from articulated_dataset.manipulation.true_object import (
     PlannableObject,
     load_true_object,
@@ -72,7 +72,7 @@ def usable_truth(estimate: ObjectKinematics, joint: int, where: str) -> ObjectKi
         missing.append("part_offset (or geometry)")
     if missing:
         raise UserError(f"{where}: the truth labels of joint {joint} lack {', '.join(missing)} (NaN: not in the "
-                        f"capture's labels file); add them there or plan from --predictions")
+                        f"capture's labels file); add them there or plan from {option('predictions_path')}")
     if not offset_ok:
         estimate.part_offset = None
     return estimate
@@ -83,7 +83,7 @@ class ImagePlan:
     """What :func:`plan_image` made of one image: the object (a :class:`TrueObject`, or a
     :class:`CapturedObject` for a real capture), its labels, the plan and its JSON record."""
 
-    obj: object
+    obj: PlannableObject
     manifest: dict
     labels: dict
     index: int
@@ -101,6 +101,7 @@ class ImagePlan:
 
     @property
     def sample_id(self) -> int:
+        """The image's ``sample_id`` label."""
         return int(self.labels["sample_id"])
 
 
@@ -119,29 +120,31 @@ def plan_image(data_dir, index: int, *, joint: int = 0, predictions_path=None, m
     real = "real" in manifest
     if real and simulate:
         raise UserError(f"{data_dir}: image {index} is a real capture; there is no object model to simulate "
-                        f"(--simulate needs a generated split)")
+                        f"({option('simulate')} needs a generated split)")
     if real and urdf is not None:
         raise UserError(f"{data_dir}: image {index} is a real capture; there is no object model to rebuild from "
                         f"the URDF {urdf}")
     obj = (CapturedObject(manifest["class_name"], labels) if real else
            load_true_object(manifest, labels, split_dir=data_dir, urdf=urdf, mesh_root=mesh_root, hint=hint))
     if not 0 <= joint < obj.n_joints:
-        raise UserError(f"--joint {joint} out of range: {obj.class_name} has {obj.n_joints} joint(s) (0..{obj.n_joints - 1})")
+        raise UserError(f"{option('joint')} {joint} out of range: {obj.class_name} has {obj.n_joints} joint(s) "
+                        f"(0..{obj.n_joints - 1})")
     joint_type = obj.joint_types[joint]
 
-    def _quantity(text: str, option: str) -> float:
+    def _quantity(text: str, quantity: str) -> float:
         value, kind = parse_quantity(text)
         if kind != joint_type:
-            raise UserError(f"{option} {text!r} is a {kind} quantity but joint {joint} of {obj.class_name} is {joint_type}")
+            raise UserError(f"{quantity} {text!r} is a {kind} quantity but joint {joint} of {obj.class_name} "
+                            f"is {joint_type}")
         return value
 
-    q_target = default_target(joint_type) if target is None else _quantity(target, "--target")
+    q_target = default_target(joint_type) if target is None else _quantity(target, option("target"))
     if step is None:
         step_value = DEFAULT_STEP_RAD if joint_type == REVOLUTE else DEFAULT_STEP_M
     else:
-        step_value = _quantity(step, "--step")
+        step_value = _quantity(step, option("step"))
         if step_value <= 0:
-            raise UserError(f"--step must be positive, got {step!r}")
+            raise UserError(f"{option('step')} must be positive, got {step!r}")
     clipped = obj.clip_target(joint, q_target)
 
     sample_id = int(labels["sample_id"])
@@ -156,7 +159,7 @@ def plan_image(data_dir, index: int, *, joint: int = 0, predictions_path=None, m
                 depth = np.where(mask > 0, depth, 0.0).astype(np.float32)
         estimate = estimator(depth, K)
         if estimate.q.shape[0] != obj.n_joints:
-            raise UserError(f"--model {model}: {estimate.q.shape[0]} joints estimated for {obj.class_name} "
+            raise UserError(f"{option('model')} {model}: {estimate.q.shape[0]} joints estimated for {obj.class_name} "
                             f"({obj.n_joints} expected)")
     elif predictions_path is None:
         estimate = usable_truth(obj.truth(), joint, f"image {index} of {obj.class_name}/{manifest['split']}")
@@ -191,14 +194,15 @@ def simulate_image_plan(image: ImagePlan, *, closed_loop: bool = False, touch: b
     judged by go into ``image.record`` (and a closed loop's plan replaces ``image.plan``)."""
     record, joint = image.record, image.joint
     if closed_loop:
-        plan, result = closed_loop_trial(image.obj, image.estimator, joint, image.depth, image.K,
+        # (a closed loop runs a --model plan of a simulated object: a TrueObject, its estimator, depth and K)
+        plan, result = closed_loop_trial(image.obj, image.estimator, joint, image.depth, image.K,  # type: ignore[arg-type]
                                          np.random.default_rng(seed), image.clipped,
                                          step_rad=image.step, step_m=image.step, close_first=touch)
         image.plan = plan
         record.update(plan.to_dict())
         record["closed_loop"] = result.views
     else:
-        result = execute_plan(image.obj, image.plan.waypoints, joint, image.clipped)
+        result = execute_plan(image.obj, image.plan.waypoints, joint, image.clipped)  # type: ignore[arg-type]  # a TrueObject
         result.images_used = 0 if image.from_labels else 1
     record["simulation"] = result.to_dict()
     record["limits"] = {"max_force_n": MAX_FORCE_N, "max_torque_nm": MAX_TORQUE_NM,

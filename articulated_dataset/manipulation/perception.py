@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
@@ -26,6 +27,9 @@ from articulated_dataset.manipulation.planning import (
     given_unit,
 )
 from articulated_dataset.manipulation.true_object import TrueObject
+
+if TYPE_CHECKING:
+    from articulated_dataset.generation.config import GenerationConfig
 
 
 def orbit_viewpoint(centre, angle_rad: float) -> tuple[np.ndarray, np.ndarray]:
@@ -48,8 +52,8 @@ class SceneCamera:
     """
 
     def __init__(self, obj: TrueObject, rng: np.random.Generator):
-        from articulated_dataset.generation.render import process_renderer
         from articulated_dataset.generation.mujoco_scene import CAMERA_NAME
+        from articulated_dataset.generation.render import process_renderer
 
         if obj.config is None:
             raise UserError(f"{obj.class_name}: no generation config, so no camera to render the scene with")
@@ -64,12 +68,13 @@ class SceneCamera:
 
     @property
     def K(self) -> np.ndarray:  # noqa: N802
+        """Intrinsics (3, 3) of the images taken."""
         return self.camera.K
 
     def render(self, q: np.ndarray, viewpoint: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """Depth (H, W) float32 metres of the object at configuration ``q``."""
         model = self.obj.model
-        config = self.obj.config
+        config: GenerationConfig = self.obj.config  # type: ignore[assignment]  # not None: refused in __init__
         if viewpoint is not None:
             rot, trans = viewpoint
             model.cam_pos[self.cam_id] = rot @ self.cam_pos0 + trans

@@ -88,6 +88,7 @@ def quat_angle(a, b) -> float:
 
 
 def canonical_quat(quat: np.ndarray) -> np.ndarray:
+    """``quat`` (w, x, y, z) normalised to unit length, with ``w >= 0``."""
     q = np.asarray(quat, np.float64)
     q = q / np.linalg.norm(q)
     return q if q[0] >= 0 else -q
@@ -98,11 +99,14 @@ def canonical_quat(quat: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 
 def check_joint_type(joint_type: str) -> None:
+    """A joint type other than revolute or prismatic is the user's mistake."""
     if joint_type not in JOINT_TYPES:
         raise UserError(f"joint type must be one of {', '.join(JOINT_TYPES)}, got {joint_type!r}")
 
 
 def checked_vector(name: str, v, n: int) -> np.ndarray:
+    """``v`` as a float64 array of shape ``(n,)``; another shape raises ValueError, a NaN or infinite value is the
+    user's mistake."""
     a = np.asarray(v, np.float64)
     if a.shape != (n,):
         raise ValueError(f"{name} must have shape ({n},), got {a.shape}")
@@ -297,6 +301,7 @@ class Plan:
     source: str
 
     def to_dict(self) -> dict:
+        """The plan as plain JSON types (arrays as lists)."""
         return {
             "joint": self.joint, "joint_type": self.joint_type, "source": self.source,
             "q_current": self.q_current, "q_target": self.q_target,

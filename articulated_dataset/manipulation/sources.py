@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -45,10 +46,12 @@ class DepthEstimator:
     name: str  # display / method name (dense, MDN-small, ...)
     kind: str  # dense | mdn
     class_name: str
-    _fn: object = field(repr=False, default=None)
+    _fn: Callable[[np.ndarray, np.ndarray], ObjectKinematics] | None = field(repr=False, default=None)
 
     def __call__(self, depth_m: np.ndarray, K: np.ndarray) -> ObjectKinematics:
-        return self._fn(np.asarray(depth_m, np.float32), np.asarray(K, np.float64))
+        """The model's estimate for one depth image ``depth_m`` (H, W, metres) with intrinsics ``K`` (3, 3), in its
+        camera frame."""
+        return self._fn(np.asarray(depth_m, np.float32), np.asarray(K, np.float64))  # type: ignore[misc]  # set by make_estimator
 
 
 def make_estimator(model: str, class_name: str) -> DepthEstimator:

@@ -11,15 +11,19 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.format import MASK_FIRST_PART
 from articulated_dataset.generation.labels import HANDLE_SUFFIX, ModelInfo, read_object_labels
 from articulated_dataset.generation.mujoco_scene import set_configuration
 from articulated_dataset.manipulation.hypotheses import ObjectKinematics
+
+if TYPE_CHECKING:
+    from articulated_dataset.generation.config import GenerationConfig
 
 #: Gravity is ON (MuJoCo's default -9.81 m/s^2 along the camera's -z, which is the objects'
 #: down): the gripper must also hold the toaster's drop-down door.  Contacts are disabled:
@@ -39,12 +43,18 @@ class PlannableObject:
     (:class:`~articulated_dataset.manipulation.image_plan.CapturedObject`): its labels
     (``self.labels``) as the truth, and its joints' ranges (``self.q_ranges``) for the target."""
 
+    class_name: str
+    labels: dict
+    q_ranges: tuple[tuple[float, float], ...]
+
     def truth(self) -> ObjectKinematics:
+        """The object's labels as an estimate (source ``truth``)."""
         L = self.labels
         return ObjectKinematics(L["axis_pose"].astype(np.float64), L["q"].astype(np.float64),
                         L["part_offset"].astype(np.float64), L["geometry"].astype(np.float64), source="truth")
 
     def clip_target(self, joint: int, q_target: float) -> float:
+        """``q_target`` clipped to joint ``joint``'s range (rad or m)."""
         lo, hi = self.q_ranges[joint]
         return float(min(max(q_target, lo), hi))
 
@@ -61,10 +71,11 @@ class TrueObject(PlannableObject):
     info: ModelInfo
     urdf: str
     pose: dict  # x_m, y_m, z_m, yaw_rad
-    config: object = None  # the split's GenerationConfig (camera, noise): for rendering the scene
+    config: GenerationConfig | None = None  # the split's config (camera, noise): for rendering the scene
 
     @property
     def n_joints(self) -> int:
+        """Number of joints of the object."""
         return len(self.joint_types)
 
 
@@ -93,7 +104,7 @@ def split_row_labels(split_dir: str | Path, index: int) -> tuple[dict, dict]:
     path, manifest, labels = read_split_labels(split_dir)
     n = len(labels["sample_id"])
     if not 0 <= index < n:
-        raise UserError(f"--index {index} out of range: {path} has {n} images (0..{n - 1})")
+        raise UserError(f"{option('index')} {index} out of range: {path} has {n} images (0..{n - 1})")
     return manifest, label_row(labels, index)
 
 
@@ -118,8 +129,9 @@ def load_true_object(manifest: dict, labels: dict, camera=None, split_dir: str |
 
     config = stored_object_config(manifest.get("config"), split_dir, "plan", hint, urdf=urdf, mesh_root=mesh_root)
     if config.camera.mount != "fixed":
-        raise UserError(f"{config.class_name}/{config.split} was generated with --camera {config.camera.mount}; "
-                        "manipulation rebuilds objects upright in the camera frame (generate with --camera fixed)")
+        raise UserError(f"{config.class_name}/{config.split} was generated with {option('camera_mount')} "
+                        f"{config.camera.mount}; manipulation rebuilds objects upright in the camera frame (generate "
+                        f"with {option('camera_mount')} fixed)")
     obj_class = config.obj_class
     index = int(labels["object_index"])
     position = np.asarray(labels["object_pose"], np.float64).reshape(-1)[:3]
@@ -130,7 +142,7 @@ def load_true_object(manifest: dict, labels: dict, camera=None, split_dir: str |
                         f"(object_index, object_pose, object_yaw) is not valid (a damaged shard? run 'artdata verify')")
     sample = stored_sample(config, index, labels["object_pose"], labels["object_yaw"])
     pose = sample.pose
-    urdf = object_urdf(obj_class, sample, config.table)
+    urdf = object_urdf(obj_class, sample, config.table)  # type: ignore[arg-type]  # GenerationConfig sets table
     obj = compile_object(obj_class, urdf, pose, camera or config.camera)
     model, info = obj.model, obj.info
     # check: the rebuilt object has the stored axes (float32 labels: ~1e-6 m)
@@ -147,7 +159,7 @@ def load_true_object(manifest: dict, labels: dict, camera=None, split_dir: str |
     model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
     if not GRAVITY_ON:
         model.opt.gravity[:] = 0.0
-    return TrueObject(config.class_name, obj_class.joint_types, tuple(config.table.q), dict(labels),
+    return TrueObject(config.class_name, obj_class.joint_types, tuple(config.table.q), dict(labels),  # type: ignore[union-attr]  # (as above)
                       model, info, urdf, pose, config)
 
 
@@ -173,4 +185,4 @@ def stored_image(split_dir: str | Path, index: int) -> tuple[np.ndarray, np.ndar
                 return (sh.read("depth", index - start).astype(np.float32), np.asarray(sh.K, np.float64),
                         sh.read("mask", index - start))
             start += n
-    raise UserError(f"--index {index} out of range: {split.path} has {start} images")
+    raise UserError(f"{option('index')} {index} out of range: {split.path} has {start} images")

@@ -19,15 +19,16 @@ from typing import Callable
 
 import numpy as np
 
-from articulated_dataset.core.errors import UserError
-from articulated_dataset.methods.inputs import check_split_has_depth, valid_depth_images  # noqa: F401  (re-exported)
+from articulated_dataset.core.errors import UserError, option
+from articulated_dataset.methods.inputs import (  # noqa: F401  (re-exported)
+    MAX_UNMASKED_VALID_FRACTION,
+    check_split_has_depth,
+    valid_depth_images,
+)
 from articulated_dataset.methods.protocol import get_method
 
 log = logging.getLogger(__name__)
 
-#: Without a mask, an image with returns on more than this fraction of its pixels is a scene
-#: (walls, floor), not an isolated object: a mask is needed.
-MAX_UNMASKED_VALID_FRACTION = 0.9
 #: Depths (m) the models were trained on lie within this range; valid medians outside it
 #: usually mean wrong units (millimetres stored as metres, or the reverse).
 PLAUSIBLE_MEDIAN_DEPTH_M = (0.1, 10.0)
@@ -126,8 +127,9 @@ def _load(model: str, class_name: str, precision: str = "float32"):
 
     ref = resolve_model(model, class_name)
     if not get_method(ref.kind).single_image:
-        raise UserError(f"--model {model}: single-image estimates use a dense model (the shipped 'dense' or a "
-                        f"'artdata train --model dense' checkpoint); run MDN models with 'artdata predict'")
+        raise UserError(f"{option('model')} {model}: single-image estimates use a dense model (the shipped 'dense' or "
+                        f"a 'artdata train {option('model_kind')} dense' "
+                        "checkpoint); run MDN models with 'artdata predict'")
     key = (str(ref.path), ref.path.stat().st_mtime_ns, precision)
     if key not in _MODEL_CACHE:
         ckpt = load_dense_checkpoint(ref.path)
@@ -166,7 +168,7 @@ def check_depth(depth_m: np.ndarray, mask: np.ndarray | None, where: str = "dept
                         f"(at most {MAX_PLAUSIBLE_DEPTH_M:g} m); give metres, and mask out what is not the object")
     if mask is None and valid.mean() > MAX_UNMASKED_VALID_FRACTION:
         raise UserError(f"{where}: {100 * valid.mean():.0f}% of the pixels have depth (a scene, not an isolated object); "
-                        f"pass a segmentation mask of the object")
+                        f"prompt the object with {option('mask')}, {option('point')} or {option('box')}")
 
 
 def _detached(value):
@@ -193,12 +195,16 @@ def _real_array(value, what: str, kinds: str = "fiu") -> np.ndarray:
 
 
 def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarray | None = None,
-             model: str = "dense", mirror: bool = True, precision: str = "float32") -> Estimate:
+             model: str = "dense", mirror: bool = True, precision: str = "float32", *,
+             point: tuple[int, int] | None = None, box: tuple[int, int, int, int] | None = None) -> Estimate:
     """Estimate the articulation of a ``class_name`` object in one depth image.
 
     ``depth_m``: (H, W) z-depth in metres (0 or NaN = no return); ``K``: 3x3 intrinsics of that
     image (OpenCV convention, pixel centres at integers); ``mask``: optional (H, W) boolean object
-    mask (pixels outside it are ignored).  ``model``: ``"dense"`` (shipped weights),
+    mask (pixels outside it are ignored).  Instead of a mask, ``point`` (u, v: a pixel on the
+    object, column and row) or ``box`` (x0, y0, x1, y1: the pixels around it, inclusive) prompts
+    the object: its pixels are segmented from the depth (:mod:`~articulated_dataset.methods.prompts`,
+    docs/robot_view.md) and used as a mask is; at most one of the three.  ``model``: ``"dense"`` (shipped weights),
     ``"dense-kinect2"`` (shipped weights trained for a real sensor's noisy depth) or a dense
     checkpoint path.  ``mirror=False`` skips the refinement's mirror image where the model uses
     it (cabinet, two-door cabinet, drawer: faster, a 4-6% higher position error).
@@ -206,11 +212,26 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     "Precision").  Bad input
     raises :class:`~articulated_dataset.core.errors.UserError`.
     """
-    return _estimate(depth_m, K, class_name, mask, model, mirror, precision)
+    return _estimate(depth_m, K, class_name, mask, model, mirror, precision, point=point, box=box)
+
+
+def one_prompt(*, mask=None, point=None, box=None):
+    """The :class:`~articulated_dataset.methods.prompts.Prompt` of ``point`` or ``box`` (None for a
+    mask or nothing); two of the three at once, or a malformed one, is a one-line :class:`UserError`."""
+    from articulated_dataset.methods.prompts import Prompt
+
+    given = [name for name, value in (("mask", mask), ("point", point), ("box", box)) if value is not None]
+    if len(given) > 1:
+        raise UserError(f"give one prompt of the object: {' or '.join(option(n) for n in given)}, not both")
+    if point is not None:
+        return Prompt("point", point_px=_detached(point))
+    if box is not None:
+        return Prompt("box", box_px=_detached(box))
+    return None
 
 
 def _estimate(depth_m, K, class_name: str, mask, model: str, mirror: bool, precision: str, *, where: str = "depth",
-              before_model: Callable[[], object] | None = None) -> Estimate:
+              before_model: Callable[[], object] | None = None, point=None, box=None) -> Estimate:
     """:func:`estimate`, its depth named ``where`` in error messages (a file's path), with
     ``before_model`` run once the inputs are checked and before the model is loaded."""
     from articulated_dataset.classes.registry import get_class
@@ -225,9 +246,19 @@ def _estimate(depth_m, K, class_name: str, mask, model: str, mirror: bool, preci
     if m is not None and m.dtype.kind == "f" and not np.isfinite(m).all():
         raise UserError("mask holds NaN or infinite values")
     m = None if m is None else m.astype(bool)
-    check_depth(depth, m, where)
+    prompt = one_prompt(mask=m, point=point, box=box)
+    if prompt is not None:  # the image's own checks first; the scene rule applies to the segmented pixels
+        check_depth(depth, np.ones(depth.shape, bool), where)
+        prompt.check_image(depth.shape)
+    else:
+        check_depth(depth, m, where)
     K = pinhole_matrix(_real_array(K, "intrinsics"), "intrinsics")
     check_intrinsics(K, (depth.shape[1], depth.shape[0]), "intrinsics")
+    if prompt is not None:
+        from articulated_dataset.methods.prompts import class_extent_m, segment_from_prompt
+
+        m = segment_from_prompt(depth, K, prompt, max_extent_m=class_extent_m(obj_class.name))
+        check_depth(depth, m, where)
     if before_model is not None:
         before_model()
     # once the inputs are checked: a wrong file fails before torch's import; no torch is one line
@@ -296,10 +327,12 @@ SHARD_SUFFIXES = (".h5", ".hdf5")
 def estimate_file(depth_path: str | Path, class_name: str, *, camera_path: str | Path | None = None,
                   mask_path: str | Path | None = None, depth_units: str = "auto", model: str = "dense",
                   mirror: bool = True, precision: str = "float32",
-                  before_model: Callable[[], object] | None = None) -> Estimate:
+                  before_model: Callable[[], object] | None = None, point: tuple[int, int] | None = None,
+                  box: tuple[int, int, int, int] | None = None) -> Estimate:
     """:func:`estimate` of a depth file (16-bit PNG in mm, EXR or .npy in m; ``depth_units``
     overrides) with its camera file (default: ``NAME.camera.json`` or ``camera.json`` beside
-    it, as ``artdata ingest`` finds them) and an optional object mask PNG (non-zero = object).
+    it, as ``artdata ingest`` finds them) and an optional object mask PNG (non-zero = object), or
+    a ``point`` or ``box`` prompt instead of the mask (:func:`estimate`).
     ``before_model`` runs once the files are read and before the model is (``artdata
     estimate`` imports torch and sets its threads there, so a wrong file fails fast)."""
     from articulated_dataset.classes.registry import get_class
@@ -312,24 +345,26 @@ def estimate_file(depth_path: str | Path, class_name: str, *, camera_path: str |
     if not depth_path.is_file():
         raise UserError(f"depth file not found: {depth_path}")
     if depth_path.suffix.lower() in SHARD_SUFFIXES:
-        raise UserError(f"{depth_path} is a shard of a split, not one depth image: predict a whole split with "
-                        f"'artdata predict --model {model} DIR', or export its images with 'artdata export DIR "
-                        f"--format exr OUT'")
+        raise UserError(f"{depth_path} is a shard of a split, not one depth image: predict a whole split with 'artdata "
+                        f"predict {option('model')} {model} DIR', or export its "
+                        f"images with 'artdata export DIR {option('fmt')} exr OUT'")
     if camera_path is None:
         camera = capture_files(depth_path).camera
         exported = depth_path.with_name(depth_path.name[: -len(DEPTH_SUFFIX)] + LABEL_SUFFIX)
         if camera is None and depth_path.name.endswith(DEPTH_SUFFIX) and exported.is_file():
             camera = exported  # an 'artdata export' image: its label file holds the intrinsics K
         if camera is None:
-            raise UserError(f"{depth_path}: intrinsics missing; pass --camera FILE (fx, fy, cx, cy) or put "
-                            f"camera.json next to it")
+            raise UserError(f"{depth_path}: intrinsics missing; pass {option('camera_path')} "
+                            "FILE (fx, fy, cx, cy) or put camera.json next to it")
     else:
         camera = Path(camera_path)
     K, size = load_intrinsics(camera)
     d = load_depth(depth_path, depth_units)
     if size is not None and (d.shape[1], d.shape[0]) != tuple(size):
         raise UserError(f"{depth_path}: depth is {d.shape[1]}x{d.shape[0]} px but {camera} says {size[0]}x{size[1]}")
+    one_prompt(mask=mask_path, point=point, box=box)  # two prompts: one line before the mask is read
     mask = None
     if mask_path is not None:
         mask = load_mask(mask_path, d.shape, get_class(class_name).n_joints) > 0
-    return _estimate(d, K, class_name, mask, model, mirror, precision, where=str(depth_path), before_model=before_model)
+    return _estimate(d, K, class_name, mask, model, mirror, precision, where=str(depth_path), before_model=before_model,
+                     point=point, box=box)

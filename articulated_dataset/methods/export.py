@@ -17,11 +17,15 @@ import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.methods.protocol import get_method
+
+if TYPE_CHECKING:
+    from articulated_dataset.methods.dense.checkpoint import DenseCheckpoint
 
 log = logging.getLogger(__name__)
 
@@ -67,14 +71,14 @@ def export_model(model: str, class_name: str | None, out: str | Path, fmt: str, 
     from articulated_dataset.methods.shipped import resolve_model
 
     if fmt not in EXPORT_FORMATS:
-        raise UserError(f"--format must be one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}")
+        raise UserError(f"{option('fmt')} must be one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}")
     out = Path(out)
     ref = resolve_model(model, class_name)
     if fmt == "safetensors":
         return _export_safetensors(ref, out)
     if not get_method(ref.kind).onnx_export:
-        raise UserError(f"--model {model}: the ONNX export covers the dense network (a shipped 'dense' or "
-                        f"'dense-kinect2' model, or an 'artdata train --model dense' checkpoint)")
+        raise UserError(f"{option('model')} {model}: the ONNX export covers the dense network (a shipped 'dense' or "
+                        f"'dense-kinect2' model, or an 'artdata train {option('model_kind')} dense' checkpoint)")
     return _export_onnx(ref, out, np.random.default_rng(0) if rng is None else rng)
 
 
@@ -88,7 +92,7 @@ def _export_safetensors(ref, out: Path) -> ExportResult:
     from articulated_dataset.methods.shipped import load_model_checkpoint, without_training_state
 
     if out.suffix != SAFETENSORS_SUFFIX:
-        raise UserError(f"--out {out}: a safetensors checkpoint's name ends in {SAFETENSORS_SUFFIX} "
+        raise UserError(f"{option('out')} {out}: a safetensors checkpoint's name ends in {SAFETENSORS_SUFFIX} "
                         f"(its configuration is written beside it as {out.stem}.json)")
     ckpt = without_training_state(load_model_checkpoint(ref))
     files = write_safetensors_checkpoint(ckpt, out)
@@ -115,7 +119,7 @@ def _named_outputs(net):
     return NamedOutputs().eval()
 
 
-def onnx_metadata(ckpt: dict, ref) -> dict:
+def onnx_metadata(ckpt: DenseCheckpoint, ref) -> dict:
     """What an exported graph records about its model (``metadata_props``, strings): the model,
     class, joint types, network configuration, the input's channels and scales, and the SHA-256
     of the checkpoint it was exported from."""
@@ -179,8 +183,8 @@ def _export_onnx(ref, out: Path, rng: np.random.Generator) -> ExportResult:
     from articulated_dataset.methods.dense.checkpoint import build_dense_model, load_dense_checkpoint
     from articulated_dataset.methods.dense.features import N_INPUT_CHANNELS
 
-    onnx = import_optional("onnx", "artdata export-model --format onnx", ONNX_INSTALL)
-    import_optional("onnxruntime", "artdata export-model --format onnx", ONNX_INSTALL)
+    onnx = import_optional("onnx", f"artdata export-model {option('fmt')} onnx", ONNX_INSTALL)
+    import_optional("onnxruntime", f"artdata export-model {option('fmt')} onnx", ONNX_INSTALL)
     ckpt = load_dense_checkpoint(ref.path)
     module = _named_outputs(build_dense_model(ckpt))
     cfg = module.net.config
@@ -188,7 +192,8 @@ def _export_onnx(ref, out: Path, rng: np.random.Generator) -> ExportResult:
     buffer = io.BytesIO()
     with warnings.catch_warnings():  # the TorchScript-based exporter (dynamo=False) warns that it is not the
         warnings.simplefilter("ignore")  # default; it needs no onnxscript and exports this network exactly
-        torch.onnx.export(module, (torch.from_numpy(x),), buffer, dynamo=False, input_names=[ONNX_INPUT],
+        # (torch.onnx.export writes to a file object too; its annotation names paths only)
+        torch.onnx.export(module, (torch.from_numpy(x),), buffer, dynamo=False, input_names=[ONNX_INPUT],  # type: ignore[arg-type]
                           output_names=list(ONNX_OUTPUTS), opset_version=ONNX_OPSET,
                           dynamic_axes={name: {0: ONNX_BATCH_AXIS} for name in (ONNX_INPUT, *ONNX_OUTPUTS)})
     graph = onnx.load_from_string(buffer.getvalue())

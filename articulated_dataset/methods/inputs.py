@@ -6,6 +6,10 @@ import numpy as np
 
 from articulated_dataset.core.errors import UserError
 
+#: Without a mask, an image with returns on more than this fraction of its pixels is a scene
+#: (walls, floor), not an isolated object: a mask (or a prompt) is needed.
+MAX_UNMASKED_VALID_FRACTION = 0.9
+
 
 def valid_depth_images(depth_m: np.ndarray) -> np.ndarray:
     """(N,) bool: which images of ``depth_m`` (N, H, W) have a valid depth pixel (finite and > 0),

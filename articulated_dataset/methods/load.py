@@ -19,7 +19,7 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.methods.protocol import get_method
 
 
@@ -93,8 +93,9 @@ class LoadedModel:
 
     def _need_dense(self) -> None:
         if not get_method(self.kind).single_image:
-            raise UserError(f"{self.name}: single-image estimates use a dense model (the shipped 'dense' or a "
-                            f"'artdata train --model dense' checkpoint); predict splits with an MDN: .predict(split)")
+            raise UserError(f"{self.name}: single-image estimates use a dense model (the shipped 'dense' or a 'artdata "
+                            f"train {option('model_kind')} dense' checkpoint); "
+                            "predict splits with an MDN: .predict(split)")
 
 
 def load_model(name: str | Path, class_name: str | None = None) -> LoadedModel:

@@ -8,7 +8,7 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.methods.protocol import PredictSettings, get_method
 
 log = logging.getLogger(__name__)
@@ -27,12 +27,15 @@ def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: 
                     snap_to_cloud: bool = False, object_mask: bool = False, method: str | None = None,
                     batch_size: int | None = None, device: str = "auto", mirror: bool = True,
                     workers: int | None = None, precision: str = "float32", progress: bool = False,
-                    as_class: str | None = None) -> PredictionRun:
+                    as_class: str | None = None, prompt: str | None = None) -> PredictionRun:
     """Predict every image of the split ``data`` with ``model`` and write ``out`` (``predictions.h5``).
 
     The dense model: batches of 128 by default, its heaviest vote mode, ``object_mask`` keeps
     the object's pixels only, ``mirror=False`` skips the refinement's mirror image (where the
     model uses it: one network pass instead of two, 1.1-1.5x the speed, a 4-6% higher position error),
+    ``prompt`` (``point``, ``box``, ``mask``, ``none``) segments each image's object from the prompt
+    a click or a detector would give (:mod:`~articulated_dataset.methods.prompts`; ``mask`` is
+    ``object_mask``; recorded as the file's ``prompt`` attribute),
     ``workers`` processes share the images (None: one per torch thread where the split has 4,096
     images or more, :func:`~.dense.predict.default_workers`), ``precision`` is the network's
     arithmetic (``"float32"`` or ``"bfloat16"``); the MDN: batches of 256,
@@ -55,9 +58,9 @@ def predict_to_file(model: str, data: str | Path, out: str | Path, *, estimate: 
         as_class = get_class(as_class).name  # an unknown name: one line listing the classes
         ref = resolve_model(model, as_class if model in SHIPPED else None)  # a checkpoint file: its own class
         if ref.class_name != as_class:
-            raise UserError(f"--as-class {as_class}: {model} is a {ref.class_name!r} model")
+            raise UserError(f"{option('as_class')} {as_class}: {model} is a {ref.class_name!r} model")
     method_impl = get_method(ref.kind)
-    settings = PredictSettings(estimate=estimate, snap_to_cloud=snap_to_cloud, object_mask=object_mask,
+    settings = PredictSettings(estimate=estimate, snap_to_cloud=snap_to_cloud, object_mask=object_mask, prompt=prompt,
                                batch_size=batch_size, device=device, mirror=mirror, workers=workers,
                                precision=precision, method=method)
     method_impl.check_predict_settings(settings)

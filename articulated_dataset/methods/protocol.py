@@ -16,11 +16,12 @@ Settings a method does not use are refused by the method (:meth:`Method.check_tr
 from __future__ import annotations
 
 import importlib
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Callable, Protocol, runtime_checkable
+from typing import Any, Callable, Protocol, runtime_checkable
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import QuantityMessage, UserError
 
 #: Kind -> module defining ``METHOD`` (an object implementing :class:`Method`).  Importing a
 #: module imports no torch: each method imports it when it trains, loads or predicts.
@@ -68,6 +69,9 @@ class PredictSettings:
     estimate: str = "mean-of-best"
     snap_to_cloud: bool = False
     object_mask: bool = False
+    #: the dense model: each image's object segmented from a simulated prompt (methods/prompts.py
+    #: PROMPT_KINDS); None: none (``object_mask`` is the ``mask`` prompt)
+    prompt: str | None = None
     batch_size: int | None = None
     device: str = "auto"
     mirror: bool = True
@@ -80,11 +84,11 @@ class PredictSettings:
 class TrainingRun:
     """The checkpoint a training run wrote and a one-line description of it."""
 
-    ckpt: dict
+    ckpt: Mapping[str, Any]
     summary: str
 
 
-class TrainingInterrupted(Exception):
+class TrainingInterrupted(QuantityMessage):
     """Training stopped by the user (Ctrl-C); the message says where the last checkpoint is and how to go on."""
 
 

@@ -24,7 +24,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.methods.protocol import all_methods, get_method, method_of_format
 
 log = logging.getLogger(__name__)
@@ -110,13 +110,14 @@ def resolve_model(spec: str, class_name: str | None) -> ModelRef:
 def _resolve(spec: str, class_name: str | None) -> ModelRef:
     if spec in SHIPPED:
         if class_name is None:
-            raise UserError(f"--model {spec} needs the object class")
+            raise UserError(f"{option('model')} {spec} needs the object class")
         entry = next((m for m in shipped_models() if m["name"] == spec and m["class_name"] == class_name), None)
         if entry is None:
             have = sorted({m["class_name"] for m in shipped_models() if m["name"] == spec})
             from articulated_dataset.classes.registry import class_names
 
-            third_party = "" if class_name in class_names() else "; a third-party object of one of them: pass --as-class CLASS"
+            third_party = ("" if class_name in class_names()
+                           else f"; a third-party object of one of them: pass {option('as_class')} CLASS")
             raise UserError(f"no shipped {spec!r} model for class {class_name!r}"
                             + (f" (shipped: {', '.join(have)}{third_party})" if have else " (this installation ships no weights)"))
         for path, digest in shipped_files(entry):
@@ -127,7 +128,8 @@ def _resolve(spec: str, class_name: str | None) -> ModelRef:
         return ModelRef(SHIPPED[spec], WEIGHTS_DIR / entry["file"], spec, class_name)
     path = Path(spec)
     if not path.is_file():
-        raise UserError(f"--model {spec!r}: neither a shipped model ({', '.join(SHIPPED)}) nor a checkpoint file")
+        raise UserError(f"{option('model')} {spec!r}: neither a shipped "
+                        f"model ({', '.join(SHIPPED)}) nor a checkpoint file")
     from articulated_dataset.methods.mdn.checkpoint import read_checkpoint_file
 
     ckpt = read_checkpoint_file(path)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 from typing import Callable
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.methods.protocol import KINDS, TrainingInterrupted, TrainingRun, TrainSettings, get_method
 
 log = logging.getLogger(__name__)
@@ -21,7 +21,7 @@ def train_model(kind: str, settings: TrainSettings, *, resume: bool = False, pro
     (:meth:`~.protocol.Method.check_train_settings`).  Ctrl-C raises :class:`TrainingInterrupted`."""
     method = get_method(kind)
     if settings.max_objects is not None and settings.max_objects <= 0:
-        raise UserError(f"--max-objects must be positive, got {settings.max_objects}")
+        raise UserError(f"{option('max_objects')} must be positive, got {settings.max_objects}")
     method.check_train_settings(settings)
     return method.train(settings, resume=resume, progress=progress, echo=echo)
 

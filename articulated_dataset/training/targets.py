@@ -56,7 +56,7 @@ _EPS = 1e-9
 
 
 # --------------------------------------------------------------------------------------
-# Rotation helpers (pure, vectorised over leading axes)
+# Rotations (pure, vectorised over leading axes)
 # --------------------------------------------------------------------------------------
 
 def gram_schmidt(axis: np.ndarray, xaxis: np.ndarray) -> np.ndarray:
@@ -130,10 +130,13 @@ class TargetLayout:
         return hash((self.class_name, self.n_joints))
 
     def to_dict(self) -> dict:
+        """The layout as a dict (class name, J, column names; stored in checkpoints)."""
         return {"class_name": self.class_name, "n_joints": self.n_joints, "names": list(self.names)}
 
     @classmethod
     def from_dict(cls, d: dict) -> "TargetLayout":
+        """The layout of the stored class and joint count; stored column names other than this package's layout raise
+        :class:`DataFormatError`."""
         layout = cls(str(d["class_name"]), int(d["n_joints"]))
         if "names" in d and list(d["names"]) != layout.names:
             raise DataFormatError(f"stored target layout of {layout.class_name!r} does not match this package's layout")
@@ -239,6 +242,7 @@ class NormStats:
 
     @property
     def dim(self) -> int:
+        """Number of target columns D."""
         return int(self.mean.size)
 
     @classmethod
@@ -319,6 +323,7 @@ class NormStats:
 
     @classmethod
     def from_dict(cls, d: dict) -> "NormStats":
+        """Statistics from their stored dict; a missing ``mean`` or ``std`` raises :class:`DataFormatError`."""
         try:
             return cls(mean=d["mean"], std=d["std"], names=d.get("names"), n_samples=int(d.get("n_samples", 0)),
                        std_floor=float(d.get("std_floor", DEFAULT_STD_FLOOR)), class_name=d.get("class_name"),

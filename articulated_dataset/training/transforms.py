@@ -51,7 +51,8 @@ def sample_rng(seed: int, epoch, index: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), *_epoch_words(epoch), int(index), TRANSFORM_STREAM])
 
 
-def apply_to_batch(transform: Transform, batch: dict, indices: Sequence[int], *, seed: int, epoch) -> dict:
+def apply_to_batch(transform: Transform, batch: dict, indices: Sequence[int] | np.ndarray, *, seed: int,
+                   epoch) -> dict:
     """Apply ``transform`` to every sample of ``batch`` (arrays stacked on axis 0) and restack.
 
     ``epoch``: one int for the whole batch, or one key per sample (a (B, k) array of
@@ -96,6 +97,7 @@ class Compose:
         self.transforms = list(transforms)
 
     def __call__(self, sample: dict, rng: np.random.Generator) -> dict:
+        """``sample`` passed through each transform in order, all drawing from ``rng``."""
         for t in self.transforms:
             sample = t(sample, rng)
         return sample
@@ -131,6 +133,7 @@ class Crop:
         self.height_px, self.width_px = _positive_int("crop height", height_px), _positive_int("crop width", width_px)
 
     def __call__(self, sample: dict, rng: np.random.Generator) -> dict:
+        """The fixed window of ``sample``'s image fields, ``K`` shifted."""
         return crop_sample(sample, self.top_px, self.left_px, self.height_px, self.width_px)
 
     def __repr__(self) -> str:
@@ -144,6 +147,7 @@ class CenterCrop:
         self.height_px, self.width_px = _positive_int("crop height", height_px), _positive_int("crop width", width_px)
 
     def __call__(self, sample: dict, rng: np.random.Generator) -> dict:
+        """The central window of ``sample``'s image fields, ``K`` shifted."""
         H, W = _image_size(sample)
         return crop_sample(sample, (H - self.height_px) // 2, (W - self.width_px) // 2, self.height_px, self.width_px)
 
@@ -158,6 +162,8 @@ class RandomCrop:
         self.height_px, self.width_px = _positive_int("crop height", height_px), _positive_int("crop width", width_px)
 
     def __call__(self, sample: dict, rng: np.random.Generator) -> dict:
+        """A window at an offset drawn from ``rng``, ``K`` shifted; a window larger than the image is the user's
+        mistake."""
         H, W = _image_size(sample)
         if self.height_px > H or self.width_px > W:
             raise UserError(f"random crop {self.width_px}x{self.height_px} does not fit a {W}x{H} image")
@@ -186,6 +192,7 @@ class Resize:
         self.height_px, self.width_px = _positive_int("resize height", height_px), _positive_int("resize width", width_px)
 
     def __call__(self, sample: dict, rng: np.random.Generator) -> dict:
+        """``sample``'s image fields resized (nearest neighbour) to ``height_px x width_px``, ``K`` scaled to match."""
         H, W = _image_size(sample)
         rows, cols = resize_indices(H, self.height_px), resize_indices(W, self.width_px)
         out = dict(sample)
@@ -217,6 +224,7 @@ class ClipDepth:
         self.min_m, self.max_m, self.clamp = float(min_m), float(max_m), bool(clamp)
 
     def __call__(self, sample: dict, rng: np.random.Generator) -> dict:
+        """``sample`` with depths (m) outside ``[min_m, max_m]`` set to 0, or clamped to it; float32."""
         d = np.asarray(sample["depth"])
         valid = d > 0
         if self.clamp:
@@ -239,6 +247,7 @@ class PixelDropout:
         self.probability = float(probability)
 
     def __call__(self, sample: dict, rng: np.random.Generator) -> dict:
+        """``sample`` with each depth pixel set to 0 with ``probability`` (drawn from ``rng``); float32."""
         d = np.asarray(sample["depth"])
         drop = rng.random(d.shape) < self.probability
         return {**sample, "depth": np.where(drop, np.float32(0.0), d).astype(np.float32)}
@@ -263,6 +272,8 @@ class SensorNoise:
         return self._fn
 
     def __call__(self, sample: dict, rng: np.random.Generator) -> dict:
+        """``sample`` with the noise model applied to its depth (float32, m) using its ``K``; a sample without ``K``
+        is the user's mistake."""
         if "K" not in sample:
             raise UserError("the sensor-noise transform needs the intrinsics 'K' in the sample (keep 'K' in fields)")
         depth = self._get()(np.asarray(sample["depth"], dtype=np.float32), np.asarray(sample["K"]), rng)

@@ -127,7 +127,8 @@ def exr_windows(path: str | Path) -> tuple[Window, Window]:
         raise DataFormatError(f"{path}: an EXR depth image must be one part of scanlines or tiles with at most "
                               f"{MAX_EXR_CHANNELS} channels (this one: {len(parts)} part(s), {storage}, "
                               f"{n_channels} channels)")
-    return tuple(((int(lo[0]), int(lo[1])), (int(hi[0]), int(hi[1]))) for lo, hi in windows)
+    # (two windows in, two out: mypy types a tuple built from a generator as of any length)
+    return tuple(((int(lo[0]), int(lo[1])), (int(hi[0]), int(hi[1]))) for lo, hi in windows)  # type: ignore[return-value]
 
 
 def window_size(window: Window) -> tuple[int, int]:

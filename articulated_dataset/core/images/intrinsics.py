@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -130,7 +131,7 @@ def read_mapping(path: Path) -> dict:
 def _no_alias_loader(yaml):
     """PyYAML's SafeLoader refusing aliases (``*name``): a camera or label file never needs
     them, and nested aliases expand a few hundred bytes into billions of values (a hang)."""
-    class NoAliasLoader(yaml.SafeLoader):
+    class NoAliasLoader(yaml.SafeLoader):  # type: ignore[name-defined]  # yaml: the module, passed in
         def compose_node(self, parent, index):
             if self.check_event(yaml.AliasEvent):
                 raise yaml.YAMLError("YAML aliases (*name) are not accepted")
@@ -149,7 +150,8 @@ def load_intrinsics(path: str | Path) -> tuple[np.ndarray, tuple[int, int] | Non
     path = Path(path)
     d = read_mapping(path)
     if all(k in d for k in ("fx", "fy", "cx", "cy")):
-        K = intrinsics_matrix(*(_scalar(d, k, path) for k in ("fx", "fy", "cx", "cy")), str(path))
+        # (four scalars, then the place: mypy cannot count the unpacked generator)
+        K = intrinsics_matrix(*(_scalar(d, k, path) for k in ("fx", "fy", "cx", "cy")), str(path))  # type: ignore[call-arg, arg-type]
     else:
         raw = d.get("K", d.get("k"))
         if raw is None and isinstance(d.get("camera_matrix"), dict):
@@ -162,11 +164,11 @@ def load_intrinsics(path: str | Path) -> tuple[np.ndarray, tuple[int, int] | Non
         K = pinhole_matrix(m.reshape(3, 3), f"{path}: camera matrix")
     w = d.get("width", d.get("image_width"))
     h = d.get("height", d.get("image_height"))
-    size = None
+    size: tuple[int, int] | None = None
     if w is not None or h is not None:
         if not all(isinstance(v, int) and not isinstance(v, bool) for v in (w, h)):
             raise UserError(f"{path}: image width and height must both be whole numbers of pixels, got {w!r} x {h!r}")
-        size = (w, h)
+        size = cast("tuple[int, int]", (w, h))  # both ints: checked just above
         check_source_size(size, str(path))
         check_intrinsics(K, size, str(path))
     return K, size

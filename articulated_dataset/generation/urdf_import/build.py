@@ -18,7 +18,7 @@ import numpy as np
 
 from articulated_dataset.classes.base import JointSpec, ObjectClass
 from articulated_dataset.core.camera import CameraConfig
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.core.tables import SamplingTable
 from articulated_dataset.format import is_class_name
 from articulated_dataset.generation.urdf_import.parse import (
@@ -82,7 +82,7 @@ class UrdfObject:
         return lines
 
 
-def _geom_points(model, data, g: int) -> np.ndarray:
+def _geom_points(model, data, g: int | np.integer) -> np.ndarray:
     """World points bounding geom ``g``: its mesh vertices, or its local bounding-box corners."""
     import mujoco
 
@@ -114,7 +114,8 @@ def _build_class(definition: dict, fit_camera: bool = True) -> tuple[ObjectClass
     if parsed.missing:
         if not definition["skip_missing_meshes"]:
             link, f = parsed.missing[0]
-            raise UserError(f"mesh file not found: {f} (link {link!r} of {path}); fix the path or pass --skip-missing-meshes")
+            raise UserError(f"mesh file not found: {f} (link {link!r} of {path}); fix the path or pass "
+                            f"{option('skip_missing_meshes')}")
         for link, f in parsed.missing:
             notes.append(f"skipped missing mesh {f} (link {link!r})")
     digest = source_digest(parsed)
@@ -127,7 +128,7 @@ def _build_class(definition: dict, fit_camera: bool = True) -> tuple[ObjectClass
     if not plans:
         raise UserError(f"{path}: no joint to articulate (no revolute, continuous or prismatic joint with a range)")
     if len({p.name for p in plans}) != len(plans):
-        raise UserError(f"{path}: a joint is listed twice in --joints")
+        raise UserError(f"{path}: a joint is listed twice in {option('joints')}")
     notes += [p.note for p in plans]
     recipe = [IMPORT_VERSION, digest, definition["joints"], definition["skip_missing_meshes"]]
     if scale != 1.0:  # only then: default imports keep their cache key
@@ -192,16 +193,17 @@ def _check_fits_camera(box_lo, box_hi, camera: CameraConfig, path: Path) -> None
     d = VIEW_MARGIN * r / math.sin(half_fov(camera))
     if not math.isfinite(r) or FAR_DISTANCE_RATIO * d + r > FAR_CLIP_M:
         raise UserError(f"{path}: the object is {2 * r:.3g} m across, too large to view within the camera's "
-                        f"{FAR_CLIP_M:g} m depth range; check its units and pass --scale (e.g. --scale 0.001 for mm)")
+                        f"{FAR_CLIP_M:g} m depth range; check its units and pass {option('scale')} "
+                        f"(e.g. {option('scale')} 0.001 for mm)")
     if d - r < NEAR_CLIP_M:
         raise UserError(f"{path}: the object is {2 * r:.3g} m across, too small to view beyond the camera's "
-                        f"{NEAR_CLIP_M:g} m near plane; check its units and pass --scale")
+                        f"{NEAR_CLIP_M:g} m near plane; check its units and pass {option('scale')}")
 
 
 def _check_definition(definition) -> dict:
     """A third-party definition (possibly read back from a manifest) with the expected keys
     and types; a bad one is a one-line UserError."""
-    ok = (isinstance(definition, dict) and _DEFINITION_KEYS <= set(definition)
+    ok: object = (isinstance(definition, dict) and _DEFINITION_KEYS <= set(definition)
           and set(definition) <= _DEFINITION_KEYS | _OPTIONAL_DEFINITION_KEYS)
     if ok:
         d = definition
@@ -216,7 +218,7 @@ def _check_definition(definition) -> dict:
                                                   and "\0" not in d["mesh_root"])))
     if not ok:
         raise UserError("corrupt third-party URDF definition (the 'third_party' entry of the generation config): "
-                        "expected the keys and types that 'artdata generate --urdf' writes")
+                        f"expected the keys and types that 'artdata generate {option('urdf_path')}' writes")
     return definition
 
 
@@ -240,11 +242,12 @@ def auto_scale_class(scale) -> ObjectClass | None:
 
     name = scale.strip()[len(AUTO_SCALE_PREFIX):]
     if name not in class_names():
-        raise UserError(f"--scale {AUTO_SCALE_PREFIX}CLASS names a built-in class ({', '.join(class_names())}), "
-                        f"got {name[:40]!r}")
+        raise UserError(f"{option('scale')} {AUTO_SCALE_PREFIX}CLASS names a built-in class "
+                        f"({', '.join(class_names())}), got {name[:40]!r}")
     obj_class = get_class(name)
     if obj_class.realistic_table is None or obj_class.realistic_table.shape is None:
-        raise UserError(f"--scale {AUTO_SCALE_PREFIX}{name}: class {name!r} has no standard sizes (realistic table)")
+        raise UserError(f"{option('scale')} {AUTO_SCALE_PREFIX}{name}: class {name!r} has no standard sizes "
+                        "(realistic table)")
     return obj_class
 
 
@@ -260,13 +263,13 @@ def auto_scale(width_m: float, height_m: float, like: ObjectClass) -> tuple[floa
     """
     aspect = math.log(height_m / width_m)
     best = None
-    for c in like.realistic_table.shape.components:
+    for c in like.realistic_table.shape.components:  # type: ignore[union-attr]  # auto_scale_class checked both
         for W in sorted(c.sizes_m["width_m"]):
             for H in sorted(c.sizes_m["height_m"]):
                 miss = abs(math.log(H / W) - aspect)
                 if best is None or miss < best[0] - AUTO_SCALE_TIE:
                     best = (miss, c.name, W, H)
-    _, component, W, H = best
+    _, component, W, H = best  # type: ignore[misc]  # a realistic table has a size class
     s = float(f"{math.sqrt(W * H / (width_m * height_m)):.6g}")
     note = (f"--scale auto:{like.name}: body {width_m:.3g} x {height_m:.3g} (width x height) scaled by {s:g} to "
             f"{width_m * s:.3f} x {height_m * s:.3f} m, the {like.name} size class {component!r} "
@@ -308,15 +311,16 @@ def _import_urdf(urdf_path, joints, class_name, skip_missing_meshes, camera, sca
         try:
             scale = float(scale)
         except (TypeError, ValueError):
-            raise UserError(f"--scale must be a number or {AUTO_SCALE_PREFIX}CLASS, got {str(scale)[:80]!r}") from None
+            raise UserError(f"{option('scale')} must be a number or {AUTO_SCALE_PREFIX}CLASS, "
+                            f"got {str(scale)[:80]!r}") from None
         if not (math.isfinite(scale) and scale > 0):
-            raise UserError(f"--scale must be a positive finite number, got {scale:g}")
+            raise UserError(f"{option('scale')} must be a positive finite number, got {scale:g}")
     else:
         scale = 1.0
     if mesh_root is not None:
         mesh_root = Path(mesh_root).expanduser().resolve()
         if not mesh_root.is_dir():
-            raise UserError(f"--mesh-root {mesh_root} is not a folder")
+            raise UserError(f"{option('mesh_root')} {mesh_root} is not a folder")
     parsed = load_structure(path, mesh_root, scale)
     camera = camera or CameraConfig()
     inferred = joints is None
@@ -338,7 +342,7 @@ def _import_urdf(urdf_path, joints, class_name, skip_missing_meshes, camera, sca
         definition["mesh_root"] = str(mesh_root)
     if not parsed.missing or skip_missing_meshes:
         definition["sha256"] = source_digest(parsed)
-    auto_note = ()
+    auto_note: tuple[str, ...] = ()
     if like is not None:
         size = _build_class(definition, fit_camera=False)[0].table.geometry
         scale, auto_note = auto_scale(size["width_m"][0], size["height_m"][0], like)

@@ -14,11 +14,12 @@ import struct
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from articulated_dataset.classes.base import PRISMATIC
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.core.units import normalise
 from articulated_dataset.generation.urdf_import.ranges import MOVABLE_TYPES, reparametrize_range
 
@@ -73,7 +74,7 @@ class Parsed:
     """A parsed and checked URDF: the yourdfpy robot, its root link, each link's parent joint and geometry elements,
     and the mesh files not found."""
     path: Path
-    robot: object  # yourdfpy Robot
+    robot: Any  # yourdfpy Robot
     root: str
     parent_joint: dict  # child link -> joint
     elements: dict  # link name -> [_Element]
@@ -125,7 +126,7 @@ def _safe_xml(path: Path):
     return root
 
 
-def _parse(path: Path) -> object:
+def _parse(path: Path) -> Any:
     """yourdfpy Robot of ``path`` (parsed by :func:`_safe_xml`), or a one-line UserError naming the file."""
     import yourdfpy
 
@@ -221,7 +222,7 @@ def _resolve_mesh(filename: str, urdf_dir: Path, mesh_root: Path, link: str, pat
         inside = False
     if not inside:
         raise UserError(f"mesh file {filename[:120]!r} (link {link!r} of {path}) lies outside {mesh_root}: meshes are "
-                        "read only from the URDF's folder or the folder given with --mesh-root")
+                        f"read only from the URDF's folder or the folder given with {option('mesh_root')}")
     return resolved
 
 
@@ -427,7 +428,7 @@ def infer_joints(parsed: Parsed) -> list[str]:
         names.append(j.name)
     if not names:
         free = [j.name for j in parsed.robot.joints if j.type == "continuous" and j.mimic is None]
-        hint = (f"; its continuous joints ({', '.join(free[:5])}) turn freely: articulate them with --joints"
+        hint = (f"; its continuous joints ({', '.join(free[:5])}) turn freely: articulate them with {option('joints')}"
                 if free else "")
         raise UserError(f"{parsed.path}: no joint to articulate by default (no revolute or prismatic joint with a "
                         f"range){hint}")
@@ -466,14 +467,15 @@ def plan_joint(parsed: Parsed, name: str) -> JointPlan:
     if j.mimic is not None:
         raise UserError(f"joint {name!r} of {parsed.path} mimics joint {j.mimic.joint!r}; articulate that joint instead")
     if j.type == "continuous":
-        return JointPlan(name, j.type, j.child, tuple(REVOLUTE_Q_RAD), False, 0.0,
+        return JointPlan(name, j.type, j.child, tuple(REVOLUTE_Q_RAD), False, 0.0,  # type: ignore[arg-type]  # a (low, high) pair
                           f"{name}: continuous, q in the revolute default [0, pi/2] rad (set it with --table)")
     lower, upper = _limits(j)
     unit = "m" if MOVABLE_TYPES[j.type] == PRISMATIC else "rad"
     bound = MAX_PRISMATIC_LIMIT_M if unit == "m" else MAX_REVOLUTE_LIMIT_RAD
     if not (math.isfinite(lower) and math.isfinite(upper)) or max(abs(lower), abs(upper)) > bound:
         raise UserError(f"joint {name!r} of {parsed.path} has limits [{lower:g}, {upper:g}] {unit}, beyond "
-                        f"+-{bound:g} {unit} (a placeholder, not a range); fix the <limit> or choose other --joints")
+                        f"+-{bound:g} {unit} (a placeholder, not a range); fix the <limit> or choose "
+                        f"other {option('joints')}")
     if upper <= lower:
         raise UserError(f"joint {name!r} of {parsed.path} has an empty range [{lower}, {upper}]")
     q_range, flip, offset = reparametrize_range(lower, upper)

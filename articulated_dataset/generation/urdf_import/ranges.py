@@ -13,7 +13,7 @@ import numpy as np
 
 from articulated_dataset.classes.base import PRISMATIC, REVOLUTE
 from articulated_dataset.core.camera import CameraConfig
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.format import MAX_CLASS_NAME_CHARS, is_class_name
 
 #: Environment variable overriding the cache folder of processed URDF models.
@@ -117,7 +117,7 @@ def check_class_name(name: str) -> str:
     if not is_class_name(name):
         raise UserError(
             f"invalid class name {str(name)[:80]!r}: use 1-{MAX_CLASS_NAME_CHARS} characters from A-Z a-z 0-9 _ . -, "
-            "not starting with . or - (pass --class-name)"
+            f"not starting with . or - (pass {option('urdf_class_name')})"
         )
     return name
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 
 #: CLI name -> (module, method name written in predictions files).
 BASELINES = {"mean": ("mean", "Mean"), "nn": ("nn", "NN"), "icp": ("icp", "ICP")}
@@ -52,12 +52,12 @@ def run_baseline(name: str, train_dir, test_dir, out, *, mean_dir=None, workers:
         folders += [default_mean_dir(train_dir), Path(train_dir).parent / MEAN_CACHE_DIR]
     check_outputs_distinct([], [out], input_folders=folders)
     if out.exists() and not overwrite:
-        raise UserError(f"{out} exists; pass --overwrite to replace it")
+        raise UserError(f"{out} exists; pass {option('overwrite')} to replace it")
     check_can_create(out)  # a read-only or full target is one line now, not after the run
     if workers is None:
         workers = os.cpu_count() or 1
     if workers <= 0:
-        raise UserError(f"--workers must be positive, got {workers}")
+        raise UserError(f"{option('workers')} must be positive, got {workers}")
 
     result = baseline_module(name).predict(train_dir, test_dir, mean_dir=mean_dir, workers=workers,
                                            progress=progress, **options)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.format import Split
 
 log = logging.getLogger(__name__)
@@ -55,12 +55,12 @@ def open_split_checked(path, role: str) -> SplitInfo:
     if role != "test" and info.is_real:
         info.close()
         raise UserError(f"{role} split {path} holds ingested real captures; the baselines learn from a generated "
-                        f"split (real splits can only be the --test split)")
+                        f"split (real splits can only be the {option('test_dir')} split)")
     if role == "mean-object" and not info.is_mean_object:
         info.close()
         raise UserError(f"{path} is the {manifest.get('split')!r} split, not a mean object: the mean object is built "
-                        f"from the class's training table ('artdata generate --class C --mean' or leave --mean-object "
-                        f"out)")
+                        f"from the class's training table ('artdata generate {option('class_name')} C "
+                        f"{option('mean')}' or leave {option('mean_dir')} out)")
     if not manifest.get("complete", True):
         log.warning("%s split %s is incomplete (%d images); using what is there", role, path, manifest["n_images"])
     return info
@@ -144,7 +144,7 @@ def write_result(result: BaselineResult, out_path, attrs: dict | None = None) ->
 
     out_path = Path(out_path)
     if out_path.is_dir():
-        raise UserError(f"--out {out_path} is a directory; give a file name such as predictions.h5")
+        raise UserError(f"{option('out')} {out_path} is a directory; give a file name such as predictions.h5")
     try:
         out_path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

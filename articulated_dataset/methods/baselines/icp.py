@@ -67,6 +67,7 @@ from pathlib import Path
 
 import numpy as np
 
+from articulated_dataset.core.errors import option
 from articulated_dataset.core.pool import process_map
 from articulated_dataset.methods.baselines.common import BaselineResult, check_compatible, open_split_checked
 from articulated_dataset.methods.baselines.icp_model import (
@@ -106,11 +107,11 @@ def _run_task(task) -> tuple[int, dict]:
         depth, mask, K = sh.read("depth", slice(start, stop)), sh.read("mask", slice(start, stop)), sh.K
     finally:
         sh.close()
-    return offset, _predict_arrays(_WORKER_MODEL, depth, mask, K)
+    return offset, _predict_arrays(_WORKER_MODEL, depth, mask, K)  # type: ignore[arg-type]  # set by the initializer
 
 
 def _predict_arrays(model: MeanObjectModel, depth, mask, K) -> dict:
-    out = {k: [] for k in ("axis_pose", "q", "geometry", "part_offset", "score", "model_index")}
+    out: dict[str, list] = {k: [] for k in ("axis_pose", "q", "geometry", "part_offset", "score", "model_index")}
     for d, mk in zip(depth, mask):
         labels, fit = model.predict_image(d, mk, K)
         for k, v in labels.items():
@@ -228,7 +229,8 @@ def ensure_mean_object(train_dir, mean_dir=None, *, workers: int = 1) -> Path:
     from articulated_dataset.format.manifest import check_stored_object_files
 
     check_stored_object_files(config.to_dict(), train_dir, "the ICP baseline's mean object",
-                              " (render it with 'artdata generate --urdf FILE --mean' and pass --mean-object)")
+                              f" (render it with 'artdata generate {option('urdf_path')} FILE {option('mean')}' "
+                              f"and pass {option('mean_dir')})")
     cfg = replace(GenerationConfig.from_dict(config.to_dict()), mean=True, n_objects=1, noise="none")
     cache_root = Path(train_dir).parent / MEAN_CACHE_DIR
     target = split_dir_for(cache_root, cfg)

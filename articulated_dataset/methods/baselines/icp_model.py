@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from articulated_dataset.core.camera import backproject
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.core.rotations import matrix_to_quat
 from articulated_dataset.format import MASK_BACKGROUND
 from articulated_dataset.methods.baselines.clouds import (
@@ -104,6 +104,7 @@ class MeanObjectModel:
 
     @property
     def n_models(self) -> int:
+        """Number of model point clouds."""
         return len(self.clouds)
 
     @classmethod
@@ -112,7 +113,8 @@ class MeanObjectModel:
         """Build the model from a mean-object split folder (all its images)."""
         from articulated_dataset.benchmark.metrics import quat_axis_z
 
-        clouds, normals = [], []
+        clouds: list[np.ndarray] = []
+        normals: list[np.ndarray] = []
         for sh in mean.shards:
             K = sh.K
             for d, mk in zip(sh.read("depth"), sh.read("mask")):
@@ -120,7 +122,7 @@ class MeanObjectModel:
                 if len(p) == 0:  # (else a ValueError from __init__: a traceback)
                     raise UserError(f"mean-object split {mean.path}: image {len(clouds)} has no object pixel with a "
                                     f"usable depth and normal (a damaged mean object? 'artdata verify'; render it again "
-                                    f"with 'artdata generate --class C --mean')")
+                                    f"with 'artdata generate {option('class_name')} C {option('mean')}')")
                 idx = stride_subsample(np.arange(len(p)), model_points)
                 clouds.append(p[idx])
                 normals.append(n[idx])

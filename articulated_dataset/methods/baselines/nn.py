@@ -42,7 +42,7 @@ import time
 
 import numpy as np
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.core.pool import process_map
 from articulated_dataset.methods.baselines.common import (
     BaselineResult,
@@ -134,11 +134,11 @@ def check_block(block_px: int, image_size: tuple[int, int], n_images: int) -> No
 
     h, w = image_size
     if isinstance(block_px, bool) or not isinstance(block_px, int) or block_px <= 0:
-        raise UserError(f"--block must be a positive whole number of pixels, got {block_px!r}")
+        raise UserError(f"{option('block_px')} must be a positive whole number of pixels, got {block_px!r}")
     if block_px > min(h, w):
-        raise UserError(f"--block {block_px} is larger than the {w}x{h} px images (at most {min(h, w)})")
+        raise UserError(f"{option('block_px')} {block_px} is larger than the {w}x{h} px images (at most {min(h, w)})")
     check_memory(float(n_images) * (h // block_px) * (w // block_px) * np.dtype(np.float32).itemsize,
-                 f"NN features of {n_images} images at --block {block_px}")
+                 f"NN features of {n_images} images at {option('block_px')} {block_px}")
 
 
 def split_features(split, block_px: int = BLOCK_PX, normalization: str = DEFAULT_NORMALIZATION,
@@ -188,6 +188,7 @@ class ExactNearestNeighbour:
 
     @property
     def dim(self) -> int:
+        """Dimension D of the feature vectors."""
         return self.x.shape[1]
 
     def error_bound(self, query_norm: np.ndarray) -> np.ndarray:

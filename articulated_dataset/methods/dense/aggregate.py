@@ -181,6 +181,8 @@ def _vote_modes(parts: dict, points: torch.Tensor, valid: torch.Tensor, split_fa
     S = min(N_STARTS, N)
     inv2bw2 = 1.0 / (2 * BANDWIDTH_M**2)
     remaining = valid_c[:, None].expand(B, J, N).clone()  # (B, J, n)
+    centres: list | torch.Tensor  # the modes found (a list), then stacked (a tensor)
+    used: list | torch.Tensor
     centres, used = [], []
     max_d2 = _MAX_KERNEL_EXPONENT / inv2bw2
     for r in range(MAX_MODES):

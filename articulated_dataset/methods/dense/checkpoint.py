@@ -6,8 +6,15 @@ Writing is training's (:mod:`articulated_dataset.methods.dense.train`)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING, TypedDict, cast
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
+
+if TYPE_CHECKING:
+    import torch
+
+    from articulated_dataset.methods.dense.predict import CalibrationRecord
+    from articulated_dataset.methods.dense.refine import RefinementRecord
 
 CHECKPOINT_FORMAT = "artdata-dense"
 CHECKPOINT_VERSION = 1
@@ -22,7 +29,43 @@ MAX_INPUT_SIDE_PX = 4096
 MAX_CHECKPOINT_COUNT = 2**31 - 1
 
 
-def load_dense_checkpoint(path: str | Path) -> dict:
+class _DenseCheckpointRequired(TypedDict):
+    format: str  # CHECKPOINT_FORMAT
+    version: int  # CHECKPOINT_VERSION
+    class_name: str
+    joint_types: list[str]
+    model_config: dict  # DenseConfig.to_dict()
+    train_config: dict  # DenseTrainConfig.to_dict()
+    model_state: dict  # the network's state_dict (name -> tensor)
+    q_scale: list[float]  # per joint, rad or m: the q loss's scale
+    step: int  # training steps taken
+
+
+class DenseCheckpoint(_DenseCheckpointRequired, total=False):
+    """A dense checkpoint as :func:`load_dense_checkpoint` returns it and training writes it
+    (:mod:`articulated_dataset.methods.dense.train`): the keys every checkpoint has, then those of
+    a training run (its data, machine, history, optimiser state), of the inference fit
+    (``calibration``, ``refinement``) and of a refit.  An exported checkpoint
+    (:mod:`articulated_dataset.methods.safetensors_checkpoint`) holds the same keys."""
+
+    finished: bool
+    total_steps: int
+    data: dict  # the training split(s): folder, identity, image and object counts
+    machine: str  # where training ran (CPU cores, GPU, PyTorch)
+    device: str  # torch device type: "cpu" or "cuda"
+    history: list  # one dict of losses and validation errors per evaluation
+    cpu_seconds: float
+    load_seconds: float  # reading the training split(s)
+    calibration: CalibrationRecord | None
+    refinement: RefinementRecord | None
+    refinement_report: dict  # the fit's validation errors of each choice (cm, deg)
+    refit_of: dict  # the checkpoint refitted: file name, sha256, validation noise
+    optimizer_state: dict
+    scheduler_state: dict
+    rng_state: torch.Tensor
+
+
+def load_dense_checkpoint(path: str | Path) -> DenseCheckpoint:
     """Load and check a dense checkpoint: a ``.pt`` file (``torch.load(weights_only=True)``) or a
     ``NAME.safetensors`` file with its ``NAME.json`` (no pickle); any problem is one UserError line
     (:func:`~..mdn.checkpoint.read_checkpoint_file`)."""
@@ -31,7 +74,8 @@ def load_dense_checkpoint(path: str | Path) -> dict:
     path = Path(path)
     ckpt = read_checkpoint_file(path)
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
-        raise UserError(f"{path}: not an artdata dense-model checkpoint (written by 'artdata train --model dense')")
+        raise UserError(f"{path}: not an artdata dense-model checkpoint (written by "
+                        f"'artdata train {option('model_kind')} dense')")
     if ckpt.get("version") != CHECKPOINT_VERSION:
         raise UserError(f"{path}: dense checkpoint version {ckpt.get('version')!r} is not readable "
                         f"(expected {CHECKPOINT_VERSION})")
@@ -73,7 +117,7 @@ def load_dense_checkpoint(path: str | Path) -> dict:
     problem = refinement_problem(ckpt.get("refinement"), len(ckpt["joint_types"]))
     if problem is not None:
         raise UserError(f"{path}: checkpoint field 'refinement' is malformed: {problem}")
-    return ckpt
+    return cast(DenseCheckpoint, ckpt)  # (every field it reads checked above)
 
 
 #: A refinement's probability fields lie in [0, 1); its gates (deg, m) and ratios are positive;
@@ -130,7 +174,7 @@ def refinement_problem(refinement, n_joints: int) -> str | None:
             if not (isinstance(v, (list, tuple)) and all(item_ok(x) for x in v)):
                 return f"{field.name!r} must be a list of {'joint indices' if 'int' in kind else 'finite numbers'}"
     try:
-        r = Refinement.from_dict(refinement)
+        r: Refinement = Refinement.from_dict(refinement)  # type: ignore[assignment, arg-type]  # a checked dict: never None
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
         return f"{type(exc).__name__}: {str(exc)[:120]}"
     for name in _REFINEMENT_PROBABILITIES:
@@ -204,7 +248,7 @@ def calibration_problem(calibration, n_columns: int) -> str | None:
     return None
 
 
-def build_dense_model(ckpt: dict):
+def build_dense_model(ckpt: DenseCheckpoint):
     """The network of a checkpoint, weights loaded, eval mode."""
     from articulated_dataset.methods.dense.model import DenseConfig, DenseNet
 
@@ -219,7 +263,7 @@ def build_dense_model(ckpt: dict):
     return model.eval()
 
 
-def build_inference_model(ckpt: dict, precision: str = "float32"):
+def build_inference_model(ckpt: DenseCheckpoint, precision: str = "float32"):
     """The network of a checkpoint for inference: :func:`build_dense_model` with its batch
     normalisations folded into its convolutions (:meth:`~.model.DenseNet.folded`), computing in
     ``precision`` (``"float32"`` or ``"bfloat16"``)."""

@@ -10,10 +10,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from articulated_dataset.core.errors import DataFormatError, UserError
+
+if TYPE_CHECKING:
+    import torch
 
 #: Depth held in memory as uint16 multiples of this (m): 8 m range, 0.12 mm steps (the shards' quantum).
 DEPTH_STORE_QUANTUM_M = 1.0 / 8192
@@ -40,7 +44,7 @@ class DenseData:
     sample_id: np.ndarray
     shard_of: np.ndarray
 
-    def depth(self, idx) -> "object":
+    def depth(self, idx) -> torch.Tensor:
         import torch
 
         return torch.from_numpy(self.depth_q[idx].astype(np.float32) * DEPTH_STORE_QUANTUM_M)
@@ -78,12 +82,17 @@ def split_object_indices(split_dir: Path, max_objects: int | None = None) -> np.
 
 def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max_objects: int | None = None,
                      objects: np.ndarray | None = None, with_labels: bool = True, object_mask: bool = False,
-                     progress: bool = False, workers: int | None = None) -> DenseData:
+                     progress: bool = False, workers: int | None = None, prompt: str | None = None,
+                     max_extent_m: float | None = None) -> DenseData:
     """Read a split into a :class:`DenseData` (labels only if ``with_labels``); ``objects``: only
     the images of these object indices (a refit reads its validation objects, not the split: a
     10,000-object split would take 13 GB on the way).  ``object_mask``:
     the depth outside the object's mask codes (body and parts) is set to no return, as a
-    robot's object segmentation would leave it (scenes and occluders removed).  ``workers`` > 1
+    robot's object segmentation would leave it (scenes and occluders removed).  ``prompt`` (of
+    :data:`~articulated_dataset.methods.prompts.PROMPT_KINDS`): each image's object segmented from
+    the prompt a click or a detector would give (:func:`~articulated_dataset.methods.prompts.simulated_prompt`
+    of its label mask, :func:`~articulated_dataset.methods.prompts.segment_from_prompt` with
+    ``max_extent_m``) and the depth outside it set to no return; ``"mask"`` is ``object_mask``.  ``workers`` > 1
     reads the shards in that many processes (the same arrays, in the same order); None: one per
     CPU for splits of at least :data:`~articulated_dataset.core.pool.PARALLEL_MIN_TASKS` shards."""
     from tqdm.auto import tqdm
@@ -96,7 +105,11 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
     if not shards:
         raise DataFormatError(f"{split_dir}: the split has no shards")
     wanted = None if objects is None else np.unique(np.asarray(objects, np.int64))
-    tasks = [(sh.path, s_idx, n_joints, tuple(hw), max_objects, with_labels, object_mask, wanted)
+    if prompt == "mask":
+        object_mask = True
+    # per image: the label mask's object codes (object_mask), a segmentation from a simulated prompt, or all pixels
+    keep_pixels = "mask" if object_mask else None if prompt in (None, "none") else (prompt, float(max_extent_m or 0.0))
+    tasks = [(sh.path, s_idx, n_joints, tuple(hw), max_objects, with_labels, keep_pixels, wanted)
              for s_idx, sh in enumerate(shards)]
     bar = tqdm(total=int(manifest.get("n_images", 0)) or None, desc=f"loading {split_dir}", unit="img",
                disable=not progress, leave=False)
@@ -111,7 +124,7 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
     from articulated_dataset.methods.inputs import check_split_has_depth
 
     check_split_has_depth(split_dir, sum(p["n_valid"] for p in parts), sum(p["n_read"] for p in parts))
-    cat = {k: None if parts[0][k] is None else np.concatenate([p[k] for p in parts]) for k in _COLUMNS}
+    cat: dict[str, Any] = {k: None if parts[0][k] is None else np.concatenate([p[k] for p in parts]) for k in _COLUMNS}
     origin = rot6 = None
     if with_labels:
         pose = cat["axis_pose"]
@@ -126,7 +139,8 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
 
 def _load_shard(task) -> dict:
     """One shard's arrays for :func:`load_dense_split` (a top-level function: process workers run
-    it): ``task`` = (path, shard index, n_joints, hw, max_objects, with_labels, object_mask, objects or None).
+    it): ``task`` = (path, shard index, n_joints, hw, max_objects, with_labels, object pixels kept (None, "mask" or
+    (prompt kind, max extent in m)), objects or None).
     ``object_index`` is None when no image of the shard is selected; ``n_read`` counts its images read."""
     import torch
 
@@ -156,11 +170,17 @@ def _load_shard(task) -> dict:
             sel = idx[start : start + LOAD_CHUNK]
             rows = slice(int(sel[0]), int(sel[-1]) + 1)
             depth = sh.read("depth", rows)[sel - sel[0]]
-            if object_mask:
+            if object_mask == "mask":
                 from articulated_dataset.format import MASK_BODY
 
                 m = sh.read("mask", rows)[sel - sel[0]]
                 depth = np.where((m >= MASK_BODY) & (m <= MASK_BODY + n_joints), depth, 0)
+            elif object_mask is not None:
+                from articulated_dataset.methods.prompts import prompted_depth
+
+                kind, extent_m = object_mask
+                m = sh.read("mask", rows)[sel - sel[0]]
+                depth = np.stack([prompted_depth(d_i, K, kind, m_i, max_extent_m=extent_m) for d_i, m_i in zip(depth, m)])
             out["n_valid"] = out.get("n_valid", 0) + int(valid_depth_images(depth).sum())
             src_hw = depth.shape[1:]
             if tuple(src_hw) != tuple(hw):
@@ -198,7 +218,7 @@ def concat_dense_data(parts: list[DenseData]) -> DenseData:
                                shard_of=part.shard_of + shard_offset))
         obj_offset += int(part.object_index.max()) + 1 if len(part.object_index) else 0
         shard_offset += int(part.shard_of.max()) + 1 if len(part.shard_of) else 0
-    return DenseData(**{f.name: None if getattr(shifted[0], f.name) is None else
+    return DenseData(**{f.name: None if getattr(shifted[0], f.name) is None else  # type: ignore[arg-type]  # field by field
                         np.concatenate([getattr(p, f.name) for p in shifted]) for f in fields(DenseData)})
 
 

@@ -190,17 +190,19 @@ def one_sided_normals(x: torch.Tensor, at: torch.Tensor, allowed: torch.Tensor |
         for off, inside in ((offset, forward_ok), (-offset, backward_ok)):
             valid = inside & (flat.index_select(0, (at + (VALIDITY_CHANNEL * P + off)).clamp(0, last)) > 0)
             if allowed is not None:
-                valid &= allowed.index_select(0, (allowed_at + off).clamp(0, allowed.numel() - 1))
+                # (allowed_at is set above whenever allowed is)
+                valid &= allowed.index_select(0, (allowed_at + off).clamp(0, allowed.numel() - 1))  # type: ignore[operator, union-attr]
             d = [a - b for a, b in zip(point(off), here)] if off > 0 else [b - a for a, b in zip(point(off), here)]
             len2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
             len2 = torch.where(valid & (len2 < max_step2), len2, torch.full_like(len2, float("inf")))
             if best is None:
                 best, best_len2 = d, len2
             else:
-                take = len2 < best_len2
+                # (best_len2 is set with best, on the first pass)
+                take = len2 < best_len2  # type: ignore[operator]
                 best = [torch.where(take, a, b) for a, b in zip(d, best)]
-                best_len2 = torch.where(take, len2, best_len2)
-        return best, torch.isfinite(best_len2)
+                best_len2 = torch.where(take, len2, best_len2)  # type: ignore[arg-type]
+        return best, torch.isfinite(best_len2)  # type: ignore[arg-type]
 
     dx, ok_x = tangent(1, col < W - 1, col > 0)
     dy, ok_y = tangent(W, row < H - 1, row > 0)

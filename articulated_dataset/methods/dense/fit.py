@@ -8,6 +8,7 @@ objects (never the test split) and stored in the checkpoint's ``"refinement"``.
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -117,7 +118,8 @@ def fit_refinement(m: dict, r: dict, truth: dict, joint_types) -> tuple["Refinem
     def cfg_err(mm):
         return configuration_error(mm, truth, joint_types)
 
-    report = {"hinge_offset_m": offset, "rotation_deg": {"votes": rot_err(m)}, "configuration": {"votes": cfg_err(m)}}
+    report: dict[str, Any] = {"hinge_offset_m": offset, "rotation_deg": {"votes": rot_err(m)},
+                              "configuration": {"votes": cfg_err(m)}}
     framed = apply_refinement(m, r, Refinement(frame=True, hinge_offset_m=offset), joint_types)
     report["rotation_deg"]["box_frame"] = rot_err(framed)
     use_frame = report["rotation_deg"]["box_frame"] < report["rotation_deg"]["votes"]
@@ -259,7 +261,9 @@ def fit_door_face_offsets(mm: dict, r: dict, truth: dict, joint_types) -> tuple[
     cos = np.cos(np.radians(DOOR_FACE_MAX_DEG))
     seen = revolute[None] & np.isfinite(residual)
     outer, inner = residual[seen & (side > cos)], residual[seen & (side < -cos)]
-    return tuple(float(np.median(v)) if v.size >= DOOR_FACE_MIN_FIT else None for v in (outer, inner))
+    # (two sides in, two offsets out: mypy types a tuple built from a generator as of any length)
+    return tuple(float(np.median(v)) if v.size >= DOOR_FACE_MIN_FIT else None  # type: ignore[return-value]
+                 for v in (outer, inner))
 
 
 def rotation_error_deg(mm: dict, truth: dict) -> float:

@@ -165,6 +165,7 @@ def door_handles(points: list, normals: list, real: torch.Tensor, row: torch.Ten
     pts = [torch.gather(v, 1, hidx) for v in pts]
     row = torch.gather(row, 1, hidx)
     on = handle.to(dtype)
+    point: list | torch.Tensor
     point, px = _row_mean(pts, on)
     rel = [pts[k] - point[k][:, None] for k in range(3)]
     across = torch.cross(nz, torch.stack(n, -1), dim=-1)  # along the face, perpendicular to the axis

@@ -62,10 +62,12 @@ class DenseConfig:
     width_px: int = 192
 
     def to_dict(self) -> dict:
+        """The architecture as a dict (stored in checkpoints)."""
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "DenseConfig":
+        """The architecture from a checkpoint's dict (other keys ignored)."""
         return cls(**{k: d[k] for k in ("n_joints", "width", "height_px", "width_px")})
 
 
@@ -101,6 +103,8 @@ class PackedConv2d(nn.Module):
         self._packed: tuple | None = None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The convolution (and ReLU) of ``x`` with the prepacked weights, packed at the first call for the input's
+        shape; where oneDNN refuses, the plain convolution."""
         key = tuple(x.shape[1:])
         if self._packed is None or self._packed[0] != key:
             try:
@@ -113,7 +117,8 @@ class PackedConv2d(nn.Module):
             self._packed = (key, packed)
         if self._packed[1] is None:
             padding, stride, dilation, groups = self.conv_args
-            y = F.conv2d(x, self.weight, self.bias, stride, padding, dilation, groups)
+            # (registered buffers, and the convolution's own arguments)
+            y = F.conv2d(x, self.weight, self.bias, stride, padding, dilation, groups)  # type: ignore[arg-type]
             return F.relu(y) if self.relu else y
         return torch.ops.mkldnn._convolution_pointwise(x, self._packed[1], self.bias, *self.conv_args,
                                                       "relu" if self.relu else "none", [], "")
@@ -129,6 +134,7 @@ def _cbr(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
 
 
 class DenseNet(nn.Module):
+    """The dense U-Net (module docstring): a (B, 9, H, W) point image to (B, n_out, H / 4, W / 4) per-pixel outputs."""
     def __init__(self, config: DenseConfig):
         super().__init__()
         self.config = config
@@ -149,9 +155,10 @@ class DenseNet(nn.Module):
         # the weights in channels-last layout: the convolutions then run 2-2.5x faster on the CPU
         # (oneDNN's NHWC kernels; measured in benchmarks/dense_inference.py) and a training
         # step about 1.35x (0.75 instead of 1.03 s per batch of 128 on 2 cores); the input may be in either layout, the output is made contiguous
-        self.to(memory_format=torch.channels_last)
+        self.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # (not in torch's overloads)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Raw outputs (B, n_out, H / 4, W / 4), float32, of a batch ``x`` (B, 9, H, W) of point images."""
         dtype = self.head.weight.dtype
         if x.dtype != dtype:  # a bfloat16 copy (folded(precision="bfloat16")) takes float32 inputs
             x = x.to(dtype)
@@ -198,11 +205,11 @@ class DenseNet(nn.Module):
             if isinstance(seq, nn.Sequential):
                 for i in range(len(seq) - 1):
                     if isinstance(seq[i], nn.Conv2d) and isinstance(seq[i + 1], nn.BatchNorm2d):
-                        seq[i], seq[i + 1] = fuse_conv_bn_eval(seq[i], seq[i + 1]), nn.Identity()
-        model.to(memory_format=torch.channels_last)
+                        seq[i], seq[i + 1] = fuse_conv_bn_eval(seq[i], seq[i + 1]), nn.Identity()  # type: ignore[type-var, arg-type]  # checked just above
+        model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # (not in torch's overloads)
         if precision == "bfloat16":
             model.to(dtype=torch.bfloat16)  # each weight keeps its layout
-        model.stem.to(memory_format=torch.contiguous_format)
+        model.stem.to(memory_format=torch.contiguous_format)  # type: ignore[call-overload]  # (not in torch's overloads)
         if precision == "float32" and model.head.weight.device.type == "cpu" and _mkldnn_packing_available():
             _pack_convolutions(model)
         return model
@@ -239,8 +246,9 @@ def _pack_convolutions(model: nn.Module) -> None:
                 seq[i] = PackedConv2d(layer, relu)
                 if relu:
                     seq[j] = nn.Identity()
-    model.head = PackedConv2d(model.head, False)
+    model.head = PackedConv2d(model.head, False)  # type: ignore[arg-type]  # the head is an nn.Conv2d
 
 
 def count_parameters(model: nn.Module) -> int:
+    """Number of parameters (scalars) of ``model``."""
     return sum(p.numel() for p in model.parameters())

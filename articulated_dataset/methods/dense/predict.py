@@ -26,11 +26,16 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, TypedDict, cast
 
 import numpy as np
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.methods.dense.data import DenseData
+
+if TYPE_CHECKING:
+    from articulated_dataset.methods.dense.checkpoint import DenseCheckpoint
+    from articulated_dataset.methods.dense.refine import RefinementRecord
 
 log = logging.getLogger(__name__)
 
@@ -84,13 +89,53 @@ OUTLIER_MIN_SCALES = {"origin": 0.05, "axis": 0.5, "xaxis": 0.5, "q": 0.1, "offs
                       "depth": 0.05, "width": 0.05, "height": 0.05, "chirality": 0.5}
 
 
+class _OutlierRecordRequired(TypedDict):
+    weight: float
+    scale: list[float]
+    n_images: int
+    validation_nll: dict[str, float]
+
+
+class OutlierRecord(_OutlierRecordRequired, total=False):
+    """The outlier component of a calibration (:func:`fit_outlier_component`): its weight, its
+    scale per target column (label units), the validation images it was fitted on and their mean
+    NLL (nats per image) ``{"without", "with"}`` it; while fitting, each image's responsibility
+    (N,), which the stored record leaves out."""
+
+    responsibility: np.ndarray
+
+
+class _CalibrationRecordRequired(TypedDict):
+    spread_factor: list[float]
+    floor: list[float]
+    n_images: int
+
+
+class CalibrationRecord(_CalibrationRecordRequired, total=False):
+    """A dense checkpoint's ``"calibration"`` (:func:`fit_calibration`, :func:`fitted_calibration`):
+    per target column the vote spread's factor ``k`` and the floor ``f`` (label units) of the
+    modes' scales ``sqrt((k spread)^2 + f^2)``, the validation images fitted on, and the outlier
+    component where one was fitted."""
+
+    outlier: OutlierRecord
+
+
+class InferenceFit(TypedDict):
+    """What :func:`fit_inference` fits for a dense checkpoint beyond its weights: the refinement,
+    the calibration, and the validation errors (cm, deg) of each choice made."""
+
+    refinement: RefinementRecord
+    calibration: CalibrationRecord
+    refinement_report: dict
+
+
 def _layout_names(J: int) -> list[str]:
     from articulated_dataset.training.targets import TargetLayout
 
     return TargetLayout("-", J).names
 
 
-def predict_arrays(model, data, idx: np.ndarray, *, joint_types: list[str], calibration: dict | None,
+def predict_arrays(model, data, idx: np.ndarray, *, joint_types: list[str], calibration: CalibrationRecord | None,
                    refinement=None, batch_size: int = PREDICT_BATCH, progress: bool = False,
                    workers: int = 1) -> dict:
     """Predictions of ``model`` for the images ``idx`` of a :class:`~articulated_dataset.methods.dense.data.DenseData`.
@@ -198,7 +243,8 @@ def _over_batches(data, idx: np.ndarray, batch_size: int, progress: bool, fn) ->
     import torch
     from tqdm.auto import tqdm
 
-    out, workspace = [], {}
+    out: list = []
+    workspace: dict = {}
     for s in tqdm(range(0, len(idx), batch_size), desc="predicting", unit="batch", disable=not progress, leave=False):
         b = idx[s : s + batch_size]
         out.append(fn(data.depth(b), torch.from_numpy(data.K[b]), workspace))
@@ -223,10 +269,10 @@ def refined_batch(model, depth_m, K, *, joint_types: list[str], refinement, work
                        refine=refinement is not None and refinement.needed, split_factor=split_factor_of(refinement),
                        mirror_joints=None if refinement is None else refinement.mirror_joints, workspace=workspace,
                        **refinement_keywords_of(refinement))
-    return apply_refinement(m, r, refinement, joint_types)
+    return apply_refinement(m, r, refinement, joint_types)  # type: ignore[arg-type]  # r is None only when unread
 
 
-def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: dict | None) -> dict:
+def modes_to_arrays(m: dict, sample_id: np.ndarray, model, calibration: CalibrationRecord | None) -> dict:
     """Mode arrays of ``model`` (numpy) -> prediction arrays (:func:`mixture_from_modes`)."""
     from articulated_dataset.methods.dense.aggregate import MAX_MODES
 
@@ -357,7 +403,8 @@ def predict_candidates(model, data, idx: np.ndarray, *, joint_types: list[str], 
             {name: _concatenated([rs[name] for _, rs in chunks]) for name in candidates})
 
 
-def mixture_from_modes(m: dict, sample_id: np.ndarray, J: int, n_modes: int, calibration: dict | None) -> dict:
+def mixture_from_modes(m: dict, sample_id: np.ndarray, J: int, n_modes: int,
+                       calibration: CalibrationRecord | None) -> dict:
     """Mode arrays of :func:`vote_modes` (numpy) -> prediction arrays with a mixture (``m`` is not changed)."""
     m = dict(m)
     N = len(sample_id)
@@ -402,8 +449,12 @@ def mixture_from_modes(m: dict, sample_id: np.ndarray, J: int, n_modes: int, cal
     from articulated_dataset.training.targets import TargetLayout
 
     decoded = TargetLayout("-", J).decode(point)
+    from articulated_dataset.benchmark.predictions import CHIRALITY_COLUMN, CHIRALITY_RANGE
+
     geometry = np.asarray(decoded["geometry"], np.float64)
-    geometry[:, 3] = np.clip(geometry[:, 3], 0.0, 1.0)
+    geometry[:, CHIRALITY_COLUMN] = np.clip(geometry[:, CHIRALITY_COLUMN], *CHIRALITY_RANGE)
+    # sizes are >= 0 (what a predictions file holds): a briefly trained network's estimate below 0 is 0
+    geometry[:, :CHIRALITY_COLUMN] = np.maximum(geometry[:, :CHIRALITY_COLUMN], 0.0)
     return {
         "sample_id": np.asarray(sample_id, np.int64),
         "axis_pose": np.asarray(decoded["axis_pose"], np.float64),
@@ -415,7 +466,7 @@ def mixture_from_modes(m: dict, sample_id: np.ndarray, J: int, n_modes: int, cal
     }
 
 
-def apply_calibration(spread: np.ndarray, calibration: dict | None) -> np.ndarray:
+def apply_calibration(spread: np.ndarray, calibration: CalibrationRecord | None) -> np.ndarray:
     """``sigma = sqrt((k spread)^2 + f^2)`` per column (k = 1, f = 0 without calibration)."""
     D = spread.shape[-1]
     k = np.ones(D) if calibration is None else np.asarray(calibration["spread_factor"], np.float64)
@@ -431,7 +482,7 @@ def truth_columns(data, idx: np.ndarray) -> np.ndarray:
     return np.concatenate(cols + [data.geometry[idx]], -1).astype(np.float64)
 
 
-def fit_calibration(arrays: dict, data, idx: np.ndarray, image_weights: np.ndarray | None = None) -> dict:
+def fit_calibration(arrays: dict, data, idx: np.ndarray, image_weights: np.ndarray | None = None) -> CalibrationRecord:
     """Per column ``(k, f)`` maximising the Gaussian likelihood of the heaviest component's
     residuals on the validation images (grids :data:`CAL_SPREAD_FACTORS`, :data:`CAL_FLOOR_FRACTIONS`),
     each image's log-likelihood weighted by ``image_weights`` (N,) where given (the share of the
@@ -463,7 +514,7 @@ def fit_calibration(arrays: dict, data, idx: np.ndarray, image_weights: np.ndarr
 
 
 def with_outlier_component(weights: np.ndarray, means: np.ndarray, scales: np.ndarray, spread: np.ndarray,
-                           point: np.ndarray, outlier: dict) -> tuple[np.ndarray, ...]:
+                           point: np.ndarray, outlier: OutlierRecord) -> tuple[np.ndarray, ...]:
     """A mixture (weights (N, C), means and scales (N, C, D)) and its vote spreads with the outlier
     component of :func:`fit_outlier_component` appended: weight ``eps`` (the others scaled by
     ``1 - eps``), mean ``point`` (N, D), scales ``outlier["scale"]`` (D,), spread 0."""
@@ -481,7 +532,7 @@ def outlier_scale_floors(layout: list[str]) -> np.ndarray:
     return np.array([OUTLIER_MIN_SCALES[name.split(".")[1]] for name in layout], np.float64)
 
 
-def fit_outlier_component(arrays: dict, y: np.ndarray) -> dict:
+def fit_outlier_component(arrays: dict, y: np.ndarray) -> OutlierRecord:
     """The outlier component of a calibrated mixture (module docstring), fitted on validation
     images: ``arrays`` their predictions (:func:`mixture_from_modes` with the calibration,
     without an outlier component), ``y`` (N, D) their target vectors (:func:`truth_columns`;
@@ -556,7 +607,7 @@ def choose_split_factor(model, data, idx: np.ndarray, *, batch_size: int = PREDI
     from articulated_dataset.methods.dense.features import make_inputs
 
     true_origin = _true_pose(data, idx)[..., :3]
-    errors = {c: [] for c in SPLIT_FACTOR_CANDIDATES}
+    errors: dict[float | None, list] = {c: [] for c in SPLIT_FACTOR_CANDIDATES}
     model.eval()
     for s in range(0, len(idx), batch_size):
         b = idx[s : s + batch_size]
@@ -570,7 +621,7 @@ def choose_split_factor(model, data, idx: np.ndarray, *, batch_size: int = PREDI
                 origin = torch.take_along_dim(modes["origin"], heaviest, dim=2)[:, :, 0].numpy()
                 errors[c].append(M.axis_position_error_cm(origin, true_origin[s : s + len(b)]))
     mean = {c: float(np.mean(np.concatenate(e))) for c, e in errors.items()}
-    best = SPLIT_FACTOR
+    best: float | None = SPLIT_FACTOR
     for c in SPLIT_FACTOR_CANDIDATES:
         if mean[c] < min(mean[best], mean[SPLIT_FACTOR] * (1 - SPLIT_MIN_GAIN)):
             best = c
@@ -578,7 +629,7 @@ def choose_split_factor(model, data, idx: np.ndarray, *, batch_size: int = PREDI
 
 
 def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirror_joints=None,
-                  progress: bool = False) -> dict:
+                  progress: bool = False) -> InferenceFit:
     """Fit what inference needs beyond the weights on validation images ``idx`` (with labels):
     the vote modes' split factor (:func:`choose_split_factor`), the refinement
     (:func:`~.fit.fit_refinement`, once for each box-frame pixel threshold of
@@ -656,7 +707,7 @@ def fit_inference(model, data, idx: np.ndarray, joint_types: list[str], *, mirro
         mm, mr = predict_modes(model, data, idx, joint_types=joint_types, progress=progress,
                                refine=refinement.needed, split_factor=split_factor, mirror_joints=mirror_joints,
                                **refinement_keywords_of(refinement))
-        merged = apply_refinement(mm, mr, refinement, joint_types)
+        merged = apply_refinement(mm, mr, refinement, joint_types)  # type: ignore[arg-type]  # (as refined_batch)
         pos = {name: quick_errors(modes_to_arrays(x, data.sample_id[idx], model, None), data, idx, joint_types)["pos_cm"]
                for name, x in (("without", refined), ("with", merged))}
         report["mirror_position_cm"] = pos
@@ -677,7 +728,8 @@ def _with_rows(r: dict, rows: np.ndarray, r_rows: dict | None) -> dict:
     return out
 
 
-def fitted_calibration(modes: dict, model, data, idx: np.ndarray, plain: dict | None = None) -> dict:
+def fitted_calibration(modes: dict, model, data, idx: np.ndarray,
+                       plain: CalibrationRecord | None = None) -> CalibrationRecord:
     """The calibration of a model's refined vote modes (numpy) of the validation images ``idx``,
     the modes' scales and the outlier component fitted together: :func:`fit_calibration`, then
     :data:`OUTLIER_CALIBRATION_ROUNDS` times the outlier component of the calibrated mixture
@@ -688,7 +740,7 @@ def fitted_calibration(modes: dict, model, data, idx: np.ndarray, plain: dict | 
     :func:`fit_calibration` of these modes where the caller has it already."""
     uncalibrated = modes_to_arrays(modes, data.sample_id[idx], model, None)
     y = truth_columns(data, idx)
-    calibration = fit_calibration(uncalibrated, data, idx) if plain is None else dict(plain)
+    calibration = fit_calibration(uncalibrated, data, idx) if plain is None else cast(CalibrationRecord, dict(plain))
     if not np.isfinite(y).all(-1).any():  # labels with undefined columns in every image (real captures)
         log.warning("no validation image has every target column defined: the mixtures get no outlier component")
         return calibration
@@ -733,19 +785,32 @@ def check_precision(precision: str) -> None:
     from articulated_dataset.methods.dense.model import PRECISIONS, bfloat16_native
 
     if precision not in PRECISIONS:
-        raise UserError(f"--precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+        raise UserError(f"{option('precision')} must be one of {', '.join(PRECISIONS)}, got {precision!r}")
     if precision == "bfloat16" and not bfloat16_native():
         log.warning("this CPU has no native bfloat16 arithmetic (AVX512-BF16 or AMX): --precision bfloat16 is "
                     "emulated and slower than float32")
 
 
-def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BATCH, object_mask: bool = False,
+def _class_extent(class_name: str, prompt: str | None) -> float | None:
+    """The largest size of ``class_name``'s objects where a point or box prompt's segmentation needs
+    it, else None."""
+    if prompt not in ("point", "box"):
+        return None
+    from articulated_dataset.methods.prompts import class_extent_m
+
+    return class_extent_m(class_name)
+
+
+def predict_split(ckpt: DenseCheckpoint, data: str | Path, *, batch_size: int = PREDICT_BATCH, object_mask: bool = False,
                   mirror: bool = True, workers: int | None = None, precision: str = "float32",
-                  progress: bool = True, as_class: str | None = None) -> tuple[str, dict]:
+                  progress: bool = True, as_class: str | None = None, prompt: str | None = None) -> tuple[str, dict]:
     """Run a loaded dense checkpoint on the split at ``data``; ``(class_name, arrays)`` as
     :func:`articulated_dataset.benchmark.predictions.write_predictions` takes them.  Labels are not
     read; with ``object_mask`` the split's mask keeps only the object's pixels
-    (:func:`~.data.load_dense_split`).  A split with a scene or occluders predicted without it
+    (:func:`~.data.load_dense_split`); with ``prompt`` (``point``, ``box``, ``mask``, ``none``) each
+    image's object is segmented from the prompt a click or a detector would give
+    (:mod:`articulated_dataset.methods.prompts`; ``mask`` is ``object_mask``).  A split with a scene or occluders
+    predicted without either
     logs a warning: the model was trained on isolated objects and reads every pixel with depth.
     ``mirror=False`` skips the refinement's mirror image (:func:`~.mirror.with_mirror`).
     ``workers``: processes that share the images (:func:`predict_arrays`); None:
@@ -758,18 +823,23 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
     from articulated_dataset.methods.mdn.data import checked_split_class, resolve_split_dir
 
     if batch_size <= 0:
-        raise UserError(f"--batch-size must be positive, got {batch_size}")
+        raise UserError(f"{option('batch_size')} must be positive, got {batch_size}")
     if workers is not None:
         from articulated_dataset.methods.mdn.config import check_per_cpu
 
         if workers <= 0:
-            raise UserError(f"--workers must be positive, got {workers}")
-        check_per_cpu("--workers", workers)
+            raise UserError(f"{option('workers')} must be positive, got {workers}")
+        check_per_cpu("workers", workers)
     check_precision(precision)
     class_name = ckpt["class_name"]
     split_dir = resolve_split_dir(data)
     data_class = checked_split_class(split_dir, class_name, as_class, "the dense model")
-    if not object_mask:
+    if prompt is not None:
+        from articulated_dataset.methods.prompts import PROMPT_KINDS
+
+        if prompt not in PROMPT_KINDS:
+            raise UserError(f"{option('prompt')} must be one of {', '.join(PROMPT_KINDS)}, got {prompt!r}")
+    if not object_mask and prompt in (None, "none"):
         from articulated_dataset.format import read_manifest
 
         config = read_manifest(split_dir).get("config", {})
@@ -783,7 +853,8 @@ def predict_split(ckpt: dict, data: str | Path, *, batch_size: int = PREDICT_BAT
     model = build_inference_model(ckpt, precision)
     cfg = model.config
     d = load_dense_split(split_dir, cfg.n_joints, (cfg.height_px, cfg.width_px), with_labels=False,
-                         object_mask=object_mask, progress=progress)
+                         object_mask=object_mask, progress=progress, prompt=prompt,
+                         max_extent_m=_class_extent(class_name, prompt))
     n = len(d.sample_id)
     workers = default_workers(n) if workers is None else workers
     t0 = time.perf_counter()

@@ -110,7 +110,9 @@ in the checkpoint (``"refinement"``) and applied by :func:`apply_refinement` at 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from typing import TypedDict, cast
 
 import numpy as np
 import torch
@@ -205,6 +207,42 @@ SHELL_MIN_PX = 5
 #: stored fields, not their implementation: every version's ``mirror_joints`` averages the
 #: network's outputs (:mod:`.mirror`).
 REFINEMENT_VERSION = 14
+
+
+class _RefinementRecordRequired(TypedDict):
+    frame: bool
+    hinge_offset_m: float
+    min_door_px: int | None
+
+
+class RefinementRecord(_RefinementRecordRequired, total=False):
+    """A :class:`Refinement` as a checkpoint stores it (``"refinement"``; :meth:`Refinement.to_dict`):
+    its fields as plain JSON values (pairs and tuples as lists; lengths m, angles deg).  A key that
+    a refinement of a lower :data:`REFINEMENT_VERSION` lacks takes the field's default."""
+
+    door_angle_folded: bool
+    door_angle_signed: bool
+    door_angle_gate_deg: float | None
+    max_turn_deg: float | None
+    frame_min_prob: float | None
+    frame_one_sided: bool
+    frame_strip_elongation: float | None
+    door_extent: bool
+    door_extent_gate_m: float | None
+    split_factor: float | None
+    handle_max_q_deg: float | None
+    handle_min_px: float
+    handle_height_gate_m: float | None
+    handle_cut_bars: bool
+    mirror_joints: list[int] | None
+    door_face_gate_m: float | None
+    door_face_offsets_m: list[float | None]
+    drawer_front_gate_m: float | None
+    drawer_front_offset_m: float
+    drawer_centre_gate_m: float | None
+    drawer_shell_gate_m: float | None
+    drawer_shell_offset_m: float
+    version: int
 
 
 @dataclass(frozen=True)
@@ -304,14 +342,16 @@ class Refinement:
         otherwise (None: no handle is measured)."""
         return EVERY_DOOR_DEG if self.handle_height_gate_m is not None else self.handle_max_q_deg
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> RefinementRecord:
+        """The refinement as plain JSON types (stored in checkpoints)."""
         d = asdict(self)
         d["mirror_joints"] = None if self.mirror_joints is None else [int(k) for k in self.mirror_joints]
         d["door_face_offsets_m"] = [_optional_float(v) for v in self.door_face_offsets_m]
-        return d
+        return cast(RefinementRecord, d)  # (asdict: every field, by name)
 
     @classmethod
-    def from_dict(cls, d: dict | None) -> "Refinement | None":
+    def from_dict(cls, d: RefinementRecord | None) -> "Refinement | None":
+        """The refinement stored by :meth:`to_dict` (None for None); an absent optional key takes its default."""
         if d is None:
             return None
         turn, gate = d.get("max_turn_deg"), d.get("door_extent_gate_m")
@@ -330,7 +370,7 @@ class Refinement:
                    handle_min_px=float(d.get("handle_min_px", 1.0)),
                    handle_height_gate_m=_optional_float(d.get("handle_height_gate_m")),
                    handle_cut_bars=bool(d.get("handle_cut_bars", False)),
-                   mirror_joints=None if d.get("mirror_joints") is None else tuple(int(k) for k in d["mirror_joints"]),
+                   mirror_joints=None if d.get("mirror_joints") is None else tuple(int(k) for k in d["mirror_joints"]),  # type: ignore[union-attr]  # not None: checked first
                    door_face_gate_m=_optional_float(d.get("door_face_gate_m")),
                    door_face_offsets_m=_float_pair(d.get("door_face_offsets_m", (0.0, 0.0))),
                    drawer_front_gate_m=_optional_float(d.get("drawer_front_gate_m")),
@@ -359,7 +399,7 @@ def split_factor_of(refinement) -> float | None:
 
 def as_refinement(refinement) -> "Refinement | None":
     """A :class:`Refinement` from one, its dict (a checkpoint's ``"refinement"``), or None."""
-    return Refinement.from_dict(refinement) if isinstance(refinement, dict) else refinement
+    return Refinement.from_dict(refinement) if isinstance(refinement, dict) else refinement  # type: ignore[arg-type]  # a stored record
 
 
 def rotate_about(v: torch.Tensor, axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
@@ -581,6 +621,7 @@ def _refine_images(x: torch.Tensor, rows: torch.Tensor, valid_px: torch.Tensor, 
         some = strip_sized(count).nonzero()[:, 0]
         if len(some):
             at_some = at.view(R, n).index_select(0, some).view(-1)
+            points: torch.Tensor | list  # a (S, 3, n) tensor here, three (R, n) components at step 11
             points = torch.stack([x_flat[c * P:].index_select(0, at_some).view(len(some), n) for c in range(3)], 1)
             strip_normal[some], strip_weight[some] = strip_normals(points * POINT_SCALE_M, frame_px.index_select(0, some),
                                                                    frame[some, 0, :, 2], frame_strip_elongation)
@@ -734,7 +775,7 @@ def drawer_front(points: list, normals: list, real: torch.Tensor, row: torch.Ten
     return {"front_axis": zc, "front_m": front, "front_centre": centre, "front_cut": cut.to(along.dtype)}
 
 
-def shell_front(points: list, normals: list, real: torch.Tensor, frame: torch.Tensor, front_axis: torch.Tensor,
+def shell_front(points: list, normals: Sequence, real: torch.Tensor, frame: torch.Tensor, front_axis: torch.Tensor,
                 front_m: torch.Tensor) -> torch.Tensor:
     """Step 11's shell edge (R,) m along ``front_axis`` (R, 3): of the image's pixels (``points`` and
     ``normals``: three (R, n) components each, camera frame, m; ``real`` those with a normal (R, n)),
@@ -928,7 +969,7 @@ def door_angle(voted_q: np.ndarray, r: dict, refinement: "Refinement", xaxis: np
     the signed one reads) where at least ``min_door_px`` door pixels have a normal and it lies within
     ``door_angle_gate_deg`` of the mode's voted angle ``voted_q`` (B, J, M); the voted angle elsewhere."""
     if refinement.door_angle_signed:
-        q = signed_door_angle(r["q_signed"], r["box_x"], xaxis, voted_q)
+        q = signed_door_angle(r["q_signed"], r["box_x"], xaxis, voted_q)  # type: ignore[arg-type]  # given when signed
     else:
         q = np.broadcast_to((r["q_folded"] if refinement.door_angle_folded else r["q"])[..., None], voted_q.shape)
     with np.errstate(invalid="ignore"):

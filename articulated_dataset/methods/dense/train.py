@@ -29,15 +29,18 @@ import itertools
 import logging
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.methods.dense.checkpoint import (
     CHECKPOINT_FORMAT,
     CHECKPOINT_VERSION,
+    DenseCheckpoint,
     build_dense_model,
     build_inference_model,
     load_dense_checkpoint,
@@ -49,6 +52,11 @@ from articulated_dataset.methods.dense.data import (
     mixture_order,
     split_object_indices,
 )
+
+if TYPE_CHECKING:
+    import torch
+
+    from articulated_dataset.methods.dense.predict import CalibrationRecord
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +88,7 @@ VALIDATION_NOISE_EPOCH = 2**31 - 1
 
 @dataclass(frozen=True)
 class DenseTrainConfig:
+    """Training settings of a dense model (``artdata train --model dense``; stored in checkpoints)."""
     class_name: str
     epochs: int = 2
     batch_size: int = 64
@@ -111,38 +120,41 @@ class DenseTrainConfig:
         from articulated_dataset.methods.mdn.config import MAX_EPOCHS, MAX_LR, MAX_SEED
 
         if self.epochs > MAX_EPOCHS:
-            raise UserError(f"--epochs must be at most {MAX_EPOCHS:,}, got {self.epochs}")
+            raise UserError(f"{option('epochs')} must be at most {MAX_EPOCHS:,}, got {self.epochs}")
         from articulated_dataset.methods.dense.checkpoint import MAX_NETWORK_WIDTH
 
         if self.width > MAX_NETWORK_WIDTH:  # a checkpoint no reader would load (load_dense_checkpoint)
-            raise UserError(f"--width must be at most {MAX_NETWORK_WIDTH}, got {self.width}")
+            raise UserError(f"{option('width')} must be at most {MAX_NETWORK_WIDTH}, got {self.width}")
         if not (math.isfinite(self.lr) and 0 < self.lr <= MAX_LR):
-            raise UserError(f"--lr must be a number in (0, {MAX_LR:g}], got {self.lr}")
+            raise UserError(f"{option('lr')} must be a number in (0, {MAX_LR:g}], got {self.lr}")
         if not isinstance(self.seed, int) or not 0 <= self.seed <= MAX_SEED:
-            raise UserError(f"--seed must be a whole number in [0, {MAX_SEED}], got {self.seed!r}")
+            raise UserError(f"{option('seed')} must be a whole number in [0, {MAX_SEED}], got {self.seed!r}")
         if not (math.isfinite(self.origin_weight) and self.origin_weight > 0):
-            raise UserError(f"--origin-weight must be a positive finite number, got {self.origin_weight}")
+            raise UserError(f"{option('origin_weight')} must be a positive finite number, got {self.origin_weight}")
         if not (0.0 <= self.val_fraction < 1.0):
-            raise UserError(f"--val-fraction must be in [0, 1), got {self.val_fraction}")
+            raise UserError(f"{option('val_fraction')} must be in [0, 1), got {self.val_fraction}")
         if self.max_objects is not None and self.max_objects <= 0:
-            raise UserError(f"--max-objects must be positive, got {self.max_objects}")
+            raise UserError(f"{option('max_objects')} must be positive, got {self.max_objects}")
         if self.noise is not None:
             from articulated_dataset.core.noise import get_noise_model
 
             get_noise_model(self.noise)  # an unknown name: a UserError listing the models
         if not (0.0 < self.noise_fraction <= 1.0):
-            raise UserError(f"--noise-fraction must be in (0, 1], got {self.noise_fraction}")
+            raise UserError(f"{option('noise_fraction')} must be in (0, 1], got {self.noise_fraction}")
 
     def to_dict(self) -> dict:
+        """The settings as a dict (stored in checkpoints)."""
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "DenseTrainConfig":
+        """The settings from a checkpoint's dict (keys this version does not know are ignored, missing ones take
+        their defaults)."""
         return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
 
 
 def dense_loss(model, out, inputs: dict, data: DenseData, idx: np.ndarray, q_scale,
-               origin_weight: float = 1.0) -> tuple["object", dict]:
+               origin_weight: float = 1.0) -> tuple[torch.Tensor, dict]:
     """The training loss of one batch (module docstring; ``origin_weight`` multiplies both origin
     terms) and its parts as floats."""
     import torch
@@ -156,8 +168,8 @@ def dense_loss(model, out, inputs: dict, data: DenseData, idx: np.ndarray, q_sca
     valid = w_pix > 0
     norm = w_pix.sum().clamp_min(1.0)
     dev = out.device
-    lab = torch.from_numpy(data.labels_out[idx]).to(dev).long()
-    o_t, r_t, q_t, po_t, g_t = (torch.from_numpy(a[idx]).to(dev) for a in
+    lab = torch.from_numpy(data.labels_out[idx]).to(dev).long()  # type: ignore[index]  # training data has labels
+    o_t, r_t, q_t, po_t, g_t = (torch.from_numpy(a[idx]).to(dev) for a in  # type: ignore[index]  # (labels: as above)
                                 (data.origin, data.rot6, data.q, data.part_offset, data.geometry))
 
     def pix(x):  # (B, J, H, W) or (B, H, W) per-pixel loss -> weighted mean
@@ -219,14 +231,16 @@ def noisy_validation(data_: DenseData, va_idx: np.ndarray, noise: str, *, seed: 
     from articulated_dataset.methods.dense.data import quantise_depth
 
     va_idx = np.asarray(va_idx, np.int64)
-    sub = replace(data_, **{f.name: (None if getattr(data_, f.name) is None else getattr(data_, f.name)[va_idx])
+    sub = replace(data_, **{f.name: (None if getattr(data_, f.name) is None else getattr(data_, f.name)[va_idx])  # type: ignore[arg-type]  # field by field
                             for f in fields(data_)})
     depth = noisy_depth(sub.depth(np.arange(len(va_idx))).numpy(), sub.K, sub.sample_id, noise, 1.0, seed=seed,
                         epoch=VALIDATION_NOISE_EPOCH)
     return replace(sub, depth_q=quantise_depth(depth)), np.arange(len(va_idx))
 
 
-def atomic_save(obj: dict, path: Path) -> None:
+def atomic_save(obj: Mapping[str, Any], path: Path) -> None:
+    """Write ``obj`` with ``torch.save`` to ``path`` atomically
+    (:func:`~articulated_dataset.methods.mdn.checkpoint.atomic_torch_save`)."""
     from articulated_dataset.methods.mdn.checkpoint import atomic_torch_save
 
     atomic_torch_save(obj, path)
@@ -234,7 +248,7 @@ def atomic_save(obj: dict, path: Path) -> None:
 
 def train_dense(data: str | Path | list, out: str | Path, config: DenseTrainConfig, *, resume: bool = False,
                 progress: bool = True, echo=None, stop_after_steps: int | None = None, device: str | None = "cpu",
-                fit: bool = True, mix_weights: list[float] | None = None) -> dict:
+                fit: bool = True, mix_weights: list[float] | None = None) -> DenseCheckpoint:
     """Train (or resume) the dense estimator of ``config.class_name`` on the split at ``data``,
     or on a mixture of the splits of a list ``data`` (:func:`check_mixture`): each split holds
     out its own validation objects, each batch draws its images from the splits in proportion
@@ -311,7 +325,7 @@ def train_dense(data: str | Path | list, out: str | Path, config: DenseTrainConf
     batch = min(config.batch_size, n_train)
     if n_train < 2:
         raise UserError(f"{split_dir}: only {n_train} training image(s) after holding out validation objects")
-    q_scale = np.maximum(data_.q[tr_idx].std(0), MIN_Q_SCALE) if ckpt is None else np.asarray(ckpt["q_scale"], np.float64)
+    q_scale = np.maximum(data_.q[tr_idx].std(0), MIN_Q_SCALE) if ckpt is None else np.asarray(ckpt["q_scale"], np.float64)  # type: ignore[index]  # training data has labels
     q_scale_t = torch.tensor(q_scale, dtype=torch.float32)
 
     torch.manual_seed(config.seed)
@@ -319,10 +333,11 @@ def train_dense(data: str | Path | list, out: str | Path, config: DenseTrainConf
     if config.init_from is not None and ckpt is None:
         init = load_dense_checkpoint(config.init_from)
         if init["class_name"] != obj_class.name:
-            raise UserError(f"--init-from {config.init_from}: a {init['class_name']!r} model; this training is of "
-                            f"{obj_class.name!r} (scripts/transplant_dense.py moves weights between classes)")
+            raise UserError(f"{option('init_from')} {config.init_from}: a {init['class_name']!r} model; this "
+                            f"training is of {obj_class.name!r} (scripts/transplant_dense.py moves weights between "
+                            "classes)")
         if DenseConfig.from_dict(init["model_config"]) != model_config:
-            raise UserError(f"--init-from {config.init_from}: a model of another configuration "
+            raise UserError(f"{option('init_from')} {config.init_from}: a model of another configuration "
                             f"({init['model_config']}); expected {model_config.to_dict()}")
         model.load_state_dict(build_dense_model(init).state_dict())
         if "q_scale" in init:
@@ -347,10 +362,11 @@ def train_dense(data: str | Path | list, out: str | Path, config: DenseTrainConf
         try:
             history = restore_training_state(ckpt, model, optimizer, scheduler)
         except UserError as exc:  # name the file
-            raise UserError(f"{out}: {exc}") from None
+            raise UserError(f"{out}: {exc.message}") from None
         step = int(ckpt["step"])
         if step > total_steps:
-            raise UserError(f"--resume: {out} is at step {step} of a training of {total_steps} steps; not resumable")
+            raise UserError(f"{option('resume')}: {out} is at step {step} of a training of {total_steps} steps; not "
+                            "resumable")
         try:
             cpu_seconds = float(ckpt.get("cpu_seconds", 0.0))
         except (TypeError, ValueError):
@@ -361,7 +377,7 @@ def train_dense(data: str | Path | list, out: str | Path, config: DenseTrainConf
     generated = generation_of(identity)
     machine = machine_description(dev)
 
-    def checkpoint(finished: bool, calibration=None) -> dict:
+    def checkpoint(finished: bool, calibration: CalibrationRecord | None = None) -> DenseCheckpoint:
         return {
             "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "class_name": obj_class.name,
             "joint_types": list(obj_class.joint_types), "model_config": model_config.to_dict(),
@@ -420,7 +436,8 @@ def train_dense(data: str | Path | list, out: str | Path, config: DenseTrainConf
             out_ = model(inputs["x"])
             loss, st = dense_loss(model, out_, inputs, data_, idx, q_scale_t, config.origin_weight)
             if not torch.isfinite(loss):
-                raise UserError(f"non-finite training loss at step {step}; {out} keeps the last checkpoint; lower --lr")
+                raise UserError(f"non-finite training loss at step {step}; {out} keeps the last checkpoint; lower "
+                                f"{option('lr')}")
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), GRAD_CLIP_NORM)
@@ -438,7 +455,7 @@ def train_dense(data: str | Path | list, out: str | Path, config: DenseTrainConf
                 # never replace the last checkpoint with diverged weights (a --resume would refuse them)
                 if state_problem(model.state_dict()) is not None:
                     raise UserError(f"training diverged by step {step} (non-finite weights); {out} keeps the last "
-                                    f"checkpoint; lower --lr")
+                                    f"checkpoint; lower {option('lr')}")
                 cpu_seconds += time.process_time() - cpu0
                 cpu0 = time.process_time()
                 if pos == steps_per_epoch or step == total_steps:
@@ -462,7 +479,8 @@ def train_dense(data: str | Path | list, out: str | Path, config: DenseTrainConf
                     "refinement or uncertainty calibration, and its estimates are the plain votes", out,
                     config.val_fraction)
     if fit and len(va_idx):  # refinement choice and uncertainty calibration on the validation objects
-        result.update(fit_inference(inference_copy(model), val_data, val_idx, list(obj_class.joint_types),
+        # (the fit's keys and types are the checkpoint's, its calibration and refinement never None)
+        result.update(fit_inference(inference_copy(model), val_data, val_idx, list(obj_class.joint_types),  # type: ignore[typeddict-item]
                                     mirror_joints=obj_class.mirror_joints))
     result["load_seconds"] = round(t_load, 1)
     atomic_save(result, out)
@@ -479,26 +497,27 @@ def check_mixture(split_dirs: list[Path], class_name: str, mix_weights: list[flo
     for d in split_dirs:
         key = Path(d).resolve()
         if key in seen:
-            raise UserError(f"{d}: given twice; give each split once and weight it with --mix-weights")
+            raise UserError(f"{d}: given twice; give each split once and weight it with {option('mix_weights')}")
         seen.add(key)
         split = Split(d)
         if split.class_name != class_name:
-            raise UserError(f"{d}: holds class {split.class_name!r}, not {class_name!r} (--class)")
+            raise UserError(f"{d}: holds class {split.class_name!r}, not {class_name!r} ({option('class_name')})")
         if split.is_real:
             raise UserError(f"{d} holds ingested real captures (labels NaN where not given); train on generated splits")
     if mix_weights is None:
         return None
     if len(split_dirs) < 2:
-        raise UserError("--mix-weights weights several splits; give two split folders or more")
+        raise UserError(f"{option('mix_weights')} weights several splits; give two split folders or more")
     w = np.asarray([float(v) for v in mix_weights], np.float64)
     if len(w) != len(split_dirs):
-        raise UserError(f"--mix-weights has {len(w)} weight(s) for {len(split_dirs)} split(s); give one per split")
+        raise UserError(f"{option('mix_weights')} has {len(w)} weight(s) for {len(split_dirs)} split(s); give one per "
+                        "split")
     if not (np.isfinite(w).all() and (w > 0).all()):
-        raise UserError(f"--mix-weights must be positive finite numbers, got {','.join(f'{v:g}' for v in w)}")
+        raise UserError(f"{option('mix_weights')} must be positive finite numbers, got {','.join(f'{v:g}' for v in w)}")
     return w
 
 
-def check_same_mixture(ckpt: dict, out: Path, current: list[dict]) -> None:
+def check_same_mixture(ckpt: Mapping[str, Any], out: Path, current: list[dict]) -> None:
     """``--resume``: the checkpoint was trained on the same splits (identities, in order) with the
     same weights as ``current``; else one line naming the first difference."""
     from articulated_dataset.methods.mdn.checkpoint import data_record
@@ -510,15 +529,15 @@ def check_same_mixture(ckpt: dict, out: Path, current: list[dict]) -> None:
     if not isinstance(recorded, list) or not all(isinstance(r, dict) for r in recorded):
         raise UserError(f"{out}: checkpoint field 'data.splits' is not a list of mappings (corrupt checkpoint)")
     if len(recorded) != len(current):
-        raise UserError(f"--resume: {out} was trained on {len(recorded)} split(s), not {len(current)}; "
-                        f"give the same splits and --mix-weights")
+        raise UserError(f"{option('resume')}: {out} was trained on {len(recorded)} split(s), not {len(current)}; "
+                        f"give the same splits and {option('mix_weights')}")
     for i, (r, c) in enumerate(zip(recorded, current)):
         if r.get("split") is not None and c["split"] is not None and r.get("split") != c["split"]:
-            raise UserError(f"--resume: split {i + 1} of {out} was {str(r.get('split'))[:160]}, not {c['split_dir']} "
-                            f"({c['split']}); give the same splits in the same order")
+            raise UserError(f"{option('resume')}: split {i + 1} of {out} was {str(r.get('split'))[:160]}, not "
+                            f"{c['split_dir']} ({c['split']}); give the same splits in the same order")
         if r.get("weight") != c["weight"]:
-            raise UserError(f"--resume: split {i + 1} ({c['split_dir']}) was weighted {r.get('weight')}, "
-                            f"not {c['weight']}; repeat the original --mix-weights")
+            raise UserError(f"{option('resume')}: split {i + 1} ({c['split_dir']}) was weighted {r.get('weight')}, "
+                            f"not {c['weight']}; repeat the original {option('mix_weights')}")
 
 
 def inference_copy(model):
@@ -619,7 +638,8 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     objects = np.unique(split_object_indices(split_dir, config.max_objects))
     _, val_mask = split_by_object(objects, config.val_fraction, config.seed)
     if not val_mask.any():
-        raise UserError(f"{checkpoint}: trained without validation objects (--val-fraction 0): nothing to fit on")
+        raise UserError(f"{checkpoint}: trained without validation objects ({option('val_fraction')} 0): nothing to "
+                        "fit on")
     data_ = load_dense_split(split_dir, c.n_joints, (c.height_px, c.width_px), max_objects=config.max_objects,
                              objects=objects[val_mask], progress=progress)
     va_idx = np.arange(len(data_.sample_id))
@@ -631,13 +651,14 @@ def refit_inference(checkpoint: str | Path, data: str | Path, out: str | Path, *
     result = dict(ckpt)
     if calibration_only:
         if ckpt.get("refinement") is None:
-            raise UserError(f"{checkpoint}: has no refinement to keep; refit it whole (without --calibration-only)")
+            raise UserError(f"{checkpoint}: has no refinement to keep; refit it whole (without "
+                            f"{option('calibration_only')})")
         modes = _refined_images(model, data_, va_idx, list(ckpt["joint_types"]), as_refinement(ckpt["refinement"]),
                                 PREDICT_BATCH, progress)
         plain = fit_calibration(modes_to_arrays(modes, data_.sample_id[va_idx], model, None), data_, va_idx)
         if ckpt.get("calibration") is not None:  # the same objects give the same scales as before, the outlier aside
             change = np.median([abs(a / b - 1.0) for key in ("spread_factor", "floor")
-                                for a, b in zip(plain[key], ckpt["calibration"][key])])
+                                for a, b in zip(plain[key], ckpt["calibration"][key])])  # type: ignore[index]  # checked just above
             log.info("%s: the modes' scales fitted as before differ from the checkpoint's by %.2g (median relative "
                      "difference of the columns' factors and floors): %s", checkpoint, change,
                      "the same validation objects" if change < SAME_CALIBRATION_TOLERANCE else

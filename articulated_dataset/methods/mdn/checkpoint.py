@@ -7,21 +7,59 @@ from __future__ import annotations
 import pickle
 import warnings
 import zipfile
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any, Callable, TypedDict, TypeVar, cast
 
 import numpy as np
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.format import Split
 from articulated_dataset.methods.mdn.config import TrainConfig, is_int, is_real_number
 
 CHECKPOINT_FORMAT = "artdata-mdn"
 CHECKPOINT_VERSION = 1
+
+
+class _MdnCheckpointRequired(TypedDict):
+    format: str  # CHECKPOINT_FORMAT
+    version: int  # CHECKPOINT_VERSION
+    class_name: str
+    layout_names: list[str]  # the target vector's column names (TargetLayout.names)
+    norm_stats: dict  # NormStats.to_dict()
+    model_config: dict  # ModelConfig.to_dict()
+    input_config: dict  # InputConfig.to_dict()
+    train_config: dict  # TrainConfig.to_dict()
+    model_state: dict  # the network's state_dict (name -> tensor)
+
+
+class MdnCheckpoint(_MdnCheckpointRequired, total=False):
+    """An MDN checkpoint as :func:`load_checkpoint` returns it and ``artdata train --model mdn``
+    writes it (:mod:`articulated_dataset.methods.mdn.train`): the keys every checkpoint has, then
+    the columns trained and anchored (all and none where absent), the training data and run, and
+    the optimiser's state to resume from."""
+
+    anchored_columns: list[list[int]]  # column groups shifted by the image's anchor (m)
+    active_columns: list[int]  # the target columns trained
+    data: dict  # the training split: folder, identity, image counts
+    epoch: int  # epochs finished
+    finished: bool
+    history: list  # one dict of losses and validation errors per epoch
+    optimizer_state: dict
+    scheduler_state: dict
+    scaler_state: dict
+    rng_state: Any  # torch.Tensor: the CPU generator's state
+
+
+#: A checkpoint type of :func:`prepare_training_output` (the one its ``load`` returns).
+CheckpointT = TypeVar("CheckpointT", bound=Mapping[str, Any])
 #: An unreadable checkpoint's error message quotes at most this many characters of the cause.
 UNREADABLE_DETAIL_CHARS = 200
 
 
-def atomic_torch_save(obj: dict, path: Path) -> None:
+def atomic_torch_save(obj: Mapping[str, Any], path: Path) -> None:
+    """Write ``obj`` with ``torch.save`` to ``path`` atomically, through
+    :func:`~articulated_dataset.core.safeio.atomic_file` (an unwritable path is one line)."""
     import torch
 
     from articulated_dataset.core.safeio import atomic_file
@@ -32,7 +70,7 @@ def atomic_torch_save(obj: dict, path: Path) -> None:
         torch.save(obj, f)
 
 
-def restore_training_state(ckpt: dict, model, optimizer, scheduler, scaler=None) -> list[dict]:
+def restore_training_state(ckpt: Mapping[str, Any], model, optimizer, scheduler, scaler=None) -> list[dict]:
     """Continue an interrupted training (``--resume``; the MDN's and the dense model's): load the
     checkpoint's model, optimizer, learning-rate schedule and, when given, AMP gradient-scaler
     state and torch's CPU random state; returns a copy of its per-epoch history."""
@@ -198,8 +236,8 @@ def _refusal(exc: Exception) -> str:
     return type(exc).__name__
 
 
-def prepare_training_output(split_dir: Path, class_name: str, out: Path, *, resume: bool, load, config,
-                            example_name: str) -> dict | None:
+def prepare_training_output(split_dir: Path, class_name: str, out: Path, *, resume: bool,
+                            load: Callable[[Path], CheckpointT], config, example_name: str) -> CheckpointT | None:
     """Checks shared by every ``artdata train``: the split holds ``class_name`` and is generated
     (not ingested real captures), ``out`` is a file, and ``--resume`` finds a checkpoint trained
     with the same ``config`` (``load(out)`` reads it; its ``train_config`` is compared through
@@ -209,28 +247,30 @@ def prepare_training_output(split_dir: Path, class_name: str, out: Path, *, resu
 
     check_name_length(out)
     if is_safetensors_path(out):  # read back as a safetensors pair, a torch.save file under that name loads nowhere
-        raise UserError(f"--out {out}: training writes a torch checkpoint (e.g. {example_name}); convert it when it "
-                        f"is done with 'artdata export-model --model {Path(out).with_suffix('.pt').name} "
-                        f"--format safetensors --out {Path(out).name}'")
+        raise UserError(f"{option('out')} {out}: training writes a torch checkpoint (e.g. {example_name}); convert it "
+                        f"when it is done with 'artdata export-model {option('model')} "
+                        f"{Path(out).with_suffix('.pt').name} {option('fmt')} "
+                        f"safetensors {option('out')} {Path(out).name}'")
     split = Split(split_dir)
     if split.class_name != class_name:
-        raise UserError(f"{split_dir}: holds class {split.class_name!r}, not {class_name!r} (--class)")
+        raise UserError(f"{split_dir}: holds class {split.class_name!r}, not {class_name!r} ({option('class_name')})")
     if split.is_real:
         raise UserError(f"{split_dir} holds ingested real captures (labels NaN where not given); train on a generated "
                         f"split and use real splits with 'artdata predict'")
     if out.exists() and out.is_dir():
-        raise UserError(f"--out {out} is a directory; give a file name such as {example_name}")
+        raise UserError(f"{option('out')} {out} is a directory; give a file name such as {example_name}")
     if not resume:
         if out.exists():
-            raise UserError(f"{out} exists; pass --resume to continue its training or choose another --out")
+            raise UserError(f"{out} exists; pass {option('resume')} to continue "
+                            f"its training or choose another {option('out')}")
         return None
     if not out.exists():
-        raise UserError(f"--resume: no checkpoint at {out} to resume from")
+        raise UserError(f"{option('resume')}: no checkpoint at {out} to resume from")
     ckpt = load(out)
     old = type(config).from_dict(ckpt["train_config"])
     if old != config:
         diff = [k for k in config.to_dict() if config.to_dict()[k] != old.to_dict().get(k)]
-        raise UserError(f"--resume: {out} was trained with different settings ({', '.join(diff)}); "
+        raise UserError(f"{option('resume')}: {out} was trained with different settings ({', '.join(diff)}); "
                         f"repeat the original options")
     # the split's identity, not its recorded path (a path from a file is never looked up; a split
     # moved since still resumes); checkpoints from before the record are not checked
@@ -238,12 +278,12 @@ def prepare_training_output(split_dir: Path, class_name: str, out: Path, *, resu
 
     recorded, current = data_record(ckpt, out).get("split"), split_identity(split_dir)
     if recorded is not None and current is not None and recorded != current:
-        raise UserError(f"--resume: {out} was trained on another split ({str(recorded)[:160]}), not {split_dir} "
-                        f"({current}); resume on the same split or start a new --out")
+        raise UserError(f"{option('resume')}: {out} was trained on another split ({str(recorded)[:160]}), not "
+                        f"{split_dir} ({current}); resume on the same split or start a new {option('out')}")
     return ckpt
 
 
-def data_record(ckpt: dict, path) -> dict:
+def data_record(ckpt: Mapping[str, Any], path) -> dict:
     """A checkpoint's record of its training data (``ckpt["data"]``; ``{}`` where absent or null);
     anything but a mapping is a one-line UserError naming ``path``."""
     data = ckpt.get("data")
@@ -254,7 +294,7 @@ def data_record(ckpt: dict, path) -> dict:
     return data
 
 
-def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
+def load_checkpoint(path: str | Path, map_location="cpu") -> MdnCheckpoint:
     """Load and check an ``artdata train`` checkpoint; any problem is a one-line UserError.
 
     The file is read with ``torch.load(weights_only=True)`` (tensors and plain containers
@@ -272,7 +312,7 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
         if key not in ckpt:
             raise UserError(f"{path}: checkpoint is missing {key!r}")
     check_checkpoint(ckpt, path)
-    return ckpt
+    return cast(MdnCheckpoint, ckpt)  # (every field it reads checked above)
 
 
 def check_checkpoint(ckpt: dict, path) -> None:
@@ -311,7 +351,7 @@ def check_checkpoint(ckpt: dict, path) -> None:
     try:
         config = config.resolved()
     except UserError as exc:
-        raise bad(f"train_config: {exc}") from None
+        raise bad(f"train_config: {exc.message}") from None
     if config.class_name != name:
         raise bad(f"train_config is for class {str(config.class_name)[:40]!r}, the checkpoint for {name!r}")
     D = len(layout.names)
@@ -371,7 +411,7 @@ def state_problem(state: dict) -> str | None:
     return None
 
 
-def build_model_from_checkpoint(ckpt: dict, device="cpu"):
+def build_model_from_checkpoint(ckpt: MdnCheckpoint, device="cpu"):
     """The network of a checkpoint, weights loaded, in eval mode."""
     from articulated_dataset.methods.mdn.model import MixtureDensityNetwork, ModelConfig
 

@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, replace
+from typing import TypeGuard
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 
 #: Fraction of the training split's objects held out for validation.
 DEFAULT_VAL_FRACTION = 0.1
@@ -24,14 +25,15 @@ MAX_EPOCHS = 1_000_000
 MAX_THREADS_PER_CPU = 4
 
 
-def check_per_cpu(option: str, n: int) -> None:
+def check_per_cpu(quantity: str, n: int) -> None:
     """A :class:`~articulated_dataset.core.errors.UserError` where ``n`` (torch threads, worker
-    processes) is more than :data:`MAX_THREADS_PER_CPU` per logical CPU of this machine."""
+    processes; the ``quantity`` named ``"threads"``, ``"workers"``) is more than
+    :data:`MAX_THREADS_PER_CPU` per logical CPU of this machine."""
     import os
 
     most = MAX_THREADS_PER_CPU * (os.cpu_count() or 1)
     if n > most:
-        raise UserError(f"{option} {n} is more than {MAX_THREADS_PER_CPU} per logical CPU of this machine "
+        raise UserError(f"{option(quantity)} {n} is more than {MAX_THREADS_PER_CPU} per logical CPU of this machine "
                         f"(at most {most})")
 
 
@@ -96,30 +98,32 @@ class TrainConfig:
             width_px=pick(self.width_px, p.width_px), width=pick(self.width, p.width),
             blocks=tuple(pick(self.blocks, p.blocks)),
         )
-        for name, v in (("--epochs", c.epochs), ("--batch-size", c.batch_size), ("--components", c.n_components),
+        for name, v in ((option("epochs"), c.epochs), (option("batch_size"), c.batch_size),
+                        (option("components"), c.n_components),
                         ("input height", c.height_px), ("input width", c.width_px), ("network width", c.width)):
             if not is_int(v) or v <= 0:
                 raise UserError(f"{name} must be a positive whole number, got {v!r}")
-        if c.epochs > MAX_EPOCHS:
-            raise UserError(f"--epochs must be at most {MAX_EPOCHS:,}, got {c.epochs!r}")
+        if c.epochs > MAX_EPOCHS:  # type: ignore[operator]  # an int: checked in the loop above
+            raise UserError(f"{option('epochs')} must be at most {MAX_EPOCHS:,}, got {c.epochs!r}")
         from articulated_dataset.benchmark.predictions import MAX_MIXTURE_COMPONENTS
 
-        if c.n_components > MAX_MIXTURE_COMPONENTS:
-            raise UserError(f"--components must be at most {MAX_MIXTURE_COMPONENTS} (the predictions format's limit), "
-                            f"got {c.n_components}")
+        if c.n_components > MAX_MIXTURE_COMPONENTS:  # type: ignore[operator]  # an int: checked in the loop above
+            raise UserError(f"{option('components')} must be at most {MAX_MIXTURE_COMPONENTS} (the predictions "
+                            f"format's limit), got {c.n_components}")
         if not (isinstance(c.blocks, tuple) and c.blocks and all(is_int(b) and b > 0 for b in c.blocks)):
             raise UserError(f"network blocks must be positive whole numbers, got {c.blocks!r}")
         if not is_real_number(c.lr) or not 0.0 < c.lr <= MAX_LR:
-            raise UserError(f"--lr must be a number in (0, {MAX_LR:g}], got {c.lr!r}")
+            raise UserError(f"{option('lr')} must be a number in (0, {MAX_LR:g}], got {c.lr!r}")
         if not is_real_number(c.val_fraction) or not 0.0 <= c.val_fraction < 1.0:
-            raise UserError(f"--val-fraction must be in [0, 1), got {c.val_fraction!r}")
+            raise UserError(f"{option('val_fraction')} must be in [0, 1), got {c.val_fraction!r}")
         if not is_int(c.seed) or not 0 <= c.seed <= MAX_SEED:
-            raise UserError(f"--seed must be a whole number in [0, {MAX_SEED}], got {c.seed!r}")
+            raise UserError(f"{option('seed')} must be a whole number in [0, {MAX_SEED}], got {c.seed!r}")
         if c.max_objects is not None and (not is_int(c.max_objects) or c.max_objects <= 0):
-            raise UserError(f"--max-objects must be a positive whole number, got {c.max_objects!r}")
+            raise UserError(f"{option('max_objects')} must be a positive whole number, got {c.max_objects!r}")
         return c
 
     def to_dict(self) -> dict:
+        """The settings as plain JSON types (``blocks`` as a list; stored in checkpoints)."""
         d = asdict(self)
         if d["blocks"] is not None:
             d["blocks"] = list(d["blocks"])
@@ -127,31 +131,37 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
+        """The settings from their :meth:`to_dict` form."""
         d = dict(d)
         if isinstance(d.get("blocks"), list):
             d["blocks"] = tuple(d["blocks"])
         return cls(**d)
 
     def input_config(self):
+        """The network input's configuration (:class:`~.preprocess.InputConfig`) at these settings' image size."""
         from articulated_dataset.methods.mdn.preprocess import InputConfig
 
-        return InputConfig(height_px=self.height_px, width_px=self.width_px)
+        return InputConfig(height_px=self.height_px, width_px=self.width_px)  # type: ignore[arg-type]  # (resolved)
 
     def model_config(self, target_dim: int):
+        """The network's architecture (:class:`~.model.ModelConfig`) for targets of ``target_dim`` values, from the
+        preset and these settings."""
         from articulated_dataset.methods.mdn.model import ModelConfig
         from articulated_dataset.methods.mdn.preprocess import N_SCALARS
 
         p = PRESETS[self.preset]
-        return ModelConfig(in_channels=self.input_config().channels, target_dim=target_dim, n_components=self.n_components,
-                           width=self.width, blocks=tuple(self.blocks), stem=p.stem, head_hidden=p.head_hidden,
+        # (called on a resolved config: every setting is set)
+        return ModelConfig(in_channels=self.input_config().channels, target_dim=target_dim, n_components=self.n_components,  # type: ignore[arg-type]
+                           width=self.width, blocks=tuple(self.blocks), stem=p.stem, head_hidden=p.head_hidden,  # type: ignore[arg-type]
                            n_scalars=N_SCALARS)
 
 
-def is_int(v) -> bool:
+def is_int(v) -> TypeGuard[int]:
+    """True for an int that is not a bool."""
     return isinstance(v, int) and not isinstance(v, bool)
 
 
-def is_real_number(v) -> bool:
+def is_real_number(v) -> TypeGuard[float]:
     """A finite int or float (not a bool); an int too large for a float (a checkpoint may hold
     any Python int: 10**400) is not one."""
     if not isinstance(v, (int, float)) or isinstance(v, bool):

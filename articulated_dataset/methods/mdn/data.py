@@ -7,11 +7,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from articulated_dataset.core.errors import DataFormatError, UserError
+from articulated_dataset.core.errors import DataFormatError, UserError, option
 from articulated_dataset.format import Split, one_split_dir
+
+if TYPE_CHECKING:
+    import torch
 
 
 #: Images preprocessed per chunk while loading (bounds the float32 temporaries).
@@ -24,13 +28,13 @@ CONSTANT_COLUMN_TOLERANCE = 1.0 + 1e-6
 class PreparedSplit:
     """A split reduced to model inputs, in memory (torch tensors, CPU)."""
 
-    planes: "object"  # torch.Tensor (N, 2, h, w) float16
-    scalars: "object"  # torch.Tensor (N, 1) float32
+    planes: torch.Tensor  # (N, 2, h, w) float16
+    scalars: torch.Tensor  # (N, 1) float32
     targets: np.ndarray  # (N, D) float32, label units (encoded, not normalised)
-    anchor: "object"  # torch.Tensor (N, 3) float32, metres: centroid of the valid pixels (preprocess.image_anchor)
+    anchor: torch.Tensor  # (N, 3) float32, metres: centroid of the valid pixels (preprocess.image_anchor)
     object_index: np.ndarray  # (N,) int64
     sample_id: np.ndarray  # (N,) int64
-    shard_of: np.ndarray = field(default=None)  # (N,) index of the shard each image came from
+    shard_of: np.ndarray | None = field(default=None)  # (N,) index of the shard each image came from
 
 
 def resolve_split_dir(data: str | Path) -> Path:
@@ -66,19 +70,21 @@ def checked_split_class(split_dir: Path, model_class: str, as_class: str | None 
 
     data_class = split_class(split_dir)
     if as_class is not None and as_class != model_class:
-        raise UserError(f"--as-class {as_class}: {what} was trained on {model_class!r}")
+        raise UserError(f"{option('as_class')} {as_class}: {what} was trained on {model_class!r}")
     if data_class == model_class:
         return data_class
     if as_class is None:
-        hint = "" if data_class in class_names() else f" (a third-party object of that class: pass --as-class {model_class})"
+        hint = ("" if data_class in class_names()
+                else f" (a third-party object of that class: pass {option('as_class')} {model_class})")
         raise UserError(f"{split_dir}: holds class {data_class!r} but {what} was trained on {model_class!r}{hint}")
     if data_class in class_names():
-        raise UserError(f"--as-class {as_class}: {split_dir} holds the built-in class {data_class!r}; --as-class reads "
-                        f"a third-party split (generate --urdf) as a class")
+        raise UserError(f"{option('as_class')} {as_class}: {split_dir} holds the built-in class {data_class!r}; "
+                        f"{option('as_class')} reads a third-party split (generate {option('urdf_path')}) as a class")
     types, expected = list(Split(split_dir).joint_types()), list(get_class(as_class).joint_types)
     if types != expected:
-        raise UserError(f"--as-class {as_class}: {split_dir} has joints {types}, the {as_class!r} class {expected} "
-                        f"(choose and order its joints with generate --urdf --joints)")
+        raise UserError(f"{option('as_class')} {as_class}: {split_dir} has joints {types}, the {as_class!r} class "
+                        f"{expected} (choose and order its joints with "
+                        f"generate {option('urdf_path')} {option('joints')})")
     return data_class
 
 

@@ -69,12 +69,14 @@ class ModelConfig:
     shared_mean: bool = True  # means = shared regression + per-component offsets
 
     def to_dict(self) -> dict:
+        """The architecture as plain JSON types (``blocks`` as a list; stored in checkpoints)."""
         d = asdict(self)
         d["blocks"] = list(self.blocks)
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "ModelConfig":
+        """The architecture from its :meth:`to_dict` form."""
         d = dict(d)
         d["blocks"] = tuple(d["blocks"])
         return cls(**d)
@@ -94,6 +96,7 @@ class BasicBlock(nn.Module):
             self.shortcut = nn.Sequential(nn.Conv2d(c_in, c_out, 1, stride=stride, bias=False), nn.BatchNorm2d(c_out))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``relu(bn(conv(relu(bn(conv(x))))) + shortcut(x))``."""
         y = F.relu(self.bn1(self.conv1(x)))
         y = self.bn2(self.conv2(y))
         return F.relu(y + self.shortcut(x))
@@ -135,6 +138,7 @@ class ResNet(nn.Module):
                 nn.init.zeros_(m.bn2.weight)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Pooled features (B, width * 2**(stages-1)) of images ``x`` (B, C, H, W)."""
         x = self.stages(self.stem(x))
         return torch.flatten(F.adaptive_avg_pool2d(x, 1), 1)
 
@@ -162,10 +166,12 @@ class MixtureDensityNetwork(nn.Module):
         self.shared_mu_head = _head(n_feat, c.head_hidden, c.target_dim) if c.shared_mean else None
         self.sigma_head = _head(n_feat, c.head_hidden, c.n_components * c.target_dim)
         # Start near the data: scales about one standard deviation, means spread around 0.
-        nn.init.zeros_(self.sigma_head[-1].weight)
-        nn.init.constant_(self.sigma_head[-1].bias, _softplus_inverse(1.0 - c.scale_floor))
+        nn.init.zeros_(self.sigma_head[-1].weight)  # type: ignore[arg-type]  # the head's last layer: an nn.Linear
+        nn.init.constant_(self.sigma_head[-1].bias, _softplus_inverse(1.0 - c.scale_floor))  # type: ignore[arg-type]
 
     def forward(self, images: torch.Tensor, scalars: torch.Tensor):
+        """``(logits (B, M), means (B, M, D), scales (B, M, D))`` of the mixture for ``images`` (B, C, H, W) and
+        ``scalars`` (B, n_scalars); the heads run in float32."""
         feats = self.backbone(images)
         h = torch.cat([feats.float(), scalars.float()], dim=1)
         with torch.autocast(device_type=h.device.type, enabled=False):
@@ -184,6 +190,7 @@ def _softplus_inverse(y: float) -> float:
 
 
 def count_parameters(model: nn.Module) -> int:
+    """Number of parameters (scalars) of ``model``."""
     return sum(p.numel() for p in model.parameters())
 
 

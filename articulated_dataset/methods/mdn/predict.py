@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.methods.mdn.loss import ESTIMATES
 
 log = logging.getLogger(__name__)
@@ -60,7 +60,7 @@ def predict_split(model_path: str | Path, data: str | Path, *, estimate: str = "
     if estimate not in ESTIMATES:
         raise UserError(f"unknown estimate {estimate!r}; expected one of {', '.join(ESTIMATES)}")
     if batch_size <= 0:
-        raise UserError(f"--batch-size must be positive, got {batch_size}")
+        raise UserError(f"{option('batch_size')} must be positive, got {batch_size}")
     ckpt = load_checkpoint(model_path)
     class_name = ckpt["class_name"]
     split_dir = resolve_split_dir(data)
@@ -112,6 +112,8 @@ def predict_split(model_path: str | Path, data: str | Path, *, estimate: str = "
     geometry = np.asarray(decoded["geometry"], np.float64)
     # a regression of a 0/1 label: the point estimate is a probability, as the dense model's
     geometry[:, CHIRALITY_COLUMN] = np.clip(geometry[:, CHIRALITY_COLUMN], *CHIRALITY_RANGE)
+    # sizes are >= 0 (what a predictions file holds): a regression's estimate below 0 is 0
+    geometry[:, :CHIRALITY_COLUMN] = np.maximum(geometry[:, :CHIRALITY_COLUMN], 0.0)
     arrays = {
         "sample_id": prepared.sample_id,
         "axis_pose": np.asarray(decoded["axis_pose"], np.float64),

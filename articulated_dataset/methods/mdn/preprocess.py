@@ -57,13 +57,16 @@ class InputConfig:
 
     @property
     def channels(self) -> int:
+        """Number of input channels: depth, plus the mask, plus two pixel-coordinate channels, as configured."""
         return 1 + int(self.mask_channel) + 2 * int(self.coord_channels)
 
     def to_dict(self) -> dict:
+        """The input configuration as a dict (stored in checkpoints)."""
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "InputConfig":
+        """The input configuration from its :meth:`to_dict` form."""
         return cls(**d)
 
 

@@ -30,10 +30,11 @@ import logging
 import math
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.core.safeio import check_memory
 from articulated_dataset.methods.mdn.checkpoint import (
     CHECKPOINT_FORMAT,
@@ -56,6 +57,11 @@ from articulated_dataset.methods.mdn.data import (
     split_identity,
 )
 
+if TYPE_CHECKING:
+    import torch
+
+    from articulated_dataset.methods.mdn.checkpoint import MdnCheckpoint
+
 log = logging.getLogger(__name__)
 
 
@@ -76,7 +82,9 @@ EPOCH_SEED_STRIDE = 1_000_003
 BYTES_PER_TRAINED_PARAMETER = 4 * 4
 
 
-def resolve_device(device: str | None) -> "object":
+def resolve_device(device: str | None) -> torch.device:
+    """The torch device for ``--device``: ``auto`` (or None, empty) picks CUDA when available, else the CPU; an
+    unknown device, or CUDA without a GPU, is the user's mistake."""
     import torch
 
     if device in (None, "", "auto"):
@@ -84,9 +92,9 @@ def resolve_device(device: str | None) -> "object":
     try:
         dev = torch.device(device)
     except RuntimeError:
-        raise UserError(f"unknown --device {device!r} (expected auto, cpu, cuda or cuda:N)") from None
+        raise UserError(f"unknown {option('device')} {device!r} (expected auto, cpu, cuda or cuda:N)") from None
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise UserError(f"--device {device}: no CUDA GPU is available")
+        raise UserError(f"{option('device')} {device}: no CUDA GPU is available")
     return dev
 
 
@@ -99,7 +107,7 @@ def configure_threads(n_threads: int | None = None) -> int:
         from articulated_dataset.core.pool import usable_cpus
 
         n_threads = usable_cpus()
-    check_per_cpu("--threads", n_threads)
+    check_per_cpu("threads", n_threads)
     torch.set_num_threads(max(1, int(n_threads)))
     return torch.get_num_threads()
 
@@ -159,7 +167,7 @@ def evaluate(model, planes, scalars, targets_norm, active, stats, names, input_c
 
 
 def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str | None = None, resume: bool = False,
-          progress: bool = True, stop_after_epoch: int | None = None, echo=None) -> dict:
+          progress: bool = True, stop_after_epoch: int | None = None, echo=None) -> MdnCheckpoint:
     """Train (or resume training) the class's MDN on the split at ``data``; checkpoint to ``out``.
 
     ``stop_after_epoch`` ends the run early after that many epochs in total (the
@@ -215,7 +223,7 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
     active = active_columns(stats)
     y_tr = torch.as_tensor(targets_norm[tr_idx][:, active])
     planes_va, scalars_va, y_va = prepared.planes[va_idx], prepared.scalars[va_idx], targets_norm[va_idx]
-    prepared.planes = None  # the slices above are copies: free the full array
+    prepared.planes = None  # type: ignore[assignment]  # the slices above are copies: free the full array
     if dev.type == "cuda":  # the whole training set fits in GPU memory at these sizes
         planes_tr, scalars_tr, y_tr = planes_tr.to(dev), scalars_tr.to(dev), y_tr.to(dev)
     n_train = len(tr_idx)
@@ -223,19 +231,21 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
         raise UserError(f"{split_dir}: only {n_train} training image(s) after holding out validation objects")
 
     model_config = config.model_config(len(active))
-    check_memory(float(config.n_components) * (model_config.head_hidden + 1) * (2 * len(active) + 1)
+    # (config is resolved: every setting below is set)
+    check_memory(float(config.n_components) * (model_config.head_hidden + 1) * (2 * len(active) + 1)  # type: ignore[arg-type]
                  * BYTES_PER_TRAINED_PARAMETER, f"a mixture head of {config.n_components} components")
     torch.manual_seed(config.seed)
     # channels-last only on a GPU (tensor-core kernels).  On the CPU, oneDNN's channels-last
     # backward pass of this network corrupts the heap with one thread on AVX2-only machines
     # (glibc aborts: "corrupted size vs. prev_size"; reproduced with ONEDNN_MAX_CPU_ISA=AVX2,
-    # tests/test_mdn.py::test_cpu_training_keeps_the_default_layout), so the CPU keeps the default layout.
-    layout = torch.channels_last if dev.type == "cuda" else torch.contiguous_format
-    model = MixtureDensityNetwork(model_config).to(dev, memory_format=layout)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=WEIGHT_DECAY)
-    batch = min(config.batch_size, n_train)
+    # tests/methods/mdn/test_mdn.py::test_cpu_training_keeps_the_default_layout), so the CPU keeps the default layout.
+    memory_layout = torch.channels_last if dev.type == "cuda" else torch.contiguous_format
+    # (Module.to takes memory_format; torch's overloads leave it out)
+    model = MixtureDensityNetwork(model_config).to(dev, memory_format=memory_layout)  # type: ignore[call-overload]
+    optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=WEIGHT_DECAY)  # type: ignore[arg-type]
+    batch: int = min(config.batch_size, n_train)  # type: ignore[type-var, assignment]
     steps_per_epoch = n_train // batch  # the last incomplete batch is dropped (BatchNorm needs > 1 sample)
-    total_steps = steps_per_epoch * config.epochs
+    total_steps = steps_per_epoch * config.epochs  # type: ignore[operator]  # (resolved)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: lr_factor(step, total_steps))
     use_bf16 = dev.type == "cuda" and torch.cuda.is_bf16_supported()
     use_fp16 = dev.type == "cuda" and not use_bf16
@@ -252,15 +262,16 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
         try:
             history = restore_training_state(ckpt, model, optimizer, scheduler, scaler)
         except UserError as exc:  # name the file
-            raise UserError(f"{out}: {exc}") from None
+            raise UserError(f"{out}: {exc.message}") from None
         start_epoch = int(ckpt["epoch"])
-        if start_epoch > config.epochs:
-            raise UserError(f"--resume: {out} is at epoch {start_epoch} of a training of {config.epochs}; not resumable")
+        if start_epoch > config.epochs:  # type: ignore[operator]  # (resolved)
+            raise UserError(f"{option('resume')}: {out} is at epoch {start_epoch} "
+                            f"of a training of {config.epochs}; not resumable")
     log.info("%s: %d train / %d val images, %s parameters, device %s", obj_class.name, n_train, len(va_idx),
              f"{count_parameters(model):,}", dev)
     identity = split_identity(split_dir)  # read once: every checkpoint records it
 
-    def checkpoint(epoch: int, finished: bool) -> dict:
+    def checkpoint(epoch: int, finished: bool) -> MdnCheckpoint:
         return {
             "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "class_name": obj_class.name,
             "layout_names": names, "anchored_columns": [list(c) for c in anchored], "active_columns": [int(i) for i in active], "norm_stats": _plain(stats.to_dict()), "model_config": model_config.to_dict(),
@@ -273,8 +284,8 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
             "rng_state": torch.get_rng_state(),
         }
 
-    last = stop_after_epoch if stop_after_epoch is not None else config.epochs
-    last = min(last, config.epochs)
+    last: int = stop_after_epoch if stop_after_epoch is not None else config.epochs  # type: ignore[assignment]  # (resolved)
+    last = min(last, config.epochs)  # type: ignore[type-var, assignment]  # (resolved)
     for epoch in range(start_epoch, last):
         t0 = time.perf_counter()
         model.train()
@@ -285,7 +296,8 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
         running, n_seen = 0.0, 0
         for step in bar:
             idx = order[step * batch : (step + 1) * batch].to(planes_tr.device)
-            x = assemble_inputs(planes_tr[idx].to(dev, non_blocking=True), input_config).contiguous(memory_format=layout)
+            x = assemble_inputs(planes_tr[idx].to(dev, non_blocking=True), input_config).contiguous(
+                memory_format=memory_layout)
             s = scalars_tr[idx].to(dev, non_blocking=True)
             y = y_tr[idx].to(dev, non_blocking=True)
             with amp():
@@ -310,7 +322,7 @@ def train(data: str | Path, out: str | Path, config: TrainConfig, *, device: str
         # never replace the last checkpoint with diverged weights (no reader loads them, --resume included)
         if state_problem(model.state_dict()) is not None:  # as the dense trainer checks its weights
             raise UserError(f"training diverged in epoch {epoch + 1} (non-finite weights); {out} keeps the last "
-                            f"checkpoint; lower --lr")
+                            f"checkpoint; lower {option('lr')}")
         history.append(record)
         result = checkpoint(epoch + 1, finished=(epoch + 1 == config.epochs))
         atomic_torch_save(result, out)

@@ -9,8 +9,9 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Any
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.core.images.exr import (
     DEPTH_CHANNEL,
     DEPTH_SUFFIX,
@@ -56,9 +57,10 @@ def _check_target(path: Path, overwrite: bool, what: str, marker: str) -> None:
         raise UserError(f"{what} {path} exists and is not a directory")
     if path.is_dir() and any(path.iterdir()):
         if not overwrite:
-            raise UserError(f"{what} {path} is not empty; pass --overwrite to replace it")
+            raise UserError(f"{what} {path} is not empty; pass {option('overwrite')} to replace it")
         if not (path / marker).is_file():
-            raise UserError(f"{what} {path} holds no {marker}: not written by artdata, so --overwrite does not replace it")
+            raise UserError(f"{what} {path} holds no {marker}: not written by "
+                            f"artdata, so {option('overwrite')} does not replace it")
 
 
 @contextlib.contextmanager
@@ -106,7 +108,7 @@ def export_split(split_dir: str | Path, out_dir: str | Path, *, overwrite: bool 
 
 
 def _export_into(out_dir: Path, manifest: dict, shards: list, progress) -> None:
-    index = {
+    index: dict[str, Any] = {
         "format": EXPORT_FORMAT,
         "format_version": EXPORT_FORMAT_VERSION,
         "depth": {"suffix": DEPTH_SUFFIX, "channel": DEPTH_CHANNEL, "pixel_type": "FLOAT (float32)", "units": "m",

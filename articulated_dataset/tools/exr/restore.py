@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -208,7 +209,7 @@ def import_split(export_dir: str | Path, split_dir: str | Path, *, overwrite: bo
                                           f"expected {W}x{H}")
             if depth is None:  # allocated once an image has shown that the size is real
                 depth, mask = np.empty((len(stems), H, W), np.float32), np.empty((len(stems), H, W), np.uint8)
-            depth[i], mask[i] = d, m
+            depth[i], mask[i] = d, m  # type: ignore[index]  # allocated just above
             lab = read_json_object(export_dir / (stem + LABEL_SUFFIX), "label file")
             for name in LABEL_FIELDS:
                 shape = resolve_shape(FIELDS_BY_NAME[name].shape[1:], N=0, J=J, H=H, W=W)
@@ -222,7 +223,7 @@ def import_split(export_dir: str | Path, split_dir: str | Path, *, overwrite: bo
                     raise DataFormatError(f"{export_dir / (stem + LABEL_SUFFIX)}: label {name!r} has shape "
                                           f"{got}, expected {shape}")
             labels.append(lab)
-        arrays = {"depth": depth, "mask": mask}
+        arrays: dict[str, Any] = {"depth": depth, "mask": mask}
         if rgb is not None:
             arrays["rgb"] = rgb
         for name in LABEL_FIELDS:

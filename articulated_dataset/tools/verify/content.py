@@ -42,7 +42,7 @@ def _where(bad: np.ndarray) -> str:
 
 
 def _per_image(bad: np.ndarray) -> np.ndarray:
-    return bad.reshape(bad.shape[0], -1).any(axis=1)
+    return bad.reshape(bad.shape[0], -1).any(axis=1)  # type: ignore[return-value]  # any(axis=1) of 2-D: an array
 
 
 def quat_rotate_z(quat_wxyz: np.ndarray) -> np.ndarray:
@@ -146,7 +146,7 @@ def check_content(a: dict, attrs: dict, table, *, J: int, ipo: int, start: int, 
         if bad.any():
             p.append(f"geometry: chirality not 0 or 1 in {_where(bad)}")
     if real:
-        _check_real_order(a, attrs, capture_names, problems=p)
+        _check_real_order(a, attrs, capture_names, problems=p)  # type: ignore[arg-type]  # a real shard has them
     else:
         _check_order(a, attrs, J=J, ipo=ipo, start=start, problems=p)
 
@@ -263,14 +263,14 @@ def _check_limits(f64: dict, table, J: int, attrs: dict, p: list) -> None:
     if "geometry" in f64 and table.shape is not None:
         _check_shape(f64["geometry"], table, p, mean=bool(int(attrs.get("mean_object", 0))))
     if "object_pose" in f64 and is_head_mount(attrs):
-        _check_head_limits(f64["object_pose"], table, p)
+        _check_head_limits(f64["object_pose"], table, p, scene="scene" in attrs)
         return
     if "object_pose" in f64:
         whole = shard_framing(attrs) == "whole"
         for axis, key in enumerate(("x_m", "y_m", "z_m")):
             lo, hi = table.pose[key]
             if whole and key == "x_m":  # --framing whole extends the depth range by each object's size
-                hi = math.inf
+                hi = math.inf  # type: ignore[assignment]  # (the name held an array of q bounds above)
             v = f64["object_pose"][:, axis]
             bad = (v < lo - LIMIT_TOL) | (v > hi + LIMIT_TOL)
             if bad.any():
@@ -311,10 +311,13 @@ def _check_shape(geometry: np.ndarray, table, p: list, *, mean: bool = False) ->
         p.append(f"geometry: sizes no size class of the table explains (beyond {SHAPE_SD:g} sd of every class) in {_where(bad)}")
 
 
-def _check_head_limits(object_pose: np.ndarray, table, p: list) -> None:
+def _check_head_limits(object_pose: np.ndarray, table, p: list, *, scene: bool = False) -> None:
     """A head camera's images: the camera's pitch and roll (read from the object's up axis)
     within the head ranges, and the object's pose in the level frame within the table (its
-    height relative to the camera also moves by up to half the camera-height range)."""
+    height relative to the camera also moves by up to half the camera-height range).  In a
+    ``scene`` the robot stands on the scene's floor: the base's height is its support's above
+    that floor (0 to :data:`~articulated_dataset.generation.scenes.MAX_SUPPORT_HEIGHT_M`) minus
+    the camera's height (:data:`~articulated_dataset.generation.viewpoint.HEAD_HEIGHT_M`)."""
     from articulated_dataset.generation.viewpoint import (
         HEAD_HEIGHT_M,
         HEAD_PITCH_DEG,
@@ -332,7 +335,11 @@ def _check_head_limits(object_pose: np.ndarray, table, p: list) -> None:
     rise = 0.5 * (HEAD_HEIGHT_M[1] - HEAD_HEIGHT_M[0])
     for key in ("x_m", "y_m", "z_m", "yaw_rad"):
         lo, hi = table.pose[key]
-        if key == "z_m":
+        if key == "z_m" and scene:
+            from articulated_dataset.generation.scenes import MAX_SUPPORT_HEIGHT_M
+
+            lo, hi = -HEAD_HEIGHT_M[1], MAX_SUPPORT_HEIGHT_M - HEAD_HEIGHT_M[0]
+        elif key == "z_m":
             lo, hi = lo - rise, hi + rise
         bad = (level[key] < lo - LIMIT_TOL) | (level[key] > hi + LIMIT_TOL)
         if bad.any():

@@ -33,6 +33,8 @@ class Problem:
 
 
 def load_manifest(split_dir: Path) -> tuple[dict | None, list[Problem]]:
+    """``(manifest, [])`` for the split's readable, well-formed manifest, else ``(None, [the problem])``: missing,
+    corrupt JSON, missing keys, an unreadable format version, a corrupt shard list or non-integer counts."""
     path = split_dir / MANIFEST_NAME
     if not path.is_file():
         return None, [Problem(MANIFEST_NAME, "missing (not a complete generated split; shards checked without it)")]
@@ -104,6 +106,8 @@ def check_mujoco_version(manifest: dict) -> list[Problem]:
 
 
 def check_manifest_counts(manifest: dict, config) -> list[Problem]:
+    """Problems of the manifest's counts: against its shard records (images, objects, duplicate files) and, given the
+    split's ``config``, against the shards, objects and images the config implies and its completeness."""
     out = []
     records = manifest["shards"]
     files = [r["file"] for r in records]

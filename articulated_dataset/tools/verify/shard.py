@@ -54,12 +54,14 @@ class ShardExpectation:
 
 @dataclass
 class ShardResult:
+    """What checking one shard found: one-line problems, the image count and the sample ids read."""
     problems: list[str] = field(default_factory=list)
     n_images: int = 0
     sample_ids: np.ndarray | None = None
 
 
 def one_line(exc: BaseException) -> str:
+    """The first line of ``exc``'s message (at most 200 characters), or its type name if empty."""
     text = str(exc).strip().splitlines()
     return text[0][:200] if text else type(exc).__name__
 
@@ -145,7 +147,7 @@ def _check_open_shard(f: h5py.File, expect: ShardExpectation, res: ShardResult, 
         if msg:
             p.append(msg)
             return
-        N = len(names)
+        N = len(names)  # type: ignore[arg-type]  # no message: names were read
         if expect.capture_names is not None and names != expect.capture_names:
             p.append("attribute capture_names differs from the manifest's captures of this shard")
     else:
@@ -236,11 +238,11 @@ def _check_registry(attrs: dict, J: int, p: list) -> None:
         return  # a class from another package: nothing to compare with
     if J != obj_class.n_joints:
         p.append(f"n_joints = {J}, class {obj_class.name} has {obj_class.n_joints}")
-    types = json_list(attrs.get("joint_types", "[]"))
-    if types is None:
+    listed = json_list(attrs.get("joint_types", "[]"))
+    if listed is None:
         p.append("attribute joint_types is not a JSON list")
         return
-    types = tuple(types)
+    types = tuple(listed)
     if types != obj_class.joint_types:
         p.append(f"joint_types {list(types)} differ from class {obj_class.name}'s {list(obj_class.joint_types)}")
 

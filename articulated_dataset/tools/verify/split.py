@@ -37,13 +37,16 @@ class SplitReport:
 
     @property
     def errors(self) -> list[Problem]:
+        """The problems that are not warnings."""
         return [p for p in self.problems if not p.warning]
 
     @property
     def ok(self) -> bool:
+        """True when no problem is an error."""
         return not self.errors
 
     def to_dict(self) -> dict:
+        """The report as plain JSON types (``artdata verify --json``)."""
         return {"split_dir": str(self.split_dir), "ok": self.ok, "shards": self.n_shards, "images": self.n_images,
                 "content_checked": self.content_checked,
                 "problems": [{"file": p.where, "message": p.message, "warning": p.warning} for p in self.problems]}
@@ -91,7 +94,7 @@ def _plan_split(split_dir: Path, content: bool) -> tuple[SplitReport, list]:
     if msg:
         report.problems.append(Problem(MANIFEST_NAME, msg))
     real = "real" in manifest
-    captures_of = {}
+    captures_of: dict = {}
     if real:
         problems, captures_of = check_real_manifest(manifest, config)
         report.problems += problems

@@ -10,14 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
-from articulated_dataset.core.errors import DataFormatError, UserError
+from articulated_dataset.core.errors import DataFormatError, UserError, option
 from articulated_dataset.format import MASK_BACKGROUND, MASK_FIRST_PART, Shard, Split
 from articulated_dataset.tools.viz.style import BODY_RGBA, PART_TINT_WHITE, joint_colour
 
 log = logging.getLogger(__name__)
 
 #: What a refused ``--rgb`` rebuild of a third-party object suggests instead.
-RGB_REBUILD_HINT = " (generate with --rgb to store its colour images)"
+RGB_REBUILD_HINT = f" (generate with {option('rgb')} to store its colour images)"
 
 
 @dataclass
@@ -153,7 +153,8 @@ def preview_rgb(manifest: dict, object_index: int, image_indices, stored_depth: 
     from articulated_dataset.generation.viewpoint import object_in_camera
     from matplotlib.colors import to_rgba
 
-    config = stored_object_config(manifest.get("config"), split_dir, "--rgb", hint, urdf=urdf, mesh_root=mesh_root)
+    config = stored_object_config(manifest.get("config"), split_dir, option("rgb"), hint, urdf=urdf,
+                                  mesh_root=mesh_root)
     renderer = process_renderer(config.camera)
     sample0 = object_sample(config, object_index)
     arrays, sample, _ = render_object(sample0, config, renderer, check_visibility=not config.mean)
@@ -165,7 +166,8 @@ def preview_rgb(manifest: dict, object_index: int, image_indices, stored_depth: 
                             "may not match (data from another package version?)", config.class_name, object_index, i)
                 break
     head = sample.views is not None  # a head camera: the object is placed in each image's camera frame
-    obj = compile_object(obj_class, object_urdf(obj_class, sample, config.table), ORIGIN_POSE if head else sample.pose,
+    obj = compile_object(obj_class, object_urdf(obj_class, sample, config.table),  # type: ignore[arg-type]  # GenerationConfig sets table
+                         ORIGIN_POSE if head else sample.pose,
                          config.camera)
     model, info = obj.model, obj.info
     placer = ObjectPlacer(model, info.base_body) if head else None

@@ -61,8 +61,8 @@ class Panel:
     kind: str  # "depth" or "rgb"
     box_px: tuple[float, float, float, float]
     size: tuple[int, int]
-    axis_origin: np.ndarray = field(repr=False, default=None)
-    K: np.ndarray = field(repr=False, default=None)
+    axis_origin: np.ndarray | None = field(repr=False, default=None)
+    K: np.ndarray | None = field(repr=False, default=None)
 
     def to_png(self, uv: np.ndarray) -> np.ndarray:
         """Image pixel coordinates (integer = pixel centre) -> PNG pixel coordinates (x, y)."""
@@ -148,6 +148,7 @@ class TextFitter:
         self._renderer = RendererAgg(8, 8, dpi)
 
     def width_in(self, text: str, size: float, weight: str = "normal") -> float:
+        """Width (inches) of ``text`` drawn at font ``size`` (points) and ``weight``."""
         from matplotlib.font_manager import FontProperties
 
         w, _, _ = self._renderer.get_text_width_height_descent(text, FontProperties(size=size, weight=weight),

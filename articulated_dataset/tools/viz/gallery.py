@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.format.manifest import check_stored_object_files, third_party_definition
 from articulated_dataset.tools.viz.data import RGB_REBUILD_HINT, SplitView, preview_rgb, select_samples
 from articulated_dataset.tools.viz.drawing import (
@@ -99,12 +99,13 @@ def check_figure_size(w_in: float, h_in: float, dpi: int, path: Path) -> None:
     w_px, h_px = w_in * dpi, h_in * dpi
     if max(w_px, h_px) > MAX_FIGURE_SIDE_PX:
         raise UserError(f"{path}: a {w_px:.0f}x{h_px:.0f} px figure is larger than {MAX_FIGURE_SIDE_PX} px a side; "
-                        "lower --dpi, --n or --cols")
+                        f"lower {option('dpi')}, {option('n_samples')} or {option('cols')}")
     need = w_px * h_px * CANVAS_BYTES_PER_PIXEL
     avail = available_memory_bytes()
     if avail is not None and need > FIGURE_MEMORY_FRACTION * avail:
         raise UserError(f"{path}: a {w_px:.0f}x{h_px:.0f} px figure needs {format_bytes(need)} of memory, more than "
-                        f"half of the {format_bytes(avail)} available; lower --dpi, --n or --cols")
+                        f"half of the {format_bytes(avail)} available; lower "
+                        f"{option('dpi')}, {option('n_samples')} or {option('cols')}")
 
 
 def _save(fig, path: Path, dpi: int) -> None:
@@ -159,13 +160,14 @@ def make_gallery(split_dirs, *, out: str | Path | None = None, per_sample_dir: s
     (:func:`~articulated_dataset.generation.objects.stored_object_config`).
     """
     if out is None and per_sample_dir is None:
-        raise UserError("nothing to write: give --out FILE and/or --per-sample DIR")
+        raise UserError(f"nothing to write: give {option('out')} FILE and/or {option('per_sample_dir')} DIR")
     if n <= 0:
         raise UserError(f"number of samples must be positive, got {n}")
     if cols <= 0:
         raise UserError(f"number of columns must be positive, got {cols}")
     if dpi < MIN_DPI:
-        raise UserError(f"--dpi must be at least {MIN_DPI} (the captions' smallest font needs one pixel), got {dpi}")
+        raise UserError(f"{option('dpi')} must be at least {MIN_DPI} (the "
+                        f"captions' smallest font needs one pixel), got {dpi}")
     if out is not None:
         out = check_output_format(out)
     pred_by_class = _read_predicted_axes(predictions) if predictions is not None else None
@@ -218,16 +220,16 @@ def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi
             if not 0 <= o < v.n_objects:
                 raise UserError(f"object {o} is not in {v.name} (it holds objects 0..{v.n_objects - 1})")
         if rgb and "real" in v.manifest:
-            raise UserError(f"--rgb rebuilds a generated object's scene; {v.name} holds real captures (no scene to "
-                            "rebuild): leave out --rgb")
+            raise UserError(f"{option('rgb')} rebuilds a generated object's scene; {v.name} holds real captures (no "
+                            f"scene to rebuild): leave out {option('rgb')}")
         if rgb and not stored_colour(v):  # before any image is drawn: the files the object is rebuilt from
             named = files.of(v)
             if named.get("urdf") is None:
-                check_stored_object_files(v.manifest.get("config"), v.split_dir, "--rgb", files.hint)
+                check_stored_object_files(v.manifest.get("config"), v.split_dir, option("rgb"), files.hint)
             else:  # the named files' sha256 against the recorded one
                 from articulated_dataset.generation.objects import stored_object_config
 
-                stored_object_config(v.manifest.get("config"), v.split_dir, "--rgb", **named)
+                stored_object_config(v.manifest.get("config"), v.split_dir, option("rgb"), **named)
                 named_used = True
         for i in images or []:
             if not 0 <= i < v.images_per_object:
@@ -256,7 +258,8 @@ def _make_gallery(views, out, per_sample_dir, n, objects, images, rgb, cols, dpi
                     smp["prediction"] = hit
             if not any("prediction" in smp for smp in ss):
                 raise UserError(f"the predictions hold none of the drawn {v.name} images (sample ids of another "
-                                f"split?); predict this split or choose --objects/--images that were predicted")
+                                "split?); predict this split or choose "
+                                f"{option('objects')}/{option('images')} that were predicted")
         samples.append(ss)
         if stored_colour(v):  # a --rgb split: its own colour images, nothing rebuilt
             sh_rows = [v.locate(o) for o, _ in pairs]

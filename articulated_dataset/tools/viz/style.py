@@ -79,11 +79,12 @@ PART_TINT_WHITE = 0.35
 
 
 def joint_colour(j: int) -> str:
+    """Colour of joint ``j`` (:data:`JOINT_COLOURS`, cycled)."""
     return JOINT_COLOURS[j % len(JOINT_COLOURS)]
 
 
 # --------------------------------------------------------------------------------------
-# Pure helpers
+# Pure functions
 # --------------------------------------------------------------------------------------
 
 def depth_to_rgb(depth_m: np.ndarray, focal_px: float | None = None, *, cmap: str = DEPTH_CMAP,

@@ -48,6 +48,8 @@ class BatchProcessor:
                 norm.check_layout(target)
 
     def __call__(self, batch: dict, indices: np.ndarray, epoch) -> dict:
+        """``batch`` (field -> array) of the samples ``indices`` transformed, with ``target`` and ``index`` added and
+        the configured dtypes restored."""
         indices = index_array(indices)
         if self.transform is not None:
             from articulated_dataset.training.transforms import apply_to_batch

@@ -30,6 +30,7 @@ def check_batch_size(value, *, allow_none: bool = False) -> int | None:
 
 
 def check_seed(name: str, value) -> int:
+    """``value`` as an int; anything but a non-negative integer is the user's mistake."""
     if not isinstance(value, (int, np.integer)) or value < 0:
         raise UserError(f"{name} must be a non-negative integer, got {value!r}")
     return int(value)
@@ -44,6 +45,7 @@ REMAINDER_MODES = ("pad", "drop", "uneven")
 
 
 def check_remainder(remainder: str) -> str:
+    """``remainder`` if it is one of :data:`REMAINDER_MODES`; anything else is the user's mistake."""
     if remainder not in REMAINDER_MODES:
         raise UserError(f"remainder must be one of {', '.join(map(repr, REMAINDER_MODES))}, got {remainder!r}")
     return remainder

@@ -25,7 +25,7 @@ imported until needed.
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -125,8 +125,8 @@ class _PackedAlloc:
     without copying (other arrays are copied into one shared segment each), so the decoded batch
     crosses the process boundary with one segment instead of a copy per field."""
 
-    def __init__(self):
-        self.block = None
+    def __init__(self) -> None:
+        self.block: Any = None  # the batch's grain SharedMemoryArray
         self.views: dict[int, tuple[np.ndarray, str, int]] = {}
 
     def __call__(self, specs: dict) -> dict:
@@ -187,7 +187,7 @@ def _process_defaults(process_index: int | None, process_count: int | None) -> t
         try:
             import jax
         except ModuleNotFoundError:  # jax missing: numpy batches still work on one process
-            jax = None
+            jax = None  # type: ignore[assignment]  # the module, or None where it is missing
         process_index = (jax.process_index() if jax else 0) if process_index is None else process_index
         process_count = (jax.process_count() if jax else 1) if process_count is None else process_count
     if process_count <= 0 or not 0 <= process_index < process_count:
@@ -225,15 +225,16 @@ class JaxLoader:
         self.num_workers, self.prefetch_batches = int(num_workers), max(1, int(prefetch_batches))
         if self.num_workers > 0:  # one clear line now, not a ModuleNotFoundError in the first epoch
             require("grain", f"JaxLoader(num_workers={self.num_workers})", JAX_INSTALL + "; or num_workers=0")
-        self.kw = dict(batch_size=batch_size, seed=seed, shuffle=shuffle, block_size=block_size, drop_last=drop_last,
-                       remainder=remainder)
+        self.kw: dict[str, Any] = dict(batch_size=batch_size, seed=seed, shuffle=shuffle, block_size=block_size,
+                                       drop_last=drop_last, remainder=remainder)
         self.epoch = 0
         self._epoch_given, self._passes = False, 0
-        self._it = None  # grain iterator of the worker processes, kept across epochs
+        self._it: Any = None  # grain iterator of the worker processes, kept across epochs
         self._next_epoch: int | None = None
         self.batches()  # validate the options now
 
     def set_epoch(self, epoch: int) -> None:
+        """Run epoch ``epoch`` (>= 0) on the next pass; a negative epoch is the user's mistake."""
         if int(epoch) < 0:
             raise UserError(f"epoch must be >= 0, got {epoch}")
         self.epoch = int(epoch)

@@ -23,14 +23,14 @@ read straight into shared memory, so handing them to the main process copies not
 
 Why one module of ~440 lines: it is everything that imports torch (an optional dependency,
 imported once at the top), and its four public classes share the private shared-memory and
-epoch helpers; the framework-neutral parts are already in :mod:`.reader`, :mod:`.epoch` and
+epoch functions; the framework-neutral parts are already in :mod:`.reader`, :mod:`.epoch` and
 :mod:`.batch`.
 """
 
 from __future__ import annotations
 
 import hashlib
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -83,8 +83,8 @@ class SharedAllocator:
     a mapping and fresh page faults on both sides).  The batch is then not copied again when the
     worker hands it to the main process; :func:`to_torch` gives back the tensors themselves."""
 
-    def __init__(self):
-        self.tensors: dict[int, tuple[np.ndarray, torch.Tensor]] = {}
+    def __init__(self) -> None:
+        self.tensors: dict[int, tuple[np.ndarray, torch.Tensor]] = {}  # type: ignore[name-defined]  # torch: require()
 
     def __call__(self, specs: dict) -> dict:
         layout, total = {}, 0
@@ -109,7 +109,7 @@ class SharedAllocator:
             out[name] = a
         return out
 
-    def tensor(self, a) -> torch.Tensor | None:
+    def tensor(self, a) -> torch.Tensor | None:  # type: ignore[name-defined]  # torch comes from require()
         hit = self.tensors.get(id(a))
         return hit[1] if hit is not None and hit[0] is a else None
 
@@ -295,15 +295,17 @@ class EpochBatchSampler(Sampler):
                  remainder: str = "pad"):
         self.shard_sizes = np.asarray(shard_sizes, dtype=np.int64)
         self.rank, self.world_size = distributed_rank_world(rank, world_size)
-        self.kw = dict(batch_size=batch_size, seed=seed, shuffle=shuffle, block_size=block_size, drop_last=drop_last,
-                       remainder=remainder)
+        self.kw: dict[str, Any] = dict(batch_size=batch_size, seed=seed, shuffle=shuffle, block_size=block_size,
+                                       drop_last=drop_last, remainder=remainder)
         self.epoch = 0
         plan_epoch(self.shard_sizes, epoch=0, part_index=self.rank, part_count=self.world_size, **self.kw)  # validate
 
     def set_epoch(self, epoch: int) -> None:
+        """Use epoch ``epoch``'s shuffle on the next pass."""
         self.epoch = int(epoch)
 
     def batches(self) -> list[np.ndarray]:
+        """The batches (arrays of global sample indices) of this rank in the current epoch."""
         return plan_epoch(self.shard_sizes, epoch=self.epoch, part_index=self.rank, part_count=self.world_size, **self.kw)
 
     def __iter__(self):
@@ -370,6 +372,7 @@ class ShardIterableDataset(_SharedEpoch, IterableDataset):
                 yield batch
                 continue
             samples = _split_batch(batch, len(indices))
+            order: np.ndarray | range
             if self.shuffle:
                 rng = np.random.default_rng([self.seed, epoch, SAMPLE_ORDER_STREAM, self.rank, self.world_size, c])
                 order = rng.permutation(len(samples))
@@ -394,14 +397,17 @@ class EpochDataLoader(DataLoader):
     def _propagate(self, epoch: int) -> None:
         for obj in (self.dataset, self.batch_sampler, self.sampler):
             if hasattr(obj, "set_epoch"):
-                obj.set_epoch(epoch)
+                obj.set_epoch(epoch)  # type: ignore[union-attr]  # hasattr checked
         self._epoch = int(epoch)
 
     @property
     def epoch(self) -> int:
+        """The epoch the dataset and batch sampler were last set to."""
         return self._epoch
 
     def set_epoch(self, epoch: int) -> None:
+        """Set epoch ``epoch`` (>= 0) on the dataset and batch sampler for the next pass; a negative epoch is the
+        user's mistake."""
         if int(epoch) < 0:
             raise UserError(f"epoch must be >= 0, got {epoch}")
         self._propagate(epoch)
@@ -439,9 +445,10 @@ def make_loader(source, *, batch_size: int = DEFAULT_BATCH_SIZE, fields: Sequenc
         dataloader_kwargs.setdefault("prefetch_factor", DEFAULT_PREFETCH_FACTOR)
         dataloader_kwargs.setdefault("persistent_workers", True)
     if iterable:
-        ds = ShardIterableDataset(source, fields, batch_size=batch_size, shuffle=shuffle, seed=seed, rank=rank,
-                                  world_size=world_size, block_size=block_size, drop_last=drop_last,
-                                  remainder=remainder, target=target, norm=norm, transform=transform)
+        ds: ShardIterableDataset | DepthDataset = ShardIterableDataset(
+            source, fields, batch_size=batch_size, shuffle=shuffle, seed=seed, rank=rank, world_size=world_size,
+            block_size=block_size, drop_last=drop_last, remainder=remainder, target=target, norm=norm,
+            transform=transform)
         return EpochDataLoader(ds, batch_size=None, num_workers=num_workers, **dataloader_kwargs)
     ds = DepthDataset(source, fields, target=target, norm=norm, transform=transform, seed=seed)
     sampler = EpochBatchSampler(ds.reader.shard_sizes, batch_size, shuffle=shuffle, seed=seed, rank=rank,

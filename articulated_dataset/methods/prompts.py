@@ -1,0 +1,294 @@
+"""The robot's view: the object given by a prompt (a click, a detector's box, a mask or nothing)
+instead of a label mask, and the object's pixels segmented from the prompt and the depth.
+
+A :class:`Prompt` says where the object is; :func:`segment_from_prompt` turns it into the
+object's pixels (a flood fill over depth for a point or a box), and :func:`simulated_prompt`
+makes the prompt a click or a detector would give from a split's stored label mask, so whole
+splits can be predicted as a robot would see them (``artdata predict --prompt``).  Rules and
+limits: docs/robot_view.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from articulated_dataset.core.errors import UserError, option
+from articulated_dataset.format.schema import CONTEXT_MASK_CODES, MASK_BODY
+from articulated_dataset.methods.inputs import MAX_UNMASKED_VALID_FRACTION
+
+#: The prompt kinds: a pixel on the object, a box around it, its mask, or nothing.
+PROMPT_KINDS = ("point", "box", "mask", "none")
+#: A simulated box is the object mask's bounding box grown by this fraction of its width
+#: (height) on each side, as a detector's box is looser than the object.
+BOX_MARGIN_FRACTION = 0.05
+#: Neighbouring pixels belong to one surface when their depths differ by less than this (m) ...
+FILL_STEP_ABS_M = 0.01
+#: ... plus this fraction of their depth (a surface seen at a slant steps further between pixels
+#: the further away it is).
+FILL_STEP_REL = 0.02
+#: Fewest pixels an isolated object's prompt region must hold to be taken whole (fewer, or wider
+#: than the class's largest size: the fill from the prompt is used).
+MIN_BOX_OBJECT_PX = 20
+
+
+def _pixel_coords(value, name: str, form: str) -> tuple:
+    """``value`` as a tuple of ``len(form.split(","))`` whole pixel coordinates (ints); anything
+    else is a one-line :class:`UserError` naming the quantity ``name``."""
+    n = len(form.split(","))
+    try:
+        a = np.asarray(value).ravel()
+        ok = a.dtype.kind in "iu" or (a.dtype.kind == "f" and bool(np.all(np.isfinite(a) & (a == np.round(a)))))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or len(a) != n:
+        raise UserError(f"{option(name)} must be {n} whole pixel coordinates {form}, got {value!r}")
+    return tuple(int(v) for v in a)
+
+
+@dataclass(frozen=True)
+class Prompt:
+    """Where the object is: ``kind`` of :data:`PROMPT_KINDS`; ``point_px`` (u, v) a pixel on it
+    (column, row); ``box_px`` (x0, y0, x1, y1) the pixels it covers (inclusive bounds);
+    ``mask`` an (H, W) boolean mask of it."""
+
+    kind: str
+    point_px: tuple[int, int] | None = None
+    box_px: tuple[int, int, int, int] | None = None
+    mask: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in PROMPT_KINDS:
+            raise UserError(f"{option('prompt')} must be one of {', '.join(PROMPT_KINDS)}, got {self.kind!r}")
+        given = {"point": self.point_px is not None, "box": self.box_px is not None, "mask": self.mask is not None}
+        extra = [k for k, v in given.items() if v and k != self.kind]
+        if extra:
+            raise UserError(f"a {self.kind} prompt takes no {', '.join(option(k) for k in extra)}")
+        if self.kind in given and not given[self.kind]:
+            raise UserError(f"a {self.kind} prompt needs {option(self.kind)}")
+        if self.point_px is not None:
+            object.__setattr__(self, "point_px", _pixel_coords(self.point_px, "point", "U,V"))
+        if self.box_px is not None:
+            b = _pixel_coords(self.box_px, "box", "X0,Y0,X1,Y1")
+            if b[2] < b[0] or b[3] < b[1]:
+                raise UserError(f"{option('box')} {','.join(map(str, b))} is inverted (X1 < X0 or Y1 < Y0)")
+            object.__setattr__(self, "box_px", b)
+        if self.mask is not None:
+            m = np.asarray(self.mask)
+            if m.ndim != 2:
+                raise UserError(f"{option('mask')} must be a 2-D image, got shape {m.shape}")
+            object.__setattr__(self, "mask", m.astype(bool))
+
+    def check_image(self, shape: tuple[int, ...]) -> None:
+        """One-line errors for a prompt that does not fit an (H, W) image: a point outside it, a box
+        with no pixel inside it, a mask of another shape or with no pixel."""
+        h, w = int(shape[0]), int(shape[1])
+        if self.point_px is not None:
+            u, v = self.point_px
+            if not (0 <= u < w and 0 <= v < h):
+                raise UserError(f"{option('point')} {u},{v} lies outside the {w}x{h} image")
+        if self.box_px is not None:
+            x0, y0, x1, y1 = self.box_px
+            if x1 < 0 or y1 < 0 or x0 >= w or y0 >= h:
+                raise UserError(f"{option('box')} {x0},{y0},{x1},{y1} holds no pixel of the {w}x{h} image")
+        if self.mask is not None:
+            if self.mask.shape != (h, w):
+                raise UserError(f"{option('mask')} shape {self.mask.shape} differs from the depth's {(h, w)}")
+            if not self.mask.any():
+                raise UserError(f"{option('mask')} marks no object pixel")
+
+
+def object_pixels(label_mask: np.ndarray) -> np.ndarray:
+    """The object's pixels of a stored label mask: its body and moving parts (codes from
+    :data:`~articulated_dataset.format.schema.MASK_BODY`, not the scene or occluder codes)."""
+    m = np.asarray(label_mask)
+    return (m >= MASK_BODY) & ~np.isin(m, CONTEXT_MASK_CODES)
+
+
+def _eroded(mask: np.ndarray) -> np.ndarray:
+    """``mask`` eroded by one pixel (3x3 neighbourhood; outside the image counts as not the mask)."""
+    p = np.pad(mask, 1, constant_values=False)
+    h, w = mask.shape
+    out = mask.copy()
+    for dy in (0, 1, 2):
+        for dx in (0, 1, 2):
+            out &= p[dy : dy + h, dx : dx + w]
+    return out
+
+
+def deepest_pixel(mask: np.ndarray) -> tuple[int, int]:
+    """The (u, v) pixel of a non-empty boolean mask farthest inside it: the last pixels left by
+    repeated 3x3 erosion (the largest chessboard distance to the mask's edge), of those the one
+    nearest their centroid (ties: the first in row-major order)."""
+    survivors = np.asarray(mask, bool)
+    while True:
+        nxt = _eroded(survivors)
+        if not nxt.any():
+            break
+        survivors = nxt
+    rows, cols = np.nonzero(survivors)
+    d2 = (rows - rows.mean()) ** 2 + (cols - cols.mean()) ** 2
+    k = int(np.argmin(d2))  # argmin takes the first of equals: row-major order
+    return int(cols[k]), int(rows[k])
+
+
+def grown_box(mask: np.ndarray, margin_fraction: float = BOX_MARGIN_FRACTION) -> tuple[int, int, int, int]:
+    """The bounding box (x0, y0, x1, y1, inclusive) of a non-empty boolean mask grown by
+    ``margin_fraction`` of its width (height) on each side, rounded to whole pixels and clipped to
+    the image."""
+    rows, cols = np.nonzero(mask)
+    x0, x1, y0, y1 = int(cols.min()), int(cols.max()), int(rows.min()), int(rows.max())
+    mx = int(round(margin_fraction * (x1 - x0 + 1)))
+    my = int(round(margin_fraction * (y1 - y0 + 1)))
+    h, w = mask.shape
+    return max(0, x0 - mx), max(0, y0 - my), min(w - 1, x1 + mx), min(h - 1, y1 + my)
+
+
+def simulated_prompt(kind: str, label_mask: np.ndarray) -> Prompt:
+    """The prompt of ``kind`` a click or a detector would give for the object of a stored label
+    mask: ``point`` its :func:`deepest_pixel`, ``box`` its :func:`grown_box`, ``mask`` its pixels
+    (:func:`object_pixels`), ``none`` no prompt.  An image without object pixels: a
+    :class:`UserError` (except for ``none``)."""
+    if kind not in PROMPT_KINDS:
+        raise UserError(f"{option('prompt')} must be one of {', '.join(PROMPT_KINDS)}, got {kind!r}")
+    if kind == "none":
+        return Prompt("none")
+    obj = object_pixels(label_mask)
+    if not obj.any():
+        raise UserError(f"a {kind} prompt needs an object pixel in the label mask; it has none")
+    if kind == "point":
+        return Prompt("point", point_px=deepest_pixel(obj))
+    if kind == "box":
+        return Prompt("box", box_px=grown_box(obj))
+    return Prompt("mask", mask=obj)
+
+
+def _flood_fill(depth: np.ndarray, seed, allowed: np.ndarray) -> np.ndarray:
+    """The pixels reached from ``seed`` (a (row, col), or a boolean mask of seeds) through
+    ``allowed`` pixels over 4-neighbours whose depths differ by less than :data:`FILL_STEP_ABS_M` +
+    :data:`FILL_STEP_REL` x depth."""
+    h, w = depth.shape
+    # the edges between 4-neighbours that a fill may cross: (H, W-1) horizontal, (H-1, W) vertical
+    def joined(a, b, ok_a, ok_b):
+        tol = FILL_STEP_ABS_M + FILL_STEP_REL * np.minimum(a, b)
+        return ok_a & ok_b & (np.abs(a - b) < tol)
+
+    right = joined(depth[:, :-1], depth[:, 1:], allowed[:, :-1], allowed[:, 1:])
+    down = joined(depth[:-1], depth[1:], allowed[:-1], allowed[1:])
+    if isinstance(seed, np.ndarray):
+        filled = seed & allowed
+    else:
+        filled = np.zeros((h, w), bool)
+        filled[seed] = True
+    frontier = filled.copy()
+    while frontier.any():
+        grow = np.zeros_like(filled)
+        grow[:, 1:] |= frontier[:, :-1] & right
+        grow[:, :-1] |= frontier[:, 1:] & right
+        grow[1:] |= frontier[:-1] & down
+        grow[:-1] |= frontier[1:] & down
+        frontier = grow & ~filled
+        filled |= frontier
+    return filled
+
+
+def _nearest_valid(valid: np.ndarray, centre_uv: tuple[float, float]) -> tuple[int, int] | None:
+    """The (row, col) of the valid pixel nearest ``centre_uv`` (first in row-major order on ties); None without one."""
+    rows, cols = np.nonzero(valid)
+    if len(rows) == 0:
+        return None
+    k = int(np.argmin((cols - centre_uv[0]) ** 2 + (rows - centre_uv[1]) ** 2))
+    return int(rows[k]), int(cols[k])
+
+
+def segment_from_prompt(depth_m: np.ndarray, K: np.ndarray, prompt: Prompt, *, max_extent_m: float) -> np.ndarray:
+    """The object's pixels, an (H, W) boolean mask, from ``prompt`` and the depth itself.
+
+    ``mask``: the prompt's mask.  In an image of an isolated object (returns on at most
+    :data:`~articulated_dataset.methods.inputs.MAX_UNMASKED_VALID_FRACTION` of its pixels): every
+    pixel with depth in the box (within ``max_extent_m`` of the click), if they are at least
+    :data:`MIN_BOX_OBJECT_PX` and span at most ``max_extent_m``.  Otherwise, ``box``:
+    a flood fill from the valid pixel nearest the box's centre, kept to the box; ``point``: a flood
+    fill over 4-neighbours whose depths differ by less than :data:`FILL_STEP_ABS_M` + :data:`FILL_STEP_REL` x depth, seeded at the point and kept to the
+    3-D points within ``max_extent_m`` of the seed's (with the intrinsics ``K``), so a fill
+    leaking onto a counter stays bounded.  ``none``: every valid pixel.  A point on a pixel
+    without depth, or a box with none, is a :class:`UserError`."""
+    depth = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    valid = depth > 0
+    prompt.check_image(depth.shape)
+    if prompt.kind == "mask":
+        assert prompt.mask is not None
+        return prompt.mask.copy()
+    if prompt.kind == "none":
+        return valid
+    if prompt.kind == "box":
+        assert prompt.box_px is not None
+        x0, y0, x1, y1 = prompt.box_px
+        allowed = np.zeros_like(valid)
+        allowed[max(y0, 0) : y1 + 1, max(x0, 0) : x1 + 1] = True
+        allowed &= valid
+        seed = _nearest_valid(allowed, ((x0 + x1) / 2, (y0 + y1) / 2))
+        if seed is None:
+            raise UserError(f"{option('box')} {x0},{y0},{x1},{y1} holds no pixel with depth")
+        if _isolated(valid) and _object_sized(allowed, _points(depth, K), max_extent_m):
+            return allowed  # an isolated object: all of the box's pixels with depth
+        return _flood_fill(depth, seed, allowed)
+    assert prompt.point_px is not None
+    u, v = prompt.point_px
+    if not valid[v, u]:
+        raise UserError(f"{option('point')} {u},{v} is a pixel without depth; click on the object")
+    points = _points(depth, K)
+    near = np.linalg.norm(points - points[v, u], axis=-1) <= max_extent_m
+    if _isolated(valid) and _object_sized(valid & near, points, max_extent_m):
+        return valid & near  # an isolated object: every pixel with depth within its size of the click
+    return _flood_fill(depth, (v, u), valid & near)
+
+
+def _isolated(valid: np.ndarray) -> bool:
+    """Whether an image shows an isolated object rather than a scene: returns on at most
+    :data:`~articulated_dataset.methods.inputs.MAX_UNMASKED_VALID_FRACTION` of its pixels."""
+    return bool(valid.mean() <= MAX_UNMASKED_VALID_FRACTION)
+
+
+def _points(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(H, W, 3) optical-frame points of a depth image with intrinsics ``K``."""
+    Kinv = np.linalg.inv(np.asarray(K, np.float64))
+    hh, ww = depth.shape
+    cols, rows = np.meshgrid(np.arange(ww), np.arange(hh))
+    rays = np.stack([cols, rows, np.ones_like(cols)], -1) @ Kinv.T  # optical-frame rays, z = 1
+    return rays * depth[..., None]
+
+
+def _object_sized(pixels: np.ndarray, points: np.ndarray, max_extent_m: float) -> bool:
+    """Whether ``pixels`` could be one object: at least :data:`MIN_BOX_OBJECT_PX`, spanning at most
+    ``max_extent_m`` along each optical axis (pieces of a scene left apart from its surroundings
+    span more)."""
+    if pixels.sum() < MIN_BOX_OBJECT_PX:
+        return False
+    span = np.ptp(points[pixels], axis=0)
+    return bool(span.max() <= max_extent_m)
+
+
+def class_extent_m(class_name: str) -> float:
+    """The largest size (m) an object of ``class_name`` may have: the largest upper bound of depth,
+    width and height in its sampling tables (paper, realistic and varied), the bound a point
+    prompt's fill is kept within (:func:`segment_from_prompt`)."""
+    from articulated_dataset.classes.registry import get_class
+
+    obj_class = get_class(class_name)
+    tables = [t for t in (obj_class.table, obj_class.realistic_table, obj_class.varied_table) if t is not None]
+    return max(float(t.geometry[k][1]) for t in tables for k in ("depth_m", "width_m", "height_m"))
+
+
+def prompted_depth(depth_m: np.ndarray, K: np.ndarray, kind: str, label_mask: np.ndarray, *,
+                   max_extent_m: float) -> np.ndarray:
+    """A stored image's depth as a robot prompted with ``kind`` would segment it: the depth inside
+    :func:`segment_from_prompt` of the :func:`simulated_prompt` of its label mask, no return (0)
+    elsewhere.  An image whose object shows no pixel with depth (nothing to click on) keeps none."""
+    depth = np.asarray(depth_m)
+    obj = object_pixels(label_mask)
+    if kind != "none" and not (obj & (np.nan_to_num(depth) > 0)).any():
+        return np.zeros_like(depth)
+    prompt = simulated_prompt(kind, obj & (np.nan_to_num(depth) > 0))
+    return np.where(segment_from_prompt(depth, K, prompt, max_extent_m=max_extent_m), depth, 0).astype(depth.dtype)
