@@ -39,6 +39,31 @@ from reproduce_table1 import PAPER_TABLE1  # noqa: E402
 TABLE_METRICS = ("axis_position_error_cm", "axis_rotation_error_deg", "configuration_error")
 
 
+def format_markdown(models: list[dict], table1_rows: list[dict], paper: dict) -> str:
+    """The shipped models' test figures as docs/dense.md shows them: per class, Mean and NN (rows of
+    ``benchmarks/reproduce_table1.py``'s JSON), MDN-small and dense (the ``test`` figures that
+    ``scripts/ship_weights.py --results`` records in ``models.json`` from this script's ``--json``),
+    the paper's MDN (``paper``: reproduce_table1's ``PAPER_TABLE1``), and coverage / NLL.  Position
+    cm / rotation deg / configuration; the dense cell is bold where it is at or below the paper's in
+    all three."""
+    def cell(values):
+        return " / ".join(f"{v:.2f}" for v in values)
+
+    shipped = {(m["name"], m["class_name"]): m["test"] for m in models if m.get("test")}
+    baseline = {(r["class"], r["method"]): [c["mean"] for c in r["cells"]] for r in table1_rows}
+    lines = ["| class | Mean | NN | MDN-small (shipped) | dense (shipped) | paper's MDN | coverage / NLL: dense; MDN-small |",
+             "|---|---|---|---|---|---|---|"]
+    for c in dict.fromkeys(r["class"] for r in table1_rows):
+        dense, small = shipped[("dense", c)], shipped[("mdn-small", c)]
+        mdn = [m for m, _ in paper[(c, "MDN")]]
+        d = [dense["pos_cm"], dense["rot_deg"], dense["config"]]
+        dense_cell = cell(d) if any(a > b for a, b in zip(d, mdn)) else f"**{cell(d)}**"
+        lines.append(f"| {c} | {cell(baseline[(c, 'Mean')])} | {cell(baseline[(c, 'NN')])} | "
+                     f"{cell([small['pos_cm'], small['rot_deg'], small['config']])} | {dense_cell} | {cell(mdn)} | "
+                     f"{dense['coverage_90']:.3f} / {dense['nll']:.1f}; {small['coverage_90']:.3f} / {small['nll']:.1f} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--root", type=Path, default=Path("data-shipped"))

@@ -58,8 +58,8 @@ def model_table(entries: list[dict]) -> list[str]:
             lines.append(f"{m['name']:<13} {m['class_name']:<13} {training_data(m):<17} {test_data:<13} {pos:>7} "
                          f"{rot:>7} {cfg:>9} {cov:>6} {nll:>7}")
     legend = ("test data: 1,000 unseen test objects per class (seed 2026), clean depth or with Kinect v2 depth "
-              "noise (artdata generate --noise kinect2); scored with artdata score, metric version 2 (the paper's "
-              "three columns are the same numbers in version 3). pos cm: axis position; rot deg: frame heading; "
+              "noise (artdata generate --noise kinect2); scored with artdata score, metric version 2 or 3 (each model's "
+              "is in --json; the paper's three columns are the same numbers in both). pos cm: axis position; rot deg: frame heading; "
               "config: configuration error; cov90: 90% interval coverage; NLL: mean nats per image. Files, "
               "checksums and training commands: artdata models --json; docs/dense.md, docs/model.md.")
     return lines + [""] + textwrap.wrap(legend, TABLE_WIDTH)

@@ -45,3 +45,14 @@ def test_robot_view_figures_in_the_docs_are_the_scripts_rendering():
     doc = (ROOT / "docs" / "robot_view.md").read_text()
     assert script.format_table(record["rows"]) in doc, "docs/robot_view.md lacks the script's table: paste its output"
     assert "docs/results/robot_view.json" in doc
+
+
+def test_the_shipped_models_table_in_the_model_card_is_rendered_from_their_records():
+    """docs/dense.md's table of the shipped models is benchmarks/shipped_models.py's rendering of the
+    test figures models.json records and of the Table 1 baselines' JSON."""
+    shipped = load_script(ROOT / "benchmarks" / "shipped_models.py", "shipped_models")
+    table1 = load_script(ROOT / "benchmarks" / "reproduce_table1.py", "reproduce_table1")
+    models = json.loads((ROOT / "articulated_dataset" / "methods" / "weights" / "models.json").read_text())["models"]
+    rows = json.loads((ROOT / "docs" / "results" / "table1-table4.json").read_text())["rows"]
+    table = shipped.format_markdown(models, rows, table1.PAPER_TABLE1)
+    assert table in (ROOT / "docs" / "dense.md").read_text(), "docs/dense.md: paste shipped_models.format_markdown's table"
