@@ -57,19 +57,15 @@ DEFAULT_IMAGES = 16
 FIGURES = ("axis_position_error_cm", "configuration_error", "coverage_90")
 
 
-def run_artdata(args: list[str]) -> None:
-    """``artdata ARGS`` in this process; a failure is a UserError holding the command's line."""
-    import contextlib
-    import io
+def run_artdata(args: list[str], where: str) -> None:
+    """``artdata ARGS`` in this process (:func:`third_party.run_artdata`: a failure is a UserError
+    naming ``where`` and holding the command's line)."""
+    here = str(Path(__file__).parent)
+    if here not in sys.path:
+        sys.path.insert(0, here)
+    from third_party import run_artdata as run
 
-    from articulated_dataset.cli import main
-
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main.main(args, prog_name="artdata", standalone_mode=False)
-    if code not in (0, None):
-        lines = err.getvalue().strip().splitlines()
-        raise UserError(f"artdata {' '.join(args[:3])} ...: {lines[-1] if lines else f'exit code {code}'}")
+    run(args, where)
 
 
 def split_dir(root: Path, setting: str, noise: str, class_name: str) -> Path:
@@ -81,15 +77,16 @@ def measure(root: Path, class_name: str, setting: str, noise: str, prompt: str, 
     from articulated_dataset.benchmark import score
 
     split = split_dir(root, setting, noise, class_name)
+    where = f"{class_name} {setting} {noise}"
     if args.overwrite or not (split / "manifest.json").is_file():
         run_artdata(["generate", "--class", class_name, "--split", "test", "--n", str(args.objects),
                      "--images", str(args.images), "--seed", str(args.seed), "--noise", noise,
                      "--out", str(split.parent.parent), "-q", *(["--overwrite"] if split.exists() else []),
-                     *SETTINGS[setting]])
+                     *SETTINGS[setting]], where)
     predictions = root / "predictions" / f"{setting}-{noise}-{prompt}-{class_name}.h5"
     if args.overwrite or not predictions.is_file():
         run_artdata(["predict", "--model", args.model, str(split), "--prompt", prompt, "--out", str(predictions),
-                     "-q", *(["--overwrite"] if predictions.exists() else [])])
+                     "-q", *(["--overwrite"] if predictions.exists() else [])], f"{where} {prompt}")
     row = score(predictions, split).rows[0]
     figures = {name: float(row.metrics[name][0]) if name in row.metrics else None for name in FIGURES}
     return {"class": class_name, "setting": setting, "noise": noise, "prompt": prompt, "images": row.n_scored,

@@ -30,6 +30,7 @@ import torch
 
 from articulated_dataset.classes.registry import class_names
 from articulated_dataset.format import sha256_file
+from articulated_dataset.format.manifest import DEFAULT_FRAMING, FRAMINGS, MANIFEST_NAME, read_manifest
 from articulated_dataset.methods import MODELS_MANIFEST, SHIPPED, WEIGHTS_DIR, strip_for_shipping
 from articulated_dataset.methods.dense.train import split_generation
 from articulated_dataset.methods.mdn.checkpoint import read_checkpoint_file
@@ -68,13 +69,16 @@ def _mixture_commands(c: str, ckpt: dict, name: str) -> tuple[str, str] | None:
     generates, dirs = [], []
     for rec in splits:
         ident = rec["split"]
-        framing = "table4"
-        manifest = Path(rec.get("split_dir", "")) / "manifest.json"
-        if manifest.is_file():
-            framing = json.loads(manifest.read_text(encoding="utf-8"))["config"].get("framing", "table4")
-        out = f"data-seed{ident['seed']}" + ("" if framing == "table4" else f"-{framing}")
+        framing = DEFAULT_FRAMING
+        split_folder = Path(rec.get("split_dir", ""))
+        if (split_folder / MANIFEST_NAME).is_file():
+            framing = read_manifest(split_folder)["config"].get("framing", DEFAULT_FRAMING)
+            if framing not in FRAMINGS:
+                raise ValueError(f"{split_folder}: unknown framing {str(framing)[:40]!r} in its manifest")
+        default = framing == DEFAULT_FRAMING
+        out = f"data-seed{ident['seed']}" + ("" if default else f"-{framing}")
         generates.append(f"artdata generate --class {c} --n {ident['n_objects']} --split train --seed {ident['seed']}"
-                         + ("" if framing == "table4" else f" --framing {framing}") + f" --out {out}")
+                         + ("" if default else f" --framing {framing}") + f" --out {out}")
         dirs.append(f"{out}/{c}/train")
     weights = ",".join(f"{rec['weight']:g}" for rec in splits)
     train = TRAIN_COMMANDS["dense"].format(c=c, file=FILES[name].format(c=c), opts="").replace(

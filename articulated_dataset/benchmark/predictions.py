@@ -84,6 +84,16 @@ MAX_SAMPLE_ID = np.iinfo(np.int64).max
 MAX_MEMORY_FRACTION = 0.5
 
 
+def bounded_geometry(geometry) -> np.ndarray:
+    """A method's geometry estimates (N, 4) as a predictions file holds them (float64): the
+    chirality, a regression of a 0/1 label, clipped to :data:`CHIRALITY_RANGE`, and the sizes,
+    which are never negative, clipped at 0 (a briefly trained network's estimate may fall below)."""
+    g = np.array(geometry, np.float64)
+    g[:, CHIRALITY_COLUMN] = np.clip(g[:, CHIRALITY_COLUMN], *CHIRALITY_RANGE)
+    g[:, :CHIRALITY_COLUMN] = np.maximum(g[:, :CHIRALITY_COLUMN], 0.0)
+    return g
+
+
 def beyond_bounds(a: np.ndarray, *, nan_allowed: bool) -> np.ndarray:
     """Elementwise: the values of ``a`` that no label or prediction may hold: infinite, beyond
     +-:data:`MAX_ABS_VALUE`, or NaN unless ``nan_allowed`` (a truth label that is not given)."""

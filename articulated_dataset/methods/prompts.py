@@ -287,8 +287,8 @@ def prompted_depth(depth_m: np.ndarray, K: np.ndarray, kind: str, label_mask: np
     :func:`segment_from_prompt` of the :func:`simulated_prompt` of its label mask, no return (0)
     elsewhere.  An image whose object shows no pixel with depth (nothing to click on) keeps none."""
     depth = np.asarray(depth_m)
-    obj = object_pixels(label_mask)
-    if kind != "none" and not (obj & (np.nan_to_num(depth) > 0)).any():
+    obj = object_pixels(label_mask) & (np.nan_to_num(depth) > 0)
+    if kind != "none" and not obj.any():
         return np.zeros_like(depth)
-    prompt = simulated_prompt(kind, obj & (np.nan_to_num(depth) > 0))
+    prompt = simulated_prompt(kind, obj)
     return np.where(segment_from_prompt(depth, K, prompt, max_extent_m=max_extent_m), depth, 0).astype(depth.dtype)

@@ -449,12 +449,9 @@ def mixture_from_modes(m: dict, sample_id: np.ndarray, J: int, n_modes: int,
     from articulated_dataset.training.targets import TargetLayout
 
     decoded = TargetLayout("-", J).decode(point)
-    from articulated_dataset.benchmark.predictions import CHIRALITY_COLUMN, CHIRALITY_RANGE
+    from articulated_dataset.benchmark.predictions import bounded_geometry
 
-    geometry = np.asarray(decoded["geometry"], np.float64)
-    geometry[:, CHIRALITY_COLUMN] = np.clip(geometry[:, CHIRALITY_COLUMN], *CHIRALITY_RANGE)
-    # sizes are >= 0 (what a predictions file holds): a briefly trained network's estimate below 0 is 0
-    geometry[:, :CHIRALITY_COLUMN] = np.maximum(geometry[:, :CHIRALITY_COLUMN], 0.0)
+    geometry = bounded_geometry(decoded["geometry"])
     return {
         "sample_id": np.asarray(sample_id, np.int64),
         "axis_pose": np.asarray(decoded["axis_pose"], np.float64),

@@ -43,7 +43,7 @@ def predict_split(model_path: str | Path, data: str | Path, *, estimate: str = "
     """
     import torch
 
-    from articulated_dataset.benchmark.predictions import CHIRALITY_COLUMN, CHIRALITY_RANGE
+    from articulated_dataset.benchmark.predictions import bounded_geometry
     from articulated_dataset.methods.mdn.checkpoint import build_model_from_checkpoint, load_checkpoint
     from articulated_dataset.methods.mdn.data import (
         checked_split_class,
@@ -109,11 +109,7 @@ def predict_split(model_path: str | Path, data: str | Path, *, estimate: str = "
     sigma_lab = sigma_n.astype(np.float64) * std
     est_lab = shift_anchored(stats.denormalize(est_n), anchor, anchored, 1.0)
     decoded = layout.decode(est_lab)
-    geometry = np.asarray(decoded["geometry"], np.float64)
-    # a regression of a 0/1 label: the point estimate is a probability, as the dense model's
-    geometry[:, CHIRALITY_COLUMN] = np.clip(geometry[:, CHIRALITY_COLUMN], *CHIRALITY_RANGE)
-    # sizes are >= 0 (what a predictions file holds): a regression's estimate below 0 is 0
-    geometry[:, :CHIRALITY_COLUMN] = np.maximum(geometry[:, :CHIRALITY_COLUMN], 0.0)
+    geometry = bounded_geometry(decoded["geometry"])
     arrays = {
         "sample_id": prepared.sample_id,
         "axis_pose": np.asarray(decoded["axis_pose"], np.float64),
