@@ -574,7 +574,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, required=True, help="root holding <class>/<split>/ folders")
     ap.add_argument("--split", default="test")
-    ap.add_argument("--classes", nargs="*", default=None, help="default: every class with the split under --data")
+    ap.add_argument("--classes", nargs="*", default=None, help="default: every class of the paper (the grasp rule's) and URDF object with the "
+                    "split under --data")
     ap.add_argument("--objects", type=int, default=20, help="objects per class (first N of the split); 0 = none")
     ap.add_argument("--predictions", action="append", default=[], metavar="NAME=FILE",
                     help="predictions.h5 of a method (repeat; a NAME may repeat, e.g. one file per class)")
@@ -605,8 +606,8 @@ def main(argv=None) -> int:
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
 
-    from articulated_dataset.classes.registry import class_names
     from articulated_dataset.core.errors import UserError
+    from articulated_dataset.manipulation import GRASP_RULE_CLASSES
 
     predictions = _parse_predictions(args.predictions)
     models = _parse_models(args.model, predictions)
@@ -629,7 +630,7 @@ def main(argv=None) -> int:
     except UserError as exc:
         sys.exit(f"manipulation.py: error: {exc}")
     scores = load_scores(args.scores)
-    classes = args.classes or [c for c in [*class_names(), *urdfs]
+    classes = args.classes or [c for c in [*GRASP_RULE_CLASSES, *urdfs]
                                if (args.data / c / args.split / "manifest.json").is_file()]
     records: list[dict] = []
     t0 = time.perf_counter()

@@ -19,7 +19,7 @@ from articulated_dataset.core.camera import CameraConfig, backproject
 from articulated_dataset.core.rotations import quat_to_matrix
 from articulated_dataset.generation import GenerationConfig, object_sample, render_object
 from articulated_dataset.generation.compiled import compile_object as compile_urdf
-from articulated_dataset.generation.labels import MASK_BODY, MASK_FIRST_PART, read_object_labels
+from articulated_dataset.generation.labels import MASK_BODY, MASK_FIRST_PART, geom_corners_world, read_object_labels
 from articulated_dataset.generation.mujoco_scene import ORIGIN_POSE, ObjectPlacer, set_configuration
 from articulated_dataset.generation.render import process_renderer
 from articulated_dataset.generation.templating import object_urdf
@@ -57,6 +57,54 @@ def compile_object(config, sample, image: int = 0):
         ObjectPlacer(model, info.base_body).place(object_transform(sample, image))
     labels = read_object_labels(model, data, info, obj_class)
     return urdf, model, data, info, labels
+
+
+def closed_boxes(model, data, info, sample, n_joints: int) -> tuple[tuple, list[tuple]]:
+    """Boxes (lo, hi) in the object frame at q = 0: the whole closed object's (every geom,
+    handles included) and each moving part's (its non-handle geoms)."""
+    set_configuration(model, data, info.joint_ids, np.zeros(n_joints))
+    T = object_transform(sample)
+
+    def box(geoms):
+        p = to_object_frame(geom_corners_world(model, data, geoms), T)
+        return p.min(0), p.max(0)
+
+    parts = [box(np.nonzero((info.geom_part == MASK_FIRST_PART + j) & ~info.geom_is_handle)[0]) for j in range(n_joints)]
+    return box(np.arange(model.ngeom)), parts
+
+
+def closed_face(part_box, d: float, h: float) -> tuple[int, float]:
+    """The closed part's outer face, as (axis, coordinate) in the object frame: of its box's
+    front (x = lo) and top (z = hi) faces, the one that lies outside the body's front (x < -d/2)
+    or top (z > h - part thickness) with the larger area: a door's or drawer's front, a lid's top."""
+    (lo, hi) = part_box
+    size = hi - lo
+    faces = []
+    if lo[0] < -d / 2 + 1e-6:
+        faces.append((size[1] * size[2], 0, lo[0]))
+    if hi[2] > h - 1e-6:
+        faces.append((size[0] * size[1], 2, hi[2]))
+    assert faces, part_box
+    _, axis, value = max(faces)
+    return axis, value
+
+
+_MARGINS: dict = {}
+
+
+def closed_margins_m(obj_class) -> tuple[np.ndarray, np.ndarray]:
+    """How far a closed object of the class (default table, every geom) reaches beyond its body's
+    box [-d/2, d/2] x [-w/2, w/2] x [0, h] (the stored ``geometry`` label): (below lo, above hi),
+    in m, at least 0.  The templates
+    build doors, lids, handles and overhangs of fixed sizes, so one object tells the class's."""
+    if obj_class.name not in _MARGINS:
+        config, sample = final_object(obj_class.name, index=1)
+        _, model, data, info, labels = compile_object(config, sample)
+        (lo, hi), _ = closed_boxes(model, data, info, sample, obj_class.n_joints)
+        d, w, h = np.asarray(labels["geometry"], np.float64)[:3]  # the body's box, as stored
+        _MARGINS[obj_class.name] = (np.maximum(np.array([-d / 2, -w / 2, 0.0]) - lo, 0.0),
+                                    np.maximum(hi - np.array([d / 2, w / 2, h]), 0.0))
+    return _MARGINS[obj_class.name]
 
 
 def render_at(config, model, data, info, q):
@@ -150,8 +198,9 @@ def check_stored_images(obj_class, a: dict, K) -> tuple[int, int, int]:
         pose = a["object_pose"][i].astype(np.float64)
         R, t = quat_to_matrix(pose[3:]), pose[:3]
         d, w, h = a["geometry"][i, :3].astype(np.float64)
-        lo = np.array([-d / 2 - PANEL_M - HANDLE_STANDOFF_M, -w / 2, 0.0]) - BOX_TOL_M
-        hi = np.array([d / 2, w / 2, h]) + BOX_TOL_M
+        below, above = closed_margins_m(obj_class)
+        lo = np.array([-d / 2 - max(below[0], PANEL_M + HANDLE_STANDOFF_M), -w / 2 - below[1], -below[2]]) - BOX_TOL_M
+        hi = np.array([d / 2, w / 2, h]) + above + BOX_TOL_M
         inside = lambda p: np.all((p >= lo) & (p <= hi), axis=1)  # noqa: E731
         body = (backproject(a["depth"][i], K, a["mask"][i] == MASK_BODY) - t) @ R
         assert len(body) == 0 or inside(body).mean() > 0.995  # doors may hide most of the body

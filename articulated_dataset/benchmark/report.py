@@ -397,7 +397,8 @@ class Report:
         lines.append("")
         lines += TABLE_LEGEND_V3 if self.metric_version >= 3 else TABLE_LEGEND
         if self.unscored_classes:
-            lines.append(f"Truth classes without predictions (not scored): {', '.join(self.unscored_classes)}")
+            lines += textwrap.wrap(f"Truth classes without predictions (not scored): {', '.join(self.unscored_classes)}",
+                                   width=TABLE_WIDTH, subsequent_indent="  ")
         lines += [f"Note: {n}" for n in self.notes]
         lines.append(f"Metric version {self.metric_version} (docs/scoring.md); numbers of other versions are not comparable.")
         return "\n".join(printable(line) for line in lines)  # folder and split names from the data: escaped

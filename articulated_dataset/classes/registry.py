@@ -25,9 +25,12 @@ from articulated_dataset.format.schema import JOINT_TYPES, PRISMATIC, REVOLUTE  
 MAX_REVOLUTE_Q_RAD = 2.0 * math.pi
 #: Integer codes of joint types as stored in shards (``joint_type`` attribute / dataset).
 JOINT_TYPE_CODES = {REVOLUTE: 0, PRISMATIC: 1}
+#: The paper's six classes (its Appendix A, Tables 1 and 2), in its order.
+PAPER_CLASSES = ("cabinet", "drawer", "microwave", "toaster", "cabinet2", "refrigerator")
 #: The built-in classes: modules of :mod:`articulated_dataset.classes` (each defines
-#: ``CLASS``, named like its module), listed in the paper's order.
-BUILTIN_GENERATORS = ("cabinet", "drawer", "microwave", "toaster", "cabinet2", "refrigerator")
+#: ``CLASS``, named like its module): the paper's six in its order, then this package's own
+#: classes (their tables are not the paper's).
+BUILTIN_GENERATORS = PAPER_CLASSES + ("oven", "dishwasher", "lidded_box")
 #: Package of the built-in generator modules.
 GENERATORS_PACKAGE = "articulated_dataset.classes"
 

@@ -65,8 +65,9 @@ def ingest_cmd(captures, class_name, out_root, split, mask_path, labels_path, in
     """Convert real depth captures (CAPTURES: depth images, point clouds or folders of them)
     into labelled shards under OUT/<class>/<split>/.
 
-    Next to NAME.png|.exr|.npy|.ply|.pcd the optional files NAME.mask.png, NAME.labels.json and
-    NAME.camera.json (or camera.json in the folder) are picked up.  See docs/real_data.md.
+    Next to NAME.png|.exr|.npy|.ply|.pcd the optional files NAME.mask.png, NAME.labels.json (or
+    NAME.parts.json: part poses and masks, with objects.json in the folder) and NAME.camera.json
+    (or camera.json in the folder) are picked up.  See docs/real_data.md.
     """
     from articulated_dataset.classes.registry import get_class
     from articulated_dataset.core.images.intrinsics import intrinsics_matrix, load_intrinsics

@@ -9,15 +9,15 @@ meaning: the object's base is where the table puts it, and the room is built aro
 Every scene has a floor and a wall behind the object.  Where the object stands depends on
 its class (:data:`PLACEMENT`):
 
-* ``floor`` (refrigerator): on the floor;  ``--scene kitchen`` adds a base unit with a counter
+* ``floor`` (refrigerator, oven): on the floor;  ``--scene kitchen`` adds a base unit with a counter
   top on each side (backs against the wall, so a fridge deeper than 60 cm stands proud);
-* ``under_counter`` (cabinet, cabinet2): on the floor, and with ``kitchen`` a counter top
+* ``under_counter`` (cabinet, cabinet2, dishwasher): on the floor, and with ``kitchen`` a counter top
   resting on it and a neighbouring unit on each side (same depth and height, fronts flush
   with the doors' closed faces, 3 mm apart);
 * ``under_counter_drawer`` (drawer): with ``kitchen`` the drawer is the top drawer under a
   counter top, on a base cabinet down to the floor (counter top 86-94 cm above the floor),
   with neighbouring units; with ``room`` it is the top drawer of a chest 40-80 cm high;
-* ``on_counter`` (microwave, toaster): on a counter top 86-94 cm above the floor with a base
+* ``on_counter`` (microwave, toaster, lidded_box): on a counter top 86-94 cm above the floor with a base
   unit below (``kitchen``) or on a sideboard 70-95 cm high (``room``), front flush with the
   support's front edge (a bottom-hinged door swings down past it), the wall behind the
   counter's back (60-65 cm deep, or the object's depth + 2 cm if deeper).
@@ -58,7 +58,8 @@ SCENE_STREAM = 3
 
 #: Where each built-in class stands (module docstring).
 PLACEMENT = {"cabinet": "under_counter", "cabinet2": "under_counter", "drawer": "under_counter_drawer",
-             "microwave": "on_counter", "toaster": "on_counter", "refrigerator": "floor"}
+             "microwave": "on_counter", "toaster": "on_counter", "refrigerator": "floor", "oven": "floor",
+             "dishwasher": "under_counter", "lidded_box": "on_counter"}
 
 #: Ranges (m) of the scene's sizes, uniform; recorded in every shard (attribute ``scene``).
 SCENE_TABLE = {

@@ -10,7 +10,8 @@ One *capture* is one depth observation of one object:
   calibration file's ``camera_matrix``; ``width``/``height`` or ``image_width``/``image_height``);
 * optional segmentation mask PNG of the same size: binary (0/255 or 0/1: object = body, label 1)
   or the dataset's labels (0 background, 1 body, 2 + j moving part j);
-* optional ground truth JSON (:func:`.ground_truth.load_ground_truth`).
+* optional ground truth JSON (:func:`.ground_truth.load_ground_truth`), or the parts' poses and
+  masks (:func:`.part_annotations.load_part_pose_ground_truth`).
 
 Each capture is resampled to the training camera (:func:`.resample.resample_depth`): by default onto
 exactly the training intrinsics (``fit="training"``: every training pixel reads its ray's
@@ -29,6 +30,9 @@ The modules, one job each:
 * :mod:`.readers` -- depth, mask and point-cloud files;
 * :mod:`.resample` -- resampling to the training camera;
 * :mod:`.ground_truth` -- the labels JSON and the checks of a real image's labels;
+* :mod:`.part_annotations` -- ground truth from part poses (``NAME.parts.json`` and the object
+  metadata file), with :mod:`.part_poses` (joint labels from two parts' poses) and
+  :mod:`.coco_masks` (COCO polygon and RLE masks);
 * :mod:`.ingest` -- one capture in, one training-resolution image out (:func:`.ingest.ingest_capture`);
 * :mod:`.write` -- ingested captures written as a split (:func:`.write.write_real_split`).
 

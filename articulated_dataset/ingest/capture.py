@@ -1,5 +1,6 @@
 """One capture in, one image at the training resolution out (:func:`ingest_capture`): load the
-depth or cloud, the mask and the labels, and resample them to the training camera."""
+depth or cloud, the mask and the labels (or the part poses), and resample them to the training
+camera."""
 
 from __future__ import annotations
 
@@ -91,6 +92,9 @@ def ingest_capture(files: CaptureFiles, class_name: str, options: IngestOptions)
     """Load one capture and resample it to the training camera (module docstring)."""
     obj_class = get_class(class_name)
     J = obj_class.n_joints
+    if files.parts is not None and files.labels is not None:
+        raise UserError(f"{files.data}: ground truth in both {files.labels.name} and {files.parts.name}; "
+                        f"keep one of them")
     size = None
     if options.intrinsics is not None:
         K_src = np.asarray(options.intrinsics, np.float64)
@@ -119,10 +123,20 @@ def ingest_capture(files: CaptureFiles, class_name: str, options: IngestOptions)
             raise UserError(f"{files.data}: depth is {depth.shape[1]}x{depth.shape[0]} px but the camera file "
                             f"{files.camera} says {size[0]}x{size[1]}")
         check_intrinsics(K_src, (depth.shape[1], depth.shape[0]), str(files.data))
-    if files.mask is not None:
-        mask = load_mask(files.mask, depth.shape, J)
+    record = None
+    if files.parts is not None:
+        from articulated_dataset.ingest.part_annotations import load_part_pose_ground_truth
+
+        record = load_part_pose_ground_truth(files.parts, class_name, depth.shape)
+        if record.mask is not None and files.mask is not None:
+            raise UserError(f"{files.data}: masks in both {files.mask.name} and {files.parts.name}; keep one of them")
+    given = load_mask(files.mask, depth.shape, J) if files.mask is not None else None
+    if given is None and record is not None:
+        given = record.mask
+    if given is not None:
+        mask = given
         if not mask.any():
-            raise UserError(f"{files.mask}: the mask marks no object pixel")
+            raise UserError(f"{files.mask or files.parts}: the mask marks no object pixel")
         if not (depth[mask > 0] > 0).any():
             log.warning("%s: no pixel of the mask has a depth return; the segmented cloud is empty", files.data)
         if not options.keep_background:
@@ -132,7 +146,7 @@ def ingest_capture(files: CaptureFiles, class_name: str, options: IngestOptions)
     cam = options.camera
     out_size = (cam.width_px, cam.height_px)
     if options.fit == "crop":
-        if files.mask is None:
+        if given is None:
             raise UserError(f"{files.data}: {option('fit')} crop needs a segmentation mask ({files.name}{MASK_SUFFIX})")
         K_dst = crop_intrinsics(K_src, mask > 0, out_size, options.crop_margin)
     else:
@@ -145,12 +159,15 @@ def ingest_capture(files: CaptureFiles, class_name: str, options: IngestOptions)
         log.warning("%s: %.1f%% of the object's pixels fall outside the training camera's field of view",
                     files.data, 100.0 * (1.0 - inside))
     depth_r, mask_r = resample_depth(depth, mask, K_src, K_dst, out_size, options.resample)
-    if files.mask is not None and not options.keep_background:
+    if given is not None and not options.keep_background:
         depth_r = np.where(mask_r > 0, depth_r, 0.0)
     if (depth[mask > 0] > 0).any() and not (depth_r[mask_r > 0] > 0).any():
         raise UserError(f"{files.data}: no depth return of the object survives resampling onto the "
                         f"{out_size[0]}x{out_size[1]} training camera (fx={K_src[0, 0]:g}, fy={K_src[1, 1]:g} px); "
                         f"check the intrinsics, or use {option('fit')} crop")
     depth_r = (np.round(depth_r / DEPTH_QUANTUM_M) * DEPTH_QUANTUM_M).astype(np.float32)
-    labels = load_ground_truth(files.labels, J, class_name) if files.labels is not None else empty_labels(J)
-    return Capture(files.name, depth_r, mask_r, K_dst, labels, inside, files.labels is not None)
+    if record is not None:
+        labels = record.labels
+    else:
+        labels = load_ground_truth(files.labels, J, class_name) if files.labels is not None else empty_labels(J)
+    return Capture(files.name, depth_r, mask_r, K_dst, labels, inside, files.labels is not None or record is not None)

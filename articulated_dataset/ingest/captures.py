@@ -1,5 +1,5 @@
 """Finding captures: a depth image or point cloud and, beside it, its optional mask, labels
-and camera-info files."""
+(or part-pose) and camera-info files."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from articulated_dataset.ingest.readers import CLOUD_SUFFIXES, DEPTH_SUFFIXES
 
 MASK_SUFFIX = ".mask.png"
 LABELS_SUFFIX = ".labels.json"
+PARTS_SUFFIX = ".parts.json"  # <stem>.parts.json: part poses and masks (ingest.part_annotations)
 CAMERA_SUFFIX = ".camera"  # <stem>.camera.json / .yaml: per-capture intrinsics
 CAMERA_FILES = ("camera.json", "camera.yaml", "camera.yml")
 
@@ -25,6 +26,7 @@ class CaptureFiles:
     mask: Path | None = None
     labels: Path | None = None
     camera: Path | None = None  # camera-info file (if intrinsics are not given otherwise)
+    parts: Path | None = None  # part-pose frame file (ground truth instead of ``labels``)
 
     @property
     def is_cloud(self) -> bool:
@@ -36,7 +38,8 @@ def find_captures(paths: list[str | Path]) -> list[CaptureFiles]:
     """Captures named by ``paths``: depth/cloud files, or folders of them.
 
     Next to ``NAME.<png|exr|npy|ply|pcd>`` the optional files are ``NAME.mask.png``,
-    ``NAME.labels.json`` and ``NAME.camera.json|yaml`` (else ``camera.json|yaml`` in the folder).
+    ``NAME.labels.json`` or ``NAME.parts.json`` and ``NAME.camera.json|yaml`` (else
+    ``camera.json|yaml`` in the folder).
     """
     found: list[CaptureFiles] = []
     for p in map(Path, paths):
@@ -73,8 +76,8 @@ def _is_data_file(f: Path) -> bool:
 
 
 def capture_files(f: Path) -> CaptureFiles:
-    """The files of the capture whose data file is ``f``: the mask, labels and camera file beside it, None where
-    absent."""
+    """The files of the capture whose data file is ``f``: the mask, labels, part-pose and camera file beside it,
+    None where absent."""
     stem = f.name[: -len(f.suffix)]
     folder = f.parent
     mask = folder / (stem + MASK_SUFFIX)
@@ -82,7 +85,8 @@ def capture_files(f: Path) -> CaptureFiles:
     camera = next((c for c in (_companion(folder / f"{stem}{CAMERA_SUFFIX}.json", "camera file"),
                                _companion(folder / f"{stem}{CAMERA_SUFFIX}.yaml", "camera file"),
                                *(_companion(folder / n, "camera file") for n in CAMERA_FILES)) if c is not None), None)
-    return CaptureFiles(stem, f, _companion(mask, "mask"), _companion(labels, "labels file"), camera)
+    parts = _companion(folder / (stem + PARTS_SUFFIX), "part-pose file")
+    return CaptureFiles(stem, f, _companion(mask, "mask"), _companion(labels, "labels file"), camera, parts)
 
 
 def _companion(path: Path, what: str) -> Path | None:

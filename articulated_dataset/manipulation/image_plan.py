@@ -28,6 +28,7 @@ from articulated_dataset.manipulation.planning import (
     DEFAULT_STEP_M,
     DEFAULT_STEP_RAD,
     Plan,
+    check_grasp_rule,
     default_target,
     plan_from_estimate,
     success_tolerance,
@@ -50,6 +51,7 @@ class CapturedObject(PlannableObject):
         from articulated_dataset.classes.registry import get_class
 
         obj_class = get_class(class_name)
+        check_grasp_rule(obj_class.name)
         self.class_name = obj_class.name
         self.joint_types = obj_class.joint_types
         self.q_ranges = tuple(obj_class.table.q)

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from articulated_dataset.classes.registry import JOINT_TYPES, PRISMATIC, REVOLUTE
+from articulated_dataset.classes.registry import BUILTIN_GENERATORS, JOINT_TYPES, PAPER_CLASSES, PRISMATIC, REVOLUTE
 from articulated_dataset.core.errors import UserError
 from articulated_dataset.core.rotations import axis_angle_quat, quat_multiply, quat_to_matrix
 from articulated_dataset.core.units import normalise
@@ -52,6 +52,19 @@ HANDLE_STANDOFF_M = 0.03
 #: Thickness of doors and drawer fronts (``panel_m``): the hinge line lies on the panel's
 #: outer face, so the part centre sits half of it behind the hinge plane.
 PANEL_THICKNESS_M = 0.02
+#: The built-in classes whose handles the grasp rule places: the paper's, whose templates build
+#: the handles of the constants above.  The package's own classes (oven, dishwasher,
+#: lidded_box) build thicker doors and lids whose handles and latches stand elsewhere;
+#: planning refuses them with one line (:func:`check_grasp_rule`).
+GRASP_RULE_CLASSES = PAPER_CLASSES
+
+
+def check_grasp_rule(class_name: str) -> None:
+    """UserError unless the grasp rule knows where a built-in class's handles are
+    (:data:`GRASP_RULE_CLASSES`); a third-party class passes."""
+    if class_name in BUILTIN_GENERATORS and class_name not in GRASP_RULE_CLASSES:
+        raise UserError(f"class {class_name!r}: manipulation places grasps on the handles of the paper's classes only "
+                        f"({', '.join(GRASP_RULE_CLASSES)})")
 
 # --------------------------------------------------------------------------------------
 # Planning defaults

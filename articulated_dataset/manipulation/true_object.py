@@ -21,6 +21,7 @@ from articulated_dataset.format import MASK_FIRST_PART
 from articulated_dataset.generation.labels import HANDLE_SUFFIX, ModelInfo, read_object_labels
 from articulated_dataset.generation.mujoco_scene import set_configuration
 from articulated_dataset.manipulation.hypotheses import ObjectKinematics
+from articulated_dataset.manipulation.planning import check_grasp_rule
 
 if TYPE_CHECKING:
     from articulated_dataset.generation.config import GenerationConfig
@@ -128,6 +129,7 @@ def load_true_object(manifest: dict, labels: dict, camera=None, split_dir: str |
     from articulated_dataset.generation.templating import object_urdf
 
     config = stored_object_config(manifest.get("config"), split_dir, "plan", hint, urdf=urdf, mesh_root=mesh_root)
+    check_grasp_rule(config.class_name)
     if config.camera.mount != "fixed":
         raise UserError(f"{config.class_name}/{config.split} was generated with {option('camera_mount')} "
                         f"{config.camera.mount}; manipulation rebuilds objects upright in the camera frame (generate "

@@ -86,7 +86,7 @@ def test_class_means_are_over_the_images_of_the_class():
 
 
 @pytest.mark.parametrize("entry, needle", [({"urdf": "urdf/missing.urdf"}, "URDF file not found"),
-                                           ({"class": "oven"}, "unknown class 'oven'"),
+                                           ({"class": "washing_machine"}, "unknown class 'washing_machine'"),
                                            ({"colour": "red"}, "unknown key(s) colour")])
 def test_a_bad_mapping_entry_is_one_line(tmp_path, capsys, entry, needle):
     mapping = write_mapping(tmp_path, **entry)

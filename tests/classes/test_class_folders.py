@@ -163,10 +163,13 @@ def test_readme_check_names_what_is_wrong():
 
 @pytest.mark.parametrize("name", class_names())
 def test_changelog_is_keyed_by_released_versions(name):
+    """Headings ``## [X.Y.Z]`` of released versions (none after the package's), or ``## [Unreleased]``
+    alone for a class added since the last release."""
     text = (CLASSES_DIR / name / "CHANGELOG.md").read_text(encoding="utf-8")
     versions = [Version(v) for v in _VERSION_HEADING.findall(text)]
     current = Version(articulated_dataset.__version__)
-    assert versions, f"classes/{name}/CHANGELOG.md has no '## [X.Y.Z]' heading (the package is {current})"
-    assert min(versions) <= current
+    unreleased = "\n## [Unreleased]\n" in text
+    assert versions or unreleased, f"classes/{name}/CHANGELOG.md has no '## [X.Y.Z]' or '## [Unreleased]' heading"
+    assert not versions or min(versions) <= current
     newer = [str(v) for v in versions if v > current]
     assert not newer, f"classes/{name}/CHANGELOG.md names versions after the package's {current}: {newer}"

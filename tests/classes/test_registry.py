@@ -36,7 +36,8 @@ def test_every_class_folder_is_listed_and_is_data():
         obj_class = __import__(f"articulated_dataset.classes.{name}", fromlist=["CLASS"]).CLASS
         assert isinstance(obj_class, ObjectClass) and obj_class.name == name
         assert registry.get_class(name) is obj_class
-    assert registry.class_names() == ["cabinet", "drawer", "microwave", "toaster", "cabinet2", "refrigerator"]
+    assert registry.class_names() == ["cabinet", "drawer", "microwave", "toaster", "cabinet2", "refrigerator",
+                                      "oven", "dishwasher", "lidded_box"]
 
 
 def test_what_the_registry_loads_never_imports_it_back():

@@ -13,12 +13,14 @@ import numpy as np
 import pytest
 import yourdfpy
 
-from articulated_dataset.classes.registry import PRISMATIC, all_classes, get_class
+from articulated_dataset.classes.registry import PAPER_CLASSES, PRISMATIC, all_classes, get_class
 from articulated_dataset.core.camera import CameraConfig, project
 from articulated_dataset.core.rotations import matrix_to_quat
 from articulated_dataset.format import open_split
 from articulated_dataset.generation.labels import MASK_BODY, MASK_FIRST_PART
 from helpers_core import (
+    closed_boxes,
+    closed_face,
     compile_object,
     final_object,
     object_transform,
@@ -35,11 +37,23 @@ case_id = lambda case: f"{case[0].name}-j{case[1]}"  # noqa: E731
 
 #: Wall/panel thickness of the templates (classes/common.xacro, panel_m).
 PANEL_M = 0.02
+#: The paper's classes: their closed doors' and drawers' fronts are panels PANEL_M thick in
+#: front of the body.
+PANEL_FRONT_CLASSES = PAPER_CLASSES
+#: The least share of a closed part's pixels on its outer face where a window's pane, set back
+#: in the door's frame, takes the middle (an oven's door: 0.41).
+MIN_FACE_FRACTION = 0.3
 #: Pixel-level tolerances (m): depth is exact up to the 0.12 mm quantum, points are sampled
 #: at pixel centres.
 PLANE_TOL_M = 0.003
 MOTION_TOL_M = 0.005
 EXACT_TOL_M = 0.001
+#: Pixels a part needs for the exact-landing check: below it (a pencil case's lid at 1.2 m,
+#: about 70 pixels) most pixels lie on the part's edges, where the surface is interpolated
+#: across a depth step, and only the median tolerance applies.
+MIN_EXACT_PX = 200
+#: The median tolerance of such a small part (m): a tenth of a pencil case's depth.
+SMALL_PART_TOL_M = 0.01
 
 
 CAMERAS = {
@@ -106,9 +120,12 @@ def test_labelled_joint_motion_maps_q1_pixels_onto_q2_surface(objects, case):
     # rest are faces that one configuration hides and the other shows (the microwave's door
     # beside its control panel, seen from above by a tilted head camera: 43%).  With the
     # paper's level camera most faces stay visible: the median lands within 5 mm as well.
-    assert np.quantile(residual, 0.4) < EXACT_TOL_M
-    if config.camera == CameraConfig():
-        assert np.median(residual) < MOTION_TOL_M
+    if len(p1) >= MIN_EXACT_PX:
+        assert np.quantile(residual, 0.4) < EXACT_TOL_M
+        if config.camera == CameraConfig():
+            assert np.median(residual) < MOTION_TOL_M
+    else:
+        assert np.median(residual) < SMALL_PART_TOL_M
     # Negative controls (the check can fail): an axis shifted by 10 cm, or moved twice as far,
     # fails the checks above.  (A shift along the door's normal slides the door within its own
     # plane: a large door, e.g. a realistic 24-in base cabinet's, stays within 5 mm of the
@@ -128,16 +145,23 @@ def test_labelled_joint_motion_maps_q1_pixels_onto_q2_surface(objects, case):
 def test_closed_object_front_and_body_match_sampled_geometry_and_pose(objects, obj_class):
     config, sample, urdf, model, data, info, labels = objects(obj_class.name)
     d, w, h = (sample.geometry[k] for k in ("depth_m", "width_m", "height_m"))
+    _, part_boxes = closed_boxes(model, data, info, sample, obj_class.n_joints)
     depth, mask = render_at(config, model, data, info, np.zeros(obj_class.n_joints))
-    front_x = -d / 2 - PANEL_M  # the closed doors'/drawer's outer face, object frame
     for j in range(obj_class.n_joints):
+        # the closed part's outer face (object frame): a door's or drawer's front, a lid's top
+        axis, face = closed_face(part_boxes[j], d, h)
+        if obj_class.name in PANEL_FRONT_CLASSES:
+            assert axis == 0 and face == pytest.approx(-d / 2 - PANEL_M)  # the paper's panels
         p = to_object_frame(part_points(config, depth, mask, j), object_transform(sample))
-        on_front = np.abs(p[:, 0] - front_x) < PLANE_TOL_M
-        # handles stand proud of the face; everything else of a closed part lies on it
-        assert on_front.mean() > 0.75
-        assert np.median(np.abs(p[on_front, 0] - front_x)) < 0.001
-        assert np.all(np.abs(p[on_front, 1]) <= w / 2 + PLANE_TOL_M)
-        assert np.all((p[on_front, 2] >= -PLANE_TOL_M) & (p[on_front, 2] <= h + PLANE_TOL_M))
+        on_front = np.abs(p[:, axis] - face) < PLANE_TOL_M
+        # handles stand proud of the face; everything else of a closed part lies in its box, and
+        # on the face but for a window's pane set back in its frame (the package's own classes)
+        lo, hi = part_boxes[j]
+        assert np.all((p >= lo - PLANE_TOL_M) & (p <= hi + PLANE_TOL_M), axis=1).mean() > 0.75
+        assert on_front.mean() > (0.75 if obj_class.name in PANEL_FRONT_CLASSES else MIN_FACE_FRACTION)
+        assert np.median(np.abs(p[on_front, axis] - face)) < 0.001
+        assert np.all(np.abs(p[on_front, 1]) <= max(w / 2, hi[1], -lo[1]) + PLANE_TOL_M)
+        assert np.all((p[on_front, 2] >= -PLANE_TOL_M) & (p[on_front, 2] <= max(h, hi[2]) + PLANE_TOL_M))
     # body pixels (any configuration) lie inside the sampled outer box
     q_open = np.array([r[1] for r in obj_class.table.q])
     depth, mask = render_at(config, model, data, info, q_open)
@@ -163,14 +187,19 @@ def test_geometry_and_pose_labels_read_from_model_equal_the_sample(objects, obj_
 
 
 def _panel_box(model, data, info, j, direction, prismatic):
-    """Corners (8, 3) of part j's main panel: the largest non-handle geom of a door, or the
-    leading geom (farthest along +direction) of a drawer, i.e. its front."""
+    """Corners (8, 3) of part j's main panel: a door's or lid's box bounding its non-handle
+    geoms (one panel, or a window's frame and pane), in the part's frame; or the leading geom
+    (farthest along +direction) of a drawer, i.e. its front."""
     geoms = [g for g in np.nonzero(info.geom_part == MASK_FIRST_PART + j)[0] if not info.geom_is_handle[g]]
     signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
     corners = {g: data.geom_xpos[g] + (signs * model.geom_size[g]) @ data.geom_xmat[g].reshape(3, 3).T for g in geoms}
     if prismatic:
         return max(corners.values(), key=lambda c: (c @ direction).max())
-    return corners[max(geoms, key=lambda g: np.prod(model.geom_size[g]))]
+    body = model.geom_bodyid[geoms[0]]
+    pos, rot = data.xpos[body], data.xmat[body].reshape(3, 3)
+    local = (np.concatenate(list(corners.values())) - pos) @ rot  # the part's frame: boxes stay aligned
+    lo, hi = local.min(0), local.max(0)
+    return pos + (lo + (signs + 1) / 2 * (hi - lo)) @ rot.T
 
 
 @pytest.mark.parametrize("case", JOINT_CASES, ids=case_id)

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from articulated_dataset.classes.registry import all_classes, class_names, get_class
+from articulated_dataset.classes.registry import PAPER_CLASSES, all_classes, class_names, get_class
 from articulated_dataset.core.errors import UserError
 from articulated_dataset.core.tables import GEOMETRY_KEYS, POSE_KEYS, SamplingTable, load_table_file
 from articulated_dataset.generation.sampling import (
@@ -30,8 +30,9 @@ PAPER_TABLES = {
 }
 
 
-def test_registry_holds_the_papers_six_classes_in_order():
-    assert class_names() == ["cabinet", "drawer", "microwave", "toaster", "cabinet2", "refrigerator"]
+def test_registry_holds_the_papers_six_classes_in_order_then_its_own():
+    assert class_names()[:6] == list(PAPER_CLASSES) == ["cabinet", "drawer", "microwave", "toaster", "cabinet2", "refrigerator"]
+    assert class_names()[6:] == ["oven", "dishwasher", "lidded_box"]
 
 
 @pytest.mark.parametrize("name", list(PAPER_TABLES))

@@ -11,7 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from articulated_dataset import manipulation as M
-from articulated_dataset.classes.registry import PRISMATIC, REVOLUTE, all_classes
+from articulated_dataset.classes.registry import PRISMATIC, REVOLUTE, all_classes, class_names
 from articulated_dataset.cli import main
 from articulated_dataset.core.errors import UserError
 from articulated_dataset.core.rotations import axis_angle_quat, quat_multiply, quat_to_matrix
@@ -19,8 +19,9 @@ from articulated_dataset.core.units import parse_quantity
 from articulated_dataset.generation.mujoco_scene import set_configuration
 from helpers_core import ROOT, assert_one_line_error, load_script
 
-CLASSES = [c.name for c in all_classes()]
-REVOLUTE_CLASSES = [c.name for c in all_classes() if c.joint_types[0] == REVOLUTE]
+CLASSES = list(M.GRASP_RULE_CLASSES)
+REVOLUTE_CLASSES = [c.name for c in all_classes() if c.name in CLASSES and c.joint_types[0] == REVOLUTE]
+OWN_CLASSES = [c for c in class_names() if c not in CLASSES]
 BENCHMARK = ROOT / "benchmarks" / "manipulation.py"
 
 
@@ -284,6 +285,12 @@ def _oracle_predictions(root, cls, path, shift_m=0.0):
                                              "part_offset": labels["part_offset"].astype(np.float64),
                                              "geometry": labels["geometry"].astype(np.float64)}})
     return labels
+
+
+@pytest.mark.parametrize("cls", OWN_CLASSES)
+def test_plan_refuses_a_class_whose_handles_the_grasp_rule_does_not_know(tiny_root, cls):
+    r = CliRunner().invoke(main, ["plan", str(tiny_root / cls / "test"), "--index", "0", "--simulate"])
+    assert_one_line_error(r, f"class {cls!r}: manipulation places grasps on the handles of the paper's classes only")
 
 
 def test_cli_plan_simulate_truth_writes_json(tiny_root, tmp_path):

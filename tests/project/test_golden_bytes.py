@@ -25,7 +25,7 @@ from articulated_dataset.generation import GenerationConfig, generate_split
 
 #: The MuJoCo release whose depth and masks :data:`GOLDEN` holds.
 GOLDEN_MUJOCO_VERSION = "4.0.1"
-#: The split each digest is made from: small, so that all six classes render in a few seconds.
+#: The split each digest is made from: small, so that every class renders in a few seconds.
 N_OBJECTS = 2
 IMAGES_PER_OBJECT = 2
 #: Substring of ``GL_RENDERER`` of the rasteriser the digests were made with.
@@ -51,6 +51,15 @@ GOLDEN = {
     "refrigerator": {"labels": "1daa3e961c01e12420f0d061d26f2a90b8d75a78f0c875d02e436c95bbf5a62a",
                      "depth": "8ed49f7451a6f25f68ef595e5d20a38280cf03a5854631a1a70395fb23cecd99",
                      "mask": "a7a79311b800df526cc377e550dd67313c0969d152bd85eaf1dd52b90d24aba9"},
+    "oven": {"labels": "ccd7a0257d28066335800f4fe3011b288dc92b1d2f57697ceec5d882b173e470",
+             "depth": "28e4334b0cec38a20cd09434fc1055cc246cf7429cc6a20e4707b4e99a6d8d9a",
+             "mask": "eb5320872ab70d34fdc16d5c01a44ba9a6614d166544e5470c334fa9c07be2cd"},
+    "dishwasher": {"labels": "046f8bacf162b73ae0f091e3902513b630ccd2edf65e9d1684b0049be39ef6e9",
+                   "depth": "b714455d959338f8ee34dfa0ed5b89a446ab51c40af3d0b4534d546415949a0e",
+                   "mask": "90fc0777962a79ae3fc2aac51167a16d2e5271d9ef42d5ad7f7735ac24c08e0c"},
+    "lidded_box": {"labels": "2affc73035a79890626085d9cb145384a6a40af30476885d3fbc1f5ef3d8c732",
+                   "depth": "e2c1492fb53a9eb7833e6ad6d386075eaad470923f915d64bfce0aef1877ce56",
+                   "mask": "dee1c44bc9009080e1d699e29a74250fb187ff90fe12f4867fa045ab39cc0d2d"},
 }
 
 

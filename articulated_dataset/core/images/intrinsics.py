@@ -92,16 +92,15 @@ def check_source_size(size: tuple[int, int], where: str) -> None:
                         f"(at most {MAX_SOURCE_PIXELS:,} pixels)")
 
 
-def read_mapping(path: Path) -> dict:
-    """A camera-info or label file (JSON, or YAML by its suffix; UTF-8, a byte-order mark allowed) as
-    a dict; a file above :data:`MAX_MAPPING_BYTES`, one that does not parse, YAML aliases and a
+def read_mapping(path: Path, max_bytes: int = MAX_MAPPING_BYTES, what: str = "a camera or label file") -> dict:
+    """A camera-info or label file (``what``: JSON, or YAML by its suffix; UTF-8, a byte-order mark
+    allowed) as a dict; a file above ``max_bytes``, one that does not parse, YAML aliases and a
     top level that is not a mapping are a :class:`UserError`."""
     if not path.is_file():
         raise UserError(f"file not found: {path}")
     try:
-        if path.stat().st_size > MAX_MAPPING_BYTES:
-            raise UserError(f"{path}: {path.stat().st_size:,} bytes is not a camera or label file "
-                            f"(at most {MAX_MAPPING_BYTES:,})")
+        if path.stat().st_size > max_bytes:
+            raise UserError(f"{path}: {path.stat().st_size:,} bytes is not {what} (at most {max_bytes:,})")
         text = path.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise UserError(f"{path}: not UTF-8 text (byte {exc.start}); save it as UTF-8 JSON or YAML") from None
