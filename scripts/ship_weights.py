@@ -28,7 +28,9 @@ from pathlib import Path
 
 import torch
 
-from articulated_dataset.classes.registry import class_names
+from articulated_dataset.classes.registry import class_names, get_class
+from articulated_dataset.core.errors import UserError
+from articulated_dataset.core.tables import TABLE_NAMES
 from articulated_dataset.format import sha256_file
 from articulated_dataset.format.manifest import DEFAULT_FRAMING, FRAMINGS, MANIFEST_NAME, read_manifest
 from articulated_dataset.methods import MODELS_MANIFEST, SHIPPED, WEIGHTS_DIR, strip_for_shipping
@@ -59,6 +61,24 @@ def _data_command(c: str, ckpt: dict) -> tuple[str, int]:
     return f"artdata generate --class {c} --n {n} --split train --seed {seed} --out {data}", seed
 
 
+def _table_name(c: str, split_folder: Path) -> str:
+    """The named table (``artdata generate --table``) a split of class ``c`` was generated with,
+    read from its manifest (``paper`` when the manifest is gone); another table is an error: the
+    recipe could not be repeated."""
+    if not (split_folder / MANIFEST_NAME).is_file():
+        return "paper"
+    stored = read_manifest(split_folder)["config"].get("table")
+    obj_class = get_class(c)
+    for name in TABLE_NAMES:
+        try:
+            table = obj_class.named_table(name)
+        except UserError:  # the class has no such table
+            continue
+        if stored is None or json.loads(table.to_json()) == stored:
+            return name
+    raise ValueError(f"{split_folder}: its sampling table is none of the class's named tables")
+
+
 def _mixture_commands(c: str, ckpt: dict, name: str) -> tuple[str, str] | None:
     """For a checkpoint trained on a mixture of splits (``data.splits``): the generate command of
     every split (its seed, size and framing, read from the split's manifest where it is still
@@ -76,9 +96,11 @@ def _mixture_commands(c: str, ckpt: dict, name: str) -> tuple[str, str] | None:
             if framing not in FRAMINGS:
                 raise ValueError(f"{split_folder}: unknown framing {str(framing)[:40]!r} in its manifest")
         default = framing == DEFAULT_FRAMING
-        out = f"data-seed{ident['seed']}" + ("" if default else f"-{framing}")
+        table = _table_name(c, split_folder)
+        out = f"data-seed{ident['seed']}" + ("" if default else f"-{framing}") + ("" if table == "paper" else f"-{table}")
         generates.append(f"artdata generate --class {c} --n {ident['n_objects']} --split train --seed {ident['seed']}"
-                         + ("" if default else f" --framing {framing}") + f" --out {out}")
+                         + ("" if default else f" --framing {framing}") + ("" if table == "paper" else f" --table {table}")
+                         + f" --out {out}")
         dirs.append(f"{out}/{c}/train")
     weights = ",".join(f"{rec['weight']:g}" for rec in splits)
     train = TRAIN_COMMANDS["dense"].format(c=c, file=FILES[name].format(c=c), opts="").replace(

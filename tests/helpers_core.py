@@ -75,14 +75,14 @@ def closed_boxes(model, data, info, sample, n_joints: int) -> tuple[tuple, list[
 
 def closed_face(part_box, d: float, h: float) -> tuple[int, float]:
     """The closed part's outer face, as (axis, coordinate) in the object frame: of its box's
-    front (x = lo) and top (z = hi) faces, the one that lies outside the body's front (x < -d/2)
-    or top (z > h - part thickness) with the larger area: a door's or drawer's front, a lid's top."""
+    front (x = lo) and top (z = hi) faces, the one that stands outside the body's box (in front of
+    x = -d/2, above z = h) with the larger area: a door's or drawer's front, a lid's top."""
     (lo, hi) = part_box
     size = hi - lo
     faces = []
-    if lo[0] < -d / 2 + 1e-6:
+    if lo[0] < -d / 2 - OUTSIDE_TOL_M:
         faces.append((size[1] * size[2], 0, lo[0]))
-    if hi[2] > h - 1e-6:
+    if hi[2] > h + OUTSIDE_TOL_M:
         faces.append((size[0] * size[1], 2, hi[2]))
     assert faces, part_box
     _, axis, value = max(faces)
@@ -176,6 +176,8 @@ def surface_distances(points, depth, mask_sel, K):
 PANEL_M = 0.02
 HANDLE_STANDOFF_M = 0.03
 BOX_TOL_M = 0.003
+#: How far a closed part's face must stand beyond the body's box to count as outside it (m).
+OUTSIDE_TOL_M = 1e-4
 #: Stored fields :func:`check_stored_images` reads.
 IMAGE_CHECK_FIELDS = ("depth", "mask", "q", "axis_origin", "axis_direction", "object_pose", "geometry")
 

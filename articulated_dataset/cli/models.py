@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import textwrap
 
 import click
@@ -32,9 +33,11 @@ def models_cmd(as_json):
 
 
 def training_data(m: dict) -> str:
-    """``"12000 obj"`` or ``"4000 obj, kinect2"``: the objects a model was trained on and the depth noise."""
+    """``"12000 obj"`` or ``"4000 obj, kinect2"``: the objects a model was trained on and the depth
+    noise model of its last training (``--noise``)."""
     t = m.get("training", {})
-    noise = "kinect2" if "--noise kinect2" in str(t.get("command", "")) else ""
+    noise_option = re.search(r"--noise (\S+)", str(t.get("command", "")))
+    noise = noise_option.group(1) if noise_option else ""
     objects = f"{t['objects']} obj" if "objects" in t else "-"
     return f"{objects}, {noise}" if noise else objects
 
@@ -47,15 +50,19 @@ def model_table(entries: list[dict]) -> list[str]:
     for key, test_data in TEST_SETS:
         for m in entries:
             t = m.get(key)
-            if not t:
+            if not t and key == TEST_SETS[0][0] and not any(m.get(k) for k, _ in TEST_SETS):
+                t, test_data_shown = {}, "not measured"  # listed all the same, its figures "-"
+            elif not t:
                 continue
+            else:
+                test_data_shown = test_data
             unit = "cm" if m.get("config_unit") == "cm" else "deg"
             cfg = f"{t['config']:.2f} {unit}" if "config" in t else "-"
             pos = f"{t['pos_cm']:.2f}" if "pos_cm" in t else "-"
             rot = f"{t['rot_deg']:.2f}" if "rot_deg" in t else "-"
             cov = f"{t['coverage_90']:.3f}" if "coverage_90" in t else "-"
             nll = f"{t['nll']:.1f}" if "nll" in t else "-"  # mean nats per image; absent where not measured
-            lines.append(f"{m['name']:<13} {m['class_name']:<13} {training_data(m):<17} {test_data:<13} {pos:>7} "
+            lines.append(f"{m['name']:<13} {m['class_name']:<13} {training_data(m):<17} {test_data_shown:<13} {pos:>7} "
                          f"{rot:>7} {cfg:>9} {cov:>6} {nll:>7}")
     legend = ("test data: 1,000 unseen test objects per class (seed 2026), clean depth or with Kinect v2 depth "
               "noise (artdata generate --noise kinect2); scored with artdata score, metric version 2 or 3 (each model's "
