@@ -17,6 +17,9 @@ from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.core.tables import TABLE_NAMES, SamplingTable
 from articulated_dataset.format.schema import JOINT_TYPES, PRISMATIC, REVOLUTE  # noqa: F401  (declared with the format)
 
+#: Where an object of a class stands in a scene (:attr:`ObjectClass.placement`).
+PLACEMENTS = ("floor", "under_counter", "under_counter_drawer", "on_counter")
+
 
 @dataclass(frozen=True)
 class JointSpec:
@@ -57,6 +60,10 @@ class ObjectClass:
         has none.
     varied_template: the Xacro template a sample with structure variables is built from
         (its arguments' defaults build the paper's structure); None without a varied table.
+    placement: where an object of the class stands in ``artdata generate --scene``
+        (:data:`PLACEMENTS`, :mod:`articulated_dataset.generation.scenes`): on the ``floor``,
+        ``under_counter`` (a counter top rests on it), ``under_counter_drawer`` (the top drawer
+        of a base unit under a counter) or ``on_counter`` (on a counter top or sideboard).
     mirror_joints: where the class's mirror image (the scene reflected left-right) is again an
         object of the class, the joint order of that image: its joint ``k`` is this object's
         joint ``mirror_joints[k]`` (the cabinet hinged on either side: ``(0,)``; the two-door
@@ -78,8 +85,11 @@ class ObjectClass:
     varied_table: SamplingTable | None = None
     varied_template: str | None = None
     mirror_joints: tuple[int, ...] | None = None
+    placement: str = "floor"
 
     def __post_init__(self) -> None:
+        if self.placement not in PLACEMENTS:
+            raise ValueError(f"placement must be one of {PLACEMENTS}, got {self.placement!r}")
         if self.mirror_joints is not None:
             perm = tuple(self.mirror_joints)
             if sorted(perm) != list(range(len(self.joints))) or any(perm[perm[k]] != k for k in range(len(perm))):

@@ -7,7 +7,7 @@ classes/common.xacro) and moved with it, so the class's pose ranges keep their
 meaning: the object's base is where the table puts it, and the room is built around it.
 
 Every scene has a floor and a wall behind the object.  Where the object stands depends on
-its class (:data:`PLACEMENT`):
+its class (the class's ``placement``, :attr:`~articulated_dataset.classes.base.ObjectClass.placement`):
 
 * ``floor`` (refrigerator, oven): on the floor;  ``--scene kitchen`` adds a base unit with a counter
   top on each side (backs against the wall, so a fridge deeper than 60 cm stands proud);
@@ -45,6 +45,7 @@ from dataclasses import dataclass, replace
 import mujoco
 import numpy as np
 
+from articulated_dataset.classes.registry import class_names, get_class
 from articulated_dataset.format.manifest import SCENE_NAMES  # noqa: F401  (re-exported: declared with the split config)
 from articulated_dataset.generation.context_labels import VISIBLE_FRACTION_RANGE
 from articulated_dataset.generation.mujoco_scene import ORIGIN_POSE, yaw_quaternion
@@ -55,11 +56,6 @@ from articulated_dataset.generation.viewpoint import mid_height_m
 
 #: Extra SeedSequence word of an object's scene stream (noise 1, head camera 2).
 SCENE_STREAM = 3
-
-#: Where each built-in class stands (module docstring).
-PLACEMENT = {"cabinet": "under_counter", "cabinet2": "under_counter", "drawer": "under_counter_drawer",
-             "microwave": "on_counter", "toaster": "on_counter", "refrigerator": "floor", "oven": "floor",
-             "dishwasher": "under_counter", "lidded_box": "on_counter"}
 
 #: Ranges (m) of the scene's sizes, uniform; recorded in every shard (attribute ``scene``).
 SCENE_TABLE = {
@@ -111,8 +107,9 @@ class Box:
 
 
 def placement(class_name: str) -> str:
-    """Where objects of ``class_name`` stand in a scene (:data:`PLACEMENT`; ``floor`` for any other class)."""
-    return PLACEMENT.get(class_name, "floor")
+    """Where objects of ``class_name`` stand in a scene: a built-in class's
+    :attr:`~articulated_dataset.classes.base.ObjectClass.placement`; ``floor`` for any other class."""
+    return get_class(class_name).placement if class_name in class_names() else "floor"
 
 
 def scene_record(scene: str, class_name: str) -> str:

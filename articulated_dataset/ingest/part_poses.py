@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from articulated_dataset.core.rotations import axis_angle_quat, matrix_to_quat, quat_to_matrix
-from articulated_dataset.core.units import PRISMATIC, REVOLUTE
+from articulated_dataset.core.units import PRISMATIC, REVOLUTE, normalise
 from articulated_dataset.ingest.ground_truth import axis_frame_from_direction
 
 #: A pose's rotation may differ from an orthonormal matrix by this much (largest entry of
@@ -121,10 +121,6 @@ def relative_motion(T_parent: np.ndarray, T_child: np.ndarray, rest_pose: np.nda
     return M if rest_pose is None else M @ inverse(rest_pose)
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    return np.asarray(v, np.float64) / float(np.linalg.norm(v))
-
-
 def point_line_distance(point: np.ndarray, origin: np.ndarray, direction: np.ndarray) -> float:
     """Distance (m) from ``point`` to the line through ``origin`` along the unit ``direction``:
     ``|d - (d . a) a|`` with ``d = point - origin``."""
@@ -214,7 +210,7 @@ def joint_from_part_poses(T_parent: np.ndarray, T_child: np.ndarray, joint_type:
     R, t = M[:3, :3], M[:3, 3]
     T_rest = np.eye(4) if rest_pose is None else rest_pose
     c = T_rest[:3, :3] @ np.asarray(box_centre_m, np.float64) + T_rest[:3, 3]
-    b = _unit(annotated_direction)
+    b = normalise(annotated_direction)
     u, theta = rotation_vector(R)
     if joint_type == REVOLUTE:
         if annotated_origin_m is None:
@@ -263,7 +259,7 @@ def axis_frame_labels(joint: PartPoseJoint, up: np.ndarray) -> tuple[np.ndarray,
     if np.linalg.norm(x) < MIN_FRAME_NORM:
         frame = axis_frame_from_direction(a)
     else:
-        x = _unit(x)
+        x = normalise(x)
         frame = np.stack([x, np.cross(a, x), a], axis=1)
     pose = np.concatenate([joint.origin_m, matrix_to_quat(frame)])
     return pose, frame.T @ (joint.part_centre_m - joint.origin_m)

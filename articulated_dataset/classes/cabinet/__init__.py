@@ -32,4 +32,5 @@ CLASS = ObjectClass(
     varied_table=VARIED_TABLE,
     varied_template="cabinet_varied.urdf.xacro",
     mirror_joints=(0,),
+    placement="under_counter",
 )

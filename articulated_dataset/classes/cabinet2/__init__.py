@@ -30,4 +30,5 @@ CLASS = ObjectClass(
     varied_table=VARIED_TABLE,
     varied_template="cabinet2_varied.urdf.xacro",
     mirror_joints=(1, 0),
+    placement="under_counter",
 )

@@ -81,6 +81,7 @@ CLASS = ObjectClass(
     realistic_table=REALISTIC_TABLE,
     varied_table=VARIED_TABLE,
     varied_template="dishwasher_varied.urdf.xacro",
+    placement="under_counter",
 )
 
 __all__ = ["CLASS", "DISHWASHER_STRUCTURE", "REALISTIC_TABLE", "TABLE", "VARIED_TABLE"]

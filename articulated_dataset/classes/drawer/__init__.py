@@ -140,4 +140,5 @@ CLASS = ObjectClass(
     varied_table=VARIED_TABLE,
     varied_template="drawer_varied.urdf.xacro",
     mirror_joints=(0,),
+    placement="under_counter_drawer",
 )

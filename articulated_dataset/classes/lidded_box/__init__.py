@@ -83,6 +83,7 @@ CLASS = ObjectClass(
     realistic_table=REALISTIC_TABLE,
     varied_table=VARIED_TABLE,
     varied_template="lidded_box_varied.urdf.xacro",
+    placement="on_counter",
 )
 
 __all__ = ["CLASS", "LIDDED_BOX_STRUCTURE", "LID_Q_RAD", "REALISTIC_TABLE", "TABLE", "VARIED_TABLE"]

@@ -106,4 +106,5 @@ CLASS = ObjectClass(
     realistic_table=REALISTIC_TABLE,
     varied_table=VARIED_TABLE,
     varied_template="microwave_varied.urdf.xacro",
+    placement="on_counter",
 )

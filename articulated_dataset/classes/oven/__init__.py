@@ -94,6 +94,7 @@ CLASS = ObjectClass(
     realistic_table=REALISTIC_TABLE,
     varied_table=VARIED_TABLE,
     varied_template="oven_varied.urdf.xacro",
+    placement="floor",
 )
 
 __all__ = ["CLASS", "OVEN_STRUCTURE", "REALISTIC_TABLE", "TABLE", "VARIED_TABLE"]

@@ -111,4 +111,5 @@ CLASS = ObjectClass(
     realistic_table=REALISTIC_TABLE,
     varied_table=VARIED_TABLE,
     varied_template="refrigerator_varied.urdf.xacro",
+    placement="floor",
 )

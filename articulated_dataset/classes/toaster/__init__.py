@@ -82,4 +82,5 @@ CLASS = ObjectClass(
     realistic_table=REALISTIC_TABLE,
     varied_table=VARIED_TABLE,
     varied_template="toaster_varied.urdf.xacro",
+    placement="on_counter",
 )
