@@ -31,6 +31,7 @@ from articulated_dataset.core.errors import UserError
 from articulated_dataset.core.images.intrinsics import read_mapping, read_numbers
 from articulated_dataset.core.units import normalise
 from articulated_dataset.format import MASK_BODY, MASK_FIRST_PART
+from articulated_dataset.format.shards import resolve_inside
 from articulated_dataset.ingest.coco_masks import MAX_POLYGON_TESTS, coco_mask
 from articulated_dataset.ingest.ground_truth import (
     GT_FRAMES,
@@ -263,12 +264,13 @@ def object_model(objects: dict, name: str, path: Path) -> ObjectModel:
 
 def objects_path(frame: dict, path: Path) -> Path:
     """The object metadata file of the frame file ``path``: the name its ``objects_file`` gives
-    (a file in the same folder: no folders, no ``..``), else :data:`OBJECTS_FILE` beside it."""
+    (a file in the same folder: no folders, no ``..``, no link leading out of it,
+    :func:`~articulated_dataset.format.shards.resolve_inside`), else :data:`OBJECTS_FILE` beside it."""
     name = frame.get("objects_file", OBJECTS_FILE)
     if (not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name
             or "\0" in name or not name.isprintable()):
         raise UserError(f"{path}: 'objects_file' must name a file in the same folder (no path), got {str(name)[:60]!r}")
-    return path.parent / name
+    return resolve_inside(path.parent, name, where=str(path))
 
 
 @dataclass(frozen=True, eq=False)  # numpy fields: compared by identity
@@ -321,7 +323,7 @@ def load_part_pose_ground_truth(path: str | Path, class_name: str, shape: tuple[
     are NaN (not given); the labels pass the checks of real labels
     (:func:`~.ground_truth.real_label_problems`).
     """
-    path = Path(path)
+    path = resolve_inside(Path(path).parent, Path(path).name)  # a link beside the capture leading out: refused
     obj_class = get_class(class_name)
     frame = _keys(read_json_file(path, MAX_PARTS_FILE_BYTES, "part-pose file"), FRAME_KEYS, str(path))
     frame_name = frame.get("frame", "camera")

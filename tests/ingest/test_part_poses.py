@@ -375,6 +375,22 @@ def test_nan_and_oversized_files_are_refused(tmp_path):
                           "object metadata file not found")
 
 
+@pytest.mark.parametrize("which", ["frame", "objects"])
+def test_a_link_leading_out_of_the_folder_is_refused_unread(tmp_path, which):
+    """The part-pose file and the object metadata file are read only inside the capture's
+    folder: a link to a file elsewhere (a valid copy, so only the link can be the refusal)."""
+    folder = _example_copy(tmp_path)
+    target = _frame_of(folder) if which == "frame" else _objects_of(folder)
+    outside = tmp_path / "elsewhere.json"
+    shutil.copy(target, outside)
+    target.unlink()
+    target.symlink_to(outside)
+    assert_one_line_error(_ingest(folder, "--class", "microwave", "--out", tmp_path / "out"), "leads outside")
+    target.unlink()
+    shutil.copy(outside, target)
+    assert _ingest(folder, "--class", "microwave", "--out", tmp_path / "out").exit_code == 0
+
+
 def test_labels_and_parts_beside_one_capture_are_refused(tmp_path):
     folder = _example_copy(tmp_path)
     (folder / "frame_000.labels.json").write_text(json.dumps({"q": [0.5]}))
