@@ -9,7 +9,9 @@ For every class, setting and noise model the script generates a test split (``ar
 --split test --seed SEED``, :data:`SETTINGS` gives each setting's options), then for every prompt
 predicts it (``artdata predict --model MODEL --prompt P``: the prompt simulated from the split's
 mask, docs/robot_view.md) and scores it with :func:`articulated_dataset.benchmark.score`.  It
-prints one table (axis position cm, configuration deg | cm, 90% interval coverage, and the ratio
+prints one table (the fraction of images answered: ``none`` answers only where it finds an
+object; axis position cm, configuration deg | cm, 90% interval coverage over the answered
+images, and the ratio
 of position and configuration to the same class, prompt and noise in the ``isolated`` setting,
 measured in the same run) and writes every figure with ``--json``.
 
@@ -89,8 +91,8 @@ def measure(root: Path, class_name: str, setting: str, noise: str, prompt: str, 
                      "-q", *(["--overwrite"] if predictions.exists() else [])], f"{where} {prompt}")
     row = score(predictions, split).rows[0]
     figures = {name: float(row.metrics[name][0]) if name in row.metrics else None for name in FIGURES}
-    return {"class": class_name, "setting": setting, "noise": noise, "prompt": prompt, "images": row.n_scored,
-            "configuration_units": row.configuration_units, **figures}
+    return {"class": class_name, "setting": setting, "noise": noise, "prompt": prompt, "images": row.n_truth,
+            "answered": row.n_scored / row.n_truth, "configuration_units": row.configuration_units, **figures}
 
 
 def add_ratios(rows: list[dict]) -> None:
@@ -106,12 +108,13 @@ def add_ratios(rows: list[dict]) -> None:
 
 def format_table(rows: list[dict]) -> str:
     """The fixed-width table the script prints."""
-    titles = ["class", "setting", "noise", "prompt", "images", "pos cm", "config", "cov90", "pos x", "config x"]
+    titles = ["class", "setting", "noise", "prompt", "images", "answered", "pos cm", "config", "cov90", "pos x", "config x"]
 
     def num(v, fmt="{:.2f}"):
         return "-" if v is None else fmt.format(v)
 
-    body = [[r["class"], r["setting"], r["noise"], r["prompt"], str(r["images"]), num(r["axis_position_error_cm"]),
+    body = [[r["class"], r["setting"], r["noise"], r["prompt"], str(r["images"]),
+             num(r.get("answered", 1.0), "{:.3f}"), num(r["axis_position_error_cm"]),
              num(r["configuration_error"]) + " " + r["configuration_units"], num(r["coverage_90"], "{:.3f}"),
              num(r["position_ratio"]), num(r["configuration_ratio"])] for r in rows]
     widths = [max(len(t), *(len(c[i]) for c in body)) for i, t in enumerate(titles)]

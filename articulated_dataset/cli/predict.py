@@ -36,7 +36,8 @@ from articulated_dataset.methods.prompts import PROMPT_KINDS
                    "would; for splits made with --scene or --occluders (the same as --prompt mask).")
 @click.option("--prompt", type=click.Choice(PROMPT_KINDS), default=None,
               help="Dense model: segment each image's object from the prompt a robot would have, simulated from "
-                   "the split's mask: a click (point), a detector's box (box), the mask itself, or none "
+                   "the split's mask: a click (point), a detector's box (box), the mask itself, or none (the "
+                   "object found in the depth; an image where none is found gets no prediction) "
                    "(docs/robot_view.md).")
 @no_mirror_option
 @precision_option

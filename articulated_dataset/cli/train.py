@@ -39,6 +39,10 @@ from articulated_dataset.core.errors import UserError
               help="dense: a depth-noise model (kinect2, d435 or azure-kinect) applied to --noise-fraction of each batch's images, "
                    "drawn afresh every epoch (docs/real_data.md).")
 @click.option("--noise-fraction", type=float, default=None, help="dense: the share of each batch --noise corrupts (default 0.5).")
+@click.option("--prompts", default=None, metavar="KIND,...",
+              help="dense: in splits with a scene or occluders, segment each image's object from a simulated "
+                   "prompt of these kinds in turn (point, box, mask, none; as predict --prompt), as a robot's "
+                   "images will be (docs/robot_view.md).")
 @click.option("--val-fraction", type=float, default=None,
               help="Fraction of the training split's OBJECTS held out for validation (0: none; default: mdn 0.1, dense 0.05).")
 @click.option("--mix-weights", default=None, metavar="W1,W2,...",
@@ -51,7 +55,8 @@ from articulated_dataset.core.errors import UserError
 @click.option("--resume", is_flag=True, help="Continue the interrupted training stored in --out (same options).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or per-epoch lines.")
 def train_cmd(model_kind, class_name, data_dirs, data_option, out, small, epochs, batch_size, lr, components, width, init_from,
-              origin_weight, noise, noise_fraction, val_fraction, mix_weights, max_objects, seed, device, threads, resume, quiet):
+              origin_weight, noise, noise_fraction, prompts, val_fraction, mix_weights, max_objects, seed, device, threads,
+              resume, quiet):
     """Train one class's estimator on the training split in DIR (a split folder, e.g. data/cabinet/train;
     checkpoints after every epoch; --resume continues).  --model dense reads several DIRs as one
     mixture (weighted by --mix-weights)."""
@@ -64,7 +69,8 @@ def train_cmd(model_kind, class_name, data_dirs, data_option, out, small, epochs
                              epochs=epochs, batch_size=batch_size, lr=lr, components=components, width=width,
                              init_from=init_from, origin_weight=origin_weight, noise=noise,
                              noise_fraction=noise_fraction, val_fraction=val_fraction, max_objects=max_objects,
-                             seed=seed, device=device, mix_weights=None if weights is None else tuple(weights))
+                             seed=seed, device=device, mix_weights=None if weights is None else tuple(weights),
+                             prompts=None if prompts is None else tuple(k.strip() for k in prompts.split(",")))
     t0 = time.perf_counter()
     try:
         run = train_model(model_kind, settings, resume=resume, progress=not quiet, echo=None if quiet else click.echo)

@@ -204,7 +204,10 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     mask (pixels outside it are ignored).  Instead of a mask, ``point`` (u, v: a pixel on the
     object, column and row) or ``box`` (x0, y0, x1, y1: the pixels around it, inclusive) prompts
     the object: its pixels are segmented from the depth (:mod:`~articulated_dataset.methods.prompts`,
-    docs/robot_view.md) and used as a mask is; at most one of the three.  ``model``: ``"dense"`` (shipped weights),
+    docs/robot_view.md) and used as a mask is; at most one of the three.  Without any, the object
+    is found in the depth: every pixel with depth of an isolated object; in a scene, the largest
+    region of the class's size apart from the scene's large planes, or a one-line refusal
+    (:func:`~articulated_dataset.methods.prompts.find_object`).  ``model``: ``"dense"`` (shipped weights),
     ``"dense-kinect2"`` (shipped weights trained for a real sensor's noisy depth) or a dense
     checkpoint path.  ``mirror=False`` skips the refinement's mirror image where the model uses
     it (cabinet, two-door cabinet, drawer: faster, a 4-6% higher position error).
@@ -247,6 +250,10 @@ def _estimate(depth_m, K, class_name: str, mask, model: str, mirror: bool, preci
         raise UserError("mask holds NaN or infinite values")
     m = None if m is None else m.astype(bool)
     prompt = one_prompt(mask=m, point=point, box=box)
+    if prompt is None and m is None:  # no prompt: the object is found in the depth (an isolated one is every pixel)
+        from articulated_dataset.methods.prompts import Prompt
+
+        prompt = Prompt("none")
     if prompt is not None:  # the image's own checks first; the scene rule applies to the segmented pixels
         check_depth(depth, np.ones(depth.shape, bool), where)
         prompt.check_image(depth.shape)

@@ -16,7 +16,6 @@ import numpy as np
 
 from articulated_dataset.core.errors import UserError, option
 from articulated_dataset.format.schema import CONTEXT_MASK_CODES, MASK_BODY
-from articulated_dataset.methods.inputs import MAX_UNMASKED_VALID_FRACTION
 
 #: The prompt kinds: a pixel on the object, a box around it, its mask, or nothing.
 PROMPT_KINDS = ("point", "box", "mask", "none")
@@ -164,35 +163,6 @@ def simulated_prompt(kind: str, label_mask: np.ndarray) -> Prompt:
     return Prompt("mask", mask=obj)
 
 
-def _flood_fill(depth: np.ndarray, seed, allowed: np.ndarray) -> np.ndarray:
-    """The pixels reached from ``seed`` (a (row, col), or a boolean mask of seeds) through
-    ``allowed`` pixels over 4-neighbours whose depths differ by less than :data:`FILL_STEP_ABS_M` +
-    :data:`FILL_STEP_REL` x depth."""
-    h, w = depth.shape
-    # the edges between 4-neighbours that a fill may cross: (H, W-1) horizontal, (H-1, W) vertical
-    def joined(a, b, ok_a, ok_b):
-        tol = FILL_STEP_ABS_M + FILL_STEP_REL * np.minimum(a, b)
-        return ok_a & ok_b & (np.abs(a - b) < tol)
-
-    right = joined(depth[:, :-1], depth[:, 1:], allowed[:, :-1], allowed[:, 1:])
-    down = joined(depth[:-1], depth[1:], allowed[:-1], allowed[1:])
-    if isinstance(seed, np.ndarray):
-        filled = seed & allowed
-    else:
-        filled = np.zeros((h, w), bool)
-        filled[seed] = True
-    frontier = filled.copy()
-    while frontier.any():
-        grow = np.zeros_like(filled)
-        grow[:, 1:] |= frontier[:, :-1] & right
-        grow[:, :-1] |= frontier[:, 1:] & right
-        grow[1:] |= frontier[:-1] & down
-        grow[:-1] |= frontier[1:] & down
-        frontier = grow & ~filled
-        filled |= frontier
-    return filled
-
-
 def _nearest_valid(valid: np.ndarray, centre_uv: tuple[float, float]) -> tuple[int, int] | None:
     """The (row, col) of the valid pixel nearest ``centre_uv`` (first in row-major order on ties); None without one."""
     rows, cols = np.nonzero(valid)
@@ -202,53 +172,134 @@ def _nearest_valid(valid: np.ndarray, centre_uv: tuple[float, float]) -> tuple[i
     return int(rows[k]), int(cols[k])
 
 
+def _scene_fill(depth: np.ndarray, points: np.ndarray, valid: np.ndarray, scene: np.ndarray, region: np.ndarray,
+                seed: tuple[int, int], focal_px: float, max_extent_m: float) -> np.ndarray:
+    """The object's pixels in a scene, from the ``seed`` pixel (row, col) on it: the ``scene``'s planes
+    (:func:`~articulated_dataset.methods.scene_surfaces.scene_planes`) are removed unless the seed
+    lies on one, the depth-continuous region of the ``region`` pixels left that holds the seed is
+    taken, and the regions that meet it in 3-D are added
+    (:func:`~articulated_dataset.methods.scene_surfaces.joined_by_proximity`)."""
+    from articulated_dataset.methods.scene_surfaces import depth_components, joined_by_proximity
+
+    keep = np.ones_like(scene) if scene[seed] else ~scene
+    allowed = valid & region & keep
+    labels = depth_components(depth, allowed, FILL_STEP_ABS_M, FILL_STEP_REL)
+    return joined_by_proximity(labels == labels[seed], labels, points, focal_px, max_extent_m)
+
+
+def find_object(depth_m: np.ndarray, K: np.ndarray, *, max_extent_m: float) -> np.ndarray:
+    """The object's pixels of an image without a prompt, an (H, W) boolean mask: :func:`segment_from_prompt`
+    with no prompt (``Prompt("none")``)."""
+    return segment_from_prompt(depth_m, K, Prompt("none"), max_extent_m=max_extent_m)
+
+
+def _box_iou(region: np.ndarray, box_px: tuple[int, int, int, int]) -> float:
+    """Intersection over union of the bounding box of ``region``'s pixels with ``box_px`` (x0, y0,
+    x1, y1, inclusive)."""
+    rows, cols = np.nonzero(region)
+    a = (int(cols.min()), int(rows.min()), int(cols.max()), int(rows.max()))
+
+    def area(b):
+        return max(0, b[2] - b[0] + 1) * max(0, b[3] - b[1] + 1)
+
+    inter = area((max(a[0], box_px[0]), max(a[1], box_px[1]), min(a[2], box_px[2]), min(a[3], box_px[3])))
+    return inter / (area(a) + area(box_px) - inter)
+
+
+def _object_part(region: np.ndarray, points: np.ndarray, max_extent_m: float) -> np.ndarray | None:
+    """``region`` if it could be one object (:func:`_object_sized`); else its largest piece once
+    thin strips are cut (:func:`~articulated_dataset.methods.scene_surfaces.without_strips`: a
+    counter's front edge flush with the object's front) if that could be; else None."""
+    from scipy import ndimage
+
+    from articulated_dataset.methods.scene_surfaces import without_strips
+
+    if _object_sized(region, points, max_extent_m):
+        return region
+    pieces, n = ndimage.label(without_strips(region), structure=np.ones((3, 3), bool))
+    if not n:
+        return None
+    largest = pieces == 1 + int(np.argmax(np.bincount(pieces.ravel())[1:]))
+    return largest if _object_sized(largest, points, max_extent_m) else None
+
+
+def _found_object(depth: np.ndarray, points: np.ndarray, valid: np.ndarray, scene: np.ndarray,
+                  max_extent_m: float, focal_px: float, box_px: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """The object's pixels in a scene: of the depth-continuous regions of the ``valid`` pixels left
+    once the ``scene``'s planes are removed, those that hold at least :data:`MIN_BOX_OBJECT_PX` and
+    span at most ``max_extent_m`` (or whose largest piece without thin strips does:
+    :func:`_object_part`); of them the one with most pixels or, with ``box_px``, the one
+    whose bounding box overlaps the box most (:func:`_box_iou`: an occluder crossing the box is
+    not the object it frames); with the regions within ``max_extent_m`` of it that meet it in 3-D.
+    No such region is a one-line :class:`UserError`."""
+    from articulated_dataset.methods.scene_surfaces import depth_components, joined_by_proximity
+
+    labels = depth_components(depth, valid & ~scene, FILL_STEP_ABS_M, FILL_STEP_REL)
+    ids, sizes = np.unique(labels[labels > 0], return_counts=True)
+    candidates = [r for r in (_object_part(labels == k, points, max_extent_m) for k in ids[sizes >= MIN_BOX_OBJECT_PX])
+                  if r is not None]
+    if not candidates:
+        raise UserError(f"found no object of at most {max_extent_m:g} m apart from the scene's planes; prompt it with "
+                        f"{option('point')}, {option('box')} or {option('mask')}")
+    score = (lambda r: _box_iou(r, box_px)) if box_px is not None else (lambda r: int(r.sum()))
+    best = max(candidates, key=score)  # the first of equals: the lowest label
+    near = np.linalg.norm(points - points[best].mean(0), axis=-1) <= max_extent_m
+    return joined_by_proximity(best, np.where(near, labels, 0), points, focal_px, max_extent_m)
+
+
 def segment_from_prompt(depth_m: np.ndarray, K: np.ndarray, prompt: Prompt, *, max_extent_m: float) -> np.ndarray:
     """The object's pixels, an (H, W) boolean mask, from ``prompt`` and the depth itself.
 
-    ``mask``: the prompt's mask.  In an image of an isolated object (returns on at most
-    :data:`~articulated_dataset.methods.inputs.MAX_UNMASKED_VALID_FRACTION` of its pixels): every
-    pixel with depth in the box (within ``max_extent_m`` of the click), if they are at least
-    :data:`MIN_BOX_OBJECT_PX` and span at most ``max_extent_m``.  Otherwise, ``box``:
-    a flood fill from the valid pixel nearest the box's centre, kept to the box; ``point``: a flood
-    fill over 4-neighbours whose depths differ by less than :data:`FILL_STEP_ABS_M` + :data:`FILL_STEP_REL` x depth, seeded at the point and kept to the
-    3-D points within ``max_extent_m`` of the seed's (with the intrinsics ``K``), so a fill
-    leaking onto a counter stays bounded.  ``none``: every valid pixel.  A point on a pixel
-    without depth, or a box with none, is a :class:`UserError`."""
+    ``mask``: the prompt's mask.  Otherwise the scene's large planes are found first
+    (:func:`~articulated_dataset.methods.scene_surfaces.scene_planes`: planes spanning more than
+    the class's largest size ``max_extent_m``).  An image without them shows an isolated object:
+    a box keeps every pixel with depth in it, a point every pixel with depth within
+    ``max_extent_m`` of the clicked one's 3-D point (with the intrinsics ``K``), if they are at
+    least :data:`MIN_BOX_OBJECT_PX` and span at most ``max_extent_m``, and no prompt keeps every
+    pixel with depth.  In a scene the planes are removed and the object's region filled
+    (:func:`_scene_fill`) over 4-neighbours whose depths differ by less than
+    :data:`FILL_STEP_ABS_M` + :data:`FILL_STEP_REL` x depth: for a box the object-sized region
+    in it that fills it best (:func:`_found_object`), or else the fill from
+    the valid pixel nearest its centre, kept to the box; for a point from the point, kept within ``max_extent_m``
+    of it; without a prompt the object is found (:func:`_found_object`) or refused in one line.
+    A point on a pixel without depth, or a box with none, is a :class:`UserError`."""
     depth = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     valid = depth > 0
     prompt.check_image(depth.shape)
     if prompt.kind == "mask":
         assert prompt.mask is not None
         return prompt.mask.copy()
+    from articulated_dataset.methods.scene_surfaces import scene_planes
+
+    points = _points(depth, K)
+    focal_px = float(np.sqrt(abs(K[0][0] * K[1][1])))
+    scene = scene_planes(points, valid, max_extent_m)
+    isolated = not scene.any()
     if prompt.kind == "none":
-        return valid
+        return valid if isolated else _found_object(depth, points, valid, scene, max_extent_m, focal_px)
     if prompt.kind == "box":
         assert prompt.box_px is not None
         x0, y0, x1, y1 = prompt.box_px
-        allowed = np.zeros_like(valid)
-        allowed[max(y0, 0) : y1 + 1, max(x0, 0) : x1 + 1] = True
-        allowed &= valid
-        seed = _nearest_valid(allowed, ((x0 + x1) / 2, (y0 + y1) / 2))
+        inside = np.zeros_like(valid)
+        inside[max(y0, 0) : y1 + 1, max(x0, 0) : x1 + 1] = True
+        centre = ((x0 + x1) / 2, (y0 + y1) / 2)
+        seed = _nearest_valid(inside & valid, centre)
         if seed is None:
             raise UserError(f"{option('box')} {x0},{y0},{x1},{y1} holds no pixel with depth")
-        if _isolated(valid) and _object_sized(allowed, _points(depth, K), max_extent_m):
-            return allowed  # an isolated object: all of the box's pixels with depth
-        return _flood_fill(depth, seed, allowed)
+        if isolated and _object_sized(inside & valid, points, max_extent_m):
+            return inside & valid  # an isolated object: all of the box's pixels with depth
+        try:  # the largest object-sized region in the box; else the fill from its centre
+            return _found_object(depth, points, valid & inside, scene, max_extent_m, focal_px, prompt.box_px)
+        except UserError:
+            return _scene_fill(depth, points, valid, scene, inside, seed, focal_px, max_extent_m)
     assert prompt.point_px is not None
     u, v = prompt.point_px
     if not valid[v, u]:
         raise UserError(f"{option('point')} {u},{v} is a pixel without depth; click on the object")
-    points = _points(depth, K)
     near = np.linalg.norm(points - points[v, u], axis=-1) <= max_extent_m
-    if _isolated(valid) and _object_sized(valid & near, points, max_extent_m):
+    if isolated and _object_sized(valid & near, points, max_extent_m):
         return valid & near  # an isolated object: every pixel with depth within its size of the click
-    return _flood_fill(depth, (v, u), valid & near)
-
-
-def _isolated(valid: np.ndarray) -> bool:
-    """Whether an image shows an isolated object rather than a scene: returns on at most
-    :data:`~articulated_dataset.methods.inputs.MAX_UNMASKED_VALID_FRACTION` of its pixels."""
-    return bool(valid.mean() <= MAX_UNMASKED_VALID_FRACTION)
+    return _scene_fill(depth, points, valid, scene, near, (v, u), focal_px, max_extent_m)
 
 
 def _points(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -285,10 +336,17 @@ def prompted_depth(depth_m: np.ndarray, K: np.ndarray, kind: str, label_mask: np
                    max_extent_m: float) -> np.ndarray:
     """A stored image's depth as a robot prompted with ``kind`` would segment it: the depth inside
     :func:`segment_from_prompt` of the :func:`simulated_prompt` of its label mask, no return (0)
-    elsewhere.  An image whose object shows no pixel with depth (nothing to click on) keeps none."""
+    elsewhere.  An image whose object shows no pixel with depth (nothing to click on), or where
+    ``none`` finds no object (:func:`find_object`), keeps none."""
     depth = np.asarray(depth_m)
     obj = object_pixels(label_mask) & (np.nan_to_num(depth) > 0)
     if kind != "none" and not obj.any():
         return np.zeros_like(depth)
     prompt = simulated_prompt(kind, obj)
-    return np.where(segment_from_prompt(depth, K, prompt, max_extent_m=max_extent_m), depth, 0).astype(depth.dtype)
+    try:
+        keep = segment_from_prompt(depth, K, prompt, max_extent_m=max_extent_m)
+    except UserError:
+        if kind != "none":
+            raise
+        return np.zeros_like(depth)  # no object found: the image gets no answer
+    return np.where(keep, depth, 0).astype(depth.dtype)

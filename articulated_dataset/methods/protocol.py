@@ -55,6 +55,7 @@ class TrainSettings:
     noise: str | None = None
     noise_fraction: float | None = None
     mix_weights: tuple[float, ...] | None = None
+    prompts: tuple[str, ...] | None = None
 
     def given(self, names) -> list[str]:
         """Those of ``names`` set away from their defaults."""

@@ -17,15 +17,17 @@ from articulated_dataset.methods.prompts import (
     BOX_MARGIN_FRACTION,
     Prompt,
     class_extent_m,
+    find_object,
     object_pixels,
     segment_from_prompt,
     simulated_prompt,
 )
 
 #: Median IoU (over a class's 32 kitchen images) of the object segmented from a simulated prompt
-#: with the stored object mask, at least: measured 0.57 to 0.78 (box) and 0.22 to 0.58 (point)
-#: over the classes; the counter and wall the object touches are where fills leak.
-MIN_MEDIAN_IOU = {"box": 0.5, "point": 0.18}
+#: with the stored object mask, at least: measured 0.63 to 0.91 (box), 0.33 to 0.84 (point) and
+#: 0.17 to 0.84 (none) over the classes, against 0.05 to 0.34 for every pixel with depth; faces
+#: flush with a neighbour's (a dishwasher between base units) are where they fail.
+MIN_MEDIAN_IOU = {"box": 0.6, "point": 0.3, "none": 0.15}
 #: Rough masks' estimates against the true mask's (axis origins, m): per rough mask, the largest
 #: and the median over ROUGH_IMAGES of each class allowed.  Measured over the classes: eroded by
 #: 2 px at most 0.114 m (medians 0.032-0.054 m); leaking 3 px down onto the counter at most 0.082 m
@@ -101,19 +103,23 @@ def test_prompt_errors_are_one_line():
 
 
 def test_fill_stops_at_a_depth_step_and_within_the_extent():
-    """A box in front of a wall: the fill from a point on it keeps the box (a 0.5 m step), and on a
-    tilted plane the point's fill stops at the class's largest size."""
-    depth = np.full((50, 80), 3.0)
-    depth[10:30, 20:50] = 2.5
+    """A box in front of a wall larger than the class: the fill from a point on it keeps the box (a
+    0.5 m step), and on a tilted plane (all scene) the point's fill stops at the class's largest
+    size while no prompt finds nothing, in one line."""
+    depth = np.full((50, 80), 3.0)  # 4 m x 2.5 m at f = 60 px
+    depth[10:30, 20:50] = 2.5  # 1.25 m x 0.83 m
     K = np.array([[60.0, 0, 40], [0, 60.0, 25], [0, 0, 1]])
-    seg = segment_from_prompt(depth, K, Prompt("point", point_px=(30, 20)), max_extent_m=5.0)
+    seg = segment_from_prompt(depth, K, Prompt("point", point_px=(30, 20)), max_extent_m=2.0)
     assert seg.sum() == 20 * 30 and seg[10:30, 20:50].all()
-    box = segment_from_prompt(depth, K, Prompt("box", box_px=(0, 0, 79, 49)), max_extent_m=5.0)
-    assert box.sum() == 20 * 30  # seeded at the centre pixel, which lies on the box
+    box = segment_from_prompt(depth, K, Prompt("box", box_px=(0, 0, 79, 49)), max_extent_m=2.0)
+    assert box.sum() == 20 * 30  # the one object-sized region in the box
+    assert (segment_from_prompt(depth, K, Prompt("none"), max_extent_m=2.0) == box).all()
     floor = 1.0 + 0.01 * np.arange(80)[None].repeat(50, 0)  # steps of 1 cm: one surface
     near = segment_from_prompt(floor, K, Prompt("point", point_px=(0, 25)), max_extent_m=0.3)
     assert 0 < near.sum() < floor.size and near[25, 0] and not near[25, 79]
-    assert segment_from_prompt(floor, K, Prompt("none"), max_extent_m=0.3).all()
+    with pytest.raises(UserError, match="found no object of at most 0.3 m") as info:
+        segment_from_prompt(floor, K, Prompt("none"), max_extent_m=0.3)
+    assert "\n" not in str(info.value)
 
 
 @pytest.fixture(scope="module")
@@ -135,22 +141,27 @@ def _images(root, class_name):
 
 
 @pytest.mark.parametrize("class_name", [c.name for c in all_classes()])
-def test_box_and_point_recover_the_object_in_a_kitchen(kitchen, class_name):
-    """Every class: the box and point prompts' segmentations overlap the stored object mask with a
-    median IoU of at least MIN_MEDIAN_IOU, and better than taking every pixel with depth."""
+def test_prompts_recover_the_object_in_a_kitchen(kitchen, class_name):
+    """Every class: the box, point and no prompt's segmentations overlap the stored object mask with
+    a median IoU of at least MIN_MEDIAN_IOU, and better than taking every pixel with depth."""
     depth, mask, K = _images(kitchen, class_name)
     extent = class_extent_m(class_name)
-    iou = {kind: [] for kind in (*MIN_MEDIAN_IOU, "none")}
+    iou: dict = {kind: [] for kind in MIN_MEDIAN_IOU}
+    every = []
     for d, m in zip(depth, mask):
         obj = object_pixels(m) & (d > 0)
         assert MASK_SCENE in m  # a scene is in view: segmentation has something to leave out
         for kind in iou:
-            seg = segment_from_prompt(d, K, simulated_prompt(kind, m), max_extent_m=extent)
+            try:
+                seg = segment_from_prompt(d, K, simulated_prompt(kind, m), max_extent_m=extent)
+            except UserError:  # no prompt found no object: no overlap
+                assert kind == "none"
+                seg = np.zeros_like(obj)
             iou[kind].append((seg & obj).sum() / (seg | obj).sum())
-    none = np.median(iou["none"])
+        every.append(obj.sum() / (d > 0).sum())
     for kind, lowest in MIN_MEDIAN_IOU.items():
         assert np.median(iou[kind]) >= lowest, (kind, np.median(iou[kind]))
-        assert np.median(iou[kind]) > none, (kind, np.median(iou[kind]), none)
+        assert np.median(iou[kind]) > np.median(every), (kind, np.median(iou[kind]), np.median(every))
 
 
 def _dilated(m):
@@ -218,9 +229,11 @@ def test_estimate_takes_a_point_or_a_box(kitchen):
     np.testing.assert_allclose(a.axis_pose, b.axis_pose)
     point = simulated_prompt("point", m).point_px
     assert ad.estimate(d, K, "microwave", point=point).class_name == "microwave"
+    found = find_object(d, K, max_extent_m=class_extent_m("microwave"))  # no prompt: the object found
+    np.testing.assert_allclose(ad.estimate(d, K, "microwave").axis_pose,
+                               ad.estimate(d, K, "microwave", mask=found).axis_pose)
     for kwargs, needle in [({"point": point, "box": box.box_px}, "give one prompt of the object: point or box"),
                            ({"mask": seg, "point": point}, "mask or point, not both"),
-                           ({}, "prompt the object with mask, point or box"),
                            ({"point": (d.shape[1], 0)}, "outside")]:
         with pytest.raises(UserError, match=needle):
             ad.estimate(d, K, "microwave", **kwargs)

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from articulated_dataset.core.errors import DataFormatError, UserError
+from articulated_dataset.core.errors import DataFormatError, UserError, option
 
 if TYPE_CHECKING:
     import torch
@@ -82,7 +82,7 @@ def split_object_indices(split_dir: Path, max_objects: int | None = None) -> np.
 
 def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max_objects: int | None = None,
                      objects: np.ndarray | None = None, with_labels: bool = True, object_mask: bool = False,
-                     progress: bool = False, workers: int | None = None, prompt: str | None = None,
+                     progress: bool = False, workers: int | None = None, prompt: str | tuple[str, ...] | None = None,
                      max_extent_m: float | None = None) -> DenseData:
     """Read a split into a :class:`DenseData` (labels only if ``with_labels``); ``objects``: only
     the images of these object indices (a refit reads its validation objects, not the split: a
@@ -92,7 +92,8 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
     :data:`~articulated_dataset.methods.prompts.PROMPT_KINDS`): each image's object segmented from
     the prompt a click or a detector would give (:func:`~articulated_dataset.methods.prompts.simulated_prompt`
     of its label mask, :func:`~articulated_dataset.methods.prompts.segment_from_prompt` with
-    ``max_extent_m``) and the depth outside it set to no return; ``"mask"`` is ``object_mask``.  ``workers`` > 1
+    ``max_extent_m``) and the depth outside it set to no return; ``"mask"`` is ``object_mask``;
+    a tuple of kinds: image with sample id ``i`` takes kind ``i % len(prompt)``.  ``workers`` > 1
     reads the shards in that many processes (the same arrays, in the same order); None: one per
     CPU for splits of at least :data:`~articulated_dataset.core.pool.PARALLEL_MIN_TASKS` shards."""
     from tqdm.auto import tqdm
@@ -105,10 +106,12 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
     if not shards:
         raise DataFormatError(f"{split_dir}: the split has no shards")
     wanted = None if objects is None else np.unique(np.asarray(objects, np.int64))
-    if prompt == "mask":
+    kinds = (prompt,) if isinstance(prompt, str) else tuple(prompt or ())
+    if kinds == ("mask",):
         object_mask = True
     # per image: the label mask's object codes (object_mask), a segmentation from a simulated prompt, or all pixels
-    keep_pixels = "mask" if object_mask else None if prompt in (None, "none") else (prompt, float(max_extent_m or 0.0))
+    keep_pixels = "mask" if object_mask else None if not kinds or (kinds == ("none",) and max_extent_m is None) \
+        else (kinds, float(max_extent_m or 0.0))
     tasks = [(sh.path, s_idx, n_joints, tuple(hw), max_objects, with_labels, keep_pixels, wanted)
              for s_idx, sh in enumerate(shards)]
     bar = tqdm(total=int(manifest.get("n_images", 0)) or None, desc=f"loading {split_dir}", unit="img",
@@ -123,7 +126,11 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
         raise UserError(f"{split_dir}: no images selected")
     from articulated_dataset.methods.inputs import check_split_has_depth
 
-    check_split_has_depth(split_dir, sum(p["n_valid"] for p in parts), sum(p["n_read"] for p in parts))
+    n_valid = sum(p.get("n_valid", 0) for p in parts)
+    if kinds == ("none",) and keep_pixels is not None and not n_valid and sum(p.get("n_raw_valid", 0) for p in parts):
+        raise UserError(f"{split_dir}: no object was found in any image without a prompt; "
+                        f"use {option('prompt')} point, box or mask")
+    check_split_has_depth(split_dir, n_valid, sum(p["n_read"] for p in parts))
     cat: dict[str, Any] = {k: None if parts[0][k] is None else np.concatenate([p[k] for p in parts]) for k in _COLUMNS}
     origin = rot6 = None
     if with_labels:
@@ -140,7 +147,7 @@ def load_dense_split(split_dir: Path, n_joints: int, hw: tuple[int, int], *, max
 def _load_shard(task) -> dict:
     """One shard's arrays for :func:`load_dense_split` (a top-level function: process workers run
     it): ``task`` = (path, shard index, n_joints, hw, max_objects, with_labels, object pixels kept (None, "mask" or
-    (prompt kind, max extent in m)), objects or None).
+    (prompt kinds, max extent in m)), objects or None).
     ``object_index`` is None when no image of the shard is selected; ``n_read`` counts its images read."""
     import torch
 
@@ -178,9 +185,13 @@ def _load_shard(task) -> dict:
             elif object_mask is not None:
                 from articulated_dataset.methods.prompts import prompted_depth
 
-                kind, extent_m = object_mask
+                out["n_raw_valid"] = out.get("n_raw_valid", 0) + int(valid_depth_images(depth).sum())
+
+                kinds, extent_m = object_mask
                 m = sh.read("mask", rows)[sel - sel[0]]
-                depth = np.stack([prompted_depth(d_i, K, kind, m_i, max_extent_m=extent_m) for d_i, m_i in zip(depth, m)])
+                sid = np.asarray(sh.read("sample_id"))[sel]
+                depth = np.stack([prompted_depth(d_i, K, kinds[int(s_i) % len(kinds)], m_i, max_extent_m=extent_m)
+                                  for d_i, m_i, s_i in zip(depth, m, sid)])
             out["n_valid"] = out.get("n_valid", 0) + int(valid_depth_images(depth).sum())
             src_hw = depth.shape[1:]
             if tuple(src_hw) != tuple(hw):

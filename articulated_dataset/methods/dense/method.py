@@ -13,6 +13,9 @@ if TYPE_CHECKING:
 
 #: Images per forward pass when predicting a split.
 DEFAULT_PREDICT_BATCH = 128
+#: The predictions file's ``prompt`` attribute of a split predicted without ``--prompt`` or
+#: ``--object-mask``: the model read every pixel with depth.
+NO_PROMPT = "every-pixel"
 
 
 class DenseMethod:
@@ -36,7 +39,7 @@ class DenseMethod:
         given = {"epochs": settings.epochs, "batch_size": settings.batch_size, "lr": settings.lr,
                  "width": settings.width, "val_fraction": settings.val_fraction,
                  "origin_weight": settings.origin_weight, "noise": settings.noise,
-                 "noise_fraction": settings.noise_fraction}
+                 "noise_fraction": settings.noise_fraction, "prompts": settings.prompts}
         config = DenseTrainConfig(class_name=settings.class_name, max_objects=settings.max_objects, seed=settings.seed,
                                   init_from=settings.init_from, **{k: v for k, v in given.items() if v is not None})
         data = list(settings.data)
@@ -94,13 +97,13 @@ class DenseMethod:
         ckpt = self.load_checkpoint(ref.path)
         name = settings.method or ref.name  # dense, dense-kinect2 (shipped) or dense (a checkpoint file)
         batch_size = DEFAULT_PREDICT_BATCH if settings.batch_size is None else settings.batch_size
-        prompt = "mask" if settings.object_mask else settings.prompt or "none"
+        prompt = "mask" if settings.object_mask else settings.prompt  # None: every pixel with depth
         class_name, arrays = predict_split(ckpt, data, batch_size=batch_size, object_mask=settings.object_mask,
                                            mirror=settings.mirror, workers=settings.workers,
                                            precision=settings.precision, progress=progress, as_class=as_class,
                                            prompt=prompt)
         attrs = {"estimate": "heaviest-mode", "steps": int(ckpt["step"]), "object_mask": int(prompt == "mask"),
-                 "prompt": prompt,
+                 "prompt": prompt or NO_PROMPT,
                  "mirror": int(settings.mirror), "precision": settings.precision}
         return name, class_name, arrays, attrs
 

@@ -789,9 +789,9 @@ def check_precision(precision: str) -> None:
 
 
 def _class_extent(class_name: str, prompt: str | None) -> float | None:
-    """The largest size of ``class_name``'s objects where a point or box prompt's segmentation needs
-    it, else None."""
-    if prompt not in ("point", "box"):
+    """The largest size of ``class_name``'s objects where a point, box or no prompt's segmentation
+    needs it, else None."""
+    if prompt not in ("point", "box", "none"):
         return None
     from articulated_dataset.methods.prompts import class_extent_m
 
@@ -836,26 +836,26 @@ def predict_split(ckpt: DenseCheckpoint, data: str | Path, *, batch_size: int = 
 
         if prompt not in PROMPT_KINDS:
             raise UserError(f"{option('prompt')} must be one of {', '.join(PROMPT_KINDS)}, got {prompt!r}")
-    if not object_mask and prompt in (None, "none"):
-        from articulated_dataset.format import read_manifest
+    if not object_mask and prompt is None:
+        from articulated_dataset.methods.inputs import split_context, split_has_context
 
-        config = read_manifest(split_dir).get("config", {})
-        config = config if isinstance(config, dict) else {}  # a record of how the split was made: only read here
-        occluders = config.get("occluders", 0)
-        if config.get("scene", "none") != "none" or occluders not in (0, None):
-            log.warning("%s: the split has a scene or occluders (scene %s, %s occluders per image); the model was "
-                        "trained on isolated objects and reads every pixel with depth: pass --object-mask to give it "
-                        "only the object's pixels, as a robot's segmentation would", split_dir,
-                        config.get("scene", "none"), occluders)
+        if split_has_context(split_dir):
+            log.warning("%s: the split has a scene or occluders (scene %s, %s occluders per image); the model reads "
+                        "every pixel with depth: pass --object-mask or --prompt to give it only the object's pixels, "
+                        "as a robot's segmentation would", split_dir, *split_context(split_dir))
     model = build_inference_model(ckpt, precision)
     cfg = model.config
     d = load_dense_split(split_dir, cfg.n_joints, (cfg.height_px, cfg.width_px), with_labels=False,
                          object_mask=object_mask, progress=progress, prompt=prompt,
                          max_extent_m=_class_extent(class_name, prompt))
-    n = len(d.sample_id)
+    idx = np.arange(len(d.sample_id))
+    if prompt == "none":  # an image where no object was found gets no answer (the scorer reports the coverage)
+        idx = idx[d.depth_q.reshape(len(idx), -1).any(axis=1)]
+        log.info("dense: an object was found in %d of %d images", len(idx), len(d.sample_id))
+    n = len(idx)
     workers = default_workers(n) if workers is None else workers
     t0 = time.perf_counter()
-    arrays = predict_arrays(model, d, np.arange(n), joint_types=list(ckpt["joint_types"]),
+    arrays = predict_arrays(model, d, idx, joint_types=list(ckpt["joint_types"]),
                             calibration=ckpt.get("calibration"), refinement=with_mirror(ckpt.get("refinement"), mirror),
                             batch_size=batch_size, progress=progress, workers=workers)
     log.info("dense: %d images in %.1f s (%d process%s)", n, time.perf_counter() - t0, workers,

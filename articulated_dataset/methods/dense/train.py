@@ -111,6 +111,11 @@ class DenseTrainConfig:
     #: all pass through it (:func:`noisy_validation`).  None: renders only.
     noise: str | None = None
     noise_fraction: float = 0.5
+    #: Prompt kinds (:data:`~articulated_dataset.methods.prompts.PROMPT_KINDS`, ``--prompts``): in
+    #: a split with a scene or occluders each image's object is segmented from a simulated prompt
+    #: of these kinds in turn (by sample id), as a robot's images will be at prediction
+    #: (``predict --prompt``); an isolated split keeps every pixel.  None: every pixel everywhere.
+    prompts: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "width"):
@@ -141,6 +146,13 @@ class DenseTrainConfig:
             get_noise_model(self.noise)  # an unknown name: a UserError listing the models
         if not (0.0 < self.noise_fraction <= 1.0):
             raise UserError(f"{option('noise_fraction')} must be in (0, 1], got {self.noise_fraction}")
+        if self.prompts is not None:
+            from articulated_dataset.methods.prompts import PROMPT_KINDS
+
+            kinds = tuple(self.prompts)
+            if not kinds or any(k not in PROMPT_KINDS for k in kinds):
+                raise UserError(f"{option('prompts')} must be kinds of {', '.join(PROMPT_KINDS)}, got {self.prompts!r}")
+            object.__setattr__(self, "prompts", kinds)  # a checkpoint's list read back: the same tuple
 
     def to_dict(self) -> dict:
         """The settings as a dict (stored in checkpoints)."""
@@ -300,7 +312,13 @@ def train_dense(data: str | Path | list, out: str | Path, config: DenseTrainConf
     model_config = DenseConfig(n_joints=J, width=config.width)
     hw = (model_config.height_px, model_config.width_px)
     t_load = time.perf_counter()
-    loaded = [load_dense_split(d, J, hw, max_objects=config.max_objects, progress=progress) for d in split_dirs]
+    from articulated_dataset.methods.inputs import split_has_context
+    from articulated_dataset.methods.prompts import class_extent_m
+
+    extent_m = class_extent_m(obj_class.name)
+    loaded = [load_dense_split(d, J, hw, max_objects=config.max_objects, progress=progress,
+                               prompt=config.prompts if config.prompts and split_has_context(d) else None,
+                               max_extent_m=extent_m) for d in split_dirs]
     data_ = loaded[0] if not mixture else concat_dense_data(loaded)
     source = np.concatenate([np.full(len(p.sample_id), s) for s, p in enumerate(loaded)])  # each image's split
     t_load = time.perf_counter() - t_load

@@ -16,7 +16,7 @@ DEFAULT_PREDICT_BATCH = 256
 #: Share of the training objects held out for validation when none is given.
 DEFAULT_VAL_FRACTION = 0.1
 #: The settings only the dense method uses.
-DENSE_TRAIN_SETTINGS = ("width", "init_from", "origin_weight", "noise", "noise_fraction")
+DENSE_TRAIN_SETTINGS = ("width", "init_from", "origin_weight", "noise", "noise_fraction", "prompts")
 
 
 class MdnMethod:
@@ -30,8 +30,8 @@ class MdnMethod:
     def check_train_settings(self, settings: TrainSettings) -> None:
         """Refuse, in one line, the dense model's options, more than one split folder, and --mix-weights."""
         if settings.given(DENSE_TRAIN_SETTINGS):
-            raise UserError(f"{option('width')}, {option('init_from')}, {option('origin_weight')}, {option('noise')} "
-                            f"and {option('noise_fraction')} belong to {option('model_kind')} dense")
+            raise UserError(f"{option('width')}, {option('init_from')}, {option('origin_weight')}, {option('noise')}, "
+                            f"{option('noise_fraction')} and {option('prompts')} belong to {option('model_kind')} dense")
         if len(settings.data) != 1:
             raise UserError(f"{option('model_kind')} mdn trains on one split; give one split folder "
                             f"({option('model_kind')} dense trains on several)")

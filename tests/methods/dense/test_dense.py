@@ -768,14 +768,18 @@ def test_estimate_api_and_cli(overfit_run, tiny_root, tmp_path):
     np.save(tmp_path / "mm.npy", depth * 1000)
     (tmp_path / "mm.camera.json").write_text((tmp_path / "camera.json").read_text())
     Image.fromarray(np.zeros(depth.shape, np.uint8)).save(tmp_path / "empty.png")
-    scene = np.where(depth > 0, depth, 3.0)
-    np.save(tmp_path / "scene.npy", scene)
+    scene = np.where(depth > 0, depth, 3.0)  # the object before a wall: found without a prompt
+    found = ad.estimate(scene, K, "microwave", model=str(overfit_run[0]))
+    np.testing.assert_allclose(found.axis_origin_m, est.axis_origin_m, atol=1e-3)
+    rows = np.arange(depth.shape[0], dtype=float)[:, None].repeat(depth.shape[1], 1)
+    floor = 1.0 / (1.0 - (5.0 / 6.0) * rows / rows.max())  # inverse depth linear in the row: a plane 1-6 m away
+    np.save(tmp_path / "scene.npy", floor)  # a floor and nothing of a microwave's size
     np.save(tmp_path / "tiny.npy", depth[:4, :4])
     (tmp_path / "tiny.camera.json").write_text((tmp_path / "camera.json").read_text())
     for args, needle in [([str(tmp_path / "mm.npy")], "millimetres"),
                          ([str(tmp_path / "tiny.npy")], "4x4 image is too small"),
                          ([str(png), "--mask", str(tmp_path / "empty.png")], "mask"),
-                         ([str(tmp_path / "scene.npy"), "--camera", str(tmp_path / "camera.json")], "mask"),
+                         ([str(tmp_path / "scene.npy"), "--camera", str(tmp_path / "camera.json")], "found no object"),
                          ([str(png), "--class", "drawer"], "'microwave' model")]:
         cls = [] if "--class" in args else ["--class", "microwave"]
         assert_one_line_error(CliRunner().invoke(main, ["estimate", *args, *cls, "--model", str(overfit_run[0])]), needle)
