@@ -204,9 +204,10 @@ def estimate(depth_m: np.ndarray, K: np.ndarray, class_name: str, mask: np.ndarr
     mask (pixels outside it are ignored).  Instead of a mask, ``point`` (u, v: a pixel on the
     object, column and row) or ``box`` (x0, y0, x1, y1: the pixels around it, inclusive) prompts
     the object: its pixels are segmented from the depth (:mod:`~articulated_dataset.methods.prompts`,
-    docs/robot_view.md) and used as a mask is; at most one of the three.  Without any, the object
-    is found in the depth: every pixel with depth of an isolated object; in a scene, the largest
-    region of the class's size apart from the scene's large planes, or a one-line refusal
+    docs/robot_view.md) and used as a mask is; at most one of the three.  Without any, an image
+    with returns on at most :data:`~articulated_dataset.methods.inputs.MAX_UNMASKED_VALID_FRACTION`
+    of its pixels shows an isolated object, read from every pixel with depth; in one with more (a
+    scene) the object is found apart from the scene's large planes, or refused in one line
     (:func:`~articulated_dataset.methods.prompts.find_object`).  ``model``: ``"dense"`` (shipped weights),
     ``"dense-kinect2"`` (shipped weights trained for a real sensor's noisy depth) or a dense
     checkpoint path.  ``mirror=False`` skips the refinement's mirror image where the model uses
@@ -250,7 +251,8 @@ def _estimate(depth_m, K, class_name: str, mask, model: str, mirror: bool, preci
         raise UserError("mask holds NaN or infinite values")
     m = None if m is None else m.astype(bool)
     prompt = one_prompt(mask=m, point=point, box=box)
-    if prompt is None and m is None:  # no prompt: the object is found in the depth (an isolated one is every pixel)
+    scene_in_view = bool((depth > 0).mean() > MAX_UNMASKED_VALID_FRACTION)
+    if prompt is None and m is None and scene_in_view:  # no prompt in a scene: the object is found in the depth
         from articulated_dataset.methods.prompts import Prompt
 
         prompt = Prompt("none")

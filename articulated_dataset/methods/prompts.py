@@ -27,6 +27,9 @@ FILL_STEP_ABS_M = 0.01
 #: ... plus this fraction of their depth (a surface seen at a slant steps further between pixels
 #: the further away it is).
 FILL_STEP_REL = 0.02
+#: An image with a longer side than this (px) is segmented on every n-th pixel of each axis, n
+#: the smallest that brings it within (:func:`segment_from_prompt`): 640x480 on every 4th pixel.
+SEGMENT_MAX_SIDE_PX = 200
 #: Fewest pixels an isolated object's prompt region must hold to be taken whole (fewer, or wider
 #: than the class's largest size: the fill from the prompt is used).
 MIN_BOX_OBJECT_PX = 20
@@ -247,6 +250,53 @@ def _found_object(depth: np.ndarray, points: np.ndarray, valid: np.ndarray, scen
     return joined_by_proximity(best, np.where(near, labels, 0), points, focal_px, max_extent_m)
 
 
+def _segmented_coarsely(depth: np.ndarray, K: np.ndarray, prompt: Prompt, stride: int,
+                        max_extent_m: float) -> np.ndarray:
+    """:func:`segment_from_prompt` of a large image on every ``stride``-th pixel of each axis (the
+    intrinsics and the prompt scaled alike; a click on a pixel with depth whose coarse pixel has
+    none moves to the nearest coarse pixel with depth), brought back to the full image: a pixel
+    is the object's where one of the four coarse pixels around it is and its depth differs from
+    that one's by less than :data:`FILL_STEP_ABS_M` + :data:`FILL_STEP_REL` x depth (the edges
+    stay sharp).  The
+    model reads the image at 192x108: the mask need not be finer than that."""
+    small = depth[::stride, ::stride]
+    K_small = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ K
+    if prompt.kind == "point":
+        assert prompt.point_px is not None
+        u, v = prompt.point_px
+        if not depth[v, u] > 0:
+            raise UserError(f"{option('point')} {u},{v} is a pixel without depth; click on the object")
+        at = _nearest_valid(small > 0, (u / stride, v / stride))
+        assert at is not None  # the clicked pixel has depth, so some coarse pixel near it does
+        coarse = Prompt("point", point_px=(at[1], at[0]))
+    elif prompt.kind == "box":
+        assert prompt.box_px is not None
+        x0, y0, x1, y1 = prompt.box_px
+        cx1, cy1 = x1 // stride, y1 // stride  # the coarse pixels inside the box (one at least)
+        cx0, cy0 = min(max(-(-x0 // stride), 0), cx1), min(max(-(-y0 // stride), 0), cy1)
+        if not (small[cy0 : cy1 + 1, cx0 : cx1 + 1] > 0).any():
+            raise UserError(f"{option('box')} {x0},{y0},{x1},{y1} holds no pixel with depth")
+        coarse = Prompt("box", box_px=(cx0, cy0, cx1, cy1))
+    else:
+        coarse = prompt
+    mask_small = segment_from_prompt(small, K_small, coarse, max_extent_m=max_extent_m)
+    h, w = depth.shape
+    full = depth.astype(np.float32)
+    padded_m = np.pad(small.astype(np.float32), ((0, 1), (0, 1)), mode="edge")
+    padded_mask = np.pad(mask_small, ((0, 1), (0, 1)), mode="edge")
+
+    def up(a):  # each coarse pixel over the stride x stride full pixels it stands for
+        return np.repeat(np.repeat(a, stride, axis=0), stride, axis=1)[:h, :w]
+
+    out = np.zeros((h, w), bool)
+    for dy in (0, 1):  # the coarse pixels around each pixel: above-left, above-right, below-left, below-right
+        for dx in (0, 1):
+            near_m = up(padded_m[dy : dy + small.shape[0], dx : dx + small.shape[1]])
+            inside = up(padded_mask[dy : dy + small.shape[0], dx : dx + small.shape[1]])
+            out |= inside & (np.abs(full - near_m) < FILL_STEP_ABS_M + FILL_STEP_REL * np.minimum(full, near_m))
+    return out & (depth > 0)
+
+
 def segment_from_prompt(depth_m: np.ndarray, K: np.ndarray, prompt: Prompt, *, max_extent_m: float) -> np.ndarray:
     """The object's pixels, an (H, W) boolean mask, from ``prompt`` and the depth itself.
 
@@ -262,13 +312,18 @@ def segment_from_prompt(depth_m: np.ndarray, K: np.ndarray, prompt: Prompt, *, m
     in it that fills it best (:func:`_found_object`), or else the fill from
     the valid pixel nearest its centre, kept to the box; for a point from the point, kept within ``max_extent_m``
     of it; without a prompt the object is found (:func:`_found_object`) or refused in one line.
-    A point on a pixel without depth, or a box with none, is a :class:`UserError`."""
+    An image with a side longer than :data:`SEGMENT_MAX_SIDE_PX` is segmented on every n-th pixel
+    (:func:`_segmented_coarsely`).  A point on a pixel without depth, or a box with none, is a
+    :class:`UserError`."""
     depth = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     valid = depth > 0
     prompt.check_image(depth.shape)
     if prompt.kind == "mask":
         assert prompt.mask is not None
         return prompt.mask.copy()
+    stride = -(-max(depth.shape) // SEGMENT_MAX_SIDE_PX)
+    if stride > 1:
+        return _segmented_coarsely(depth, np.asarray(K, np.float64), prompt, stride, max_extent_m)
     from articulated_dataset.methods.scene_surfaces import scene_planes
 
     points = _points(depth, K)

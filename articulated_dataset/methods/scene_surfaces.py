@@ -113,11 +113,14 @@ def _local_triples(points: np.ndarray, left: np.ndarray, flat: np.ndarray, step:
 
 
 def _in_plane_span_m(points: np.ndarray, normal: np.ndarray) -> float:
-    """The largest extent (m) of ``points`` (N, 3) along two axes in the plane of ``normal``."""
+    """The largest extent (m) of ``points`` (N, 3) along the principal axes of their spread in the
+    plane of ``normal`` (a rectangle's sides, not its diagonal)."""
     a = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
     a /= np.linalg.norm(a)
     b = np.cross(normal, a)
-    return float(max(np.ptp(points @ a), np.ptp(points @ b)))
+    uv = np.stack([points @ a, points @ b], axis=1)
+    axes = np.linalg.eigh(np.cov(uv, rowvar=False) if len(uv) > 1 else np.eye(2))[1]
+    return float(np.ptp(uv @ axes, axis=0).max())
 
 
 def _touches_border(mask: np.ndarray) -> bool:

@@ -108,3 +108,21 @@ def test_no_prompt_finds_the_object_or_refuses_in_one_line():
     with pytest.raises(UserError, match="found no object of at most 0.5 m") as info:
         find_object(depth, K, max_extent_m=0.5)  # the front is larger than the class
     assert "\n" not in str(info.value)
+
+
+def test_a_large_image_is_segmented_on_a_coarser_grid_with_sharp_edges():
+    """The scene at 4x the size (640x480, f x4): segmented on every 4th pixel (SEGMENT_MAX_SIDE_PX),
+    the object found is the front's pixels exactly, and a click or a box gives the same."""
+    from articulated_dataset.methods.prompts import SEGMENT_MAX_SIDE_PX
+
+    big = np.repeat(np.repeat(_scene(), 4, axis=0), 4, axis=1)  # each pixel 4x4: the same rays, to a pixel
+    K4 = np.array([[4 * F, 0, 4 * W / 2 - 1.5], [0, 4 * F, 4 * H / 2 - 1.5], [0, 0, 1]])
+    assert max(big.shape) > SEGMENT_MAX_SIDE_PX
+    expected = np.zeros(big.shape, bool)
+    expected[4 * FRONT[0].start : 4 * FRONT[0].stop, 4 * FRONT[1].start : 4 * FRONT[1].stop] = True
+    assert (find_object(big, K4, max_extent_m=EXTENT_M) == expected).all()
+    point = segment_from_prompt(big, K4, Prompt("point", point_px=(321, 241)), max_extent_m=EXTENT_M)
+    box = segment_from_prompt(big, K4, Prompt("box", box_px=(200, 120, 440, 360)), max_extent_m=EXTENT_M)
+    assert (point == expected).all() and (box == expected).all()
+    thin = segment_from_prompt(big, K4, Prompt("box", box_px=(301, 200, 302, 280)), max_extent_m=EXTENT_M)
+    assert thin.any() and not (thin & ~expected).any()  # a box narrower than the grid's step still holds a pixel
