@@ -15,6 +15,13 @@ import numpy as np
 PLANE_TOL_ABS_M = 0.006
 #: ... plus this fraction of its depth (sensor noise grows with distance).
 PLANE_TOL_REL = 0.005
+#: A plane's own noise (a depth sensor's) widens its tolerance to this many standard deviations
+#: of its pixels' distances to it, estimated robustly (:data:`ROBUST_SIGMA` x their median) among
+#: the pixels within :data:`PLANE_NOISE_WINDOW` tolerances of it.
+PLANE_NOISE_FACTOR = 3.0
+PLANE_NOISE_WINDOW = 4.0
+#: The standard deviation of a normal distribution over the median of its absolute values.
+ROBUST_SIGMA = 1.4826
 #: Most planes drawn from one image (largest first).
 MAX_PLANES = 6
 #: Points of the image a plane is searched among (drawn at random, every valid pixel is scored after).
@@ -198,7 +205,10 @@ def scene_planes(points: np.ndarray, valid: np.ndarray, max_extent_m: float,
         inl = p[np.abs(p @ n[best] + d[best]) < t]
         centre = inl.mean(0)
         normal = np.linalg.svd(inl - centre, full_matrices=False)[2][-1]
-        on = left & (np.abs((points - centre) @ normal) < tol)
+        dist = np.abs((points - centre) @ normal)
+        close = left & (dist < PLANE_NOISE_WINDOW * tol)
+        noise_m = ROBUST_SIGMA * float(np.median(dist[close])) if close.any() else 0.0
+        on = left & (dist < np.maximum(tol, PLANE_NOISE_FACTOR * noise_m))
         left &= ~on
         pieces, n_pieces = ndimage.label(on, structure=np.ones((3, 3), bool))
         sizes = np.bincount(pieces.ravel(), minlength=n_pieces + 1)

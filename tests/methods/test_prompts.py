@@ -24,8 +24,8 @@ from articulated_dataset.methods.prompts import (
 )
 
 #: Median IoU (over a class's 32 kitchen images) of the object segmented from a simulated prompt
-#: with the stored object mask, at least: measured 0.69 to 0.94 (box), 0.45 to 0.86 (point) and
-#: 0.34 to 0.86 (none) over the classes, against 0.05 to 0.34 for every pixel with depth; faces
+#: with the stored object mask, at least: measured 0.69 to 0.95 (box), 0.45 to 0.87 (point) and
+#: 0.34 to 0.87 (none) over the classes, against 0.05 to 0.34 for every pixel with depth; faces
 #: flush with a neighbour's (a dishwasher between base units) are where they fail.
 MIN_MEDIAN_IOU = {"box": 0.65, "point": 0.4, "none": 0.3}
 #: Rough masks' estimates against the true mask's (axis origins, m): per rough mask, the largest

@@ -126,3 +126,13 @@ def test_a_large_image_is_segmented_on_a_coarser_grid_with_sharp_edges():
     assert (point == expected).all() and (box == expected).all()
     thin = segment_from_prompt(big, K4, Prompt("box", box_px=(301, 200, 302, 280)), max_extent_m=EXTENT_M)
     assert thin.any() and not (thin & ~expected).any()  # a box narrower than the grid's step still holds a pixel
+
+
+def test_a_noisy_wall_is_still_one_plane():
+    """Depth noise of 2 cm (a stereo sensor's at 2-3 m, beyond the plane's 2.1 cm tolerance at 3 m)
+    widens the wall's tolerance to its own spread: nearly all of it is scene, the object is not."""
+    depth = _scene()
+    depth[:100] += np.random.default_rng(0).normal(0.0, 0.02, (100, W))
+    depth[FRONT] = FRONT_M
+    scene = scene_planes(_points(depth), depth > 0, EXTENT_M)
+    assert scene[:40].mean() > 0.95 and not scene[FRONT].any()
