@@ -2,7 +2,9 @@
 instead of a label mask, and the object's pixels segmented from the prompt and the depth.
 
 A :class:`Prompt` says where the object is; :func:`segment_from_prompt` turns it into the
-object's pixels (a flood fill over depth for a point or a box), and :func:`simulated_prompt`
+object's pixels (the depth-continuous region a point or a box picks once the scene's large
+planes are removed: :mod:`~articulated_dataset.methods.scene_surfaces`; without a prompt, the
+largest one of the class's size), and :func:`simulated_prompt`
 makes the prompt a click or a detector would give from a split's stored label mask, so whole
 splits can be predicted as a robot would see them (``artdata predict --prompt``).  Rules and
 limits: docs/robot_view.md.
