@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from articulated_dataset.core.rotations import quat_multiply, quat_to_matrix
-from articulated_dataset.core.units import CM_PER_M, DEG_PER_RAD, normalise
+from articulated_dataset.core.units import CM_PER_M, DEG_PER_RAD, normalise, point_line_distance_m
 
 #: Version of the metric definitions, reported with every score (JSON ``metric_version``, CSV,
 #: table); docs/scoring.md lists what each version changed.  ``artdata score --metric-version``
@@ -178,9 +178,7 @@ def axis_direction_error_deg(dir_pred: np.ndarray, dir_true: np.ndarray) -> np.n
 
 def point_to_line_distance_cm(point_m: np.ndarray, origin_m: np.ndarray, direction: np.ndarray) -> np.ndarray:
     """Distance (cm) from ``point`` to the line ``origin + t * direction``: ``100 ||(p - o) x d_hat||``."""
-    w = np.asarray(point_m, np.float64) - np.asarray(origin_m, np.float64)
-    c = np.cross(w, normalise(direction))
-    return CM_PER_M * np.sqrt(np.einsum("...i,...i->...", c, c))
+    return CM_PER_M * point_line_distance_m(point_m, origin_m, direction)
 
 
 def line_distance_cm(origin1_m: np.ndarray, dir1: np.ndarray, origin2_m: np.ndarray, dir2: np.ndarray) -> np.ndarray:

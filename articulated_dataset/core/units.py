@@ -51,6 +51,15 @@ def normalise(v, *, min_norm: float = 0.0, what: str | None = None, error: type[
     return a / np.where((n < min_norm) | ~(n > 0.0), 1.0, n)
 
 
+
+
+def point_line_distance_m(point_m, origin_m, direction) -> np.ndarray:
+    """Distance (m) from ``point`` to the line ``origin + t * direction`` (any length of
+    ``direction``): ``||(p - o) x d_hat||``; arrays broadcast over the leading axes."""
+    w = np.asarray(point_m, np.float64) - np.asarray(origin_m, np.float64)
+    c = np.cross(w, normalise(direction))
+    return np.sqrt(np.einsum("...i,...i->...", c, c))
+
 def q_display(q: float, joint_type: str) -> tuple[float, str]:
     """``q`` (rad or m) in display units: ``(degrees, "deg")`` or ``(centimetres, "cm")``."""
     return (q * CM_PER_M, "cm") if joint_type == PRISMATIC else (q * DEG_PER_RAD, "deg")

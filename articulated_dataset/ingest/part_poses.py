@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from articulated_dataset.core.rotations import axis_angle_quat, matrix_to_quat, quat_to_matrix
-from articulated_dataset.core.units import PRISMATIC, REVOLUTE, normalise
+from articulated_dataset.core.units import PRISMATIC, REVOLUTE, normalise, point_line_distance_m
 from articulated_dataset.ingest.ground_truth import axis_frame_from_direction
 
 #: A pose's rotation may differ from an orthonormal matrix by this much (largest entry of
@@ -119,13 +119,6 @@ def relative_motion(T_parent: np.ndarray, T_child: np.ndarray, rest_pose: np.nda
     q = 0; identity if None)."""
     M = inverse(T_parent) @ T_child
     return M if rest_pose is None else M @ inverse(rest_pose)
-
-
-def point_line_distance(point: np.ndarray, origin: np.ndarray, direction: np.ndarray) -> float:
-    """Distance (m) from ``point`` to the line through ``origin`` along the unit ``direction``:
-    ``|d - (d . a) a|`` with ``d = point - origin``."""
-    d = np.asarray(point, np.float64) - origin
-    return float(np.linalg.norm(d - (d @ direction) * direction))
 
 
 def leading_face_centre(centre: np.ndarray, size: np.ndarray, R_box: np.ndarray, direction: np.ndarray) -> np.ndarray:
@@ -227,7 +220,7 @@ def joint_from_part_poses(T_parent: np.ndarray, T_child: np.ndarray, joint_type:
             p = o + ((c - o) @ b) * b
         R_pred = rotation_about(a, q)
         t_pred = (np.eye(3) - R_pred) @ p
-        line_distance = point_line_distance(p, o, b)
+        line_distance = float(point_line_distance_m(p, o, b))
     else:
         n = float(np.linalg.norm(t))
         from_motion = n >= MIN_PRISMATIC_MOTION_M

@@ -70,3 +70,15 @@ def test_normalise_of_an_overflowing_vector_warns_nothing():
             normalise([1e300, 1e300, 0.0], what="v")
     printed = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
     assert not printed, printed
+
+
+def test_point_line_distance_by_hand():
+    """(3, 4, 9) from the z axis is 5 m, whatever the direction's length; a point on the line is 0;
+    stacks broadcast."""
+    import numpy as np
+
+    from articulated_dataset.core.units import point_line_distance_m
+
+    assert point_line_distance_m([3.0, 4.0, 9.0], [0, 0, 0], [0, 0, 2.0]) == pytest.approx(5.0)
+    assert point_line_distance_m([1.0, 1.0, 5.0], [1.0, 1.0, 0.0], [0, 0, -1.0]) == pytest.approx(0.0)
+    np.testing.assert_allclose(point_line_distance_m([[0, 2.0, 0], [0, 0, 7.0]], [0, 0, 0], [1.0, 0, 0]), [2.0, 7.0])
