@@ -23,6 +23,9 @@ from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+sys.path.insert(0, str(Path(__file__).parent))  # third_party.py beside this script
+from third_party import run_artdata, text_grid  # noqa: E402  (run_artdata: artdata in this process)
+
 #: The robot's view the images are rendered in (``artdata generate`` options).
 VIEW = ["--camera", "head", "--scene", "kitchen", "--occluders", "2"]
 PROMPTS = ("point", "box", "none")
@@ -84,12 +87,7 @@ def format_table(rows: list[dict]) -> str:
               f"p{HIGH_PERCENTILE}"]
     body = [[r["class"], r["prompt"], str(r["images"]), str(r["refused"]), f"{r['segment_ms']:.1f}",
              f"{r['segment_ms_high']:.1f}", f"{r['estimate_ms']:.1f}", f"{r['estimate_ms_high']:.1f}"] for r in rows]
-    widths = [max(len(t), *(len(c[i]) for c in body)) for i, t in enumerate(titles)]
-
-    def line(cells):
-        return "  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))
-
-    return "\n".join([line(titles), line(["-" * w for w in widths])] + [line(c) for c in body])
+    return text_grid(titles, body, 2)
 
 
 def main(argv=None) -> int:
@@ -108,11 +106,6 @@ def main(argv=None) -> int:
     import torch
 
     torch.set_num_threads(args.threads)
-    here = str(Path(__file__).parent)
-    if here not in sys.path:
-        sys.path.insert(0, here)
-    from third_party import run_artdata
-
     rows = []
     try:
         for c in args.classes:

@@ -35,6 +35,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 from articulated_dataset.core.errors import UserError  # noqa: E402  (imports neither MuJoCo nor torch)
 
+sys.path.insert(0, str(Path(__file__).parent))  # third_party.py beside this script
+from third_party import run_artdata, text_grid  # noqa: E402  (run_artdata: artdata in this process)
+
 log = logging.getLogger("robot_view")
 
 #: Setting -> the ``artdata generate`` options that make it.
@@ -57,17 +60,6 @@ DEFAULT_OBJECTS = 4
 DEFAULT_IMAGES = 16
 #: The figures kept per row (the scorer's metric names).
 FIGURES = ("axis_position_error_cm", "configuration_error", "coverage_90")
-
-
-def run_artdata(args: list[str], where: str) -> None:
-    """``artdata ARGS`` in this process (:func:`third_party.run_artdata`: a failure is a UserError
-    naming ``where`` and holding the command's line)."""
-    here = str(Path(__file__).parent)
-    if here not in sys.path:
-        sys.path.insert(0, here)
-    from third_party import run_artdata as run
-
-    run(args, where)
 
 
 def split_dir(root: Path, setting: str, noise: str, class_name: str) -> Path:
@@ -117,12 +109,7 @@ def format_table(rows: list[dict]) -> str:
              num(r.get("answered", 1.0), "{:.3f}"), num(r["axis_position_error_cm"]),
              num(r["configuration_error"]) + " " + r["configuration_units"], num(r["coverage_90"], "{:.3f}"),
              num(r["position_ratio"]), num(r["configuration_ratio"])] for r in rows]
-    widths = [max(len(t), *(len(c[i]) for c in body)) for i, t in enumerate(titles)]
-
-    def line(cells):
-        return "  ".join(c.ljust(w) if i < 4 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))
-
-    return "\n".join([line(titles), line(["-" * w for w in widths])] + [line(c) for c in body])
+    return text_grid(titles, body, 4)
 
 
 def parse_args(argv=None) -> argparse.Namespace:

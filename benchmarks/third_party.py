@@ -314,8 +314,14 @@ def format_table(rows: list[dict], leading: list[tuple[str, object]]) -> str:
                 cell += " " + r["configuration_units"]
             cells.append(cell)
         body.append(cells)
+    return text_grid(titles, body, len(leading))
+
+
+def text_grid(titles: list[str], body: list[list[str]], left: int) -> str:
+    """A fixed-width table: the ``titles``, a rule of dashes, then the ``body`` rows; each column as
+    wide as its widest cell, two spaces apart, the first ``left`` columns aligned left, the others
+    right."""
     widths = [max(len(t), *(len(c[i]) for c in body)) for i, t in enumerate(titles)]
-    left = len(leading)
 
     def line(cells):
         return "  ".join(c.ljust(w) if i < left else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))

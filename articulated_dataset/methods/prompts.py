@@ -261,6 +261,8 @@ def _segmented_coarsely(depth: np.ndarray, K: np.ndarray, prompt: Prompt, stride
     that one's by less than :data:`FILL_STEP_ABS_M` + :data:`FILL_STEP_REL` x depth (the edges
     stay sharp).  The
     model reads the image at 192x108: the mask need not be finer than that."""
+    from articulated_dataset.methods.scene_surfaces import depth_step_tolerance_m
+
     small = depth[::stride, ::stride]
     K_small = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ K
     if prompt.kind == "point":
@@ -295,7 +297,7 @@ def _segmented_coarsely(depth: np.ndarray, K: np.ndarray, prompt: Prompt, stride
         for dx in (0, 1):
             near_m = up(padded_m[dy : dy + small.shape[0], dx : dx + small.shape[1]])
             inside = up(padded_mask[dy : dy + small.shape[0], dx : dx + small.shape[1]])
-            out |= inside & (np.abs(full - near_m) < FILL_STEP_ABS_M + FILL_STEP_REL * np.minimum(full, near_m))
+            out |= inside & (np.abs(full - near_m) < depth_step_tolerance_m(full, near_m, FILL_STEP_ABS_M, FILL_STEP_REL))
     return out & (depth > 0)
 
 

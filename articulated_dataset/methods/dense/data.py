@@ -172,6 +172,7 @@ def _load_shard(task) -> dict:
         if len(idx) == 0:
             return out
         K = np.asarray(sh.K, np.float64)
+        sample_id = np.asarray(sh.read("sample_id")).astype(np.int64)
         cols: dict[str, list] = {"depth_q": [], "K": [], "labels_out": []}
         for start in range(0, len(idx), LOAD_CHUNK):
             sel = idx[start : start + LOAD_CHUNK]
@@ -186,12 +187,10 @@ def _load_shard(task) -> dict:
                 from articulated_dataset.methods.prompts import prompted_depth
 
                 out["n_raw_valid"] = out.get("n_raw_valid", 0) + int(valid_depth_images(depth).sum())
-
                 kinds, extent_m = object_mask
                 m = sh.read("mask", rows)[sel - sel[0]]
-                sid = np.asarray(sh.read("sample_id"))[sel]
                 depth = np.stack([prompted_depth(d_i, K, kinds[int(s_i) % len(kinds)], m_i, max_extent_m=extent_m)
-                                  for d_i, m_i, s_i in zip(depth, m, sid)])
+                                  for d_i, m_i, s_i in zip(depth, m, sample_id[sel])])
             out["n_valid"] = out.get("n_valid", 0) + int(valid_depth_images(depth).sum())
             src_hw = depth.shape[1:]
             if tuple(src_hw) != tuple(hw):
@@ -210,7 +209,7 @@ def _load_shard(task) -> dict:
             for k in ("axis_pose", "q", "part_offset", "geometry"):
                 out[k] = np.asarray(sh.read(k), np.float64)[idx]
         out["object_index"] = oi[idx].astype(np.int64)
-        out["sample_id"] = np.asarray(sh.read("sample_id"))[idx].astype(np.int64)
+        out["sample_id"] = sample_id[idx]
         out["shard_of"] = np.full(len(idx), s_idx)
         return out
     finally:
