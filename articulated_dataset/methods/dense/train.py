@@ -151,7 +151,8 @@ class DenseTrainConfig:
 
             kinds = tuple(self.prompts)
             if not kinds or any(k not in PROMPT_KINDS for k in kinds):
-                raise UserError(f"{option('prompts')} must be kinds of {', '.join(PROMPT_KINDS)}, got {self.prompts!r}")
+                raise UserError(f"{option('prompts')} must be kinds of {', '.join(PROMPT_KINDS)}, got "
+                                f"{','.join(map(str, kinds))!r}")
             object.__setattr__(self, "prompts", kinds)  # a checkpoint's list read back: the same tuple
 
     def to_dict(self) -> dict:
